@@ -1,0 +1,3 @@
+from recal.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,320 @@
+"""`recal`: the command line. Thin: every command parses arguments and calls one function.
+
+Bad input (a missing file, a malformed table, a bad config) ends in one line on stderr and exit
+status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["main"]
+
+
+class UsageError(Exception):
+    """An error the user can fix; printed as one line."""
+
+
+# --- simulate --------------------------------------------------------------------------------
+def _cmd_simulate(a: argparse.Namespace) -> int:
+    from recal import sim
+    from recal.io import csv_table, recording
+
+    rng = np.random.default_rng(a.seed)
+    sensor = sim.SensorSpec.random(rng, offset_mg=a.offset_mg, gain_pct=a.gain_pct,
+                                   cross_axis_deg=a.cross_axis_deg)
+    sensor = replace(
+        sensor, noise_g=a.noise_mg / 1e3,
+        counts_per_g=None if a.counts_per_g <= 0 else a.counts_per_g,
+        offset_tc_g_per_c=tuple(np.full(3, a.offset_tc_mg_per_c / 1e3) * rng.choice([-1, 1], 3)),
+        gain_tc_per_c=tuple(np.full(3, a.gain_tc_pct_per_c / 100) * rng.choice([-1, 1], 3)),
+        ratiometric_per_v=a.ratiometric_pct_per_v / 100,
+        offset_drift_g_per_h=tuple(np.full(3, a.drift_mg_per_h / 1e3) * rng.choice([-1, 1], 3)),
+        q_per_g=tuple(np.full(3, a.nonlinearity_pct / 100) * rng.choice([-1, 1], 3)),
+        temp_channel=a.temp_name, supply_channel=a.supply_name)
+    wearer = sim.WearerSpec(upright_only=a.upright_only, always_aux=a.aux)
+    res = sim.simulate(a.hours, a.rate, a.seed, sensor, wearer)
+    out = Path(a.out)
+    if out.suffix.lower() == ".csv":
+        csv_table.write_raw_csv(out, res.raw)
+    elif out.suffix.lower() == ".mcap":
+        with recording.RecordingWriter(out, overwrite=True) as w:
+            for i in range(0, len(res.raw), 1000):
+                b = res.raw[i:i + 1000]
+                w.write_raw(a.sensor_id, b, int(b.t_us[0]) * 1000)
+    else:
+        raise UsageError(f"--out must end in .mcap or .csv, not {out.name!r}")
+    truth = out.with_suffix(".truth.npz")
+    sim.save_truth(truth, res)
+    print(f"wrote {out} ({len(res.raw)} samples, {a.hours:g} h at {a.rate:g} Hz, channels "
+          f"{list(res.raw.aux_names) or 'none'}) and ground truth {truth}")
+    return 0
+
+
+# --- import / export -------------------------------------------------------------------------
+def _cmd_import(a: argparse.Namespace) -> int:
+    from recal.io import csv_table, recording
+
+    table = csv_table.read_csv(a.input, units=a.units, rate_hz=a.rate)
+    with recording.RecordingWriter(a.out, overwrite=True,
+                                   metadata={"units": table.units}) as w:
+        for i in range(0, len(table.batch), 1000):
+            b = table.batch[i:i + 1000]
+            w.write_raw(a.sensor_id, b, int(b.t_us[0]) * 1000)
+    print(f"imported {len(table.batch)} samples ({table.units}, channels "
+          f"{list(table.batch.aux_names) or 'none'}) into {a.out}; "
+          f"{table.skipped_rows} bad rows skipped")
+    return 0
+
+
+def _cmd_export(a: argparse.Namespace) -> int:
+    from recal.io import csv_table, recording
+
+    sensors = recording.sensors(a.input)
+    if not sensors:
+        raise UsageError(f"{a.input} holds no sensor topics")
+    sid = a.sensor_id or sensors[0]
+    if a.topic == "raw":
+        batch = recording.read_all_raw(a.input, sid)
+        csv_table.write_raw_csv(a.csv, batch)
+    else:
+        batch = recording.read_all_calibrated(a.input, sid)
+        if len(batch) == 0:
+            raise UsageError(f"{a.input} has no calibrated data for {sid!r}; run recal replay")
+        csv_table.write_calibrated_csv(a.csv, batch)
+    print(f"wrote {len(batch)} rows of {sid}/{a.topic} to {a.csv}")
+    return 0
+
+
+# --- static ----------------------------------------------------------------------------------
+def _parse_rows(spec: str | None, n: int) -> np.ndarray:
+    mask = np.zeros(n, bool)
+    if not spec:
+        mask[:] = True
+        return mask
+    for part in spec.split(","):
+        lo, _, hi = part.partition("-")
+        try:
+            i, j = int(lo), int(hi or lo)
+        except ValueError:
+            raise UsageError(f"--fit-rows: {part!r} is not a row number or range") from None
+        if not 1 <= i <= j <= n:
+            raise UsageError(f"--fit-rows: {part!r} is outside rows 1-{n}")
+        mask[i - 1:j] = True
+    return mask
+
+
+def _read_static_table(path: str) -> np.ndarray:
+    """The three readings of each row: columns x,y,z (any unit, any suffix) by header."""
+    import csv
+
+    try:
+        with open(path, newline="") as f:
+            rows = [r for r in csv.reader(f) if r and not r[0].startswith("#")]
+    except OSError as e:
+        raise UsageError(f"cannot read {path}: {e.strerror}") from None
+    if len(rows) < 2:
+        raise UsageError(f"{path}: needs a header and at least one row")
+    head = [h.strip().lower() for h in rows[0]]
+    cols = []
+    for axis in "xyz":
+        hit = [i for i, h in enumerate(head) if h == axis or h.startswith(axis + "_")]
+        if not hit:
+            raise UsageError(f"{path}: no column {axis!r} (or {axis}_<unit>) in header {head}")
+        cols.append(hit[0])
+    try:
+        return np.array([[float(r[c]) for c in cols] for r in rows[1:]])
+    except (ValueError, IndexError) as e:
+        raise UsageError(f"{path}: a row is not three numbers ({e})") from None
+
+
+def _cmd_static(a: argparse.Namespace) -> int:
+    from recal.core import static
+
+    v = _read_static_table(a.input)
+    fit_rows = _parse_rows(a.fit_rows, len(v))
+    if a.known_orientations:
+        fit = static.fit_known_orientations(v, fit_rows, a.g)
+    else:
+        fit = static.fit_unknown_orientations(v, fit_rows, a.g, full=not a.diagonal,
+                                              loss=a.loss)
+    err = fit.rel_norm_error
+    rows = [{"row": i + 1, "fitted": bool(fit.fit_rows[i]), "rel_norm_error": float(e)}
+            for i, e in enumerate(err)]
+    report = {"method": fit.method, "g": fit.g, "params": fit.params, "rows": rows,
+              "worst_rel_norm_error": float(err.max()),
+              "worst_rel_norm_error_fitted": float(err[fit.fit_rows].max()),
+              "worst_rel_norm_error_held_out": (float(err[~fit.fit_rows].max())
+                                                if (~fit.fit_rows).any() else None)}
+    print(f"{'row':>4} {'fit':>4} {'|a|/g-1 (%)':>12}")
+    for r in rows:
+        print(f"{r['row']:>4} {'*' if r['fitted'] else '':>4} {100 * r['rel_norm_error']:>12.3f}")
+    print(f"worst relative norm error: {100 * err.max():.3f} % over all rows "
+          f"({100 * err[fit.fit_rows].max():.3f} % on the {fit.fit_rows.sum()} fitted rows)")
+    if "axis_angles_deg" in fit.params:
+        ang = fit.params["axis_angles_deg"]
+        print("angles between sensing axes: " + ", ".join(f"{k} {v:.3f}" for k, v in ang.items()))
+    if a.json:
+        Path(a.json).write_text(json.dumps(report, indent=2))
+    return 0
+
+
+# --- replay / repair / run / demo / router ---------------------------------------------------
+def _cmd_replay(a: argparse.Namespace) -> int:
+    from recal.replay import replay
+
+    summary = replay(a.input, a.out, model=a.model, config=a.config, progress=not a.quiet)
+    print(json.dumps(summary, indent=2, default=str))
+    return 0
+
+
+def _cmd_repair(a: argparse.Namespace) -> int:
+    from recal.io import recording
+
+    rep = recording.repair(a.input, a.out)
+    print(f"recovered {rep.messages_recovered} messages into {a.out}"
+          f" ({'input was truncated' if rep.truncated else 'input was complete'})")
+    for topic, n in sorted(rep.messages_per_topic.items()):
+        print(f"  {topic}: {n}")
+    return 0
+
+
+def _cmd_run(a: argparse.Namespace) -> int:
+    from recal.gateway import run_gateway
+
+    return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model)
+
+
+def _cmd_demo(a: argparse.Namespace) -> int:
+    from recal.demo import run_demo
+
+    return run_demo(a.seconds, a.out_dir)
+
+
+def _cmd_router(a: argparse.Namespace) -> int:
+    from recal.io.router import run_router
+
+    return run_router(listen_endpoints=a.listen or None, config_file=a.config)
+
+
+# --- parser ----------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="recal",
+        description="Streaming in-use recalibration of triaxial accelerometers: whenever the "
+                    "sensor is quasi-static its calibrated vector must be 1 g long (Lötters "
+                    "1998); recal estimates offsets, sensitivities and more from that, live.")
+    from recal import __version__
+    p.add_argument("--version", action="version", version=f"recal {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("demo", help="the main job on an embedded default: a simulated sensor "
+                       "on a pseudo-terminal, the daemon, Zenoh on loopback, a summary")
+    s.add_argument("--seconds", type=float, default=45.0, help="how long to run (default 45)")
+    s.add_argument("--out-dir", default="recal-demo", help="where the MCAP and summary go")
+    s.set_defaults(func=_cmd_demo)
+
+    s = sub.add_parser("run", help="the daemon: serial ports -> Zenoh -> calibration -> MCAP")
+    s.add_argument("--port", action="append", default=[], help="serial port (repeatable)")
+    s.add_argument("--sensor-id", action="append", default=[], help="id per --port")
+    s.add_argument("--config", help="service config (TOML), e.g. configs/gateway.toml")
+    s.add_argument("--mcap", help="MCAP output path (default from config)")
+    s.add_argument("--model", help="model file written by `recal discover --write-model`")
+    s.set_defaults(func=_cmd_run)
+
+    s = sub.add_parser("replay", help="re-run the raw topic of a recording through the "
+                       "calibration node (same code as the daemon, no Zenoh)")
+    s.add_argument("input", help="recording (.mcap)")
+    s.add_argument("--out", required=True, help="output recording (.mcap)")
+    s.add_argument("--model", help="model file (effects and starting values)")
+    s.add_argument("--config", help="service config (TOML) for priors and settings")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_replay)
+
+    s = sub.add_parser("simulate", help="make a wearer-like recording with ground truth")
+    s.add_argument("--out", required=True, help="FILE.mcap or FILE.csv (truth: FILE.truth.npz)")
+    s.add_argument("--hours", type=float, default=2.0)
+    s.add_argument("--rate", type=float, default=50.0, help="sample rate in Hz")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--sensor-id", default="sim0")
+    s.add_argument("--offset-mg", type=float, default=50.0, help="offsets drawn in +-this")
+    s.add_argument("--gain-pct", type=float, default=3.0, help="gain errors drawn in +-this")
+    s.add_argument("--cross-axis-deg", type=float, default=0.0, help="misalignment +-this")
+    s.add_argument("--noise-mg", type=float, default=4.0, help="white noise per axis")
+    s.add_argument("--counts-per-g", type=float, default=1024.0, help="ADC scale; 0: no ADC")
+    s.add_argument("--offset-tc-mg-per-c", type=float, default=0.0,
+                   help="offset temperature coefficient (random sign per axis)")
+    s.add_argument("--gain-tc-pct-per-c", type=float, default=0.0)
+    s.add_argument("--ratiometric-pct-per-v", type=float, default=0.0,
+                   help="whole output scaled by the supply (ratiometric parts)")
+    s.add_argument("--drift-mg-per-h", type=float, default=0.0, help="offset drift in time")
+    s.add_argument("--nonlinearity-pct", type=float, default=0.0, help="quadratic, % per g")
+    s.add_argument("--temp-name", default="temp_c", help="name of the temperature channel")
+    s.add_argument("--supply-name", default="vdd_v", help="name of the supply channel")
+    s.add_argument("--aux", action="store_true", help="always write temperature and supply")
+    s.add_argument("--upright-only", action="store_true", help="never lie down (tilt <= 30 deg)")
+    s.set_defaults(func=_cmd_simulate)
+
+    s = sub.add_parser("static", help="lab calibration from a table of still positions")
+    s.add_argument("input", help="CSV with columns x,y,z (any unit) one row per position")
+    s.add_argument("--fit-rows", help="rows to fit, e.g. 1-20 or 1-6,9 (default all)")
+    s.add_argument("--known-orientations", action="store_true",
+                   help="rows lie on faces: fit K and O linearly (Bragge)")
+    s.add_argument("--g", type=float, help="local gravity in the table's unit (only names it)")
+    s.add_argument("--diagonal", action="store_true", help="no cross-axis terms (6 params)")
+    s.add_argument("--loss", choices=("minimax", "l2"), default="minimax",
+                   help="least worst row (default) or least squares")
+    s.add_argument("--json", help="write the report as JSON here")
+    s.set_defaults(func=_cmd_static)
+
+    s = sub.add_parser("import", help="CSV (t_us or t_s, x, y, z, aux...) -> MCAP raw topic")
+    s.add_argument("input")
+    s.add_argument("--out", required=True)
+    s.add_argument("--units", choices=("counts", "g", "ms2"))
+    s.add_argument("--rate", type=float, help="sample rate when the CSV has no time column")
+    s.add_argument("--sensor-id", default="imported")
+    s.set_defaults(func=_cmd_import)
+
+    s = sub.add_parser("export", help="MCAP -> CSV of calibrated (default) or raw samples")
+    s.add_argument("input")
+    s.add_argument("--csv", required=True)
+    s.add_argument("--topic", choices=("calibrated", "raw"), default="calibrated")
+    s.add_argument("--sensor-id")
+    s.set_defaults(func=_cmd_export)
+
+    s = sub.add_parser("repair", help="recover every complete message of a truncated MCAP")
+    s.add_argument("input")
+    s.add_argument("--out", required=True)
+    s.set_defaults(func=_cmd_repair)
+
+    s = sub.add_parser("router", help="a Zenoh router for multi-gateway deployments")
+    s.add_argument("--listen", action="append", default=[],
+                   help="endpoint (default tcp/127.0.0.1:7447; repeatable)")
+    s.add_argument("--config", help="Zenoh JSON5 config, e.g. configs/zenoh-router.json5")
+    s.set_defaults(func=_cmd_router)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except (UsageError, ValueError, OSError, KeyError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        if isinstance(e, OSError) and e.filename:
+            msg = f"{e.filename}: {e.strerror or e}"
+        print(f"recal: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,399 @@
+"""Registry of sensor-model effects: each one named stage of the correction raw -> g.
+
+The correction is a chain of stages applied to the raw reading v (Lötters eq. 3 inverted and
+extended). Each effect owns a few named parameters and knows three things: how it transforms its
+input (`apply`), the derivative of its output with respect to its parameters (`d_theta`) and with
+respect to its input (`d_x`). `model.SensorModel` chains them, so the Jacobian of |a| that
+Lötters eq. 13a writes out for the diagonal model comes out of the chain rule for any set of
+effects. A new effect is one new class here and one entry in `EFFECT_KINDS`.
+
+Stages, in the order they are applied (raw unit = whatever the sensor sends, e.g. counts):
+
+  1. ratiometric   x = v / (1 + rho (c - c_ref))          supply-scaled output (Zheng et al.)
+  2. offset        x = x - o - beta (c - c_ref)           o: Lötters o_dir; beta: per covariate
+  3. scale / gain  x = x / (s (1 + gamma (c - c_ref)))    s: Lötters s_dir (raw per g)
+  4. cross_axis    a = M x, M unit upper-triangular        Bragge/Georgieva with the rotation fixed
+  5. nonlinearity  a = a + q a^2 per axis
+
+A covariate `c` is an auxiliary channel by its recording name, or "time" (hours).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "EFFECT_KINDS",
+    "TIME",
+    "Covariates",
+    "CrossAxis",
+    "Effect",
+    "Gain",
+    "Nonlinearity",
+    "Offset",
+    "Ratiometric",
+    "Scale",
+    "make_effect",
+]
+
+TIME = "time"
+AXES = ("x", "y", "z")
+#: Random walk of the zero-g offsets, g per sqrt(hour) (see Offset.process_sd_per_sqrt_h).
+OFFSET_WALK_G_PER_SQRT_H = 0.010
+
+
+@dataclass(frozen=True, eq=False)
+class Covariates:
+    """What effects may depend on, sample for sample: time in hours and named aux channels."""
+
+    t_h: np.ndarray
+    aux: np.ndarray
+    aux_names: tuple[str, ...] = ()
+
+    def get(self, name: str) -> np.ndarray:
+        if name == TIME:
+            return self.t_h
+        try:
+            return self.aux[:, self.aux_names.index(name)]
+        except ValueError:
+            raise KeyError(f"model needs channel {name!r}; recording has {self.aux_names}") from None
+
+    def __getitem__(self, index: slice | np.ndarray) -> Covariates:
+        return Covariates(self.t_h[index], self.aux[index], self.aux_names)
+
+    @classmethod
+    def from_samples(cls, t_us: np.ndarray, aux: np.ndarray, aux_names: tuple[str, ...],
+                     t0_us: int = 0) -> Covariates:
+        t_h = (np.asarray(t_us, np.float64) - t0_us) / 3.6e9
+        return cls(t_h, np.asarray(aux, np.float64).reshape(len(t_h), -1), tuple(aux_names))
+
+
+def _eye(n: int) -> np.ndarray:
+    return np.broadcast_to(np.eye(3), (n, 3, 3))
+
+
+def _diag(d: np.ndarray) -> np.ndarray:
+    """(N,3) -> (N,3,3) diagonal matrices."""
+    out = np.zeros((*d.shape, 3))
+    idx = np.arange(3)
+    out[..., idx, idx] = d
+    return out
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One stage of the correction. Subclasses implement apply, d_theta and d_x.
+
+    Attributes:
+        covariate: aux channel name, TIME, or None for effects that need none.
+        ref: covariate value where the effect is zero (c_ref).
+    """
+
+    covariate: str | None = None
+    ref: float = 0.0
+    kind: str = field(default="", init=False)
+    stage: int = field(default=0, init=False)
+
+    # --- identity and parameters -------------------------------------------------------------
+    @property
+    def key(self) -> tuple[str, str | None]:
+        return (self.kind, self.covariate)
+
+    @property
+    def label(self) -> str:
+        return self.kind if self.covariate is None else f"{self.kind}[{self.covariate}]"
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        suffix = "" if self.covariate is None else f"_{self.covariate}"
+        return tuple(f"{self.symbol}{suffix}_{ax}" for ax in AXES)
+
+    symbol = "p"
+
+    @property
+    def size(self) -> int:
+        return len(self.param_names)
+
+    def nominal(self, s0: float) -> np.ndarray:
+        """Parameter values at which the stage does nothing (s0: nominal raw units per g)."""
+        return np.zeros(self.size)
+
+    def prior_sd(self, s0: float, spread: float) -> np.ndarray:
+        """Default prior standard deviation; `spread` is the covariate's typical range."""
+        raise NotImplementedError
+
+    def process_sd_per_sqrt_h(self, s0: float, spread: float) -> np.ndarray:
+        """Random-walk process noise of each parameter, per square-root hour."""
+        return np.zeros(self.size)
+
+    def bounds(self, s0: float, spread: float) -> tuple[np.ndarray, np.ndarray]:
+        """Physical bounds; an update that leaves them is rejected."""
+        sd = self.prior_sd(s0, spread)
+        return -20 * sd, 20 * sd
+
+    def observable_with(self, axes_covered: tuple[bool, bool, bool]) -> np.ndarray:
+        """Which parameters the data can move, given which axes gravity has been seen on from
+        both sides. Offsets are always observable; a gain needs its axis covered."""
+        return np.ones(self.size, bool)
+
+    def delta(self, cov: Covariates) -> np.ndarray:
+        return cov.get(self.covariate) - self.ref  # type: ignore[arg-type]
+
+    # --- the stage ---------------------------------------------------------------------------
+    def apply(self, x: np.ndarray, cov: Covariates, theta: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def d_theta(self, x: np.ndarray, cov: Covariates, theta: np.ndarray) -> np.ndarray:
+        """(N, 3, P): derivative of the stage output with respect to its parameters."""
+        raise NotImplementedError
+
+    def d_x(self, x: np.ndarray, cov: Covariates, theta: np.ndarray) -> np.ndarray:
+        """(N, 3, 3): derivative of the stage output with respect to its input."""
+        raise NotImplementedError
+
+    def describe(self, theta: np.ndarray, s0: float) -> dict:
+        """Parameters in physical units for reports (g, mg per unit, %, deg)."""
+        return dict(zip(self.param_names, map(float, theta), strict=True))
+
+
+@dataclass(frozen=True)
+class Ratiometric(Effect):
+    """Whole output scaled by a supply channel: v = (1 + rho (c - c_ref)) v_0 (Zheng et al. 2015,
+    eq. 1 compensates the same dependence linearly; ADXL335-type parts are ratiometric)."""
+
+    kind: str = field(default="ratiometric", init=False)
+    stage: int = field(default=1, init=False)
+    symbol = "rho"
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return (f"rho_{self.covariate}",)
+
+    def prior_sd(self, s0: float, spread: float) -> np.ndarray:
+        return np.array([0.5 / max(spread, 1e-9)])
+
+    def bounds(self, s0: float, spread: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([-0.5 / max(spread, 1e-9)]), np.array([0.5 / max(spread, 1e-9)])
+
+    def apply(self, x, cov, theta):
+        return x / (1.0 + theta[0] * self.delta(cov))[:, None]
+
+    def d_theta(self, x, cov, theta):
+        d = self.delta(cov)
+        return (-x * (d / (1.0 + theta[0] * d) ** 2)[:, None])[:, :, None]
+
+    def d_x(self, x, cov, theta):
+        return _eye(len(x)) / (1.0 + theta[0] * self.delta(cov))[:, None, None]
+
+    def describe(self, theta, s0):
+        return {"rho_per_unit": float(theta[0]), "pct_per_unit": 100 * float(theta[0])}
+
+
+@dataclass(frozen=True)
+class Offset(Effect):
+    """Offset o (Lötters eq. 3, raw units), or an offset linear in a covariate (beta per unit)."""
+
+    kind: str = field(default="offset", init=False)
+    stage: int = field(default=2, init=False)
+    symbol = "o"
+
+    def prior_sd(self, s0, spread):
+        if self.covariate is None:
+            return np.full(3, 0.1 * s0)  # 100 mg: wider than any offset we have seen drift to
+        return np.full(3, 0.1 * s0 / max(spread, 1e-9))
+
+    def process_sd_per_sqrt_h(self, s0, spread):
+        # Offsets drift within hours (Lötters sec. 1); 10 mg per sqrt(hour) lets the estimate
+        # follow 15 mg/h ramps while old windows still count for minutes.
+        return np.full(3, OFFSET_WALK_G_PER_SQRT_H * s0) if self.covariate is None else np.zeros(3)
+
+    def bounds(self, s0, spread):
+        if self.covariate is None:
+            return np.full(3, -0.5 * s0), np.full(3, 0.5 * s0)
+        lim = 0.5 * s0 / max(spread, 1e-9)
+        return np.full(3, -lim), np.full(3, lim)
+
+    def apply(self, x, cov, theta):
+        if self.covariate is None:
+            return x - theta
+        return x - self.delta(cov)[:, None] * theta
+
+    def d_theta(self, x, cov, theta):
+        if self.covariate is None:
+            return -_eye(len(x))
+        return -_eye(len(x)) * self.delta(cov)[:, None, None]
+
+    def d_x(self, x, cov, theta):
+        return _eye(len(x))
+
+    def describe(self, theta, s0):
+        unit = "mg" if self.covariate is None else f"mg_per_{self.covariate}"
+        return {f"{ax}_{unit}": 1000 * float(t) / s0 for ax, t in zip(AXES, theta, strict=True)}
+
+
+@dataclass(frozen=True)
+class Scale(Effect):
+    """Sensitivity s per axis in raw units per g (Lötters eq. 3, s_dir)."""
+
+    kind: str = field(default="scale", init=False)
+    stage: int = field(default=3, init=False)
+    symbol = "s"
+
+    def nominal(self, s0):
+        return np.full(3, float(s0))
+
+    def observable_with(self, axes_covered):
+        return np.array(axes_covered, bool)
+
+    def prior_sd(self, s0, spread):
+        return np.full(3, 0.05 * s0)
+
+    def process_sd_per_sqrt_h(self, s0, spread):
+        return np.full(3, 0.001 * s0)
+
+    def bounds(self, s0, spread):
+        return np.full(3, 0.8 * s0), np.full(3, 1.2 * s0)
+
+    def apply(self, x, cov, theta):
+        return x / theta
+
+    def d_theta(self, x, cov, theta):
+        return _diag(-x / theta**2)
+
+    def d_x(self, x, cov, theta):
+        return _diag(np.broadcast_to(1.0 / theta, x.shape))
+
+    def describe(self, theta, s0):
+        return {f"s_{ax}": float(t) for ax, t in zip(AXES, theta, strict=True)} | {
+            f"gain_{ax}_pct": 100 * (float(t) / s0 - 1) for ax, t in zip(AXES, theta, strict=True)}
+
+
+@dataclass(frozen=True)
+class Gain(Effect):
+    """Per-axis sensitivity linear in a covariate: x / (1 + gamma (c - c_ref))."""
+
+    kind: str = field(default="gain", init=False)
+    stage: int = field(default=3, init=False)
+    symbol = "gamma"
+
+    def observable_with(self, axes_covered):
+        return np.array(axes_covered, bool)
+
+    def prior_sd(self, s0, spread):
+        return np.full(3, 0.05 / max(spread, 1e-9))
+
+    def bounds(self, s0, spread):
+        lim = 0.2 / max(spread, 1e-9)
+        return np.full(3, -lim), np.full(3, lim)
+
+    def apply(self, x, cov, theta):
+        return x / (1.0 + self.delta(cov)[:, None] * theta)
+
+    def d_theta(self, x, cov, theta):
+        d = self.delta(cov)[:, None]
+        return _diag(-x * d / (1.0 + d * theta) ** 2)
+
+    def d_x(self, x, cov, theta):
+        return _diag(1.0 / (1.0 + self.delta(cov)[:, None] * theta))
+
+    def describe(self, theta, s0):
+        return {f"{ax}_pct_per_{self.covariate}": 100 * float(t)
+                for ax, t in zip(AXES, theta, strict=True)}
+
+
+@dataclass(frozen=True)
+class CrossAxis(Effect):
+    """Cross-axis coupling / non-orthogonal axes (Bragge eq. 1 with full K; Georgieva eq. 16).
+
+    a = M x with M = [[1, c_xy, c_xz], [0, 1, c_yz], [0, 0, 1]]: together with the diagonal
+    scale, the inverse sensitivity matrix is upper-triangular, which fixes the rotation gauge
+    (a rotation of the sensor frame is not observable from |a| = 1 g alone).
+    """
+
+    kind: str = field(default="cross_axis", init=False)
+    stage: int = field(default=4, init=False)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return ("c_xy", "c_xz", "c_yz")
+
+    def observable_with(self, axes_covered):
+        x, y, z = axes_covered
+        return np.array([x and y, x and z, y and z], bool)
+
+    def prior_sd(self, s0, spread):
+        return np.full(3, 0.05)
+
+    def bounds(self, s0, spread):
+        return np.full(3, -0.2), np.full(3, 0.2)
+
+    @staticmethod
+    def matrix(theta: np.ndarray) -> np.ndarray:
+        return np.array([[1.0, theta[0], theta[1]], [0.0, 1.0, theta[2]], [0.0, 0.0, 1.0]])
+
+    def apply(self, x, cov, theta):
+        return x @ self.matrix(theta).T
+
+    def d_theta(self, x, cov, theta):
+        out = np.zeros((len(x), 3, 3))
+        out[:, 0, 0] = x[:, 1]
+        out[:, 0, 1] = x[:, 2]
+        out[:, 1, 2] = x[:, 2]
+        return out
+
+    def d_x(self, x, cov, theta):
+        return np.broadcast_to(self.matrix(theta), (len(x), 3, 3))
+
+    def describe(self, theta, s0):
+        return dict(zip(self.param_names, map(float, theta), strict=True))
+
+
+@dataclass(frozen=True)
+class Nonlinearity(Effect):
+    """Per-axis quadratic nonlinearity in g: a_i + q_i a_i^2 (q in 1/g)."""
+
+    kind: str = field(default="nonlinearity", init=False)
+    stage: int = field(default=5, init=False)
+    symbol = "q"
+
+    def observable_with(self, axes_covered):
+        return np.array(axes_covered, bool)
+
+    def prior_sd(self, s0, spread):
+        return np.full(3, 0.02)
+
+    def bounds(self, s0, spread):
+        return np.full(3, -0.2), np.full(3, 0.2)
+
+    def apply(self, x, cov, theta):
+        return x + theta * x**2
+
+    def d_theta(self, x, cov, theta):
+        return _diag(x**2)
+
+    def d_x(self, x, cov, theta):
+        return _diag(1.0 + 2.0 * theta * x)
+
+    def describe(self, theta, s0):
+        return {f"q_{ax}_per_g": float(t) for ax, t in zip(AXES, theta, strict=True)}
+
+
+EFFECT_KINDS: dict[str, type[Effect]] = {
+    "ratiometric": Ratiometric,
+    "offset": Offset,
+    "scale": Scale,
+    "gain": Gain,
+    "cross_axis": CrossAxis,
+    "nonlinearity": Nonlinearity,
+}
+
+
+def make_effect(kind: str, covariate: str | None = None, ref: float = 0.0) -> Effect:
+    """Build an effect by its registry name (what model files and reports call it)."""
+    try:
+        cls = EFFECT_KINDS[kind]
+    except KeyError:
+        raise ValueError(f"unknown effect kind {kind!r}; known: {sorted(EFFECT_KINDS)}") from None
+    return cls(covariate=covariate, ref=float(ref))

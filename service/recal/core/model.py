@@ -1,0 +1,203 @@
+"""The sensor model: one named parameter vector over a chain of effects, and the correction.
+
+    a = f(v; p)            raw reading v -> acceleration in g (the chain in `effects`)
+    h(v, p) = |a|          Lötters eq. 8, generalized to any chain of effects
+    xi = 1 g - h(v, p)     Lötters eq. 14
+    B = dh/dp              Lötters eq. 13a, here by the chain rule through the stages
+
+The diagonal model (Lötters, 6 parameters) is `offset + scale`; the full model (Bragge,
+Georgieva: offsets and a 3x3 sensitivity with the rotation gauge fixed) adds `cross_axis`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from recal.core.effects import Covariates, CrossAxis, Effect, Offset, Scale, make_effect
+
+__all__ = ["SensorModel"]
+
+
+@dataclass(frozen=True, eq=False)
+class SensorModel:
+    """An ordered chain of effects plus the nominal sensitivity s0 (raw units per g).
+
+    Attributes:
+        effects: the stages, sorted by stage order.
+        s0: nominal sensitivity in raw units per g (e.g. 1024 counts/g, 9.81 for m/s^2).
+        spreads: typical range of each effect's covariate (for default priors and bounds).
+    """
+
+    effects: tuple[Effect, ...]
+    s0: float = 1.0
+    spreads: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        spreads = tuple(self.spreads) or (1.0,) * len(self.effects)
+        if len(spreads) != len(self.effects):
+            raise ValueError("one spread per effect")
+        # stable sort keeps insertion order within a stage, and spreads stay with their effect
+        pairs = sorted(zip(self.effects, map(float, spreads), strict=True),
+                       key=lambda es: es[0].stage)
+        keys = [e.key for e, _ in pairs]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"duplicate effects in model: {keys}")
+        object.__setattr__(self, "effects", tuple(e for e, _ in pairs))
+        object.__setattr__(self, "spreads", tuple(sp for _, sp in pairs))
+
+    # --- construction ------------------------------------------------------------------------
+    @classmethod
+    def diagonal(cls, s0: float = 1.0) -> SensorModel:
+        """Lötters' six parameters: offsets and per-axis sensitivities."""
+        return cls((Offset(), Scale()), s0)
+
+    @classmethod
+    def full(cls, s0: float = 1.0) -> SensorModel:
+        """Offsets and an upper-triangular inverse sensitivity (Bragge/Georgieva, 9 parameters)."""
+        return cls((Offset(), Scale(), CrossAxis()), s0)
+
+    def with_effect(self, effect: Effect, spread: float = 1.0) -> SensorModel:
+        return SensorModel((*self.effects, effect), self.s0, (*self.spreads, float(spread)))
+
+    def extend(self, p: np.ndarray, effect: Effect, spread: float = 1.0) -> tuple[SensorModel,
+                                                                                   np.ndarray]:
+        """The model with one more effect, and p carried over with the new effect at nominal."""
+        new = self.with_effect(effect, spread)
+        q = new.nominal()
+        for e in self.effects:
+            q[new.slice(e)] = p[self.slice(e)]
+        return new, q
+
+    # --- the named parameter vector ----------------------------------------------------------
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(n for e in self.effects for n in e.param_names)
+
+    @property
+    def size(self) -> int:
+        return sum(e.size for e in self.effects)
+
+    def slice(self, effect: Effect | tuple[str, str | None]) -> slice:
+        key = effect if isinstance(effect, tuple) else effect.key
+        start = 0
+        for e in self.effects:
+            if e.key == key:
+                return slice(start, start + e.size)
+            start += e.size
+        raise KeyError(f"model has no effect {key}")
+
+    def has(self, kind: str, covariate: str | None = None) -> bool:
+        return any(e.key == (kind, covariate) for e in self.effects)
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    @property
+    def covariates(self) -> tuple[str, ...]:
+        return tuple(sorted({e.covariate for e in self.effects if e.covariate is not None}))
+
+    def nominal(self) -> np.ndarray:
+        return np.concatenate([e.nominal(self.s0) for e in self.effects])
+
+    def prior_sd(self) -> np.ndarray:
+        return np.concatenate([e.prior_sd(self.s0, sp)
+                               for e, sp in zip(self.effects, self.spreads, strict=True)])
+
+    def process_sd_per_sqrt_h(self) -> np.ndarray:
+        return np.concatenate([e.process_sd_per_sqrt_h(self.s0, sp)
+                               for e, sp in zip(self.effects, self.spreads, strict=True)])
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = zip(*(e.bounds(self.s0, sp)
+                       for e, sp in zip(self.effects, self.spreads, strict=True)), strict=True)
+        return np.concatenate(lo), np.concatenate(hi)
+
+    def observable_with(self, axes_covered: tuple[bool, bool, bool]) -> np.ndarray:
+        """Parameters the data can move given the axes covered (see Effect.observable_with)."""
+        return np.concatenate([e.observable_with(axes_covered) for e in self.effects])
+
+    def mask(self, kinds: Iterable[str]) -> np.ndarray:
+        """Boolean mask of the parameters that belong to effects of the given kinds."""
+        kinds = set(kinds)
+        return np.concatenate([np.full(e.size, e.kind in kinds) for e in self.effects])
+
+    # --- the correction and its Jacobian -----------------------------------------------------
+    def correct(self, p: np.ndarray, v: np.ndarray, cov: Covariates) -> np.ndarray:
+        """Raw readings (N,3) -> acceleration in g (N,3): the inverse of Lötters eq. 3."""
+        x = np.asarray(v, np.float64)
+        for e in self.effects:
+            x = e.apply(x, cov, p[self.slice(e)])
+        return x
+
+    def residual_jacobian(self, p: np.ndarray, v: np.ndarray,
+                          cov: Covariates) -> tuple[np.ndarray, np.ndarray]:
+        """xi = 1 - |a| (Lötters eq. 14) and B = d|a|/dp (eq. 13a, by the chain rule).
+
+        Returns (xi (N,), B (N, P)).
+        """
+        xs = [np.asarray(v, np.float64)]
+        for e in self.effects:
+            xs.append(e.apply(xs[-1], cov, p[self.slice(e)]))
+        a = xs[-1]
+        r = np.linalg.norm(a, axis=1)
+        g = a / np.maximum(r, 1e-12)[:, None]  # d|a|/da
+        B = np.empty((len(a), self.size))
+        for k in range(len(self.effects) - 1, -1, -1):
+            e, x_in = self.effects[k], xs[k]
+            theta = p[self.slice(e)]
+            B[:, self.slice(e)] = np.einsum("ni,nip->np", g, e.d_theta(x_in, cov, theta))
+            if k:
+                g = np.einsum("ni,nij->nj", g, e.d_x(x_in, cov, theta))
+        return 1.0 - r, B
+
+    # --- reporting and files -----------------------------------------------------------------
+    def describe(self, p: np.ndarray) -> dict[str, dict]:
+        """Parameters by effect, in physical units (mg, %, ...)."""
+        return {e.label: e.describe(p[self.slice(e)], self.s0) for e in self.effects}
+
+    def sensitivity_matrix(self, p: np.ndarray) -> np.ndarray:
+        """K in v = K a + o for the linear part (raw per g), rotation gauge fixed."""
+        T = np.diag(1.0 / p[self.slice(Scale())])
+        if self.has("cross_axis"):
+            T = CrossAxis.matrix(p[self.slice(CrossAxis())]) @ T
+        return np.linalg.inv(T)
+
+    def axis_angles_deg(self, p: np.ndarray) -> dict[str, float]:
+        """Angles between the sensing axes (Georgieva et al.: phi=(x,y), psi=(x,z), theta=(y,z))."""
+        K = self.sensitivity_matrix(p)
+        rows = K / np.linalg.norm(K, axis=1, keepdims=True)
+
+        def ang(i: int, j: int) -> float:
+            return float(np.degrees(np.arccos(np.clip(rows[i] @ rows[j], -1, 1))))
+
+        return {"phi_xy_deg": ang(0, 1), "psi_xz_deg": ang(0, 2), "theta_yz_deg": ang(1, 2)}
+
+    def to_dict(self) -> dict:
+        return {"s0": self.s0,
+                "effects": [{"kind": e.kind, "covariate": e.covariate, "ref": e.ref,
+                             "spread": sp} for e, sp in zip(self.effects, self.spreads,
+                                                            strict=True)]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SensorModel:
+        effects = [make_effect(e["kind"], e.get("covariate"), e.get("ref", 0.0))
+                   for e in d["effects"]]
+        spreads = [float(e.get("spread", 1.0)) for e in d["effects"]]
+        return cls(tuple(effects), float(d.get("s0", 1.0)), tuple(spreads))
+
+    def params_dict(self, p: np.ndarray) -> dict[str, float]:
+        return dict(zip(self.names, map(float, p), strict=True))
+
+    def params_from(self, values: dict[str, float] | Sequence[float]) -> np.ndarray:
+        if isinstance(values, dict):
+            p = self.nominal()
+            for k, val in values.items():
+                p[self.index(k)] = float(val)
+            return p
+        p = np.asarray(values, np.float64)
+        if p.shape != (self.size,):
+            raise ValueError(f"expected {self.size} parameters, got {p.shape}")
+        return p

@@ -1,0 +1,132 @@
+"""Static multi-position calibration (the lab mode of Bragge et al. and Georgieva et al.).
+
+A table of still readings (one row per position, any unit) is fitted two ways:
+
+* unknown orientations (Georgieva et al. approach 1, eq. 17): every row must have |a| = g. The
+  same model and Gauss-Newton solver as the in-use estimator (Lötters eq. 11a) fit offsets and an
+  upper-triangular inverse sensitivity (9 parameters, equivalent to Georgieva's shifts, scalings
+  and three axis angles), started from the ellipsoid fit of `bootstrap`;
+* known orientations (Bragge eq. 2-4, Georgieva approach 2): rows whose gravity direction is a
+  signed sensor axis give the linear least-squares problem z = K a + O for all 12 parameters.
+
+The figure of merit is each row's relative norm error | |a| - g | / g, reported over all rows,
+including rows left out of the fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize
+
+from recal.core.bootstrap import initial_params
+from recal.core.buffer import Windows
+from recal.core.effects import Covariates
+from recal.core.estimator import EstimatorConfig, Prior, solve
+from recal.core.model import SensorModel
+
+__all__ = ["StaticFit", "fit_known_orientations", "fit_unknown_orientations", "nearest_axes"]
+
+
+@dataclass(frozen=True, eq=False)
+class StaticFit:
+    """A static calibration: how to correct rows, and their relative norm errors."""
+
+    method: str
+    g: float
+    params: dict
+    a_g: np.ndarray  # (M,3) corrected rows, in g
+    fit_rows: np.ndarray  # bool mask of the rows used in the fit
+
+    @property
+    def rel_norm_error(self) -> np.ndarray:
+        return np.abs(np.linalg.norm(self.a_g, axis=1) - 1.0)
+
+
+def _no_covariates(n: int) -> Covariates:
+    return Covariates(np.zeros(n), np.zeros((n, 0)))
+
+
+def _minimax(model: SensorModel, p: np.ndarray, v: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Chebyshev fit: minimize t subject to | 1 - |a_i| | <= t (epigraph form, SLSQP).
+
+    The figure of merit of a static table is its *worst* row, so the fit minimizes exactly that,
+    started from the least-squares solution."""
+    cov = _no_covariates(len(v))
+
+    def resid(z: np.ndarray) -> np.ndarray:
+        return 1.0 - np.linalg.norm(model.correct(p + scale * z[:-1], v, cov), axis=1)
+
+    t0 = float(np.max(np.abs(resid(np.zeros(len(p) + 1)))))
+    res = optimize.minimize(
+        lambda z: z[-1], np.r_[np.zeros(len(p)), t0], method="SLSQP",
+        constraints=[{"type": "ineq", "fun": lambda z: z[-1] - resid(z)},
+                     {"type": "ineq", "fun": lambda z: z[-1] + resid(z)}],
+        options={"maxiter": 500, "ftol": 1e-12})
+    z = res.x if res.success and np.all(np.isfinite(res.x)) and res.x[-1] <= t0 else None
+    return p if z is None else p + scale * z[:-1]
+
+
+def fit_unknown_orientations(v: np.ndarray, fit_rows: np.ndarray, g: float | None = None,
+                             full: bool = True, loss: str = "minimax") -> StaticFit:
+    """Fit |a| = 1 g on the rows in `fit_rows`; g (the unit's gravity) only names the unit.
+
+    loss: "l2" (Georgieva eq. 17, least squares) or "minimax" (least worst row, from the l2 fit).
+    """
+    if loss not in ("l2", "minimax"):
+        raise ValueError(f"loss must be 'l2' or 'minimax', not {loss!r}")
+    v = np.asarray(v, np.float64)
+    g = float(np.median(np.linalg.norm(v, axis=1))) if g is None else float(g)
+    base = SensorModel.full(g) if full else SensorModel.diagonal(g)
+    start = initial_params(base, v[fit_rows])
+    model, p0 = start if start is not None else (base, base.nominal())
+    model = SensorModel(model.effects, g, model.spreads)
+    # A very wide prior: only a tie-breaker for directions a degenerate table leaves open.
+    prior = Prior.from_sd(model.nominal(), model.prior_sd() * 1e3)
+    sel = v[fit_rows]
+    w = Windows(sel, np.zeros((len(sel), 0)), np.zeros(len(sel), np.int64),
+                np.ones(len(sel), np.int64), np.zeros(len(sel)))
+    cfg = EstimatorConfig(sigma_floor_g=1e-3, max_iter=100, tol=1e-12)
+    p = solve(model, prior, p0, w, _no_covariates(len(sel)), 0, cfg).p
+    if loss == "minimax":
+        p = _minimax(model, p, sel, model.prior_sd())
+    a = model.correct(p, v, _no_covariates(len(v)))
+    params = {"model": model.to_dict(), "p": model.params_dict(p), "loss": loss,
+              "described": model.describe(p)}
+    if full:
+        params["axis_angles_deg"] = model.axis_angles_deg(p)
+    return StaticFit("unknown_orientations", g, params, a, np.asarray(fit_rows, bool))
+
+
+def nearest_axes(v: np.ndarray, max_angle_deg: float = 25.0) -> np.ndarray:
+    """Gravity direction of each row as the nearest signed sensor axis (unit vectors, (M,3)).
+
+    Raises ValueError for a row further than max_angle_deg from every axis."""
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    ax = np.argmax(np.abs(u), axis=1)
+    cos = np.abs(u[np.arange(len(u)), ax])
+    bad = np.flatnonzero(cos < np.cos(np.radians(max_angle_deg)))
+    if len(bad):
+        raise ValueError(f"rows {', '.join(str(i + 1) for i in bad)} are not near a sensor axis; "
+                         "--known-orientations needs rows lying on a face")
+    out = np.zeros_like(u)
+    out[np.arange(len(u)), ax] = np.sign(u[np.arange(len(u)), ax])
+    return out
+
+
+def fit_known_orientations(v: np.ndarray, fit_rows: np.ndarray,
+                           g: float | None = None) -> StaticFit:
+    """Bragge eq. 4: theta = (H^T H)^-1 H^T z with H from the known gravity directions."""
+    v = np.asarray(v, np.float64)
+    g = float(np.median(np.linalg.norm(v, axis=1))) if g is None else float(g)
+    z = v[fit_rows]
+    a_known = nearest_axes(z)  # in g
+    H = np.hstack([a_known, np.ones((len(z), 1))])  # rows (a_x, a_y, a_z, 1), eq. 2 per axis
+    if np.linalg.matrix_rank(H) < 4:
+        raise ValueError("known orientations must span 4 independent rows (Georgieva eq. 22)")
+    theta, *_ = np.linalg.lstsq(H, z, rcond=None)  # eq. 3-4 solved for all three axes at once
+    K, O = theta[:3].T, theta[3]
+    a = np.linalg.solve(K, (v - O).T).T  # Bragge eq. 5
+    params = {"K": K.tolist(), "O": O.tolist(), "g": g}
+    return StaticFit("known_orientations", g, params, a, np.asarray(fit_rows, bool))

@@ -1,0 +1,238 @@
+"""A simulated accelerometer on a real pseudo-terminal, for tests and ``recal demo``.
+
+:class:`PtyDevice` opens a pty pair, puts the slave in raw mode (no echo, no newline
+translation) and points a stable symlink at the slave, so a consumer opens ``link_path`` exactly
+as it would open ``/dev/ttyACM0``. The device writes encoded samples on the master side.
+
+Writes never hang: the master is non-blocking, and a write gives up at its deadline when nobody
+reads the slave (a real UART drops bytes then too). :meth:`PtyDevice.unplug` closes both ends and
+removes the link: the reader's next read fails with EIO and the path is gone, as when a USB
+device is pulled. :meth:`PtyDevice.replug` makes a new pty behind the same link ("boots" again:
+the ASCII header is sent again with the next samples).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import select
+import threading
+import time
+import tty
+from types import TracebackType
+
+import numpy as np
+
+from recal.io.frames import encode_ascii, encode_cobs
+from recal.samples import RawBatch
+
+__all__ = ["PtyDevice"]
+
+_WRITE_SLICE_BYTES = 65536  # one os.write at most; bounds time spent holding the lock
+_SELECT_SLICE_S = 0.01  # re-check unplug this often while waiting for room to write
+_tmp_names = itertools.count()
+
+
+class PtyDevice:
+    """A device that writes ASCII lines or COBS frames on a pseudo-terminal behind a symlink.
+
+    Args:
+        link_path: where the symlink to the slave tty goes (replaced if it is a symlink).
+        fmt: "ascii" or "cobs" (see :mod:`recal.io.frames`).
+        header: for ASCII, print a ``#t_us,x,y,z,<aux>`` header before the first samples after
+            each (re)plug, as a device does at boot.
+        write_timeout_s: how long one write waits for the reader to make room.
+        line_ending: "\\n" or "\\r\\n" for ASCII.
+        xyz: COBS x, y, z encoding, "auto" | "int32" | "float32".
+    """
+
+    def __init__(self, link_path: str, fmt: str = "ascii", header: bool = True, *,
+                 write_timeout_s: float = 1.0, line_ending: str = "\n",
+                 xyz: str = "auto") -> None:
+        if fmt not in ("ascii", "cobs"):
+            raise ValueError(f"unknown wire format {fmt!r}; expected 'ascii' or 'cobs'")
+        if os.path.exists(link_path) and not os.path.islink(link_path):
+            raise FileExistsError(f"{link_path} exists and is not a symlink")
+        self.link_path = link_path
+        self.fmt = fmt
+        self.header = header
+        self.write_timeout_s = write_timeout_s
+        self.line_ending = line_ending
+        self.xyz = xyz
+        self._lock = threading.Lock()
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._slave_name = ""
+        self._header_due = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.samples_streamed = 0
+        self.bytes_dropped = 0
+        self._plug()
+
+    # -- plugging
+
+    @property
+    def slave_name(self) -> str:
+        """The pty's own device name, e.g. ``/dev/pts/3`` (changes on every replug)."""
+        return self._slave_name
+
+    @property
+    def is_plugged(self) -> bool:
+        return self._master is not None
+
+    def _plug(self) -> None:
+        master, slave = os.openpty()
+        try:
+            tty.setraw(slave)  # no echo, no CR/LF translation: bytes pass through unchanged
+            os.set_blocking(master, False)
+            name = os.ttyname(slave)
+            tmp = f"{self.link_path}.{os.getpid()}.{next(_tmp_names)}.tmp"
+            os.symlink(name, tmp)
+            os.replace(tmp, self.link_path)  # atomic: a reader never sees a half-made link
+        except OSError:
+            os.close(master)
+            os.close(slave)
+            raise
+        with self._lock:
+            self._master, self._slave, self._slave_name = master, slave, name
+            self._header_due = self.header and self.fmt == "ascii"
+
+    def unplug(self) -> None:
+        """Close both ends and remove the link: readers get EIO, the path vanishes."""
+        with self._lock:
+            master, slave, name = self._master, self._slave, self._slave_name
+            self._master = self._slave = None
+        for fd in (master, slave):
+            if fd is not None:
+                os.close(fd)
+        # Remove the link only if it is still ours (someone may have re-pointed it).
+        with contextlib.suppress(OSError):
+            if os.readlink(self.link_path) == name:
+                os.unlink(self.link_path)
+
+    def replug(self) -> None:
+        """Unplug if plugged, then come back on a new pty behind the same link."""
+        if self.is_plugged:
+            self.unplug()
+        self._plug()
+
+    def close(self) -> None:
+        """Stop streaming and unplug. Safe to call twice."""
+        self.stop()
+        self.join(timeout_s=2.0)
+        if self.is_plugged:
+            self.unplug()
+
+    def __enter__(self) -> PtyDevice:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- writing
+
+    def write_bytes(self, data: bytes, timeout_s: float | None = None) -> int:
+        """Write raw bytes; return how many went out before the deadline (0 if unplugged)."""
+        view = memoryview(bytes(data))
+        deadline_s = time.monotonic() + (self.write_timeout_s if timeout_s is None
+                                         else timeout_s)
+        done = 0
+        while done < len(view):
+            with self._lock:
+                fd = self._master
+                if fd is None:
+                    break  # unplugged: nobody hears it
+                try:
+                    done += os.write(fd, view[done:done + _WRITE_SLICE_BYTES])
+                    continue
+                except BlockingIOError:
+                    pass  # the pty buffer is full: wait for the reader below
+                except OSError:
+                    break
+            remaining_s = deadline_s - time.monotonic()
+            if remaining_s <= 0:
+                break
+            # Short slices so an unplug from another thread is seen promptly; the fd may
+            # be closed meanwhile, which select reports as an error we just retry past.
+            with contextlib.suppress(OSError, ValueError):
+                select.select([], [fd], [], min(remaining_s, _SELECT_SLICE_S))
+        self.bytes_dropped += len(view) - done
+        return done
+
+    def write_batch(self, batch: RawBatch) -> int:
+        """Write samples in the device's format (after the boot header if due); bytes written."""
+        with self._lock:  # the streaming thread and the caller may both write
+            header_due, self._header_due = self._header_due, False
+        data = b""
+        if header_due:
+            data = encode_ascii(batch[:0], header=True, line_ending=self.line_ending)
+        if self.fmt == "ascii":
+            data += encode_ascii(batch, header=False, line_ending=self.line_ending)
+        else:
+            data += encode_cobs(batch, xyz=self.xyz)
+        return self.write_bytes(data)
+
+    def write_header(self, aux_names: tuple[str, ...]) -> int:
+        """Send the ASCII header line now (devices may repeat it)."""
+        empty = RawBatch.empty(aux_names)
+        return self.write_bytes(encode_ascii(empty, header=True, line_ending=self.line_ending))
+
+    def write_garbage(self, data: bytes) -> int:
+        """Write arbitrary bytes (line noise, a reset banner, half a frame)."""
+        return self.write_bytes(data)
+
+    # -- streaming in real time
+
+    def start_streaming(self, batch: RawBatch, rate_hz: float | None = None,
+                        speedup: float = 1.0, chunk_samples: int | None = None) -> None:
+        """Write ``batch`` in a background thread at its own pace, chunk by chunk.
+
+        A chunk goes out when its last sample is due: at ``(t_us - t_us[0]) / speedup`` or, with
+        ``rate_hz``, at ``i / (rate_hz * speedup)``. ``chunk_samples`` defaults to about 10 ms
+        of samples. Unplugged periods drop their chunks, like a real device. Stops at the end,
+        or at :meth:`stop`.
+        """
+        if self._thread is not None and self._thread.is_alive():
+            raise RuntimeError("already streaming")
+        if rate_hz is not None:
+            due_s = np.arange(len(batch)) / float(rate_hz)
+        else:
+            due_s = (batch.t_us - (batch.t_us[0] if len(batch) else 0)) / 1e6
+        due_s = due_s / float(speedup)
+        if chunk_samples is None:
+            span_s = float(due_s[-1]) if len(batch) > 1 else 0.0
+            per_s = (len(batch) - 1) / span_s if span_s > 0 else len(batch)
+            chunk_samples = max(1, int(per_s * 0.01))
+        self._stop.clear()
+        self.samples_streamed = 0
+        self._thread = threading.Thread(target=self._stream, args=(batch, due_s, chunk_samples),
+                                        name=f"pty-device {self.link_path}", daemon=True)
+        self._thread.start()
+
+    def _stream(self, batch: RawBatch, due_s: np.ndarray, chunk_samples: int) -> None:
+        start_s = time.monotonic()
+        for i in range(0, len(batch), chunk_samples):
+            chunk = batch[i:i + chunk_samples]
+            wait_s = start_s + float(due_s[i + len(chunk) - 1]) - time.monotonic()
+            if self._stop.wait(max(0.0, wait_s)):
+                return
+            self.write_batch(chunk)
+            self.samples_streamed = i + len(chunk)
+
+    def stop(self) -> None:
+        """Ask the streaming thread to stop (returns at once; see :meth:`join`)."""
+        self._stop.set()
+
+    def join(self, timeout_s: float | None = None) -> bool:
+        """Wait for the streaming thread; True if it has finished (or never ran)."""
+        if self._thread is None:
+            return True
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+    @property
+    def streaming(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()

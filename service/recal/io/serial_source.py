@@ -1,0 +1,290 @@
+"""Samples from a serial port: chunked reads through a streaming parser, reconnect with backoff.
+
+A :class:`SerialSource` owns one pyserial port (``serial.serial_for_url``, so ``/dev/ttyACM0``,
+a pty symlink and ``loop://`` all work) and one parser from :mod:`recal.io.frames`. Its single
+verb is :meth:`SerialSource.read_batch`: it reads whatever the port has in ``read(max(1,
+in_waiting))`` chunks (never ``readline()``, which costs a system call per byte), parses, and
+returns the valid samples plus what happened as :class:`SourceEvent` s. It never raises for a
+device that is missing, unplugged or talking nonsense: the port is closed, ``port_lost`` is
+reported, and opening is retried with exponential backoff until ``port_found``.
+
+Memory is bounded: one partial line or frame in the parser, at most ``max_batch_bytes`` read
+per call, a handful of events per call.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+import serial
+
+from recal.io.frames import FrameParser, ParseErrors
+from recal.samples import RawBatch
+
+__all__ = ["EVENT_KINDS", "SerialSource", "SourceEvent"]
+
+EVENT_KINDS = frozenset({"port_opened", "port_lost", "port_found", "open_failed",
+                         "parse_errors"})
+
+# What a vanished or broken device raises: pyserial wraps most OS errors in SerialException,
+# but in_waiting's ioctl and the path checks raise OSError directly.
+_PORT_ERRORS = (serial.SerialException, OSError)
+
+
+@dataclass(frozen=True)
+class SourceEvent:
+    """Something that happened to a source, for logs and the status topic.
+
+    Attributes:
+        kind: one of :data:`EVENT_KINDS`.
+        detail: ``port``, and by kind: ``error`` (port_lost, open_failed), ``attempt`` and
+            ``retry_in_s`` (open_failed), ``down_s`` (port_found: time since it was lost);
+            for parse_errors the error counts added since the previous read_batch, by name
+            (see :class:`recal.io.frames.ParseErrors`; informational counts left out).
+        t_s: ``time.monotonic()`` when it happened.
+    """
+
+    kind: str
+    detail: dict[str, Any] = field(default_factory=dict)
+    t_s: float = 0.0
+
+
+class _PortGone(Exception):
+    """The device path vanished or now names another device."""
+
+
+class SerialSource:
+    """One serial device read through a streaming parser.
+
+    Args:
+        port: device path or pyserial URL (``loop://``, ``/tmp/recal-dev0``, ``/dev/ttyUSB0``).
+        parser: a parser from :func:`recal.io.frames.make_parser` (it keeps partial lines).
+        baudrate: line rate (ignored by ptys and ``loop://``).
+        read_timeout_s: longest a single read waits for a first byte; bounds the latency of
+            noticing the deadline, and is the pyserial ``timeout``.
+        backoff_initial_s, backoff_max_s: reopen delays double from initial up to max.
+        max_read_bytes: largest single read.
+        max_batch_bytes: stop reading in one read_batch call after this many bytes.
+        path_check_interval_s: how often to check that a device path still exists and still
+            names the opened device (catches an unplug that reads do not report).
+        serial_kwargs: more keyword arguments for ``serial.serial_for_url``.
+        clock: monotonic clock in seconds (tests may pass their own).
+    """
+
+    def __init__(self, port: str, parser: FrameParser, baudrate: int = 115200, *,
+                 read_timeout_s: float = 0.01, backoff_initial_s: float = 0.05,
+                 backoff_max_s: float = 2.0, max_read_bytes: int = 65536,
+                 max_batch_bytes: int = 1 << 20, path_check_interval_s: float = 0.25,
+                 serial_kwargs: dict[str, Any] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.port = port
+        self.parser = parser
+        self.baudrate = baudrate
+        self.read_timeout_s = read_timeout_s
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
+        self.max_read_bytes = max_read_bytes
+        self.max_batch_bytes = max_batch_bytes
+        self.path_check_interval_s = path_check_interval_s
+        self._serial_kwargs = dict(serial_kwargs or {})
+        self._clock = clock
+        self._ser: Any = None
+        self._closed = False
+        self._ever_opened = False
+        self._lost_at_s: float | None = None
+        self._next_open_s = 0.0
+        self._backoff_s = backoff_initial_s
+        self._attempts = 0  # failed opens since the last success
+        self._device_id: tuple[int, int] | None = None
+        self._next_path_check_s = 0.0
+        self._errors_seen = parser.errors.copy()
+        self._carry: RawBatch | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return self._ser is not None
+
+    def read_batch(self, max_wait_s: float = 0.1, *,
+                   min_samples: int = 1) -> tuple[RawBatch, list[SourceEvent]]:
+        """Read for at most ``max_wait_s`` and return (samples, events).
+
+        Returns early once ``min_samples`` samples were parsed and the port had nothing more
+        waiting, when the port is lost, or after ``max_batch_bytes``. Opens (or reopens, on
+        the backoff schedule) the port as needed. Samples are in arrival order; the batch has
+        the parser's auxiliary names. Never raises for port or data trouble.
+        """
+        deadline_s = self._clock() + max(0.0, max_wait_s)
+        events: list[SourceEvent] = []
+        batches: list[RawBatch] = [self._carry] if self._carry is not None else []
+        self._carry = None
+        n_samples = sum(len(b) for b in batches)
+        n_bytes = 0
+        while not self._closed:
+            if self._ser is None:
+                self._open_when_due(deadline_s, events)
+                if self._ser is None:
+                    if self._clock() >= deadline_s:
+                        break
+                    continue
+            try:
+                waiting = self._ser.in_waiting
+                data = self._ser.read(max(1, min(waiting, self.max_read_bytes)))
+                self._check_path()
+            except (*_PORT_ERRORS, _PortGone) as exc:
+                self._lose(exc, events)
+                break
+            if data:
+                n_bytes += len(data)
+                batch = self.parser.feed(data)
+                if len(batch) and batches and batch.aux.shape[1] != batches[-1].aux.shape[1]:
+                    self._carry = batch  # new layout: starts the next call's batch
+                    break
+                if len(batch):
+                    batches.append(batch)
+                    n_samples += len(batch)
+            drained = waiting < self.max_read_bytes
+            if (n_samples >= min_samples and drained) or n_bytes >= self.max_batch_bytes:
+                break
+            if self._clock() >= deadline_s:
+                break
+        self._report_parse_errors(events)
+        return self._join(batches), events
+
+    def write(self, data: bytes) -> int:
+        """Send bytes to the device (a command); bytes written, 0 if the port is not open.
+
+        A failing write is not raised: the next read_batch notices a lost port.
+        """
+        if self._ser is None:
+            return 0
+        try:
+            return int(self._ser.write(data) or 0)
+        except _PORT_ERRORS:
+            return 0
+
+    def close(self) -> None:
+        """Close the port; later read_batch calls return nothing."""
+        self._closed = True
+        self._close_port()
+
+    def __enter__(self) -> SerialSource:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- opening and losing the port
+
+    def _open_when_due(self, deadline_s: float, events: list[SourceEvent]) -> None:
+        """Sleep until the next open attempt if it falls before the deadline, then try."""
+        now_s = self._clock()
+        if now_s < self._next_open_s:
+            if self._next_open_s > deadline_s:
+                time.sleep(max(0.0, deadline_s - now_s))
+                return
+            time.sleep(self._next_open_s - now_s)
+        self._try_open(events)
+
+    def _try_open(self, events: list[SourceEvent]) -> None:
+        now_s = self._clock()
+        try:
+            ser = serial.serial_for_url(self.port, baudrate=self.baudrate,
+                                        timeout=self.read_timeout_s, **self._serial_kwargs)
+        except (*_PORT_ERRORS, ValueError) as exc:
+            self._open_failed(exc, now_s, events)
+            return
+        try:
+            device_id = self._path_device_id()
+        except OSError as exc:  # vanished between open and stat
+            ser.close()
+            self._open_failed(exc, now_s, events)
+            return
+        self._ser, self._device_id = ser, device_id
+        self._next_path_check_s = now_s + self.path_check_interval_s
+        self._backoff_s, self._attempts = self.backoff_initial_s, 0
+        # The first bytes may be the tail of a line the device was sending before we looked.
+        self.parser.reset(resync=True)
+        if self._ever_opened:
+            down_s = now_s - (self._lost_at_s if self._lost_at_s is not None else now_s)
+            events.append(SourceEvent("port_found", {"port": self.port, "down_s": down_s},
+                                      now_s))
+        else:
+            events.append(SourceEvent("port_opened", {"port": self.port}, now_s))
+        self._ever_opened = True
+
+    def _open_failed(self, exc: BaseException, now_s: float,
+                     events: list[SourceEvent]) -> None:
+        self._attempts += 1
+        delay_s = self._backoff_s
+        self._next_open_s = now_s + delay_s
+        self._backoff_s = min(2.0 * delay_s, self.backoff_max_s)
+        events.append(SourceEvent("open_failed", {
+            "port": self.port, "error": str(exc), "attempt": self._attempts,
+            "retry_in_s": delay_s}, now_s))
+
+    def _lose(self, exc: BaseException, events: list[SourceEvent]) -> None:
+        now_s = self._clock()
+        self._close_port()
+        # A partial line from before the unplug must not be glued to the new device's bytes.
+        self.parser.reset(resync=True)
+        self._lost_at_s = now_s
+        self._next_open_s = now_s + self._backoff_s
+        events.append(SourceEvent("port_lost", {"port": self.port, "error": str(exc)}, now_s))
+
+    def _close_port(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except _PORT_ERRORS:
+                pass  # closing a dead device may fail; it is closed as far as we care
+
+    # -- noticing a device path that vanished
+
+    def _is_path(self) -> bool:
+        return "://" not in self.port
+
+    def _path_device_id(self) -> tuple[int, int] | None:
+        """(st_ino, st_rdev) of what the path names now (following symlinks), or None."""
+        if not self._is_path():
+            return None
+        st = os.stat(self.port)
+        return st.st_ino, st.st_rdev
+
+    def _check_path(self) -> None:
+        if self._device_id is None or self._clock() < self._next_path_check_s:
+            return
+        self._next_path_check_s = self._clock() + self.path_check_interval_s
+        try:
+            now_id = self._path_device_id()
+        except FileNotFoundError:
+            raise _PortGone(f"{self.port} vanished") from None
+        if now_id != self._device_id:
+            raise _PortGone(f"{self.port} now names another device")
+
+    # -- results
+
+    def _report_parse_errors(self, events: list[SourceEvent]) -> None:
+        delta: ParseErrors = self.parser.errors - self._errors_seen
+        self._errors_seen = self.parser.errors.copy()
+        if delta.total > 0:
+            counts = {k: v for k, v in delta.nonzero().items()
+                      if k not in ParseErrors.INFORMATIONAL}
+            events.append(SourceEvent("parse_errors", {"port": self.port, **counts},
+                                      self._clock()))
+
+    def _join(self, batches: list[RawBatch]) -> RawBatch:
+        names = self.parser.aux_names
+        if not batches:
+            return RawBatch.empty(names)
+        # Within one connection only a rename can happen (a header naming positional
+        # channels); label the whole batch with the newest names.
+        last = batches[-1].aux_names
+        return RawBatch.concat([b if b.aux_names == last else
+                                RawBatch(b.t_us, b.v, b.aux, last) for b in batches])

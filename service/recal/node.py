@@ -1,0 +1,770 @@
+"""Calibration node: one per sensor, between the bus or a recording and ``Pipeline.step``.
+
+A :class:`CalibrationNode` takes raw batches and hands everything it derives to a
+:class:`Sink`: the calibrated batch, the calibration state (``pipeline.summary()`` plus the
+sensor id) whenever an update happened, the decimated per-sample plot topic, events (rejected
+updates, bootstrap, alignment, tilt alarm) and, once the mounting is known, the acceleration
+rotated into the body frame. Sinks exist for a recording (:class:`RecordingSink`), for Zenoh
+(:class:`BusSink`) and for both (:class:`MultiSink`), so the gateway (in-process), a node on
+another machine (:func:`run_node`, subscribed to ``recal/*/raw``) and ``replay`` (no Zenoh)
+run this same code.
+
+No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math in
+``recal.core.alignment``.
+
+Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
+``recal/<sensor>/<suffix>`` where the bus layout has one):
+
+* ``calibrated`` (and ``body``): CalibratedBatch protobuf.
+* ``calibration``: JSON, the calibration state: ``sensor_id``, ``t_us`` (device time, us),
+  ``reason`` (start | restored | update | bootstrap | status), ``model`` (name),
+  ``model_spec``, ``param_names``, ``params`` (by name, raw units), ``described`` (mg, %),
+  ``sd``, ``covariance``, ``residual_rms_mg``, ``residual_g``, ``last_update``, ``coverage``,
+  ``counts``, ``update_count``, ``observable``, ``alignment``.
+* ``events``: JSON ``{t_us, kind, sensor_id, detail}``.
+* ``plot``: one JSON message per decimated sample (log only).
+* ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state (so a
+  replay reproduces the run bit for bit), the rate, the alignment (log only).
+
+Alignment (Zheng et al. sec. II.B): the reference posture is the first quasi-static run of
+``min_still_s`` (10 s) within ``upright_max_deg`` of +z, after at least one accepted update;
+a query on ``recal/<sensor>/align`` aligns at once on the current still run (if it lasted
+``request_min_s``) or arms the next run of ``min_still_s`` as the reference.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from recal.config import (
+    AlignmentConfig,
+    ConfigError,
+    PipelineSettings,
+    SensorConfig,
+    ServiceConfig,
+    load_config,
+    model_and_prior,
+)
+from recal.core import alignment as al
+from recal.core.estimator import Prior
+from recal.core.model import SensorModel
+from recal.core.pipeline import Pipeline, StepOutput
+from recal.samples import CalibratedBatch, RawBatch
+
+__all__ = [
+    "BusSink",
+    "CalibrationNode",
+    "MultiSink",
+    "NodeSettings",
+    "NullSink",
+    "RecordingSink",
+    "Sink",
+    "checkpoint_path",
+    "infer_rate_hz",
+    "load_checkpoint",
+    "make_node",
+    "model_name",
+    "node_settings",
+    "run_node",
+    "save_checkpoint",
+]
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = 1
+DEFAULT_RATE_HZ = 100.0  # only when a stream ends before its rate could be measured
+
+
+# ---------------------------------------------------------------------------------------------
+# Sinks: where a node's output goes
+# ---------------------------------------------------------------------------------------------
+
+class Sink(Protocol):
+    """Receives a node's output; ``log_time_ns`` is the service clock (ns since the epoch)."""
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None: ...
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None: ...
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None: ...
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any],
+             log_time_ns: int) -> None: ...
+
+
+class NullSink:
+    """Discards everything (a node used only for its state)."""
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        pass
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        pass
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        pass
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        pass
+
+
+class RecordingSink:
+    """Writes to a :class:`recal.io.recording.RecordingWriter` (topic ``/<sensor>/<suffix>``)."""
+
+    def __init__(self, writer: Any) -> None:
+        self.writer = writer
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        self.writer.write_raw(sensor_id, batch, log_time_ns)
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix)
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+
+
+class BusSink:
+    """Publishes on a :class:`recal.io.bus.Bus` (``recal/<sensor>/<suffix>``).
+
+    Suffixes without a bus key (plot, setup) are not published. A publish Zenoh refuses, or
+    one after the bus closed, is counted in ``dropped`` and never raises.
+    """
+
+    def __init__(self, bus: Any) -> None:
+        from recal.io import bus as _bus
+        from recal.io import messages
+
+        self.bus = bus
+        self._key = _bus.key
+        self._topics = frozenset(_bus.TOPICS)
+        self._messages = messages
+        self.dropped = 0
+
+    def _put(self, sensor_id: str, suffix: str, data: bytes) -> None:
+        try:
+            ok = self.bus.publish(self._key(sensor_id, suffix), data)
+        except RuntimeError:  # the bus closed under us (shutdown)
+            ok = False
+        if not ok:
+            self.dropped += 1
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        self._put(sensor_id, "raw", self._messages.encode_raw(sensor_id, batch))
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self._put(sensor_id, suffix, self._messages.encode_calibrated(sensor_id, batch))
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        pass  # the plot topic is for the log's Plot panel; the bus carries whole batches
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        if suffix in self._topics:
+            self._put(sensor_id, suffix, self._messages.encode_json(obj))
+
+
+class MultiSink:
+    """Hands everything to several sinks, in order (e.g. log first, then the bus)."""
+
+    def __init__(self, *sinks: Sink) -> None:
+        self.sinks = sinks
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        for s in self.sinks:
+            s.raw(sensor_id, batch, log_time_ns)
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        for s in self.sinks:
+            s.calibrated(sensor_id, batch, log_time_ns, suffix)
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        for s in self.sinks:
+            s.plot(sensor_id, batch, log_time_ns, every_n)
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        for s in self.sinks:
+            s.json(sensor_id, suffix, obj, log_time_ns)
+
+
+# ---------------------------------------------------------------------------------------------
+# Small pure helpers
+# ---------------------------------------------------------------------------------------------
+
+def infer_rate_hz(t_us: np.ndarray) -> float | None:
+    """Sample rate in Hz from device time stamps (median positive step), None if unknown."""
+    dt = np.diff(np.asarray(t_us, np.int64))
+    dt = dt[dt > 0]
+    if len(dt) == 0:
+        return None
+    return float(1e6 / np.median(dt))
+
+
+def model_name(model: SensorModel) -> str:
+    """"diagonal", "full", or the effect labels joined by "+" for discovered models."""
+    kinds = tuple(e.key for e in model.effects)
+    if kinds == (("offset", None), ("scale", None)):
+        return "diagonal"
+    if kinds == (("offset", None), ("scale", None), ("cross_axis", None)):
+        return "full"
+    return "+".join(e.label for e in model.effects)
+
+
+def _conform(batch: RawBatch, names: tuple[str, ...], needed: Sequence[str]) -> RawBatch | str:
+    """The batch with exactly the channels ``names`` (reordered; unused missing ones NaN), or
+    the reason it cannot be calibrated (a channel the model needs is missing)."""
+    if batch.aux_names == names:
+        return batch
+    cols = []
+    for name in names:
+        if name in batch.aux_names:
+            cols.append(batch.aux[:, batch.aux_names.index(name)])
+        elif name in needed:
+            return f"the model needs channel {name!r}, the stream has {list(batch.aux_names)}"
+        else:
+            cols.append(np.full(len(batch), np.nan))
+    aux = np.column_stack(cols) if cols else np.zeros((len(batch), 0))
+    return RawBatch(batch.t_us, batch.v, aux, names)
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoint files
+# ---------------------------------------------------------------------------------------------
+
+def checkpoint_path(directory: str | Path, sensor_id: str) -> Path:
+    return Path(directory) / f"{sensor_id}.json"
+
+
+def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
+    """Write JSON atomically: a temporary file in the same directory, fsync, os.replace.
+
+    A crash at any point leaves either the old checkpoint or the new one, never half of one.
+    """
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(state, f, separators=(",", ":"))  # NaN allowed: Python reads it back
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, p)
+    try:  # make the rename itself durable
+        fd = os.open(p.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:
+        pass  # some filesystems cannot fsync a directory; the data file is synced
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
+    """A checkpoint written by :func:`save_checkpoint`; None if there is none.
+
+    Raises ValueError for a file that exists but is not a checkpoint.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        return None
+    try:
+        doc = json.loads(text)
+    except ValueError as exc:
+        raise ValueError(f"{p}: not a JSON checkpoint ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{p}: unknown checkpoint format")
+    return doc
+
+
+# ---------------------------------------------------------------------------------------------
+# The node
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """Everything a node needs to start a pipeline for one sensor.
+
+    Attributes:
+        sensor_id: the sensor.
+        pipeline: shared calibration settings (threshold, window, mode, plot rate, ...).
+        model: the sensor model; prior: the pre-calibration (None: bootstrap).
+        rate_hz: nominal rate in Hz (None: measured from the first ``infer_samples`` samples).
+        full_scale_g: sensor range for clipping detection (None: off).
+        alignment: reference-posture and tilt-alarm settings.
+        request_min_s: an alignment request uses the current still run if it lasted this long.
+    """
+
+    sensor_id: str
+    pipeline: PipelineSettings
+    model: SensorModel
+    prior: Prior | None
+    rate_hz: float | None = None
+    full_scale_g: float | None = None
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    infer_samples: int = 50
+    request_min_s: float = 2.0
+
+
+class CalibrationNode:
+    """Runs one sensor's pipeline and publishes what it produces (thread-safe).
+
+    Args:
+        settings: how to start the pipeline.
+        sink: where the output goes.
+        pipeline: a pipeline to continue (restored from a checkpoint or a recording's setup);
+            None starts one from ``settings`` at the first batch.
+        alignment: a known mounting (from a checkpoint).
+        start: how the pipeline began: "prior", "bootstrap", "checkpoint", "recording".
+    """
+
+    def __init__(self, settings: NodeSettings, sink: Sink, *, pipeline: Pipeline | None = None,
+                 alignment: al.Alignment | None = None, start: str | None = None) -> None:
+        self.settings = settings
+        self.sensor_id = settings.sensor_id
+        self.sink = sink
+        self.pipeline = pipeline
+        self.alignment = alignment
+        self.start = start or ("prior" if settings.prior is not None else "bootstrap")
+        self._lock = threading.RLock()
+        self._pending: list[RawBatch] = []  # held until the rate is known (bounded)
+        self._pending_n = 0
+        self._tracker: al.StillTracker | None = None
+        self._align_requested = False
+        self._last_names: tuple[str, ...] | None = None
+        self._started = False
+        self.accepted_updates = 0
+        self.samples = 0
+        self.samples_skipped = 0
+        self.last_t_us: int | None = None
+        self.last_state: dict[str, Any] | None = None
+        if pipeline is not None:
+            self._tracker = self._make_tracker(pipeline.cfg.rate_hz)
+
+    # -- public -------------------------------------------------------------------------------
+
+    @property
+    def rate_hz(self) -> float | None:
+        return self.pipeline.cfg.rate_hz if self.pipeline is not None else self.settings.rate_hz
+
+    def process(self, batch: RawBatch, log_time_ns: int) -> StepOutput | None:
+        """Calibrate one raw batch and send the results to the sink.
+
+        Returns the pipeline's output (None while samples are held to measure the rate, or
+        when the batch cannot be calibrated, which is reported as an event).
+        """
+        if len(batch) == 0:
+            return None
+        with self._lock:
+            if self.pipeline is None:
+                batch = self._hold_until_rate(batch)
+                if not len(batch):
+                    return None
+            if not self._started:
+                self._announce(int(batch.t_us[0]), log_time_ns)
+            return self._step(batch, log_time_ns)
+
+    def flush(self, log_time_ns: int) -> None:
+        """End of stream: calibrate samples still held for rate measurement."""
+        with self._lock:
+            if self.pipeline is None and self._pending:
+                batch = self._start_pipeline(force=True)
+                if len(batch):
+                    self._announce(int(batch.t_us[0]), log_time_ns)
+                    self._step(batch, log_time_ns)
+
+    def status(self) -> dict[str, Any]:
+        """The current calibration state (as published) plus node counters."""
+        with self._lock:
+            state = self._state(self.last_t_us, "status") if self.pipeline is not None else {
+                "sensor_id": self.sensor_id, "t_us": None, "reason": "status",
+                "params": None, "alignment": None}
+            state["node"] = {"start": self.start, "rate_hz": self.rate_hz,
+                             "samples": self.samples, "samples_skipped": self.samples_skipped,
+                             "accepted_updates": self.accepted_updates,
+                             "still_s": self._tracker.duration_s if self._tracker else 0.0,
+                             "align_requested": self._align_requested}
+            return state
+
+    def request_alignment(self, log_time_ns: int | None = None) -> dict[str, Any]:
+        """Align now on the current still run if it is long enough, else arm the next one.
+
+        Returns ``{"status": "aligned", "alignment": {...}}`` or ``{"status": "armed", ...}``.
+        """
+        log_ns = time.time_ns() if log_time_ns is None else log_time_ns
+        with self._lock:
+            tr = self._tracker
+            if tr is not None and tr.duration_s >= self.settings.request_min_s:
+                mean = tr.mean()
+                if mean is not None:
+                    ali = self._set_alignment(mean, tr.n, self.last_t_us, "request", log_ns)
+                    return {"status": "aligned", "sensor_id": self.sensor_id,
+                            "alignment": ali.to_dict()}
+            self._align_requested = True
+            if tr is not None:
+                tr.rearm()
+            return {"status": "armed", "sensor_id": self.sensor_id,
+                    "detail": f"aligns on the next still period of "
+                              f"{self.settings.alignment.min_still_s:g} s",
+                    "still_s": tr.duration_s if tr else 0.0}
+
+    def checkpoint(self) -> dict[str, Any] | None:
+        """A JSON-able checkpoint of the node (None before its pipeline started)."""
+        with self._lock:
+            if self.pipeline is None:
+                return None
+            return {"format": CHECKPOINT_FORMAT, "sensor_id": self.sensor_id,
+                    "saved_unix_s": time.time(), "t_us": self.last_t_us,
+                    "pipeline": self.pipeline.state_dict(),
+                    "alignment": self.alignment.to_dict() if self.alignment else None}
+
+    @classmethod
+    def from_checkpoint(cls, settings: NodeSettings, sink: Sink,
+                        doc: dict[str, Any]) -> CalibrationNode:
+        """Continue from :meth:`checkpoint` output (ValueError if it does not fit)."""
+        if doc.get("sensor_id") != settings.sensor_id:
+            raise ValueError(f"checkpoint is for sensor {doc.get('sensor_id')!r}, "
+                             f"not {settings.sensor_id!r}")
+        try:
+            pipe = Pipeline.from_state_dict(doc["pipeline"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"checkpoint does not restore: {type(exc).__name__}: {exc}") from None
+        if [e.kind for e in pipe.model.effects] != [e.kind for e in settings.model.effects]:
+            raise ValueError(f"checkpoint model {model_name(pipe.model)} differs from the "
+                             f"configured {model_name(settings.model)}")
+        ali = doc.get("alignment")
+        return cls(settings, sink, pipeline=pipe,
+                   alignment=al.Alignment.from_dict(ali) if ali else None, start="checkpoint")
+
+    # -- starting -----------------------------------------------------------------------------
+
+    def _hold_until_rate(self, batch: RawBatch) -> RawBatch:
+        """Keep samples until the rate is known; then start the pipeline and return them."""
+        self._pending.append(batch)
+        self._pending_n += len(batch)
+        if self.settings.rate_hz is None and self._pending_n < self.settings.infer_samples:
+            return RawBatch.empty(batch.aux_names)
+        return self._start_pipeline(force=False)
+
+    def _start_pipeline(self, force: bool) -> RawBatch:
+        names = self._pending[0].aux_names
+        parts = [b if b.aux_names == names else _conform(b, names, ()) for b in self._pending]
+        batch = RawBatch.concat([b for b in parts if isinstance(b, RawBatch)])
+        self._pending, self._pending_n = [], 0
+        s = self.settings
+        rate = s.rate_hz or infer_rate_hz(batch.t_us) or (DEFAULT_RATE_HZ if force else None)
+        if rate is None:  # time stamps all equal: keep waiting for usable ones
+            self._pending, self._pending_n = [batch], len(batch)
+            return RawBatch.empty(names)
+        cfg = s.pipeline.pipeline_config(rate, s.full_scale_g)
+        self.pipeline = Pipeline(cfg, s.model, s.prior, names)
+        self._tracker = self._make_tracker(rate)
+        return batch
+
+    def _make_tracker(self, rate_hz: float) -> al.StillTracker:
+        return al.StillTracker(self.settings.alignment.min_still_s, round(3e6 / rate_hz))
+
+    def _announce(self, t_us: int, log_ns: int) -> None:
+        """First output of a run: the setup (for replay), the starting state and an event."""
+        assert self.pipeline is not None
+        self._started = True
+        self.sink.json(self.sensor_id, "setup", {
+            "t_us": t_us, "sensor_id": self.sensor_id, "start": self.start,
+            "rate_hz": self.pipeline.cfg.rate_hz, "plot_every": self._plot_every(),
+            "alignment_settings": asdict(self.settings.alignment),
+            "alignment": self.alignment.to_dict() if self.alignment else None,
+            "pipeline_state": self.pipeline.state_dict()}, log_ns)
+        reason = "restored" if self.start in ("checkpoint", "recording") else "start"
+        self._publish_state(t_us, reason, log_ns)
+        self._event("node_started", t_us, log_ns, {
+            "start": self.start, "rate_hz": self.pipeline.cfg.rate_hz,
+            "model": model_name(self.pipeline.model), "aux_names": list(self.pipeline.aux_names)})
+
+    def _plot_every(self) -> int:
+        return self.settings.pipeline.plot_every(self.rate_hz or DEFAULT_RATE_HZ)
+
+    # -- one batch ----------------------------------------------------------------------------
+
+    def _step(self, batch: RawBatch, log_ns: int) -> StepOutput | None:
+        pipe = self.pipeline
+        assert pipe is not None
+        fitted = self._fit_layout(batch, log_ns)
+        if fitted is None:
+            return None
+        out = pipe.step(fitted)
+        cal = out.calibrated
+        self.samples += len(cal)
+        self.last_t_us = int(cal.t_us[-1])
+        self.sink.calibrated(self.sensor_id, cal, log_ns)
+        self.sink.plot(self.sensor_id, cal, log_ns, self._plot_every())
+        self._report_updates(out, log_ns)
+        self._track_alignment(cal, log_ns)
+        if self.alignment is not None:
+            self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
+                                 "body")
+        return out
+
+    def _fit_layout(self, batch: RawBatch, log_ns: int) -> RawBatch | None:
+        """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
+        assert self.pipeline is not None
+        names = self.pipeline.aux_names
+        fitted = _conform(batch, names, self.pipeline.model.covariates)
+        if batch.aux_names != self._last_names and batch.aux_names != names:
+            self._event("layout_changed", int(batch.t_us[0]), log_ns, {
+                "expected": list(names), "got": list(batch.aux_names),
+                "calibrated": isinstance(fitted, RawBatch)})
+        self._last_names = batch.aux_names
+        if isinstance(fitted, str):
+            self.samples_skipped += len(batch)
+            return None
+        return fitted
+
+    def _report_updates(self, out: StepOutput, log_ns: int) -> None:
+        if not out.updates:
+            return
+        assert self.pipeline is not None
+        names = self.pipeline.model.names
+        for u in out.updates:
+            if u.report.accepted:
+                self.accepted_updates += 1
+            else:
+                self._event("update_rejected", u.t_us, log_ns, u.report.to_dict(names))
+            if u.bootstrap:
+                self._event("bootstrap", u.t_us, log_ns, {
+                    "accepted": u.report.accepted, "s0": self.pipeline.model.s0})
+        last = out.updates[-1]
+        self._publish_state(last.t_us, "bootstrap" if last.bootstrap else "update", log_ns)
+
+    def _track_alignment(self, cal: CalibratedBatch, log_ns: int) -> None:
+        cfg = self.settings.alignment
+        if self._tracker is None or not (cfg.enabled or self._align_requested):
+            return
+        wanted = self._align_requested or self.alignment is None
+        armed = wanted and (self._align_requested or not cfg.require_update
+                            or self.accepted_updates > 0)
+        hit = self._tracker.feed(cal.t_us, cal.a_g, cal.quasi_static, armed)
+        if hit is None:
+            return
+        mean, n, t_us = hit
+        if not self._align_requested and al.tilt_from_z_deg(mean) > cfg.upright_max_deg:
+            # not upright (lying, or the sensor worn sideways): not a reference posture
+            self._event("reference_skipped", t_us, log_ns, {
+                "tilt_deg": al.tilt_from_z_deg(mean), "upright_max_deg": cfg.upright_max_deg})
+            return
+        source = "request" if self._align_requested else "reference"
+        self._set_alignment(mean, n, t_us, source, log_ns)
+
+    def _set_alignment(self, mean: np.ndarray, n: int, t_us: int | None, source: str,
+                       log_ns: int) -> al.Alignment:
+        ali = al.estimate_alignment(mean, self.settings.alignment.tilt_limit_deg, n, t_us)
+        self.alignment = ali
+        self._align_requested = False
+        self._event("alignment", t_us, log_ns, {**ali.to_dict(), "source": source})
+        if ali.alarm:
+            self._event("tilt_alarm", t_us, log_ns, {
+                "theta_x_deg": ali.theta_x_deg, "theta_y_deg": ali.theta_y_deg,
+                "limit_deg": ali.limit_deg,
+                "detail": "mounting tilt beyond the limit: re-seat the sensor"})
+        return ali
+
+    @staticmethod
+    def _body(cal: CalibratedBatch, ali: al.Alignment) -> CalibratedBatch:
+        return CalibratedBatch(cal.t_us, al.to_body(ali.rotation, cal.a_g), cal.quasi_static,
+                               cal.detector_g)
+
+    # -- state and events ---------------------------------------------------------------------
+
+    def _state(self, t_us: int | None, reason: str) -> dict[str, Any]:
+        """The calibration state message: pipeline.summary() plus identity and alignment."""
+        assert self.pipeline is not None
+        s = self.pipeline.summary()
+        spec = s.pop("model")
+        rep = s.get("last_update") or {}
+        rms = s.get("residual_rms_mg")
+        return {"sensor_id": self.sensor_id, "t_us": t_us, "reason": reason,
+                "model": model_name(self.pipeline.model), "model_spec": spec,
+                "param_names": list(self.pipeline.model.names), **s,
+                "residual_g": None if rms is None else rms / 1e3,
+                "observable": rep.get("observable"),
+                "update_count": int(s["counts"]["updates"]),
+                "alignment": self.alignment.to_dict() if self.alignment else None}
+
+    def _publish_state(self, t_us: int, reason: str, log_ns: int) -> None:
+        self.last_state = self._state(t_us, reason)
+        self.sink.json(self.sensor_id, "calibration", self.last_state, log_ns)
+
+    def _event(self, kind: str, t_us: int | None, log_ns: int, detail: Any) -> None:
+        self.sink.json(self.sensor_id, "events", {"t_us": t_us, "kind": kind,
+                                                  "sensor_id": self.sensor_id,
+                                                  "detail": detail}, log_ns)
+
+
+# ---------------------------------------------------------------------------------------------
+# Building nodes from the service configuration
+# ---------------------------------------------------------------------------------------------
+
+def node_settings(sensor: SensorConfig, config: ServiceConfig,
+                  model_path: str | Path | None = None) -> NodeSettings:
+    """NodeSettings for one configured sensor (ConfigError for a bad prior or model file)."""
+    model, prior = model_and_prior(sensor, config.pipeline, model_path)
+    return NodeSettings(sensor.id, config.pipeline, model, prior, sensor.rate_hz,
+                        sensor.full_scale_g, config.alignment)
+
+
+def make_node(settings: NodeSettings, sink: Sink, checkpoint_dir: str | Path | None = None,
+              on_problem: Callable[[str, dict[str, Any]], None] | None = None
+              ) -> CalibrationNode:
+    """A node that resumes from ``<checkpoint_dir>/<sensor>.json`` if a usable one exists.
+
+    A checkpoint that does not load or does not fit the configuration is reported through
+    ``on_problem("checkpoint_invalid", detail)`` and the node starts from the prior.
+    """
+    if checkpoint_dir is not None:
+        path = checkpoint_path(checkpoint_dir, settings.sensor_id)
+        try:
+            doc = load_checkpoint(path)
+            if doc is not None:
+                return CalibrationNode.from_checkpoint(settings, sink, doc)
+        except ValueError as exc:
+            if on_problem is not None:
+                on_problem("checkpoint_invalid", {"path": str(path), "error": str(exc)})
+            log.warning("ignoring checkpoint %s: %s", path, exc)
+    return CalibrationNode(settings, sink)
+
+
+# ---------------------------------------------------------------------------------------------
+# A node on its own: subscribe to recal/*/raw (another process or machine)
+# ---------------------------------------------------------------------------------------------
+
+def run_node(config: ServiceConfig | str | Path | None = None,
+             sensor_ids: Sequence[str] = (), mcap_out: str | Path | None = None,
+             model_path: str | Path | None = None, stop_event: threading.Event | None = None,
+             *, bus: Any = None, out: Callable[[str], None] | None = None) -> int:
+    """Calibrate every sensor whose raw stream arrives on ``recal/*/raw`` until stopped.
+
+    Publishes calibrated, body, calibration and events on the bus, answers
+    ``recal/<sensor>/status`` and ``recal/<sensor>/align``, optionally logs everything (raw
+    included) to ``mcap_out``, and checkpoints like the gateway. ``sensor_ids`` limits which
+    sensors it takes (default: all). Stops on ``stop_event`` or SIGINT/SIGTERM (main thread).
+    Returns 0, or 2 for a configuration error.
+    """
+    from recal.gateway import install_stop_signals, open_bus, open_recording
+
+    emit = out or print
+    try:
+        cfg = config if isinstance(config, ServiceConfig) else load_config(config)
+    except ConfigError as exc:
+        emit(f"recal node: {exc}")
+        return 2
+    stop = stop_event or threading.Event()
+    restore = install_stop_signals(stop)
+    own_bus = bus is None
+    bus = open_bus(cfg) if own_bus else bus
+    writer = open_recording(cfg, mcap_out) if mcap_out is not None else None
+    runner = _NodeRunner(cfg, bus, writer, set(sensor_ids), model_path, emit)
+    try:
+        runner.run(stop)
+    finally:
+        runner.close()
+        if writer is not None:
+            writer.close()
+        if own_bus:
+            bus.close()
+        restore()
+    return 0
+
+
+class _NodeRunner:
+    """The loop of :func:`run_node`: bus messages -> nodes, checkpoints on a timer."""
+
+    def __init__(self, cfg: ServiceConfig, bus: Any, writer: Any, only: set[str],
+                 model_path: str | Path | None, emit: Callable[[str], None]) -> None:
+        from recal.io import bus as _bus
+        from recal.io import messages
+
+        self.cfg, self.bus, self.writer, self.only = cfg, bus, writer, only
+        self.model_path, self.emit = model_path, emit
+        self.nodes: dict[str, CalibrationNode] = {}
+        self.sink: Sink = (MultiSink(RecordingSink(writer), BusSink(bus))
+                           if writer is not None else BusSink(bus))
+        self._messages = messages
+        self._bus_mod = _bus
+        self.receiver = bus.receiver(_bus.key_pattern("raw"), capacity=1024)
+        self.bad_messages = 0
+
+    def run(self, stop: threading.Event) -> None:
+        next_ckpt = time.monotonic() + self.cfg.checkpoint.interval_s
+        while not stop.is_set():
+            for msg in self.receiver.recv_batch(64, timeout=0.1):
+                self._handle(msg)
+            if time.monotonic() >= next_ckpt:
+                self.checkpoint()
+                next_ckpt = time.monotonic() + self.cfg.checkpoint.interval_s
+        for msg in self.receiver.recv_batch(10_000, timeout=0.0):  # what already arrived
+            self._handle(msg)
+
+    def _handle(self, msg: Any) -> None:
+        try:
+            sid, batch = self._messages.decode_raw(msg.payload)
+            sid = sid or msg.sensor
+        except ValueError:
+            self.bad_messages += 1
+            return
+        if self.only and sid not in self.only:
+            return
+        node = self.nodes.get(sid) or self._add(sid)
+        log_ns = time.time_ns()
+        if self.writer is not None:
+            self.writer.write_raw(sid, batch, log_ns)
+        node.process(batch, log_ns)
+
+    def _add(self, sid: str) -> CalibrationNode:
+        sensor = self.cfg.sensor(sid) or SensorConfig(id=sid)
+        settings = node_settings(sensor, self.cfg, self.model_path)
+        node = make_node(settings, self.sink, self.cfg.checkpoint.dir)
+        self.nodes[sid] = node
+        k = self._bus_mod.key
+        self.bus.queryable(k(sid, "status"),
+                           lambda _k, _p, n=node: self._messages.encode_json(n.status()))
+        self.bus.queryable(k(sid, "align"),
+                           lambda _k, _p, n=node: self._messages.encode_json(
+                               n.request_alignment()))
+        self.emit(f"recal node: calibrating {sid} (start: {node.start})")
+        return node
+
+    def checkpoint(self) -> None:
+        if self.cfg.checkpoint.dir is None:
+            return
+        for sid, node in self.nodes.items():
+            doc = node.checkpoint()
+            if doc is not None:
+                save_checkpoint(checkpoint_path(self.cfg.checkpoint.dir, sid), doc)
+
+    def close(self) -> None:
+        now = time.time_ns()
+        for node in self.nodes.values():
+            node.flush(now)
+        self.checkpoint()
+        self.receiver.close()

@@ -1,0 +1,126 @@
+"""The vocabulary every layer shares: batches of raw and calibrated triaxial samples.
+
+Plain frozen dataclasses over numpy arrays, no I/O. The core computes on them, the shell
+(serial, Zenoh, MCAP, CSV) converts the world to and from them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["CalibratedBatch", "RawBatch"]
+
+
+def _as_time_us(t_us: np.ndarray | Sequence[int]) -> np.ndarray:
+    return np.ascontiguousarray(t_us, dtype=np.int64).reshape(-1)
+
+
+@dataclass(frozen=True, eq=False)
+class RawBatch:
+    """Raw samples of one sensor, in arrival order.
+
+    Attributes:
+        t_us: (N,) int64 device time stamps in microseconds.
+        v: (N, 3) float64 raw readings x, y, z in the sensor's own unit (ADC counts, g, m/s^2).
+        aux: (N, K) float64 auxiliary channels (temperature, supply voltage, ...), K may be 0.
+        aux_names: K channel names, as the device or file named them; never assumed fixed.
+    """
+
+    t_us: np.ndarray
+    v: np.ndarray
+    aux: np.ndarray
+    aux_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        t = _as_time_us(self.t_us)
+        v = np.ascontiguousarray(self.v, dtype=np.float64).reshape(-1, 3)
+        names = tuple(str(n) for n in self.aux_names)
+        aux = np.ascontiguousarray(self.aux, dtype=np.float64).reshape(len(t), len(names))
+        if len(v) != len(t):
+            raise ValueError(f"t_us has {len(t)} samples but v has {len(v)}")
+        object.__setattr__(self, "t_us", t)
+        object.__setattr__(self, "v", v)
+        object.__setattr__(self, "aux", aux)
+        object.__setattr__(self, "aux_names", names)
+
+    @classmethod
+    def empty(cls, aux_names: Sequence[str] = ()) -> RawBatch:
+        return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, len(aux_names))),
+                   tuple(aux_names))
+
+    @classmethod
+    def concat(cls, batches: Sequence[RawBatch]) -> RawBatch:
+        """Join batches that share the same auxiliary channel names."""
+        if not batches:
+            return cls.empty()
+        names = batches[0].aux_names
+        if any(b.aux_names != names for b in batches):
+            raise ValueError("cannot concatenate batches with different auxiliary channels")
+        return cls(np.concatenate([b.t_us for b in batches]),
+                   np.concatenate([b.v for b in batches]),
+                   np.concatenate([b.aux for b in batches]), names)
+
+    def __len__(self) -> int:
+        return len(self.t_us)
+
+    def __getitem__(self, index: slice | np.ndarray) -> RawBatch:
+        return RawBatch(self.t_us[index], self.v[index], self.aux[index], self.aux_names)
+
+    def channel(self, name: str) -> np.ndarray:
+        """One auxiliary channel by name (KeyError if the recording has no such channel)."""
+        try:
+            return self.aux[:, self.aux_names.index(name)]
+        except ValueError:
+            raise KeyError(f"no auxiliary channel {name!r}; have {list(self.aux_names)}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class CalibratedBatch:
+    """Calibrated acceleration of one sensor, sample for sample with the raw batch it came from.
+
+    Attributes:
+        t_us: (N,) int64 device time stamps in microseconds.
+        a_g: (N, 3) float64 calibrated acceleration in g, sensor frame.
+        quasi_static: (N,) bool, the detector's gate (Lötters eq. 2 below threshold, and not
+            rejected as clipped, flat-lined or far from 1 g).
+        detector_g: (N,) float64 the detector output LPF(REC(HPF(|v|))) in g.
+    """
+
+    t_us: np.ndarray
+    a_g: np.ndarray
+    quasi_static: np.ndarray
+    detector_g: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = _as_time_us(self.t_us)
+        object.__setattr__(self, "t_us", t)
+        object.__setattr__(self, "a_g", np.ascontiguousarray(self.a_g, np.float64).reshape(-1, 3))
+        object.__setattr__(self, "quasi_static",
+                           np.ascontiguousarray(self.quasi_static, bool).reshape(-1))
+        object.__setattr__(self, "detector_g",
+                           np.ascontiguousarray(self.detector_g, np.float64).reshape(-1))
+        if not (len(self.a_g) == len(self.quasi_static) == len(self.detector_g) == len(t)):
+            raise ValueError("calibrated batch fields differ in length")
+
+    @classmethod
+    def empty(cls) -> CalibratedBatch:
+        return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0))
+
+    @classmethod
+    def concat(cls, batches: Sequence[CalibratedBatch]) -> CalibratedBatch:
+        if not batches:
+            return cls.empty()
+        return cls(np.concatenate([b.t_us for b in batches]),
+                   np.concatenate([b.a_g for b in batches]),
+                   np.concatenate([b.quasi_static for b in batches]),
+                   np.concatenate([b.detector_g for b in batches]))
+
+    def __len__(self) -> int:
+        return len(self.t_us)
+
+    def __getitem__(self, index: slice | np.ndarray) -> CalibratedBatch:
+        return CalibratedBatch(self.t_us[index], self.a_g[index], self.quasi_static[index],
+                               self.detector_g[index])

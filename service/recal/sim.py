@@ -1,0 +1,796 @@
+"""Seeded simulator of a wearer-like triaxial accelerometer recording, with ground truth.
+
+A wearer alternates still postures (upright, lying, any orientation) with walking-like
+movements; the true specific force in the ideal sensor frame is passed through a sensor
+forward model to give the raw readings the device would send. Pure numpy/scipy, no I/O
+except `save_truth` / `load_truth`. Same seed -> bit-identical result.
+
+Sensor forward model (the estimator inverts it; tests compare its output with `a_true_g`)
+--------------------------------------------------------------------------------------
+Let a = a_true_g (g, ideal orthonormal frame), T = temperature channel (°C), V = supply
+channel (V), t = time in hours since the first sample. T and V are exactly the values that
+appear in `raw.aux` (noisy, quantized), so the model is exactly invertible from the recording.
+
+1. nonlinearity:  a' = a + q ⊙ a²                        (q = `q_per_g`, 1/g, per axis)
+2. sensitivity:   u = diag(1 + gain + gain_tc ⊙ (T − T_ref)) · S · a'
+3. offset:        u += offset_g + offset_tc_g ⊙ (T − T_ref) + offset_drift_g_per_h ⊙ t
+4. ratiometric:   u *= 1 + ratiometric_per_v · (V − V_ref)
+5. noise:         u += N(0, noise_g²) per axis, white
+6. ADC:           v = clip(round(u · counts_per_g), ±floor(full_scale_g · counts_per_g))
+                  (with counts_per_g None: v = clip(u, ±full_scale_g) in g; no clipping if
+                  full_scale_g is None)
+
+Cross-axis matrix S (rows = actual sensing-axis directions, unit norm), from the three
+misalignment angles (α_xy, α_xz, α_yz) = `misalignment_rad`:
+
+    S = rownorm([[1, tan α_xy, tan α_xz],
+                 [0, 1,        tan α_yz],
+                 [0, 0,        1       ]])
+
+i.e. the sensing z axis *is* the frame's z axis, the sensing y axis lies in the frame's y-z
+plane, tilted by α_yz towards +z, and the sensing x axis leans by ≈α_xy towards +y and ≈α_xz
+towards +z. S is upper-triangular: this fixes the rotation gauge (a rotation of the frame is
+not observable from |a| = 1 g) the same way as `recal.core.effects.CrossAxis`: with U the
+un-normalized matrix above, that effect's unit upper-triangular M is inv(U) and the per-axis
+scale is counts_per_g · (1 + gain_i) / ‖U_i‖ (U_i = row i of U).
+The angles between sensing axes as Georgieva et al. report them, φ = ∠(x,y), ψ = ∠(x,z),
+θ = ∠(y,z), come from `sensing_axis_angles_deg(S)`; θ = 90° − α_yz exactly, and to first
+order φ ≈ 90° − α_xy, ψ ≈ 90° − α_xz (exactly so when the other angles are 0).
+
+Wearer model
+------------
+Still posture k has an at-rest reading direction g_k (unit, sensor frame: what the sensor
+reads at rest, gravity counted +1 g "up"), drawn by kind: upright (within `upright_tilt_deg`
+of +z), lying (within ±`lying_band_deg` of the x-y plane), any (uniform on the sphere). Its
+orientation A_k is the smallest rotation with A_k g_k = +z (sensor -> world). During the
+posture the reading is g_k tilted by a slow sway plus a tiny bounded vertical part, so |a| stays
+within 1 mg of 1 g for the default `sway_g`. A movement from posture k to k+1 has orientation
+R(t) = W(t) · slerp(A_k, A_k+1; smoothstep(t/D)) with a step-locked wobble W, and linear
+acceleration of walking at 1.6-2.2 Hz; the reading is R(t)ᵀ (ẑ + a_lin(t)) in g.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.signal import lfilter
+from scipy.spatial.transform import Rotation, Slerp
+
+from recal.samples import RawBatch
+
+__all__ = [
+    "POSTURE_KINDS",
+    "SensorSpec",
+    "SimResult",
+    "Truth",
+    "WearerSpec",
+    "forward_model",
+    "inverse_model",
+    "load_truth",
+    "misalignment_matrix",
+    "save_truth",
+    "sensing_axis_angles_deg",
+    "simulate",
+    "with_sensor",
+]
+
+Vec3 = tuple[float, float, float]
+Range = tuple[float, float]
+ZERO3: Vec3 = (0.0, 0.0, 0.0)
+POSTURE_KINDS: tuple[str, ...] = ("upright", "lying", "any")
+_EZ = np.array([0.0, 0.0, 1.0])
+_NOISE_CHUNK = 1 << 20  # samples per noise draw: bounds the temporary (N,3) arrays
+_AUX_GRID_S = 1.0  # slow aux processes are simulated on this grid, then interpolated
+_FORMAT_VERSION = 1
+
+
+# --- sensor ----------------------------------------------------------------------------------
+
+def misalignment_matrix(misalignment_rad: np.ndarray | Vec3) -> np.ndarray:
+    """S (3,3) with unit-norm rows = sensing-axis directions, from (α_xy, α_xz, α_yz) in rad."""
+    a_xy, a_xz, a_yz = (float(x) for x in misalignment_rad)
+    u = np.array([[1.0, math.tan(a_xy), math.tan(a_xz)],
+                  [0.0, 1.0, math.tan(a_yz)],
+                  [0.0, 0.0, 1.0]])
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def sensing_axis_angles_deg(s: np.ndarray) -> dict[str, float]:
+    """Angles between the sensing axes (rows of s), Georgieva et al.: φ=∠(x,y), ψ=∠(x,z),
+    θ=∠(y,z), in degrees (90 for orthogonal axes). Rows need not be normalized."""
+    rows = np.asarray(s, np.float64)
+    rows = rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+    def ang(i: int, j: int) -> float:
+        return float(np.degrees(np.arccos(np.clip(rows[i] @ rows[j], -1.0, 1.0))))
+
+    return {"phi_xy_deg": ang(0, 1), "psi_xz_deg": ang(0, 2), "theta_yz_deg": ang(1, 2)}
+
+
+def _vec3(x: Any, name: str) -> Vec3:
+    arr = np.asarray(x, np.float64).reshape(-1)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {x!r}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+_VEC3_FIELDS = ("offset_g", "gain", "misalignment_rad", "q_per_g", "gain_tc_per_c",
+                "offset_tc_g_per_c", "offset_drift_g_per_h")
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """Parameters of the sensor forward model (see the module docstring for the equations).
+
+    Attributes:
+        counts_per_g: ADC counts per g; None turns quantization off and `v` is in g.
+        full_scale_g: clipping limit in g (±); None disables clipping.
+        offset_g: (3,) zero-g offset in g.
+        gain: (3,) relative sensitivity error (0.03 = +3 %).
+        misalignment_rad: (α_xy, α_xz, α_yz) cross-axis angles in rad, see `misalignment_matrix`.
+        q_per_g: (3,) quadratic nonlinearity in 1/g, applied to the ideal-frame acceleration.
+        gain_tc_per_c: (3,) relative sensitivity change per °C of T − t_ref_c.
+        offset_tc_g_per_c: (3,) offset change in g per °C of T − t_ref_c.
+        offset_drift_g_per_h: (3,) linear offset drift in g per hour since the first sample.
+        ratiometric_per_v: relative change of the whole output per volt of V − v_ref_v.
+        noise_g: white noise standard deviation per axis in g (0 = none).
+        t_ref_c: reference temperature in °C.
+        v_ref_v: reference supply voltage in V.
+        temp_channel: aux channel name of the temperature in the recording.
+        supply_channel: aux channel name of the supply voltage in the recording.
+    """
+
+    counts_per_g: float | None = 1024.0
+    full_scale_g: float | None = 8.0
+    offset_g: Vec3 = ZERO3
+    gain: Vec3 = ZERO3
+    misalignment_rad: Vec3 = ZERO3
+    q_per_g: Vec3 = ZERO3
+    gain_tc_per_c: Vec3 = ZERO3
+    offset_tc_g_per_c: Vec3 = ZERO3
+    offset_drift_g_per_h: Vec3 = ZERO3
+    ratiometric_per_v: float = 0.0
+    noise_g: float = 0.004
+    t_ref_c: float = 25.0
+    v_ref_v: float = 3.3
+    temp_channel: str = "temp_c"
+    supply_channel: str = "vdd_v"
+
+    def __post_init__(self) -> None:
+        # accept lists / arrays but store plain float tuples: hashable and JSON-friendly
+        for name in _VEC3_FIELDS:
+            object.__setattr__(self, name, _vec3(getattr(self, name), name))
+        if self.counts_per_g is not None and not self.counts_per_g > 0:
+            raise ValueError("counts_per_g must be positive or None")
+        if self.full_scale_g is not None and not self.full_scale_g > 0:
+            raise ValueError("full_scale_g must be positive or None")
+        if self.noise_g < 0:
+            raise ValueError("noise_g must be >= 0")
+        if self.temp_channel == self.supply_channel:
+            raise ValueError("temperature and supply channels need different names")
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """S (3,3): unit-norm rows = sensing-axis directions in the ideal frame."""
+        return misalignment_matrix(self.misalignment_rad)
+
+    @property
+    def axis_angles_deg(self) -> dict[str, float]:
+        """Georgieva's φ=∠(x,y), ψ=∠(x,z), θ=∠(y,z) in degrees."""
+        return sensing_axis_angles_deg(self.matrix)
+
+    @property
+    def full_scale_counts(self) -> float | None:
+        """Clipping limit in counts (±), a whole number so clipped readings stay integers."""
+        if self.full_scale_g is None or self.counts_per_g is None:
+            return None
+        return float(math.floor(self.full_scale_g * self.counts_per_g + 1e-9))
+
+    @property
+    def needs_temp(self) -> bool:
+        return any(self.gain_tc_per_c) or any(self.offset_tc_g_per_c)
+
+    @property
+    def needs_supply(self) -> bool:
+        return self.ratiometric_per_v != 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serializable fields (tuples become lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SensorSpec:
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+    @classmethod
+    def random(cls, rng: np.random.Generator, offset_mg: float = 50.0, gain_pct: float = 3.0,
+               cross_axis_deg: float = 0.0, **overrides: Any) -> SensorSpec:
+        """A sensor with offsets uniform in ±offset_mg, gains in ±gain_pct %, misalignment
+        angles in ±cross_axis_deg; any other field from `overrides` (else its default)."""
+        offset = rng.uniform(-offset_mg, offset_mg, 3) / 1000.0
+        gain = rng.uniform(-gain_pct, gain_pct, 3) / 100.0
+        angles = np.radians(rng.uniform(-cross_axis_deg, cross_axis_deg, 3))
+        return cls(**({"offset_g": offset, "gain": gain, "misalignment_rad": angles}
+                      | overrides))
+
+
+def _delta(x: np.ndarray | None, ref: float, n: int, what: str) -> np.ndarray:
+    if x is None:
+        raise ValueError(f"the sensor has a {what} effect but no {what} values were given")
+    x = np.asarray(x, np.float64).reshape(-1)
+    if len(x) != n:
+        raise ValueError(f"{what} has {len(x)} values for {n} samples")
+    return x - ref
+
+
+def forward_model(a_g: np.ndarray, sensor: SensorSpec, *, temp_c: np.ndarray | None = None,
+                  vdd_v: np.ndarray | None = None, t_h: np.ndarray | None = None,
+                  rng: np.random.Generator | None = None) -> np.ndarray:
+    """Raw readings (N,3) from the true specific force a_g (N,3, g, ideal frame).
+
+    temp_c / vdd_v / t_h (N,) are only needed by the effects that use them; rng only when
+    sensor.noise_g > 0. Steps and conventions: module docstring. Zero effects are skipped,
+    so an ideal sensor without noise and quantization returns a copy of a_g bit for bit.
+    """
+    a = np.asarray(a_g, np.float64).reshape(-1, 3)
+    n = len(a)
+    q = np.array(sensor.q_per_g)
+    u = a + q * a**2 if q.any() else a
+    if any(sensor.misalignment_rad):
+        u = u @ sensor.matrix.T
+    elif u is a:
+        u = a.copy()  # everything below works in place
+    gain = 1.0 + np.array(sensor.gain)
+    if any(sensor.gain_tc_per_c):
+        dt = _delta(temp_c, sensor.t_ref_c, n, "temperature")
+        for j in range(3):  # per column: (N,) temporaries instead of (N,3) ones
+            u[:, j] *= gain[j] + sensor.gain_tc_per_c[j] * dt
+    elif np.any(gain != 1.0):
+        u *= gain
+    if any(sensor.offset_g):
+        u += np.array(sensor.offset_g)
+    if any(sensor.offset_tc_g_per_c):
+        dt = _delta(temp_c, sensor.t_ref_c, n, "temperature")
+        for j in range(3):
+            u[:, j] += sensor.offset_tc_g_per_c[j] * dt
+    if any(sensor.offset_drift_g_per_h):
+        hours = _delta(t_h, 0.0, n, "time")
+        for j in range(3):
+            u[:, j] += sensor.offset_drift_g_per_h[j] * hours
+    if sensor.ratiometric_per_v:
+        dv = _delta(vdd_v, sensor.v_ref_v, n, "supply")
+        u *= (1.0 + sensor.ratiometric_per_v * dv)[:, None]
+    if sensor.noise_g > 0:
+        if rng is None:
+            raise ValueError("noise_g > 0 needs an rng")
+        # chunked so that a day of samples never holds a second full-size noise array
+        for i in range(0, n, _NOISE_CHUNK):
+            u[i:i + _NOISE_CHUNK] += sensor.noise_g * rng.standard_normal(
+                (min(_NOISE_CHUNK, n - i), 3))
+    return _adc(u, sensor)
+
+
+def _adc(u: np.ndarray, sensor: SensorSpec) -> np.ndarray:
+    """Quantize (round half to even, like np.rint) and clip, in place."""
+    if sensor.counts_per_g is not None:
+        u *= sensor.counts_per_g
+        np.rint(u, out=u)
+        lim = sensor.full_scale_counts
+    else:
+        lim = sensor.full_scale_g
+    if lim is not None:
+        np.clip(u, -lim, lim, out=u)
+    return u
+
+
+def inverse_model(v: np.ndarray, sensor: SensorSpec, *, temp_c: np.ndarray | None = None,
+                  vdd_v: np.ndarray | None = None, t_h: np.ndarray | None = None) -> np.ndarray:
+    """The exact inverse of `forward_model` without noise, quantization and clipping:
+    raw readings (N,3) -> a in g (N,3). What a perfect calibration would output."""
+    u = np.array(v, np.float64).reshape(-1, 3)
+    n = len(u)
+    if sensor.counts_per_g is not None:
+        u /= sensor.counts_per_g
+    if sensor.ratiometric_per_v:
+        u /= (1.0 + sensor.ratiometric_per_v * _delta(vdd_v, sensor.v_ref_v, n, "supply"))[:, None]
+    u -= np.array(sensor.offset_g)
+    if any(sensor.offset_tc_g_per_c):
+        u -= (_delta(temp_c, sensor.t_ref_c, n, "temperature")[:, None]
+              * np.array(sensor.offset_tc_g_per_c))
+    if any(sensor.offset_drift_g_per_h):
+        u -= _delta(t_h, 0.0, n, "time")[:, None] * np.array(sensor.offset_drift_g_per_h)
+    gain = 1.0 + np.array(sensor.gain)
+    if any(sensor.gain_tc_per_c):
+        gain = gain + (_delta(temp_c, sensor.t_ref_c, n, "temperature")[:, None]
+                       * np.array(sensor.gain_tc_per_c))
+    u /= gain
+    a1 = np.linalg.solve(sensor.matrix, u.T).T
+    q = np.array(sensor.q_per_g)
+    # a + q a² = a1, the root that tends to a1 as q -> 0 (stable form, no cancellation)
+    return 2.0 * a1 / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * q * a1, 0.0)))
+
+
+# --- wearer ----------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class WearerSpec:
+    """How the simulated wearer moves, and how the aux channels evolve.
+
+    Attributes:
+        still_s: (min, max) still-posture duration in s, uniform.
+        move_s: (min, max) movement duration in s, uniform.
+        p_upright, p_lying, p_any: posture kind probabilities (normalized by their sum).
+        upright_only: every posture upright (then the p_* are ignored).
+        upright_tilt_deg: upright = at-rest reading within this angle of +z.
+        lying_band_deg: lying = at-rest reading within ± this elevation of the x-y plane.
+        sway_g: RMS of the still-posture sway in g (mostly tilt; 0 = perfectly still).
+        sway_max_hz: highest sway frequency in Hz.
+        still_margin_s: samples this close to a still posture's ends are not `still`.
+        step_hz: (min, max) step frequency in Hz, drawn per movement.
+        step_vertical_g: (min, max) vertical step amplitude in g (fundamental).
+        step_forward_ratio: forward amplitude / vertical, at the step frequency.
+        step_lateral_ratio: lateral amplitude / vertical, at half the step frequency.
+        wobble_deg: amplitude of the step-locked orientation wobble in deg.
+        always_aux: generate both aux channels even if the sensor does not need them.
+        temp_mean_c: mean skin/board temperature in °C.
+        temp_range_c: (min, max) °C the temperature is clipped to.
+        temp_wander_c: standard deviation of the slow temperature wander in °C.
+        temp_wander_tau_min: correlation time of the wander in minutes.
+        temp_excursion_every_h: mean interval between outdoor/indoor excursions in h (at least
+            one per recording, so short recordings still see a temperature change).
+        temp_excursion_c: (min, max) magnitude of an excursion in °C (70 % cold, 30 % warm).
+        temp_excursion_min: (min, max) excursion duration in minutes.
+        temp_lag_min: thermal time constant of the board in minutes.
+        temp_noise_c: temperature sensor noise in °C.
+        temp_resolution_c: temperature channel resolution in °C.
+        vdd_start_v, vdd_end_v: battery voltage at the first and last sample in V.
+        vdd_wander_v: standard deviation of slow supply wander in V (5 min correlation).
+        vdd_dip_v: (min, max) depth of load dips in V.
+        vdd_dip_s: (min, max) duration of load dips in s.
+        vdd_dip_every_s: mean interval between load dips in s.
+        vdd_noise_v: supply measurement noise in V.
+        vdd_resolution_v: supply channel resolution in V.
+    """
+
+    still_s: Range = (20.0, 180.0)
+    move_s: Range = (4.0, 30.0)
+    p_upright: float = 0.6
+    p_lying: float = 0.25
+    p_any: float = 0.15
+    upright_only: bool = False
+    upright_tilt_deg: float = 30.0
+    lying_band_deg: float = 30.0
+    sway_g: float = 0.002
+    sway_max_hz: float = 0.3
+    still_margin_s: float = 0.5
+    step_hz: Range = (1.6, 2.2)
+    step_vertical_g: Range = (0.15, 0.35)
+    step_forward_ratio: float = 0.5
+    step_lateral_ratio: float = 0.3
+    wobble_deg: float = 5.0
+    always_aux: bool = False
+    temp_mean_c: float = 31.0
+    temp_range_c: Range = (22.0, 36.0)
+    temp_wander_c: float = 1.5
+    temp_wander_tau_min: float = 20.0
+    temp_excursion_every_h: float = 1.5
+    temp_excursion_c: Range = (3.0, 8.0)
+    temp_excursion_min: Range = (10.0, 45.0)
+    temp_lag_min: float = 3.0
+    temp_noise_c: float = 0.05
+    temp_resolution_c: float = 0.01
+    vdd_start_v: float = 4.1
+    vdd_end_v: float = 3.6
+    vdd_wander_v: float = 0.01
+    vdd_dip_v: Range = (0.03, 0.10)
+    vdd_dip_s: Range = (1.0, 10.0)
+    vdd_dip_every_s: float = 120.0
+    vdd_noise_v: float = 0.002
+    vdd_resolution_v: float = 0.001
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            val = getattr(self, f.name)
+            if isinstance(val, list | np.ndarray):  # from JSON: store tuples again
+                object.__setattr__(self, f.name, tuple(float(x) for x in val))
+        if self.still_s[0] <= 2 * self.still_margin_s or self.move_s[0] <= 0:
+            raise ValueError("still_s must exceed twice still_margin_s, move_s must be > 0")
+        if not self.upright_only and min(self.p_upright, self.p_lying, self.p_any) < 0:
+            raise ValueError("posture probabilities must be >= 0")
+        if not self.upright_only and self.p_upright + self.p_lying + self.p_any <= 0:
+            raise ValueError("posture probabilities must not all be 0")
+
+    @property
+    def kind_probabilities(self) -> np.ndarray:
+        if self.upright_only:
+            return np.array([1.0, 0.0, 0.0])
+        p = np.array([self.p_upright, self.p_lying, self.p_any], np.float64)
+        return p / p.sum()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> WearerSpec:
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+@dataclass(frozen=True, eq=False)
+class Truth:
+    """What a perfect calibration and a perfect detector would know.
+
+    Attributes:
+        a_true_g: (N,3) true specific force in g, ideal orthonormal sensor frame.
+        still: (N,) bool, inside a still posture and at least still_margin_s from its ends.
+        posture_id: (N,) int64, index of the still posture a sample belongs to, -1 in movement.
+        posture_kind: (P,) "upright" / "lying" / "any" per still posture.
+        posture_up: (P,3) at-rest reading direction of each posture (unit, sensor frame).
+        params: JSON-serializable: "sensor" (SensorSpec.to_dict), "S", "axis_angles_deg",
+            "wearer", "seed", "hours", "rate_hz", "start_us", "n_samples", "aux_names", ...
+    """
+
+    a_true_g: np.ndarray
+    still: np.ndarray
+    posture_id: np.ndarray
+    posture_kind: tuple[str, ...]
+    posture_up: np.ndarray
+    params: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def sensor(self) -> SensorSpec:
+        return SensorSpec.from_dict(self.params["sensor"])
+
+
+@dataclass(frozen=True, eq=False)
+class SimResult:
+    """A simulated recording: what the device sends, and the ground truth behind it."""
+
+    raw: RawBatch
+    truth: Truth
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """A stretch of the schedule, [start_s, stop_s) in seconds since the first sample."""
+
+    start_s: float
+    stop_s: float
+    still: bool
+    posture: int  # still: its posture; movement: the posture it leads to
+
+
+def _draw_up(kind: str, w: WearerSpec, rng: np.random.Generator) -> np.ndarray:
+    """At-rest reading direction (unit) of a posture of the given kind, uniform in its region."""
+    if kind == "upright":
+        z = rng.uniform(math.cos(math.radians(w.upright_tilt_deg)), 1.0)
+    elif kind == "lying":
+        s = math.sin(math.radians(w.lying_band_deg))
+        z = rng.uniform(-s, s)
+    else:
+        z = rng.uniform(-1.0, 1.0)
+    az = rng.uniform(0.0, 2 * math.pi)
+    r = math.sqrt(max(0.0, 1.0 - z * z))  # z uniform -> uniform on the sphere's zone
+    return np.array([r * math.cos(az), r * math.sin(az), z])
+
+
+def _schedule(total_s: float, w: WearerSpec,
+              rng: np.random.Generator) -> tuple[list[_Segment], list[str], np.ndarray]:
+    """Alternate still postures and movements until total_s is covered."""
+    probs = w.kind_probabilities
+    segments: list[_Segment] = []
+    kinds: list[str] = []
+    ups: list[np.ndarray] = []
+    t = 0.0
+
+    def new_posture() -> int:
+        kind = POSTURE_KINDS[int(rng.choice(3, p=probs))]
+        kinds.append(kind)
+        ups.append(_draw_up(kind, w, rng))
+        return len(kinds) - 1
+
+    k = new_posture()
+    while True:
+        d = rng.uniform(*w.still_s)
+        segments.append(_Segment(t, t + d, True, k))
+        t += d
+        if t >= total_s:
+            break
+        d = rng.uniform(*w.move_s)
+        k = new_posture()  # the target of the movement exists even if the recording ends
+        segments.append(_Segment(t, t + d, False, k))
+        t += d
+        if t >= total_s:
+            break
+    return segments, kinds, np.array(ups).reshape(-1, 3)
+
+
+def _align_to_up(g: np.ndarray) -> Rotation:
+    """Smallest rotation A with A g = +z (sensor -> world for a sensor reading g at rest)."""
+    axis = np.cross(g, _EZ)
+    s, c = float(np.linalg.norm(axis)), float(g @ _EZ)
+    if s < 1e-12:
+        return Rotation.identity() if c > 0 else Rotation.from_rotvec([math.pi, 0.0, 0.0])
+    return Rotation.from_rotvec(axis / s * math.atan2(s, c))
+
+
+def _sines(tau_s: np.ndarray, freqs_hz: np.ndarray, phases: np.ndarray,
+           amp: float) -> np.ndarray:
+    """Sum of sinusoids of equal amplitude: bounded, smooth, band-limited."""
+    return amp * np.sin(2 * np.pi * np.outer(tau_s, freqs_hz) + phases).sum(axis=1)
+
+
+def _still_segment(up: np.ndarray, tau_s: np.ndarray, w: WearerSpec,
+                   rng: np.random.Generator) -> np.ndarray:
+    """Readings (n,3) of a still posture: tilt sway perpendicular to up, plus a vertical part
+    at 15 % of sway_g so that | |a| - 1 | <= 0.3 sway_g (bounded, no Gaussian tails)."""
+    lo_hz = min(0.02, w.sway_max_hz)
+    f = rng.uniform(lo_hz, w.sway_max_hz, 8)
+    ph = rng.uniform(0.0, 2 * math.pi, 8)
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    # 3 sinusoids per tilt axis, amplitude sway/sqrt(3) each: RMS of the tilt vector = sway_g
+    amp = w.sway_g / math.sqrt(3.0)
+    s1 = _sines(tau_s, f[:3], ph[:3], amp)
+    s2 = _sines(tau_s, f[3:6], ph[3:6], amp)
+    vertical = _sines(tau_s, f[6:], ph[6:], 0.15 * w.sway_g)
+    a = up + s1[:, None] * e1 + s2[:, None] * e2
+    a *= ((1.0 + vertical) / np.linalg.norm(a, axis=1))[:, None]
+    return a
+
+
+def _smooth_ramp(x: np.ndarray) -> np.ndarray:
+    """0 -> 1 with zero slope at both ends (sin²), x clipped to [0, 1]."""
+    return np.sin(0.5 * np.pi * np.clip(x, 0.0, 1.0)) ** 2
+
+
+def _move_segment(a_from: Rotation, a_to: Rotation, tau_s: np.ndarray, dur_s: float,
+                  w: WearerSpec, rng: np.random.Generator) -> np.ndarray:
+    """Readings (n,3) of a walking-like movement from one posture orientation to the next."""
+    f_hz = rng.uniform(*w.step_hz)
+    amp_v = rng.uniform(*w.step_vertical_g)
+    heading = rng.uniform(0.0, 2 * math.pi)
+    ph = rng.uniform(0.0, 2 * math.pi, 9)
+    # steps and wobble fade in and out, so the movement joins the still postures smoothly
+    ramp_s = min(1.0, dur_s / 4)
+    env = _smooth_ramp(tau_s / ramp_s) * _smooth_ramp((dur_s - tau_s) / ramp_s)
+    phase = 2 * np.pi * f_hz * tau_s + ph[0]
+    vert = amp_v * (np.sin(phase) + 0.35 * np.sin(2 * phase + ph[1])
+                    + 0.12 * np.sin(3 * phase + ph[2]))
+    fwd = amp_v * w.step_forward_ratio * (np.sin(phase + ph[3]) + 0.3 * np.sin(2 * phase + ph[4]))
+    lat = amp_v * w.step_lateral_ratio * np.sin(0.5 * phase + ph[5])  # stride = 2 steps
+    ch, sh = math.cos(heading), math.sin(heading)
+    f_world = np.empty((len(tau_s), 3))
+    f_world[:, 0] = env * (fwd * ch - lat * sh)
+    f_world[:, 1] = env * (fwd * sh + lat * ch)
+    f_world[:, 2] = 1.0 + env * vert  # gravity as the accelerometer reads it: +1 g up
+    wob = math.radians(w.wobble_deg) * env
+    rotvec = np.stack([wob * np.sin(0.5 * phase + ph[6]), wob * np.sin(0.5 * phase + ph[7]),
+                       0.5 * wob * np.sin(phase + ph[8])], axis=1)
+    x = np.clip(tau_s / dur_s, 0.0, 1.0)
+    slerp = Slerp([0.0, 1.0], Rotation.concatenate([a_from, a_to]))
+    r = Rotation.from_rotvec(rotvec) * slerp(x * x * (3.0 - 2.0 * x))  # smoothstep
+    return r.inv().apply(f_world)
+
+
+def _wearer_motion(segments: list[_Segment], ups: np.ndarray, n: int, rate_hz: float,
+                   w: WearerSpec, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray,
+                                                                      np.ndarray]:
+    """a_true_g (n,3), still (n,) and posture_id (n,) from the schedule."""
+    a = np.empty((n, 3))
+    still = np.zeros(n, bool)
+    posture_id = np.full(n, -1, np.int64)
+    orient = [_align_to_up(g) for g in ups]
+    margin = w.still_margin_s
+    for k, seg in enumerate(segments):
+        i0 = min(n, math.ceil(seg.start_s * rate_hz))
+        i1 = min(n, math.ceil(seg.stop_s * rate_hz))
+        tau = np.arange(i0, i1) / rate_hz - seg.start_s
+        if seg.still:
+            a[i0:i1] = _still_segment(ups[seg.posture], tau, w, rng)
+            posture_id[i0:i1] = seg.posture
+            dur = seg.stop_s - seg.start_s
+            still[i0:i1] = (tau >= margin) & (tau <= dur - margin)
+        else:
+            prev = segments[k - 1].posture
+            a[i0:i1] = _move_segment(orient[prev], orient[seg.posture], tau,
+                                     seg.stop_s - seg.start_s, w, rng)
+    # a recording that ends inside a still posture loses its end margin too
+    last = segments[-1]
+    if last.still:
+        still[max(0, n - math.ceil(margin * rate_hz)):n] = False
+    return a, still, posture_id
+
+
+# --- aux channels ----------------------------------------------------------------------------
+
+def _ou(n: int, dt_s: float, tau_s: float, sd: float, rng: np.random.Generator) -> np.ndarray:
+    """Stationary Ornstein-Uhlenbeck process (n,) with standard deviation sd."""
+    phi = math.exp(-dt_s / tau_s)
+    w = rng.standard_normal(n) * sd * math.sqrt(1.0 - phi * phi)
+    x0 = rng.standard_normal() * sd
+    return lfilter([1.0], [1.0, -phi], w, zi=[phi * x0])[0]
+
+
+def _boxes(n: int, starts: np.ndarray, stops: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """Sum of rectangles [start, stop) (indices) of given heights, via a difference array."""
+    d = np.zeros(n + 1)
+    np.add.at(d, np.clip(starts, 0, n), heights)
+    np.add.at(d, np.clip(stops, 0, n), -heights)
+    return np.cumsum(d[:n])
+
+
+def _temperature(t_s: np.ndarray, w: WearerSpec, rng: np.random.Generator) -> np.ndarray:
+    """Board temperature channel (°C): wander + excursions, lagged, clipped, noisy, quantized."""
+    total_s = float(t_s[-1]) if len(t_s) else 0.0
+    n_grid = int(total_s / _AUX_GRID_S) + 2
+    grid = np.arange(n_grid) * _AUX_GRID_S
+    target = w.temp_mean_c + _ou(n_grid, _AUX_GRID_S, 60 * w.temp_wander_tau_min,
+                                 w.temp_wander_c, rng)
+    # going outdoors (cold, mostly) or into the sun: the ambient steps for tens of minutes
+    n_exc = max(1, int(rng.poisson(total_s / 3600 / w.temp_excursion_every_h)))
+    dur = 60 * rng.uniform(*w.temp_excursion_min, n_exc)
+    start = rng.uniform(0.0, max(total_s - dur.min() / 2, 0.0), n_exc)
+    size = rng.uniform(*w.temp_excursion_c, n_exc) * np.where(rng.random(n_exc) < 0.7, -1, 1)
+    i0 = (start / _AUX_GRID_S).astype(np.int64)
+    target += _boxes(n_grid, i0, i0 + (dur / _AUX_GRID_S).astype(np.int64), size)
+    # thermal inertia of skin and board: first-order lag, starting at equilibrium
+    phi = math.exp(-_AUX_GRID_S / (60 * w.temp_lag_min))
+    board = lfilter([1.0 - phi], [1.0, -phi], target, zi=[phi * target[0]])[0]
+    board = np.clip(board, *w.temp_range_c)
+    temp = np.interp(t_s, grid, board) + w.temp_noise_c * rng.standard_normal(len(t_s))
+    return _quantize(temp, w.temp_resolution_c)
+
+
+def _supply(t_s: np.ndarray, rate_hz: float, w: WearerSpec,
+            rng: np.random.Generator) -> np.ndarray:
+    """Supply channel (V): battery discharge + slow wander + load dips, noisy, quantized."""
+    n = len(t_s)
+    total_s = float(t_s[-1]) if n else 0.0
+    # the slow parts live on the coarse grid: fewer full-length temporaries
+    n_grid = int(total_s / _AUX_GRID_S) + 2
+    grid = np.arange(n_grid) * _AUX_GRID_S
+    x = grid / max(total_s, 1e-9)
+    # Li-ion shape: quick initial drop, long slope, knee at the end; 0 at x=0, 1 at x=1
+    shape = 0.25 * (1 - np.exp(-x / 0.08)) + 0.55 * x + 0.2 * x**6
+    shape /= 0.25 * (1 - math.exp(-1 / 0.08)) + 0.75
+    slow = w.vdd_start_v + (w.vdd_end_v - w.vdd_start_v) * shape
+    slow += _ou(n_grid, _AUX_GRID_S, 300.0, w.vdd_wander_v, rng)
+    vdd = np.interp(t_s, grid, slow)
+    # radio / motor load dips: seconds long, tens of mV deep
+    n_dip = int(rng.poisson(total_s / w.vdd_dip_every_s))
+    start = rng.uniform(0.0, total_s, n_dip)
+    dur = rng.uniform(*w.vdd_dip_s, n_dip)
+    depth = rng.uniform(*w.vdd_dip_v, n_dip)
+    i0 = np.floor(start * rate_hz).astype(np.int64)
+    i1 = i0 + np.maximum(1, np.round(dur * rate_hz)).astype(np.int64)
+    vdd -= _boxes(n, i0, i1, depth)
+    vdd += w.vdd_noise_v * rng.standard_normal(n)
+    return _quantize(vdd, w.vdd_resolution_v)
+
+
+def _quantize(x: np.ndarray, step: float) -> np.ndarray:
+    if step > 0:
+        # round to the step, then to the nearest decimal float so the values print cleanly
+        decimals = max(0, -math.floor(math.log10(step)) + 1)
+        x = np.round(np.round(x / step) * step, decimals)
+    return x
+
+
+# --- the simulation --------------------------------------------------------------------------
+
+def _streams(seed: int) -> list[np.random.Generator]:
+    """Independent generators for schedule, motion, temperature, supply and sensor noise."""
+    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)]
+
+
+def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None = None,
+             wearer: WearerSpec | None = None, *, start_us: int = 0) -> SimResult:
+    """Simulate `hours` of a wearer at `rate_hz`, sensed by `sensor`. Deterministic in seed.
+
+    Independent random streams (numpy SeedSequence children) drive the schedule, the motion,
+    the temperature, the supply and the sensor noise, so e.g. changing the sensor does not
+    change a_true_g, and enabling aux channels does not change the postures.
+    """
+    sensor = SensorSpec() if sensor is None else sensor
+    wearer = WearerSpec() if wearer is None else wearer
+    if hours <= 0 or rate_hz <= 0:
+        raise ValueError("hours and rate_hz must be positive")
+    n = round(hours * 3600 * rate_hz)
+    if n < 1:
+        raise ValueError("recording shorter than one sample")
+    r_sched, r_motion, r_temp, r_vdd, r_noise = _streams(seed)
+
+    t_s = np.arange(n) / rate_hz
+    t_us = np.round(t_s * 1e6).astype(np.int64)
+    t_us += np.int64(start_us)
+    segments, kinds, ups = _schedule(n / rate_hz, wearer, r_sched)
+    a_true, still, posture_id = _wearer_motion(segments, ups, n, rate_hz, wearer, r_motion)
+
+    aux_names: list[str] = []
+    if sensor.needs_temp or wearer.always_aux:
+        aux_names.append(sensor.temp_channel)
+    if sensor.needs_supply or wearer.always_aux:
+        aux_names.append(sensor.supply_channel)
+    aux = np.empty((n, len(aux_names)))  # filled column by column, no stacking copy
+    temp = vdd = None
+    if sensor.temp_channel in aux_names:
+        temp = aux[:, aux_names.index(sensor.temp_channel)]
+        temp[:] = _temperature(t_s, wearer, r_temp)
+    if sensor.supply_channel in aux_names:
+        vdd = aux[:, aux_names.index(sensor.supply_channel)]
+        vdd[:] = _supply(t_s, rate_hz, wearer, r_vdd)
+    t_h = t_s / 3600.0 if any(sensor.offset_drift_g_per_h) else None
+    del t_s
+    v = forward_model(a_true, sensor, temp_c=temp, vdd_v=vdd, t_h=t_h, rng=r_noise)
+    raw = RawBatch(t_us, v, aux, tuple(aux_names))
+
+    params = {
+        "format_version": _FORMAT_VERSION,
+        "sensor": sensor.to_dict(),
+        "S": sensor.matrix.tolist(),
+        "axis_angles_deg": sensor.axis_angles_deg,
+        "full_scale_counts": sensor.full_scale_counts,
+        "wearer": wearer.to_dict(),
+        "seed": int(seed),
+        "hours": float(hours),
+        "rate_hz": float(rate_hz),
+        "start_us": int(start_us),
+        "n_samples": int(n),
+        "n_postures": len(kinds),
+        "aux_names": aux_names,
+        "v_unit": "counts" if sensor.counts_per_g is not None else "g",
+    }
+    truth = Truth(a_true, still, posture_id, tuple(kinds), ups, params)
+    return SimResult(raw, truth)
+
+
+def with_sensor(result: SimResult, sensor: SensorSpec, seed: int | None = None) -> SimResult:
+    """The same wearer and aux channels seen by another sensor.
+
+    With seed None the noise is the one `simulate` would draw, so when both recordings carry
+    the same aux channels, with_sensor(simulate(h, r, s, A, w), B) equals
+    simulate(h, r, s, B, w). Aux channels the new sensor needs must already be in the
+    recording (use WearerSpec.always_aux); aux_names stay those of `result`."""
+    p = result.truth.params
+    names = result.raw.aux_names
+    temp = result.raw.channel(sensor.temp_channel) if sensor.temp_channel in names else None
+    vdd = result.raw.channel(sensor.supply_channel) if sensor.supply_channel in names else None
+    t_h = np.arange(len(result.raw)) / p["rate_hz"] / 3600.0  # as simulate computes it
+    rng = _streams(p["seed"] if seed is None else seed)[4]
+    v = forward_model(result.truth.a_true_g, sensor, temp_c=temp, vdd_v=vdd, t_h=t_h, rng=rng)
+    params = p | {"sensor": sensor.to_dict(), "S": sensor.matrix.tolist(),
+                  "axis_angles_deg": sensor.axis_angles_deg,
+                  "full_scale_counts": sensor.full_scale_counts,
+                  "v_unit": "counts" if sensor.counts_per_g is not None else "g"}
+    return SimResult(replace(result.raw, v=v), replace(result.truth, params=params))
+
+
+# --- files -----------------------------------------------------------------------------------
+
+def save_truth(path: str | Path, result: SimResult) -> None:
+    """Write a SimResult (raw and truth) to a compressed .npz; params and names as JSON."""
+    meta = {"params": result.truth.params, "posture_kind": list(result.truth.posture_kind),
+            "aux_names": list(result.raw.aux_names)}
+    with open(path, "wb") as fh:  # a file object keeps numpy from appending ".npz"
+        np.savez_compressed(fh, t_us=result.raw.t_us, v=result.raw.v, aux=result.raw.aux,
+                            a_true_g=result.truth.a_true_g, still=result.truth.still,
+                            posture_id=result.truth.posture_id,
+                            posture_up=result.truth.posture_up, meta=np.array(json.dumps(meta)))
+
+
+def load_truth(path: str | Path) -> SimResult:
+    """Read what `save_truth` wrote."""
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+        raw = RawBatch(z["t_us"], z["v"], z["aux"], tuple(meta["aux_names"]))
+        truth = Truth(z["a_true_g"], z["still"], z["posture_id"], tuple(meta["posture_kind"]),
+                      z["posture_up"], meta["params"])
+    return SimResult(raw, truth)

@@ -1,0 +1,181 @@
+"""CSV import/export: exact round trips, accepted layouts, bad rows, clear errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recal.io.csv_table import CsvTable, read_csv, write_calibrated_csv, write_raw_csv
+from recal.samples import CalibratedBatch, RawBatch
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _awkward_floats(n: int, seed: int = 0) -> np.ndarray:
+    """Values whose text form is easy to get wrong: tiny, huge, negative zero, 0.1-style."""
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=n) * 10.0 ** rng.integers(-300, 300, size=n)
+    values[:8] = [0.1, -0.0, 5e-324, 1.7976931348623157e308, 1 / 3, np.nan, np.inf, -np.inf]
+    return values
+
+
+def test_raw_round_trip_is_exact(tmp_path: Path) -> None:
+    n = 500
+    t_us = 1_700_000_000_000_000 + np.arange(n, dtype=np.int64) * 997
+    v = np.column_stack([_awkward_floats(n, s) for s in range(3)])
+    batch = RawBatch(t_us, v, np.column_stack([_awkward_floats(n, 9), np.arange(n)]),
+                     ("Temp °C", "vdd"))
+    path = tmp_path / "raw.csv"
+    write_raw_csv(path, batch)
+    assert path.read_text().splitlines()[0] == "t_us,x,y,z,Temp °C,vdd"
+    table = read_csv(path)
+    assert isinstance(table, CsvTable)
+    assert (table.units, table.time_column, table.skipped_rows) == ("counts", "t_us", 0)
+    assert np.array_equal(table.batch.t_us, t_us)
+    assert np.array_equal(table.batch.v, v, equal_nan=True)
+    assert np.array_equal(np.signbit(table.batch.v), np.signbit(v))
+    assert np.array_equal(table.batch.aux, batch.aux, equal_nan=True)
+    assert table.batch.aux_names == ("Temp °C", "vdd")
+
+
+def test_raw_with_units_writes_suffixed_axes_that_read_back_with_the_unit(tmp_path: Path) -> None:
+    batch = RawBatch([0, 10], [[0.0, 0.0, 9.80665], [0.1, 0.2, 9.7]], np.zeros((2, 0)))
+    path = tmp_path / "ms2.csv"
+    write_raw_csv(path, batch, units="ms2")
+    assert path.read_text().splitlines()[0] == "t_us,x_ms2,y_ms2,z_ms2"
+    table = read_csv(path)
+    assert table.units == "ms2"
+    assert np.array_equal(table.batch.v, batch.v)  # values are kept, not converted
+
+
+def test_calibrated_export_reads_back_in_g_with_detector_channels(tmp_path: Path) -> None:
+    n = 100
+    rng = np.random.default_rng(3)
+    batch = CalibratedBatch(np.arange(n) * 10_000, rng.normal(size=(n, 3)), rng.random(n) > 0.3,
+                            rng.random(n))
+    plain, full = tmp_path / "cal.csv", tmp_path / "cal-full.csv"
+    write_calibrated_csv(plain, batch)
+    write_calibrated_csv(full, batch, with_detector=True)
+    assert plain.read_text().splitlines()[0] == "t_us,x_g,y_g,z_g"
+    table = read_csv(full)
+    assert table.units == "g"
+    assert np.array_equal(table.batch.v, batch.a_g)
+    assert np.array_equal(table.batch.channel("quasi_static"), batch.quasi_static)
+    assert np.array_equal(table.batch.channel("detector_g"), batch.detector_g)
+    assert len(read_csv(plain).batch.aux_names) == 0
+
+
+@pytest.mark.parametrize("column, values, expected_us", [
+    ("t_s", ["1700000000.123456", "1700000000.123457"], [1_700_000_000_123_456,
+                                                         1_700_000_000_123_457]),
+    ("t_ms", ["0.5", "1.001"], [500, 1001]),
+    ("T_US", ["-5", "7"], [-5, 7]),
+])
+def test_time_columns_are_converted_to_microseconds(tmp_path: Path, column: str,
+                                                    values: list[str],
+                                                    expected_us: list[int]) -> None:
+    rows = "".join(f"{t},1,2,3\n" for t in values)
+    table = read_csv(_write(tmp_path / "t.csv", f"{column},x,y,z\n{rows}"))
+    assert table.batch.t_us.tolist() == expected_us
+    assert table.time_column == column.lower()
+
+
+def test_without_a_time_column_times_are_synthesized_from_the_rate(tmp_path: Path) -> None:
+    path = _write(tmp_path / "no-time.csv", "x,y,z\n1,2,3\n4,5,6\n7,8,9\n")
+    with pytest.raises(ValueError, match="rate_hz"):
+        read_csv(path)
+    table = read_csv(path, rate_hz=3.0, t0_us=1000)
+    assert table.batch.t_us.tolist() == [1000, 334_333, 667_667]
+    assert table.time_column == "synthesized"
+
+
+def test_several_time_columns_keep_the_others_as_auxiliary(tmp_path: Path) -> None:
+    path = _write(tmp_path / "two-times.csv", "t_s,t_us,x,y,z\n0.5,7,1,2,3\n")
+    table = read_csv(path)
+    assert table.batch.t_us.tolist() == [7] and table.batch.aux_names == ("t_s",)
+
+
+def test_units_come_from_the_header_and_must_agree(tmp_path: Path) -> None:
+    path = _write(tmp_path / "g.csv", "t_us,x_g,y_g,z_g,x\n0,0,0,1,5\n")
+    table = read_csv(path, units="g")
+    assert table.units == "g" and table.batch.aux_names == ("x",)
+    with pytest.raises(ValueError, match="header says 'g'"):
+        read_csv(path, units="counts")
+    with pytest.raises(ValueError, match="units must be one of"):
+        read_csv(path, units="mg")  # type: ignore[arg-type]
+    plain = _write(tmp_path / "plain.csv", "t_us,x,y,z\n0,1,2,3\n")
+    assert read_csv(plain).units == "counts" and read_csv(plain, units="ms2").units == "ms2"
+
+
+def test_bad_rows_are_skipped_and_counted_with_line_numbers(tmp_path: Path) -> None:
+    text = ("# exported by a logger\n"  # line 1
+            "t_us,x,y,z,temp\n"  # 2
+            "0,1,2,3,20\n"  # 3
+            "\n"  # 4: blank, ignored
+            "1000,1,2\n"  # 5: too few fields
+            "2000,1,oops,3,20\n"  # 6: not a number
+            "# a comment in the middle\n"  # 7: ignored
+            "3000,4,5,6,\n"  # 8: an empty auxiliary field is NaN, kept
+            "nan,4,5,6,20\n"  # 9: no time
+            ",4,5,6,20\n"  # 10: empty time
+            "4000,7,8,9,21\n")  # 11
+    table = read_csv(_write(tmp_path / "bad.csv", text))
+    assert table.skipped_rows == 4 and table.skipped_lines == (5, 6, 9, 10)
+    assert table.batch.t_us.tolist() == [0, 3000, 4000]
+    assert np.isnan(table.batch.channel("temp")[1])
+    assert table.batch.v[2].tolist() == [7.0, 8.0, 9.0]
+
+
+def test_quotes_bom_crlf_and_spaces_are_tolerated(tmp_path: Path) -> None:
+    path = tmp_path / "excel.csv"
+    path.write_bytes('\ufeff"t_us", "X" ,"y","z"," Temp "\r\n0, 1 ,2,3,"4"\r\n5,6,7,8,9\r\n'
+                     .encode())
+    table = read_csv(path)
+    assert table.batch.t_us.tolist() == [0, 5]
+    assert table.batch.v.tolist() == [[1, 2, 3], [6, 7, 8]]
+    assert table.batch.aux_names == ("Temp",) and table.skipped_rows == 0
+
+
+@pytest.mark.parametrize("text, reason", [
+    ("", "no header"),
+    ("# only a comment\n\n", "no header"),
+    ("t_us,x,y\n0,1,2\n", "no axis columns"),
+    ("t_us,x_g,y_g,z_ms2\n0,1,2,3\n", "no axis columns"),
+    ("t_us,x,y,z,X\n0,1,2,3,4\n", "duplicate column"),
+    ("t_us,x,y,z,,\n0,1,2,3,4,5\n", "empty column name"),
+])
+def test_missing_header_or_columns_are_clear_errors(tmp_path: Path, text: str,
+                                                    reason: str) -> None:
+    with pytest.raises(ValueError, match=reason):
+        read_csv(_write(tmp_path / "broken.csv", text))
+
+
+def test_header_only_gives_an_empty_batch(tmp_path: Path) -> None:
+    table = read_csv(_write(tmp_path / "empty.csv", "t_us,x,y,z,temp\n"))
+    assert len(table.batch) == 0 and table.batch.aux_names == ("temp",)
+    write_raw_csv(tmp_path / "out.csv", RawBatch.empty(("a",)))
+    assert len(read_csv(tmp_path / "out.csv").batch) == 0
+
+
+def test_aux_names_that_cannot_round_trip_are_refused(tmp_path: Path) -> None:
+    for names in (("x",), ("T_US",), ("a,b",), ('q"',), ("a", "A")):
+        batch = RawBatch([0], [[1, 2, 3]], np.zeros((1, len(names))), names)
+        with pytest.raises(ValueError):
+            write_raw_csv(tmp_path / "bad.csv", batch)
+
+
+def test_a_large_table_round_trips(tmp_path: Path) -> None:
+    n = 200_000  # more than one write chunk
+    rng = np.random.default_rng(5)
+    batch = RawBatch(np.arange(n) * 1000, np.round(rng.normal(size=(n, 3)) * 512),
+                     rng.normal(size=(n, 1)), ("temp",))
+    path = tmp_path / "big.csv"
+    write_raw_csv(path, batch)
+    table = read_csv(path)
+    assert np.array_equal(table.batch.v, batch.v) and np.array_equal(table.batch.aux, batch.aux)
+    assert np.array_equal(table.batch.t_us, batch.t_us)
