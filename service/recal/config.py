@@ -434,13 +434,37 @@ _PIPELINE_FIELDS = tuple(f.name for f in fields(PipelineConfig)
                          if f.name not in ("rate_hz", "full_scale_g", "estimator", "buffer"))
 
 
+def _typed(ctx: _Ctx, d: Mapping[str, Any], cls: type, names: Sequence[str]) -> dict[str, Any]:
+    """The keys of ``d`` that are fields of dataclass ``cls``, each checked against the type of
+    the field's default (a number where the default is one, a string where it is one)."""
+    defaults = {f.name: f.default for f in fields(cls)}
+    out: dict[str, Any] = {}
+    for k in names:
+        if k not in d:
+            continue
+        default, v = defaults.get(k), d[k]
+        if isinstance(default, bool):
+            out[k] = _bool(ctx, d, k, default)
+        elif isinstance(default, int):
+            out[k] = _int(ctx, d, k, default, minimum=0)
+        elif isinstance(default, float) or default is None:
+            out[k] = _num(ctx, d, k, default)
+        elif isinstance(default, str):
+            out[k] = _str(ctx, d, k, default)
+        else:
+            out[k] = v
+    return out
+
+
 def _pipeline(ctx: _Ctx, d: Any) -> PipelineSettings:
     d = _table(ctx, d, (*_PIPELINE_OWN, *_PIPELINE_FIELDS))
     est_fields = tuple(f.name for f in fields(EstimatorConfig) if f.name != "mode")
-    est = _table(ctx.sub("pipeline.estimator"), d.get("estimator", {}), est_fields)
-    buf = _table(ctx.sub("pipeline.buffer"), d.get("buffer", {}),
-                 tuple(f.name for f in fields(BufferConfig)))
-    options = {k: v for k, v in d.items() if k in _PIPELINE_FIELDS}
+    ectx, bctx = ctx.sub("pipeline.estimator"), ctx.sub("pipeline.buffer")
+    est = _typed(ectx, _table(ectx, d.get("estimator", {}), est_fields), EstimatorConfig,
+                 est_fields)
+    buf_fields = tuple(f.name for f in fields(BufferConfig))
+    buf = _typed(bctx, _table(bctx, d.get("buffer", {}), buf_fields), BufferConfig, buf_fields)
+    options = _typed(ctx, d, PipelineConfig, _PIPELINE_FIELDS)
     settings = PipelineSettings(_str(ctx, d, "model", "diagonal", MODELS) or "diagonal",
                                 _str(ctx, d, "mode", "all", MODES) or "all",
                                 _num(ctx, d, "plot_hz", 10.0, positive=True), options, est, buf)

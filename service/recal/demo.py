@@ -9,7 +9,8 @@ batches it receives. After ``seconds`` (or when the simulated recording is used 
 daemon and prints a summary with the error against the simulator's truth.
 
 Files in ``out_dir``: the recording (``demo.mcap``, or a time-stamped name if it exists) and
-``summary.json`` (the truth is not stored: the seed recreates it). The demo's checkpoint (``checkpoints/demo.json``) is removed at start so every demo begins from the prior.
+``summary.json`` (the truth is not stored: the seed recreates it). The demo's checkpoint
+(``checkpoints/demo.json``) is removed at start, so every demo begins from the prior.
 """
 
 from __future__ import annotations
@@ -95,6 +96,7 @@ def _errors(state: dict[str, Any], sim: SimResult, cal: Any) -> dict[str, Any]:
         raw_err = np.linalg.norm(sim.raw.v[idx[ok]] / COUNTS_PER_G
                                  - sim.truth.a_true_g[idx[ok]], axis=1)
         out["uncalibrated_err_rms_mg"] = float(1e3 * np.sqrt(np.mean(raw_err ** 2)))
+        out["noise_floor_rms_mg"] = float(1e3 * np.sqrt(3.0) * spec.noise_g)  # |white noise|
     return out
 
 
@@ -270,6 +272,7 @@ def _print_summary(s: dict[str, Any], emit: Callable[[str], None]) -> None:
         if "accel_err_rms_mg_all" in e:
             emit(f"|a - a_true| rms: uncalibrated {e['uncalibrated_err_rms_mg']:.1f} mg, "
                  f"calibrated {e['accel_err_rms_mg_all']:.1f} mg (second half "
-                 f"{e['accel_err_rms_mg_second_half']:.1f} mg)")
+                 f"{e['accel_err_rms_mg_second_half']:.1f} mg; sensor noise alone "
+                 f"{e['noise_floor_rms_mg']:.1f} mg)")
     else:
         emit("no calibration state was logged")

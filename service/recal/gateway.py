@@ -19,7 +19,9 @@ The main thread checkpoints every pipeline atomically (tmp file + os.replace) ev
 ``checkpoint.interval_s`` and at stop, reports aggregated counts (parse errors, dropped
 publishes) once a second as events, and waits for SIGINT/SIGTERM or a stop event. Stopping
 drains the queues, writes the checkpoints, closes (and indexes) the MCAP and the Zenoh session.
-A restart resumes each pipeline from its checkpoint.
+A restart resumes each pipeline from its checkpoint (the checkpoint wins over a changed prior in
+the config; delete ``<checkpoint dir>/<sensor>.json`` to start from the prior again, and a
+checkpoint whose model kind differs from the config's is ignored with an event).
 
 Queries: ``recal/<sensor>/status`` answers the node's calibration state plus a ``gateway``
 section (port, samples logged, parse errors, ...); ``recal/<sensor>/align`` requests a
@@ -489,35 +491,36 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
     Returns 0 on a clean stop, 2 for a configuration error, 1 if the log or bus cannot open.
     """
     emit = out or (lambda s: print(s, flush=True))
+    fail = out or (lambda s: print(s, file=sys.stderr, flush=True))
     try:
         cfg = config if isinstance(config, ServiceConfig) else load_config(config)
         cfg = cfg.with_sensors(_sensors(cfg, ports, sensor_ids))
         if not cfg.sensors:
             raise ConfigError("no sensors: give ports, or [[sensors]] with a port in the config")
     except ConfigError as exc:
-        emit(f"recal gateway: {exc}")
+        fail(f"recal gateway: {exc}")
         return 2
     stop = stop_event or threading.Event()
     restore = install_stop_signals(stop)
     try:
-        return _serve(cfg, mcap_out, model_path, stop, emit, on_ready)
+        return _serve(cfg, mcap_out, model_path, stop, emit, fail, on_ready)
     finally:
         restore()
 
 
 def _serve(cfg: ServiceConfig, mcap_out: str | Path | None, model_path: str | Path | None,
-           stop: threading.Event, emit: Callable[[str], None],
+           stop: threading.Event, emit: Callable[[str], None], fail: Callable[[str], None],
            on_ready: Callable[[Gateway], None] | None) -> int:
     try:
         writer = open_recording(cfg, mcap_out)
     except (OSError, ValueError) as exc:
-        emit(f"recal gateway: cannot open the recording: {exc}")
+        fail(f"recal gateway: cannot open the recording: {exc}")
         return 1
     try:
         bus = open_bus(cfg)
     except Exception as exc:  # zenoh.ZError: bad endpoint, port in use, router down
         writer.close()
-        emit(f"recal gateway: cannot open Zenoh: {exc}")
+        fail(f"recal gateway: cannot open Zenoh: {exc}")
         return 1
     sink: Sink = RecordingSink(writer) if bus is None else MultiSink(RecordingSink(writer),
                                                                       BusSink(bus))
@@ -528,7 +531,7 @@ def _serve(cfg: ServiceConfig, mcap_out: str | Path | None, model_path: str | Pa
         writer.close()
         if bus is not None:
             bus.close()
-        emit(f"recal gateway: {exc}")
+        fail(f"recal gateway: {exc}")
         return 2
     gw = Gateway(cfg, writer, bus, nodes, emit)
     gw.start()

@@ -23,8 +23,9 @@ Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
   ``counts``, ``update_count``, ``observable``, ``alignment``.
 * ``events``: JSON ``{t_us, kind, sensor_id, detail}``.
 * ``plot``: one JSON message per decimated sample (log only).
-* ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state (so a
-  replay reproduces the run bit for bit), the rate, the alignment (log only).
+* ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state
+  (``pipeline_state_json``, so a replay reproduces the run bit for bit), the rate, the
+  alignment (log only).
 
 Alignment (Zheng et al. sec. II.B): the reference posture is the first quasi-static run of
 ``min_still_s`` (10 s) within ``upright_max_deg`` of +z, after at least one accepted update;
@@ -72,6 +73,7 @@ __all__ = [
     "checkpoint_path",
     "infer_rate_hz",
     "load_checkpoint",
+    "main",
     "make_node",
     "model_name",
     "node_settings",
@@ -466,7 +468,8 @@ class CalibrationNode:
         self._pending_n += len(batch)
         if self.settings.rate_hz is None and self._pending_n < self.settings.infer_samples:
             return RawBatch.empty(batch.aux_names)
-        return self._start_pipeline(force=False)
+        # time stamps that never advance give no rate: stop waiting (bounded memory)
+        return self._start_pipeline(force=self._pending_n >= 20 * self.settings.infer_samples)
 
     def _start_pipeline(self, force: bool) -> RawBatch:
         names = self._pending[0].aux_names
@@ -495,7 +498,8 @@ class CalibrationNode:
             "rate_hz": self.pipeline.cfg.rate_hz, "plot_every": self._plot_every(),
             "alignment_settings": asdict(self.settings.alignment),
             "alignment": self.alignment.to_dict() if self.alignment else None,
-            "pipeline_state": self.pipeline.state_dict()}, log_ns)
+            # a string: JSON messages turn NaN into null, the checkpoint format keeps NaN
+            "pipeline_state_json": json.dumps(self.pipeline.state_dict())}, log_ns)
         reason = "restored" if self.start in ("checkpoint", "recording") else "start"
         self._publish_state(t_us, reason, log_ns)
         self._event("node_started", t_us, log_ns, {
@@ -768,3 +772,22 @@ class _NodeRunner:
             node.flush(now)
         self.checkpoint()
         self.receiver.close()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m recal.node --config node.toml [--sensor-id ID ...] [--mcap out.mcap]``."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m recal.node",
+                                 description="calibration node subscribed to recal/*/raw")
+    ap.add_argument("--config", help="service TOML: [zenoh], [[sensors]] priors, [pipeline]")
+    ap.add_argument("--sensor-id", action="append", default=[], help="only these sensors")
+    ap.add_argument("--mcap", help="also log everything to this recording")
+    ap.add_argument("--model", help="model file for every sensor")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    return run_node(args.config, args.sensor_id, args.mcap, args.model)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -16,6 +16,7 @@ How each sensor's pipeline starts, first match wins:
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,7 +69,7 @@ def _setups(paths: list[Path]) -> dict[str, dict[str, Any]]:
     found: dict[str, dict[str, Any]] = {}
     for topic, obj, _ in rec.iter_json(paths, "/*/setup"):
         sid = rec.split_topic(topic)[0]
-        if isinstance(obj, dict) and "pipeline_state" in obj:
+        if isinstance(obj, dict) and isinstance(obj.get("pipeline_state_json"), str):
             found.setdefault(sid, obj)
     return found
 
@@ -79,7 +80,7 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
     if model is not None or sensor.prior.known:
         return CalibrationNode(node_settings(sensor, cfg, model), sink), "config"
     if setup is not None:
-        pipe = Pipeline.from_state_dict(setup["pipeline_state"])
+        pipe = Pipeline.from_state_dict(json.loads(setup["pipeline_state_json"]))
         ali_cfg = setup.get("alignment_settings")
         settings = NodeSettings(sid, cfg.pipeline, pipe.model, pipe.prior, pipe.cfg.rate_hz,
                                 pipe.cfg.full_scale_g,

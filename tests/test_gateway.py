@@ -1,0 +1,442 @@
+"""The gateway daemon end to end: real pseudo-terminals, real Zenoh sessions on 127.0.0.1, real
+MCAP files, real processes (kill -9 and restart). Every wait is bounded in count and time."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from recal.config import ServiceConfig, model_and_prior, parse_config
+from recal.core.pipeline import Pipeline
+from recal.demo import free_port
+from recal.gateway import READY_PREFIX, Gateway, run_gateway
+from recal.io import recording as rec
+from recal.io.bus import Bus, key, zenoh_config
+from recal.io.messages import decode_calibrated, decode_json
+from recal.io.pty_device import PtyDevice
+from recal.node import load_checkpoint, run_node
+from recal.replay import replay
+from recal.samples import RawBatch
+from recal.sim import SensorSpec, WearerSpec, simulate
+
+RATE_HZ = 100.0
+SID = "s1"
+GARBAGE = [b"\x00\x01junk\n", b"1,2,3\n", b"12,abc,1,2\n", b"13,nan,1,2\n", b"\xff\xfe\n",
+           b"-5,1,2,3\n"]  # one parse error each
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float, interval_s: float = 0.02) -> bool:
+    """Poll ``cond`` until true; bounded by time and by a number of polls."""
+    deadline = time.monotonic() + timeout_s
+    for _ in range(int(timeout_s / interval_s) + 2):
+        if cond():
+            return True
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(interval_s)
+    return bool(cond())
+
+
+def sim_raw(minutes: float, seed: int = 11) -> RawBatch:
+    spec = SensorSpec.random(np.random.default_rng(seed), offset_mg=40.0, gain_pct=3.0)
+    wearer = WearerSpec(still_s=(8.0, 20.0), move_s=(2.0, 5.0))
+    return simulate(minutes / 60.0, RATE_HZ, seed, spec, wearer).raw
+
+
+def stream(dev: PtyDevice, raw: RawBatch, samples_per_s: float, chunk: int = 20,
+           garbage_every: int = 0, stop_after_s: float | None = None) -> tuple[int, int]:
+    """Write ``raw`` chunk by chunk at a steady pace (one writer: lines never interleave).
+
+    Returns (samples written, garbage lines written)."""
+    start = time.monotonic()
+    sent = bad = 0
+    for k, i in enumerate(range(0, len(raw), chunk)):
+        wait = start + i / samples_per_s - time.monotonic()
+        if wait > 0:
+            time.sleep(min(wait, 1.0))
+        part = raw[i:i + chunk]
+        dev.write_batch(part)
+        sent += len(part)
+        if garbage_every and k % garbage_every == garbage_every // 2:
+            dev.write_garbage(GARBAGE[bad % len(GARBAGE)])
+            bad += 1
+        if stop_after_s is not None and time.monotonic() - start >= stop_after_s:
+            break
+    return sent, bad
+
+
+def service_config(tmp: Path, port: str, zenoh_port: int | None, **over: Any) -> ServiceConfig:
+    doc: dict[str, Any] = {
+        "zenoh": ({"mode": "peer", "listen": [f"tcp/127.0.0.1:{zenoh_port}"], "connect": []}
+                  if zenoh_port is not None else {"enabled": False}),
+        "mcap": {"flush_interval_s": 0.05},
+        "checkpoint": {"dir": str(tmp / "ck"), "interval_s": 0.5},
+        "sensors": [{"id": SID, "port": port, "aux_names": [], "rate_hz": RATE_HZ,
+                     "prior": {"counts_per_g": 1024.0}}],
+    }
+    doc.update(over)
+    return parse_config(doc, tmp, "test")
+
+
+class LiveGateway:
+    """run_gateway in a thread of this process, stopped through its stop event."""
+
+    def __init__(self, cfg: ServiceConfig, mcap: Path) -> None:
+        self.stop = threading.Event()
+        self.ready: list[Gateway] = []
+        self.lines: list[str] = []
+        self.rc: list[int] = []
+        self.thread = threading.Thread(target=lambda: self.rc.append(run_gateway(
+            cfg, mcap_out=mcap, stop_event=self.stop, on_ready=self.ready.append,
+            out=self.lines.append)), daemon=True)
+        self.thread.start()
+        try:
+            assert wait_for(lambda: bool(self.ready) or not self.thread.is_alive(), 20), \
+                self.lines
+            assert self.ready, self.lines
+            self.gw = self.ready[0]
+            assert wait_for(lambda: self.gw.ports[SID].is_open, 10), "port never opened"
+        except AssertionError:
+            self.stop.set()
+            self.thread.join(30)
+            raise
+
+    def close(self) -> int:
+        self.stop.set()
+        self.thread.join(30)
+        assert not self.thread.is_alive()
+        return self.rc[0]
+
+
+def peer(endpoint_port: int) -> Bus:
+    return Bus(zenoh_config("peer", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{endpoint_port}"]))
+
+
+def get_json(bus: Bus, key_expr: str, want: Callable[[dict], bool] = lambda d: True,
+             tries: int = 20) -> dict:
+    for _ in range(tries):
+        for _k, payload in bus.get(key_expr, timeout_s=1.0):
+            d = decode_json(payload)
+            if want(d):
+                return d
+        time.sleep(0.05)
+    raise AssertionError(f"no reply on {key_expr}")
+
+
+def direct_pipeline(cfg: ServiceConfig) -> Pipeline:
+    sensor = cfg.sensors[0]
+    model, prior = model_and_prior(sensor, cfg.pipeline)
+    return Pipeline(cfg.pipeline.pipeline_config(RATE_HZ), model, prior, ())
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def test_end_to_end_exactly_once_matches_pipeline_and_replay(tmp_path: Path) -> None:
+    raw = sim_raw(3.0)
+    zport = free_port()
+    link = str(tmp_path / "tty0")
+    cfg = service_config(tmp_path, link, zport)
+    mcap = tmp_path / "live.mcap"
+    with PtyDevice(link) as dev:
+        live = LiveGateway(cfg, mcap)
+        bus = peer(zport)
+        got: list[int] = []
+        try:
+            bus.subscribe(key(SID, "calibrated"),
+                          lambda m: got.append(len(decode_calibrated(m.payload)[1])))
+            pub = live.gw.bus.publisher(key(SID, "calibrated"))
+            assert pub.wait_for_subscribers(10)
+            sent, bad = stream(dev, raw, 3000.0, garbage_every=25)
+            assert sent == len(raw) and bad > 20 and dev.bytes_dropped == 0
+
+            def caught_up() -> bool:
+                st = get_json(bus, key(SID, "status"))
+                return st["node"]["samples"] == sent and st["gateway"]["samples_logged"] == sent
+            assert wait_for(caught_up, 20, 0.1)
+            status = get_json(bus, key(SID, "status"))
+            assert status["sensor_id"] == SID and status["model"] == "diagonal"
+            assert set(status["params"]) == {"o_x", "o_y", "o_z", "s_x", "s_y", "s_z"}
+            assert status["node"]["accepted_updates"] >= 1
+            assert status["gateway"]["parse_errors_total"] == bad
+            assert status["gateway"]["open"] is True
+            align = get_json(bus, key(SID, "align"))
+            assert align["status"] in ("aligned", "armed") and align["sensor_id"] == SID
+            assert wait_for(lambda: sum(got) == sent, 10), (sum(got), sent)
+        finally:
+            bus.close()
+            assert live.close() == 0
+
+    # every valid sample exactly once, in order, bit for bit
+    logged = rec.read_all_raw(mcap, SID)
+    np.testing.assert_array_equal(logged.t_us, raw.t_us)
+    np.testing.assert_array_equal(logged.v, raw.v)
+    # the live calibration is Pipeline.step on the same samples (any batching)
+    cal = rec.read_all_calibrated(mcap, SID)
+    pipe = direct_pipeline(cfg)
+    direct = [pipe.step(logged[i:i + 997]).calibrated for i in range(0, len(logged), 997)]
+    ref = type(cal).concat(direct)
+    np.testing.assert_array_equal(cal.t_us, ref.t_us)
+    np.testing.assert_array_equal(cal.quasi_static, ref.quasi_static)
+    assert np.max(np.abs(cal.a_g - ref.a_g)) <= 1e-9
+    assert pipe.counts["updates"] >= 1
+    # parse errors were counted and logged
+    events = [obj for _, obj, _ in rec.iter_json(mcap, f"/{SID}/events")]
+    kinds = [e["kind"] for e in events]
+    assert "port_opened" in kinds and "node_started" in kinds
+    perr = [e for e in events if e["kind"] == "parse_errors"]
+    assert perr and sum(perr[-1]["detail"]["total"].values()) == bad
+    gw_events = [obj["kind"] for _, obj, _ in rec.iter_json(mcap, "/gateway/events")]
+    assert gw_events[0] == "start" and gw_events[-1] == "stop"
+    states = [obj for _, obj, _ in rec.iter_json(mcap, f"/{SID}/calibration")]
+    assert states[0]["reason"] == "start" and len(states) >= 2
+    assert any(obj for _, obj, _ in rec.iter_json(mcap, f"/{SID}/plot"))
+    # the recording replays to the same calibration, with no Zenoh
+    out = replay(mcap, tmp_path / "replay.mcap", progress=False)
+    assert out["sensors"][SID]["start"] == "recording" and out["samples"] == len(raw)
+    again = rec.read_all_calibrated(tmp_path / "replay.mcap", SID)
+    np.testing.assert_array_equal(again.t_us, cal.t_us)
+    assert np.max(np.abs(again.a_g - cal.a_g)) <= 1e-9
+    body_live = rec.read_all_calibrated(mcap, SID, "body")
+    body_replay = rec.read_all_calibrated(tmp_path / "replay.mcap", SID, "body")
+    np.testing.assert_array_equal(body_live.t_us, body_replay.t_us)
+
+
+def test_unplug_and_replug_reconnects(tmp_path: Path) -> None:
+    raw = sim_raw(0.5, seed=3)
+    link = str(tmp_path / "tty0")
+    cfg = service_config(tmp_path, link, None)
+    mcap = tmp_path / "plug.mcap"
+    half = len(raw) // 2
+    with PtyDevice(link) as dev:
+        live = LiveGateway(cfg, mcap)
+        p = live.gw.ports[SID]
+        try:
+            stream(dev, raw[:half], 3000.0)
+            assert wait_for(lambda: p.samples_logged == half, 10)
+            dev.unplug()
+            assert wait_for(lambda: not p.is_open, 10), "unplug not noticed"
+            time.sleep(0.2)  # stays away a little while
+            dev.replug()
+            assert wait_for(lambda: p.is_open, 10), "replug not noticed"
+            stream(dev, raw[half:], 3000.0)
+            assert wait_for(lambda: p.samples_logged == len(raw), 10), p.samples_logged
+            assert live.gw.status(SID)["gateway"]["lost_count"] == 1
+        finally:
+            assert live.close() == 0
+    logged = rec.read_all_raw(mcap, SID)
+    np.testing.assert_array_equal(logged.t_us, raw.t_us)  # samples after the replug are there
+    assert len(rec.read_all_calibrated(mcap, SID)) == len(raw)  # and calibrated
+    kinds = [obj["kind"] for _, obj, _ in rec.iter_json(mcap, f"/{SID}/events")]
+    assert kinds.index("port_lost") < kinds.index("port_found")
+
+
+def _toml(tmp: Path, link: str, zport: int) -> Path:
+    path = tmp / "gateway.toml"
+    path.write_text(f"""
+[zenoh]
+mode = "peer"
+listen = ["tcp/127.0.0.1:{zport}"]
+connect = []
+
+[mcap]
+flush_interval_s = 0.02
+
+[checkpoint]
+dir = "ck"
+interval_s = 0.25
+
+[[sensors]]
+id = "{SID}"
+port = "{link}"
+aux_names = []
+rate_hz = {RATE_HZ}
+prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
+""")
+    return path
+
+
+class GatewayProcess:
+    """``python -m recal.gateway`` as a child process; its output is read by a thread."""
+
+    def __init__(self, config: Path, mcap: Path) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "recal.gateway", "--config", str(config), "--mcap",
+             str(mcap)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        ready = wait_for(lambda: any(ln.startswith(READY_PREFIX) for ln in self.lines)
+                         or self.proc.poll() is not None, 30, 0.05)
+        if not ready or self.proc.poll() is not None:
+            self.kill()
+            raise AssertionError(f"gateway did not start: {self.lines}")
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            if len(self.lines) < 1000:
+                self.lines.append(line.rstrip("\n"))
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+
+
+@pytest.fixture
+def children() -> Any:
+    """Gateway processes started by a test; any still running at the end are killed."""
+    procs: list[GatewayProcess] = []
+    yield procs
+    for gp in procs:
+        gp.kill()
+
+
+def test_kill9_repair_then_restart_resumes_from_checkpoint(tmp_path: Path,
+                                                          children: list) -> None:
+    raw = sim_raw(4.0, seed=5)
+    zport = free_port()
+    link = str(tmp_path / "tty0")
+    config = _toml(tmp_path, link, zport)
+    ckpt = tmp_path / "ck" / f"{SID}.json"
+    run1, run2 = tmp_path / "run1.mcap", tmp_path / "run2.mcap"
+    with PtyDevice(link) as dev:
+        gp = GatewayProcess(config, run1)
+        children.append(gp)
+        bus = peer(zport)
+        try:
+            assert wait_for(lambda: get_json(bus, key(SID, "status"))["gateway"]["open"], 10)
+            # stream ~6 s, killing the daemon mid-stream once a checkpoint holds an update
+            first, _ = stream(dev, raw[:8000], 2000.0)
+
+            def updated_checkpoint() -> bool:
+                doc = load_checkpoint(ckpt) if ckpt.exists() else None
+                return bool(doc) and doc["pipeline"]["counts"]["updates"] >= 1
+            assert wait_for(updated_checkpoint, 10)
+            more, _ = stream(dev, raw[first:24000], 2000.0, stop_after_s=2.0)
+            os.kill(gp.proc.pid, signal.SIGKILL)  # right after the last write: it is mid-run
+            sent = first + more
+            gp.kill()
+        finally:
+            bus.close()
+        # repair recovers what was written: at least 99 % of the samples sent before the kill
+        report = rec.repair(run1, tmp_path / "run1-fixed.mcap")
+        assert report.truncated
+        got = rec.read_all_raw(tmp_path / "run1-fixed.mcap", SID)
+        assert len(got) >= 0.99 * sent, (len(got), sent)
+        np.testing.assert_array_equal(got.t_us, raw.t_us[:len(got)])  # exactly once, in order
+        saved = load_checkpoint(ckpt)
+        assert saved is not None and saved["pipeline"]["counts"]["updates"] >= 1
+
+        # restart: it resumes from the checkpoint, then stops cleanly on SIGTERM
+        gp2 = GatewayProcess(config, run2)
+        children.append(gp2)
+        bus = peer(zport)
+        try:
+            st = get_json(bus, key(SID, "status"), lambda d: d["gateway"]["open"])
+            assert st["node"]["start"] == "checkpoint"
+            dev.write_header(())  # the device re-announces: the first line read is whole
+            later, _ = stream(dev, raw[sent + 1000:sent + 3000], 2000.0)
+            assert wait_for(lambda: get_json(bus, key(SID, "status"))["node"]["samples"]
+                            == later, 10)
+        finally:
+            bus.close()
+        gp2.proc.send_signal(signal.SIGTERM)
+        assert gp2.proc.wait(20) == 0, gp2.lines
+    states = [obj for _, obj, _ in rec.iter_json(run2, f"/{SID}/calibration")]  # indexed file
+    first_state = states[0]
+    assert first_state["reason"] == "restored"
+    names = first_state["param_names"]
+    p_ckpt = np.asarray(saved["pipeline"]["estimate"]["p"])
+    p_first = np.array([first_state["params"][n] for n in names])
+    np.testing.assert_allclose(p_first, p_ckpt, rtol=0, atol=1e-9)
+    prior_mean = np.asarray(saved["pipeline"]["prior"]["mean"])
+    assert np.max(np.abs(p_first - prior_mean)) > 1e-3  # the checkpoint, not the prior
+    final = load_checkpoint(ckpt)  # written at stop
+    assert final is not None
+    assert final["pipeline"]["counts"]["samples"] == saved["pipeline"]["counts"]["samples"] + later
+    kinds = [obj["kind"] for _, obj, _ in rec.iter_json(run2, "/gateway/events")]
+    assert kinds[-1] == "stop"
+
+
+def test_remote_node_calibrates_raw_from_the_bus(tmp_path: Path) -> None:
+    raw = sim_raw(0.5, seed=9)
+    zport = free_port()
+    link = str(tmp_path / "tty0")
+    cfg = service_config(tmp_path, link, zport, run_nodes=False,
+                         checkpoint={"dir": "", "interval_s": 1.0})
+    with PtyDevice(link) as dev:
+        live = LiveGateway(cfg, tmp_path / "gw.mcap")
+        node_bus = peer(zport)
+        stop = threading.Event()
+        th = threading.Thread(target=run_node, args=(cfg,), daemon=True, kwargs={
+            "mcap_out": tmp_path / "node.mcap", "stop_event": stop, "bus": node_bus,
+            "out": lambda s: None})
+        try:
+            th.start()
+            assert live.gw.bus.publisher(key(SID, "raw")).wait_for_subscribers(10)
+            sent, _ = stream(dev, raw, 3000.0)
+            is_node = lambda d: "node" in d  # noqa: E731 - the gateway answers too, without it
+            assert wait_for(lambda: get_json(node_bus, key(SID, "status"), is_node)
+                            ["node"]["samples"] == sent, 15)
+        finally:
+            stop.set()
+            th.join(20)
+            node_bus.close()
+            assert live.close() == 0
+    assert len(rec.read_all_calibrated(tmp_path / "node.mcap", SID)) == sent
+    assert len(rec.read_all_calibrated(tmp_path / "gw.mcap", SID)) == 0  # not calibrated twice
+    states = [obj for _, obj, _ in rec.iter_json(tmp_path / "node.mcap", f"/{SID}/calibration")]
+    assert states and states[0]["sensor_id"] == SID
+
+
+def test_bad_config_is_one_line_and_exit_code_2(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[pipeline]\nthreshold_g = "high"\n')
+    lines: list[str] = []
+    stopped = threading.Event()
+    stopped.set()  # should the config pass after all, the daemon stops at once
+    assert run_gateway(bad, ports=["/dev/null"], out=lines.append, stop_event=stopped) == 2
+    assert len(lines) == 1 and "threshold_g" in lines[0] and "bad.toml" in lines[0]
+    bad.write_text("[[sensors]]\nid = 'a/b'\nport = 'x'\n")
+    lines.clear()
+    assert run_gateway(bad, out=lines.append, stop_event=stopped) == 2
+    assert "invalid sensor id" in lines[0]
+
+
+@pytest.mark.parametrize("doc", [json.loads('{"mcap": {"chunk_size": 0}}'),
+                                 json.loads('{"sensors": [{"id": "a", "format": "csv"}]}'),
+                                 json.loads('{"pipeline": {"window_s": 0.5, "guard_s": 1.0}}'),
+                                 json.loads('{"zenoh": {"mode": "p2p"}}'),
+                                 json.loads('{"sensors": [{"id": "a", "prior": "nope"}]}'),
+                                 json.loads('{"tresholds": 1}')])
+def test_config_errors_name_the_key(doc: dict) -> None:
+    from recal.config import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        parse_config(doc, ".", "x.toml")
+    assert str(err.value).startswith("x.toml: ") and "\n" not in str(err.value)
+
+
+def test_shipped_configs_load() -> None:
+    from recal.config import load_config
+
+    root = Path(__file__).resolve().parents[1] / "configs"
+    cfg = load_config(root / "gateway.toml")
+    assert [s.id for s in cfg.sensors] == ["wrist", "hip"]
+    for s in cfg.sensors:
+        model, prior = model_and_prior(s, cfg.pipeline)
+        assert prior is not None and model.s0 == s.prior.counts_per_g

@@ -1,0 +1,156 @@
+"""Replay: a recording through the same node code path as the live gateway, without Zenoh."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from recal.config import parse_config
+from recal.gateway import Gateway, run_gateway
+from recal.io import recording as rec
+from recal.io.pty_device import PtyDevice
+from recal.replay import replay
+from recal.samples import RawBatch
+from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
+
+RATE_HZ = 100.0
+SID = "s1"
+
+
+def wait_for(cond: Any, timeout_s: float, interval_s: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout_s
+    for _ in range(int(timeout_s / interval_s) + 2):
+        if cond():
+            return True
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(interval_s)
+    return bool(cond())
+
+
+def sim(minutes: float, seed: int, **wearer: Any) -> SimResult:
+    spec = SensorSpec.random(np.random.default_rng(seed), offset_mg=40.0, gain_pct=3.0)
+    w = WearerSpec(**{"still_s": (8.0, 20.0), "move_s": (2.0, 5.0), **wearer})
+    return simulate(minutes / 60.0, RATE_HZ, seed, spec, w)
+
+
+def live_run(tmp: Path, raw: RawBatch, mcap: Path, ckpt_dir: Path) -> None:
+    """The gateway (in this process, Zenoh off) on a real pty, fed ``raw``, then stopped."""
+    link = str(tmp / "tty0")
+    cfg = parse_config({
+        "zenoh": {"enabled": False}, "mcap": {"flush_interval_s": 0.2},
+        "checkpoint": {"dir": str(ckpt_dir), "interval_s": 0.5},
+        "sensors": [{"id": SID, "port": link, "aux_names": [], "rate_hz": RATE_HZ,
+                     "prior": {"counts_per_g": 1024.0}}]}, tmp, "test")
+    stop = threading.Event()
+    ready: list[Gateway] = []
+    with PtyDevice(link) as dev:
+        th = threading.Thread(target=run_gateway, args=(cfg,), daemon=True, kwargs={
+            "mcap_out": mcap, "stop_event": stop, "on_ready": ready.append,
+            "out": lambda s: None})
+        th.start()
+        assert wait_for(lambda: bool(ready), 20)
+        port = ready[0].ports[SID]
+        assert wait_for(lambda: port.is_open, 10)
+        for i in range(0, len(raw), 50):  # bounded: one pass over the data
+            dev.write_batch(raw[i:i + 50])
+            time.sleep(0.01)
+        assert wait_for(lambda: port.samples_logged == len(raw) and port.queue.empty(), 10)
+        stop.set()
+        th.join(30)
+        assert not th.is_alive()
+
+
+def test_replay_reproduces_live_runs_also_after_a_checkpoint_restore(tmp_path: Path) -> None:
+    raw = sim(3.0, seed=21).raw
+    ck = tmp_path / "ck"
+    first, second = raw[:9000], raw[9000:]
+    live_run(tmp_path, first, tmp_path / "a.mcap", ck)
+    live_run(tmp_path, second, tmp_path / "b.mcap", ck)  # resumes from the checkpoint
+    setups = [obj for _, obj, _ in rec.iter_json(tmp_path / "b.mcap", f"/{SID}/setup")]
+    assert setups[0]["start"] == "checkpoint"
+    for name in ("a", "b"):
+        live = rec.read_all_calibrated(tmp_path / f"{name}.mcap", SID)
+        out = replay(tmp_path / f"{name}.mcap", tmp_path / f"{name}-replay.mcap",
+                     progress=False)
+        assert out["sensors"][SID]["start"] == "recording"
+        again = rec.read_all_calibrated(tmp_path / f"{name}-replay.mcap", SID)
+        np.testing.assert_array_equal(again.t_us, live.t_us)
+        np.testing.assert_array_equal(again.quasi_static, live.quasi_static)
+        assert np.max(np.abs(again.a_g - live.a_g)) <= 1e-9
+        live_states = [o["params"] for _, o, _ in
+                       rec.iter_json(tmp_path / f"{name}.mcap", f"/{SID}/calibration")]
+        replay_states = [o["params"] for _, o, _ in
+                         rec.iter_json(tmp_path / f"{name}-replay.mcap", f"/{SID}/calibration")]
+        assert live_states == replay_states
+    # the second run continued the first: its calibration did not restart from the prior
+    b_states = [o for _, o, _ in rec.iter_json(tmp_path / "b.mcap", f"/{SID}/calibration")]
+    assert b_states[0]["counts"]["samples"] > 0
+
+
+def _raw_only(path: Path, raw: RawBatch, batch: int = 100, **writer: Any) -> None:
+    with rec.RecordingWriter(path, background_flush=False, fsync=False, **writer) as w:
+        for i in range(0, len(raw), batch):
+            w.write_raw(SID, raw[i:i + batch], 1_000_000_000 + int(raw.t_us[i]) * 1000)
+
+
+def test_replay_without_prior_bootstraps_and_infers_the_rate(tmp_path: Path) -> None:
+    s = sim(10.0, seed=4, p_upright=0.2, p_lying=0.3, p_any=0.5)
+    _raw_only(tmp_path / "raw.mcap", s.raw)
+    out = replay(tmp_path / "raw.mcap", tmp_path / "out.mcap", progress=False)
+    info = out["sensors"][SID]
+    assert info["start"] == "bootstrap"
+    assert info["rate_hz"] == pytest.approx(RATE_HZ)
+    assert info["bootstrapped"] and info["samples"] == len(s.raw)
+    events = [o["kind"] for _, o, _ in rec.iter_json(tmp_path / "out.mcap", f"/{SID}/events")]
+    assert "bootstrap" in events
+    true_mg = 1e3 * np.asarray(s.truth.sensor.offset_g)
+    est_mg = np.array([info["described"]["offset"][f"{a}_mg"] for a in "xyz"])
+    assert np.max(np.abs(est_mg - true_mg)) < 10.0, (est_mg, true_mg)
+    # the output holds raw + calibrated + calibration + plot + events
+    topics = set(rec.summary(tmp_path / "out.mcap").topics)
+    assert {f"/{SID}/raw", f"/{SID}/calibrated", f"/{SID}/calibration", f"/{SID}/plot",
+            f"/{SID}/events", f"/{SID}/setup"} <= topics
+    assert len(rec.read_all_raw(tmp_path / "out.mcap", SID)) == len(s.raw)
+
+
+def test_replay_with_config_prior_model_file_and_rotated_parts(tmp_path: Path,
+                                                             capsys: Any) -> None:
+    s = sim(3.0, seed=8)
+    _raw_only(tmp_path / "rot.mcap", s.raw, rotate_bytes=30_000, chunk_size=8192)
+    parts = rec.recording_parts(tmp_path / "rot.mcap")
+    assert len(parts) >= 3
+    cfg = tmp_path / "replay.toml"
+    cfg.write_text(f'[pipeline]\nmode = "offsets"\n\n[[sensors]]\nid = "{SID}"\n'
+                   f'rate_hz = {RATE_HZ}\nprior = {{ counts_per_g = 1024.0 }}\n')
+    out = replay(tmp_path / "rot.mcap", tmp_path / "cfg.mcap", config=cfg, progress=True)
+    assert "replay" in capsys.readouterr().err  # tqdm's bar went to stderr
+    info = out["sensors"][SID]
+    assert info["start"] == "config" and info["samples"] == len(s.raw)
+    assert all(v == 1024.0 for k, v in info["params"].items() if k.startswith("s_"))  # offsets
+    # a model file (here a calibration state of that run) replaces the configured prior
+    state = [o for _, o, _ in rec.iter_json(tmp_path / "cfg.mcap", f"/{SID}/calibration")][-1]
+    (tmp_path / "model.json").write_text(json.dumps(state))
+    out2 = replay(tmp_path / "rot.mcap", tmp_path / "model.mcap", model=tmp_path / "model.json",
+                  config=cfg, progress=False)
+    first = next(o for _, o, _ in rec.iter_json(tmp_path / "model.mcap", f"/{SID}/calibration"))
+    assert first["params"] == pytest.approx(state["params"])
+    assert out2["sensors"][SID]["start"] == "config"
+
+
+def test_replay_of_a_truncated_file_needs_repair(tmp_path: Path) -> None:
+    s = sim(1.0, seed=2)
+    _raw_only(tmp_path / "full.mcap", s.raw, chunk_size=4096)
+    data = (tmp_path / "full.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[:len(data) // 2])
+    with pytest.raises(rec.RecordingError):
+        replay(tmp_path / "cut.mcap", tmp_path / "x.mcap", progress=False)
+    rec.repair(tmp_path / "cut.mcap", tmp_path / "fixed.mcap")
+    out = replay(tmp_path / "fixed.mcap", tmp_path / "y.mcap", progress=False)
+    assert 0 < out["samples"] < len(s.raw)
