@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from polling import wait_for as wait_until
 from recal.io.bus import (
     Bus,
     Message,
@@ -44,16 +45,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float, step_s: float = 0.01) -> bool:
-    """Poll ``predicate`` until true or ``timeout_s`` elapses; return its last value."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step_s)
-    return predicate()
 
 
 @pytest.fixture
@@ -480,7 +471,7 @@ def test_router_child_exits_when_its_parent_dies() -> None:
     result = _run_python(code, timeout_s=20.0)
     pid = int(result.stdout.strip())
     try:
-        assert wait_until(lambda: not _pid_alive(pid), 8.0, step_s=0.05)
+        assert wait_until(lambda: not _pid_alive(pid), 8.0, interval_s=0.05)
     finally:
         if _pid_alive(pid):
             os.kill(pid, signal.SIGKILL)

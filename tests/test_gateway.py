@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from polling import wait_for
 from recal.config import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
 from recal.demo import free_port
@@ -34,18 +35,6 @@ RATE_HZ = 100.0
 SID = "s1"
 GARBAGE = [b"\x00\x01junk\n", b"1,2,3\n", b"12,abc,1,2\n", b"13,nan,1,2\n", b"\xff\xfe\n",
            b"-5,1,2,3\n"]  # one parse error each
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float, interval_s: float = 0.02) -> bool:
-    """Poll ``cond`` until true; bounded by time and by a number of polls."""
-    deadline = time.monotonic() + timeout_s
-    for _ in range(int(timeout_s / interval_s) + 2):
-        if cond():
-            return True
-        if time.monotonic() >= deadline:
-            break
-        time.sleep(interval_s)
-    return bool(cond())
 
 
 def sim_raw(minutes: float, seed: int = 11) -> RawBatch:

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from polling import wait_for
 from recal.config import parse_config
 from recal.gateway import Gateway, run_gateway
 from recal.io import recording as rec
@@ -21,17 +22,6 @@ from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
 
 RATE_HZ = 100.0
 SID = "s1"
-
-
-def wait_for(cond: Any, timeout_s: float, interval_s: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout_s
-    for _ in range(int(timeout_s / interval_s) + 2):
-        if cond():
-            return True
-        if time.monotonic() >= deadline:
-            break
-        time.sleep(interval_s)
-    return bool(cond())
 
 
 def sim(minutes: float, seed: int, **wearer: Any) -> SimResult:
