@@ -53,7 +53,8 @@ def test_chain_rule_jacobian_matches_finite_differences():
     p = m.nominal() + rng.normal(0, 0.01, m.size) * (np.abs(m.nominal()) + 1)
     n = 40
     v = rng.normal(0, 1000, (n, 3))
-    cov = Covariates(rng.uniform(0, 2, n), rng.normal(0, 1, (n, 2)) + [25, 3.3], ("temp", "vdd"))
+    aux = rng.normal(0, 1, (n, 2)) + np.array([25, 3.3])
+    cov = Covariates(rng.uniform(0, 2, n), aux, ("temp", "vdd"))
     _, B = m.residual_jacobian(p, v, cov)
     for k in range(m.size):
         h = 1e-6 * max(1.0, abs(p[k]))

@@ -37,12 +37,12 @@ def fit_ellipsoid(v: np.ndarray, full: bool = True) -> tuple[np.ndarray, np.ndar
     H = np.stack(cols, axis=1)
     coef, *_ = np.linalg.lstsq(H, np.ones(len(v)), rcond=None)
     if full:
-        A, B, C, D, E, F, G, Hh, I = coef
+        A, B, C, D, E, F, G, Hh, Ii = coef
     else:
-        (A, B, C, G, Hh, I), D, E, F = coef, 0.0, 0.0, 0.0
+        (A, B, C, G, Hh, Ii), D, E, F = coef, 0.0, 0.0, 0.0
     Q = np.array([[A, D, E], [D, B, F], [E, F, C]])
     try:
-        o_n = -np.linalg.solve(Q, [G, Hh, I])
+        o_n = -np.linalg.solve(Q, [G, Hh, Ii])
         k = 1.0 + o_n @ Q @ o_n
         U = np.linalg.cholesky(Q / k).T
     except np.linalg.LinAlgError:

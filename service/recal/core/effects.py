@@ -58,7 +58,8 @@ class Covariates:
         try:
             return self.aux[:, self.aux_names.index(name)]
         except ValueError:
-            raise KeyError(f"model needs channel {name!r}; recording has {self.aux_names}") from None
+            raise KeyError(f"model needs channel {name!r}; recording has "
+                           f"{self.aux_names}") from None
 
     def __getitem__(self, index: slice | np.ndarray) -> Covariates:
         return Covariates(self.t_h[index], self.aux[index], self.aux_names)

@@ -311,14 +311,14 @@ class Pipeline:
             self.counts["windows_rejected"] += 1
             return
         end_us = acc.run_start_us + (acc.k + 1) * W
-        self.pending = (acc, end_us + int(round(self.cfg.guard_s * 1e6)))
+        self.pending = (acc, end_us + round(self.cfg.guard_s * 1e6))
 
     def _commit(self, acc: _Acc, idx: int, t_us: int) -> UpdateEvent | None:
         n = acc.n
         v = acc.sum_v / n
         var = float(np.mean(np.maximum(acc.sum_v2 / n - v * v, 0.0)) * n / max(n - 1, 1))
         aux = acc.sum_aux / n
-        t_mid = acc.run_start_us + int(round(acc.sum_t / n))
+        t_mid = acc.run_start_us + round(acc.sum_t / n)
         cov = self.covariates(np.array([t_mid]), aux[None, :])
         a = self.model.correct(self.params, v[None, :], cov)[0]
         norm = float(np.linalg.norm(a))

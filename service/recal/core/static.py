@@ -126,7 +126,7 @@ def fit_known_orientations(v: np.ndarray, fit_rows: np.ndarray,
     if np.linalg.matrix_rank(H) < 4:
         raise ValueError("known orientations must span 4 independent rows (Georgieva eq. 22)")
     theta, *_ = np.linalg.lstsq(H, z, rcond=None)  # eq. 3-4 solved for all three axes at once
-    K, O = theta[:3].T, theta[3]
-    a = np.linalg.solve(K, (v - O).T).T  # Bragge eq. 5
-    params = {"K": K.tolist(), "O": O.tolist(), "g": g}
+    K, offset = theta[:3].T, theta[3]
+    a = np.linalg.solve(K, (v - offset).T).T  # Bragge eq. 5
+    params = {"K": K.tolist(), "O": offset.tolist(), "g": g}
     return StaticFit("known_orientations", g, params, a, np.asarray(fit_rows, bool))
