@@ -192,6 +192,12 @@ def _cmd_run(a: argparse.Namespace) -> int:
     return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model)
 
 
+def _cmd_node(a: argparse.Namespace) -> int:
+    from recal.node import run_node
+
+    return run_node(a.config, a.sensor_id, a.mcap, a.model)
+
+
 def _cmd_demo(a: argparse.Namespace) -> int:
     from recal.demo import run_demo
 
@@ -228,6 +234,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--mcap", help="MCAP output path (default from config)")
     s.add_argument("--model", help="model file written by `recal discover --write-model`")
     s.set_defaults(func=_cmd_run)
+
+    s = sub.add_parser("node", help="a calibration node on its own: subscribes to recal/*/raw "
+                       "(gateways elsewhere run with run_nodes = false)")
+    s.add_argument("--config", help="service config (TOML): [zenoh], [[sensors]] priors, "
+                   "[pipeline]")
+    s.add_argument("--sensor-id", action="append", default=[], help="only these sensors "
+                   "(repeatable; default: every sensor that publishes)")
+    s.add_argument("--mcap", help="also log raw and calibrated here")
+    s.add_argument("--model", help="model file for every sensor (recal discover --write-model)")
+    s.set_defaults(func=_cmd_node)
 
     s = sub.add_parser("replay", help="re-run the raw topic of a recording through the "
                        "calibration node (same code as the daemon, no Zenoh)")

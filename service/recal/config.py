@@ -214,6 +214,9 @@ class AlignmentConfig:
         upright_max_deg: an automatic reference must be within this angle of the sensor's +z
             (otherwise the wearer is lying, not upright), degrees.
         require_update: wait for one accepted calibration update before the reference.
+        max_offset_sd_mg: ... and until the x/y offsets are known this well (posterior sd, mg):
+            an offset error of e mg tilts the reference by about e/1000 rad (17 mg ≈ 1°;
+            the first updates, made on one or two postures, are not that good yet).
     """
 
     enabled: bool = True
@@ -221,6 +224,7 @@ class AlignmentConfig:
     tilt_limit_deg: float = 7.0
     upright_max_deg: float = 30.0
     require_update: bool = True
+    max_offset_sd_mg: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -477,12 +481,13 @@ def _pipeline(ctx: _Ctx, d: Any) -> PipelineSettings:
 
 def _alignment(ctx: _Ctx, d: Any) -> AlignmentConfig:
     d = _table(ctx, d, ("enabled", "min_still_s", "tilt_limit_deg", "upright_max_deg",
-                        "require_update"))
+                        "require_update", "max_offset_sd_mg"))
     return AlignmentConfig(_bool(ctx, d, "enabled", True),
                            _num(ctx, d, "min_still_s", 10.0, positive=True),
                            _num(ctx, d, "tilt_limit_deg", 7.0, positive=True),
                            _num(ctx, d, "upright_max_deg", 30.0, positive=True),
-                           _bool(ctx, d, "require_update", True))
+                           _bool(ctx, d, "require_update", True),
+                           _num(ctx, d, "max_offset_sd_mg", 10.0, positive=True))
 
 
 def _read_toml(path: Path) -> dict[str, Any]:

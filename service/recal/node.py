@@ -567,7 +567,7 @@ class CalibrationNode:
             return
         wanted = self._align_requested or self.alignment is None
         armed = wanted and (self._align_requested or not cfg.require_update
-                            or self.accepted_updates > 0)
+                            or (self.accepted_updates > 0 and self._tilt_offsets_known()))
         hit = self._tracker.feed(cal.t_us, cal.a_g, cal.quasi_static, armed)
         if hit is None:
             return
@@ -579,6 +579,15 @@ class CalibrationNode:
             return
         source = "request" if self._align_requested else "reference"
         self._set_alignment(mean, n, t_us, source, log_ns)
+
+    def _tilt_offsets_known(self) -> bool:
+        """Whether the x/y offsets' posterior sd is below ``max_offset_sd_mg`` (tilt error)."""
+        p = self.pipeline
+        if p is None or p.estimate is None or not p.model.has("offset"):
+            return True  # nothing to wait for
+        sl = p.model.slice(("offset", None))
+        sd_mg = np.sqrt(np.diag(p.estimate.cov)[sl][:2]) / p.model.s0 * 1e3
+        return bool(np.all(sd_mg <= self.settings.alignment.max_offset_sd_mg))
 
     def _set_alignment(self, mean: np.ndarray, n: int, t_us: int | None, source: str,
                        log_ns: int) -> al.Alignment:
