@@ -16,7 +16,7 @@ from recal.core import detector as det
 from recal.core.bootstrap import fit_ellipsoid
 from recal.core.buffer import BufferConfig, WindowBuffer
 from recal.core.effects import TIME, Covariates, Gain, Nonlinearity, Offset, Ratiometric
-from recal.core.estimator import Prior
+from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.core.static import fit_known_orientations, fit_unknown_orientations
@@ -110,6 +110,25 @@ def test_buffer_is_bounded_and_keeps_the_rare_orientation():
     assert cov.seen_pos == (True, False, True) and cov.cells_filled == 2
 
 
+def test_buffer_merges_a_still_run_into_slots_and_nothing_else():
+    cfg = BufferConfig(grid=3, per_cell=2, merge_max=3, merge_deg=1.0)
+    buf = WindowBuffer(cfg, n_aux=1)
+    up = np.array([0.0, 0.0, 1.0])
+    for i in range(7):  # one still run: 7 windows, 3 per slot, a cell keeps 2 slots
+        buf.add(np.array([0.0, 0.0, 1000.0 + i]), np.array([float(i)]), 10 * i, 100, 4.0, up,
+                run=1)
+    w = buf.windows()
+    assert len(w) == 2 and list(w.merged) == [3, 1]  # slots of windows 3-5 and 6
+    assert np.allclose(w.v[0], [0, 0, 1004.0]) and w.t_us[0] == 40 and w.n[0] == 300
+    tilted = np.array([np.sin(np.radians(2.0)), 0.0, np.cos(np.radians(2.0))])
+    buf.add(np.zeros(3), np.zeros(1), 100, 100, 4.0, tilted, run=1)  # 2 deg away: new slot
+    buf.add(np.zeros(3), np.zeros(1), 110, 100, 4.0, tilted, run=2)  # another run: new slot
+    assert list(buf.windows().merged) == [1, 1]  # the cell's two newest slots
+    restored = WindowBuffer.from_state_dict(json.loads(json.dumps(buf.state_dict())))
+    restored.add(np.zeros(3), np.zeros(1), 120, 100, 4.0, tilted, run=2)
+    assert list(restored.windows().merged) == [1, 2]  # the checkpoint resumes the merge
+
+
 # --- bootstrap and static --------------------------------------------------------------------
 def test_ellipsoid_fit_recovers_offsets_and_triangular_sensitivity():
     rng = np.random.default_rng(1)
@@ -125,7 +144,7 @@ def test_ellipsoid_fit_recovers_offsets_and_triangular_sensitivity():
                          [(1, 0.21, 0.26), (2, 0.45, 0.45), (3, 0.26, 0.26)])
 def test_static_tables_of_georgieva(phone, paper_pct, ours_max_pct):
     """Fit rows 1-20, worst relative norm error over all rows. Phones 2 and 3 meet the paper;
-    phone 1 reaches 0.258 % (the paper's own published parameters give 0.36 % on this table)."""
+    phone 1 reaches 0.258 % (see the next test for why the paper's 0.21 % is not comparable)."""
     path = SHARED / "static_positions" / f"phone{phone}.csv"
     v = np.loadtxt(path, delimiter=",", skiprows=1)[:, 1:]
     rows = np.zeros(len(v), bool)
@@ -134,6 +153,37 @@ def test_static_tables_of_georgieva(phone, paper_pct, ours_max_pct):
     assert 100 * fit.rel_norm_error.max() <= ours_max_pct
     raw = np.abs(np.linalg.norm(v, axis=1) / 9.81 - 1).max()
     assert fit.rel_norm_error.max() < raw / 5
+
+
+def _georgieva_eq16(v, s, b, angles):
+    """Georgieva et al. eq. 16 with their published parameters: a = T_orth T_bar (v - s) / b,
+    T_bar the inverse Gram matrix of the axes (eq. 5/8), T_orth eq. 12. (The shift is taken
+    from the raw reading before the scaling: the reading of eq. 16 that reproduces them.)"""
+    phi, psi, theta = angles
+    c = np.cos
+    gram = np.array([[1, c(phi), c(psi)], [c(phi), 1, c(theta)], [c(psi), c(theta), 1]])
+    root = np.sqrt(1 - c(phi)**2 - c(psi)**2 - c(theta)**2 + 2 * c(phi) * c(psi) * c(theta))
+    t_orth = np.array([[1, c(phi), c(psi)],
+                       [0, np.sin(phi), (c(theta) - c(phi) * c(psi)) / np.sin(phi)],
+                       [0, 0, root / np.sin(phi)]])
+    return ((t_orth @ np.linalg.inv(gram)) @ ((v - s) / b).T).T
+
+
+def test_phone1_figure_of_the_paper_holds_on_its_fit_rows_only():
+    """Why phone 1 stays above the paper's 0.21 %: the paper's own parameters (fit on rows 1-20,
+    sec. 2.4) give 0.195 % on rows 1-20 but 0.36 % over all 27 rows, so its figure describes
+    the fitted rows. Ours is better on both (0.135 % and 0.258 %), and no 9-parameter affine
+    calibration does better than 0.138 % over all rows even when fitted on all of them."""
+    v = np.loadtxt(SHARED / "static_positions" / "phone1.csv", delimiter=",", skiprows=1)[:, 1:]
+    a = _georgieva_eq16(v, [0.304496, 0.321482, -1.08995], [-1.00457, -1.00147, -0.989292],
+                        [1.57646, 1.57096, 1.57301])
+    paper = 100 * np.abs(np.linalg.norm(a, axis=1) / 9.81 - 1)
+    assert paper[:20].max() < 0.21 < paper.max()
+    rows = np.arange(len(v)) < 20
+    ours = 100 * fit_unknown_orientations(v, rows, 9.81).rel_norm_error
+    assert ours[:20].max() < paper[:20].max() and ours.max() < paper.max()
+    best = 100 * fit_unknown_orientations(v, np.ones(len(v), bool), 9.81).rel_norm_error.max()
+    assert best < ours.max()  # the gap is the 7 held-out rows, not the model
 
 
 def test_known_orientations_reproduce_bragge_fit_of_phone1():
@@ -160,15 +210,40 @@ def test_diagonal_model_reaches_1p5_mg_after_30_min(wearer_2h):
     assert pipe.counts["updates_rejected"] == 0
 
 
+def _cross_axis_wearer(seed):
+    rng = np.random.default_rng(seed)
+    sensor = SensorSpec.random(rng, offset_mg=50, gain_pct=3, cross_axis_deg=1.5)
+    return simulate(2.0, 50, seed, sensor)
+
+
 def test_full_model_with_cross_axis_reaches_1p5_mg_after_30_min():
-    rng = np.random.default_rng(2)
-    r = simulate(2.0, 50, 2, SensorSpec.random(rng, offset_mg=50, gain_pct=3, cross_axis_deg=1.5))
+    r = _cross_axis_wearer(2)
     model = SensorModel.full(1024.0)
-    cal, _ = _run(r.raw, model, Prior.default(model))
+    cal, pipe = _run(r.raw, model, Prior.default(model))
     assert _err_1s_mg(cal, r.truth.a_true_g, r.raw.t_us, align=True) <= 1.5
+    assert pipe.counts["updates_rejected"] == 0
     diag = SensorModel.diagonal(1024.0)
     cal_d, _ = _run(r.raw, diag, Prior.default(diag))  # Lötters' model cannot do this
     assert _err_1s_mg(cal_d, r.truth.a_true_g, r.raw.t_us, align=True) > 3.0
+
+
+def test_full_model_converges_on_a_wearer_who_shows_minus_z_late():
+    """Regression, seed 5: no posture with gravity below -0.3 g on z until minute 47. The first
+    estimator held the cross-axis terms of z (and s_z) fixed until z had been seen from both
+    sides and updated recursively from linearizations taken far from the truth, so the offsets
+    absorbed 1.4 deg of misalignment: 35 mg errors until minute 55, 12.6 mg over 30-120 min.
+    Re-fitting the buffer, with parameters freed by what the data inform, follows the data."""
+    r = _cross_axis_wearer(5)
+    z = r.truth.posture_up[:, 2]
+    first_minus_z_min = r.raw.t_us[np.argmax(np.isin(r.truth.posture_id,
+                                                     np.flatnonzero(z < -0.3)))] / 60e6
+    assert first_minus_z_min > 45  # the scenario: z seen from below only late
+    model = SensorModel.full(1024.0)
+    cal, pipe = _run(r.raw, model, Prior.default(model))
+    assert _err_1s_mg(cal, r.truth.a_true_g, r.raw.t_us, align=True) <= 1.5
+    assert pipe.counts["updates_rejected"] == 0
+    m = (r.raw.t_us >= 30 * 60e6) & (r.raw.t_us < 50 * 60e6)  # before -z: no worse than later
+    assert _err_1s_mg(cal[m], r.truth.a_true_g[m], r.raw.t_us[m], after_s=0, align=True) <= 2.0
 
 
 def test_no_prior_bootstraps_to_1p5_mg(wearer_2h):
@@ -195,9 +270,10 @@ def test_upright_only_keeps_unobservable_gain_at_prior_and_says_so():
     assert np.all((p >= lo) & (p <= hi))
 
 
-def test_offset_drift_is_tracked_not_frozen():
-    """15 mg/h drift, nothing in the model for it: the in-use estimate follows it. (The issue
-    asks for <= 2 mg; this estimator reaches 2.4-4.4 mg on such runs, see README.)"""
+def test_offset_drift_is_tracked_to_2_mg():
+    """15 mg/h drift, nothing in the model for it: the in-use estimate follows it (the
+    estimator's offset rate, a nuisance of the fit; the model's parameters are the offsets now)
+    to <= 2 mg after 30 min. Without the rate (random walk only) it lags: > 2 mg."""
     rng = np.random.default_rng(4)
     sensor = replace(SensorSpec.random(rng, offset_mg=50, gain_pct=3),
                      offset_drift_g_per_h=(0.015, -0.015, 0.015))
@@ -205,9 +281,14 @@ def test_offset_drift_is_tracked_not_frozen():
     model = SensorModel.diagonal(1024.0)
     cal, pipe = _run(r.raw, model, Prior.default(model))
     err = _err_1s_mg(cal, r.truth.a_true_g, r.raw.t_us)
+    assert err <= 2.0, err
     o_end = 1024 * (np.array(sensor.offset_g) + 2.0 * np.array(sensor.offset_drift_g_per_h))
-    assert np.all(np.abs(pipe.params[:3] - o_end) < 4.0)  # 30 mg of drift followed to < 4
-    assert err < 4.0, err
+    assert np.all(np.abs(pipe.params[:3] - o_end) < 1.5)  # 30 mg of drift followed to < 1.5
+    rate_g_per_h = pipe.estimate.rate / 1024
+    assert np.allclose(rate_g_per_h, sensor.offset_drift_g_per_h, atol=0.003)
+    no_rate = PipelineConfig(rate_hz=50, estimator=EstimatorConfig(offset_rate_sd_g_per_h=0))
+    cal_rw, _ = _run(r.raw, model, Prior.default(model), cfg=no_rate)
+    assert _err_1s_mg(cal_rw, r.truth.a_true_g, r.raw.t_us) > 2.0
 
 
 def test_batches_of_1_10_1000_give_the_same_output_and_checkpoints_resume_exactly():

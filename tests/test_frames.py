@@ -52,8 +52,10 @@ def _feed_split(parser: AsciiLineParser | CobsFrameParser, data: bytes,
     for cut in [*sorted(c % (len(data) + 1) for c in cuts), len(data)]:
         pieces.append(parser.feed(data[last:cut]))
         last = cut
+    # Positional names (aux0, ...) are placeholders until a header names the channels, and a
+    # header names the whole stream: compare under the names the parser ends with.
     nonempty = [p for p in pieces if len(p)] or [pieces[-1]]
-    names = nonempty[-1].aux_names
+    names = parser.aux_names
     return RawBatch.concat([RawBatch(p.t_us, p.v, p.aux, names) for p in nonempty])
 
 

@@ -190,7 +190,7 @@ def test_end_to_end_exactly_once_matches_pipeline_and_replay(tmp_path: Path) -> 
     assert gw_events[0] == "start" and gw_events[-1] == "stop"
     states = [obj for _, obj, _ in rec.iter_json(mcap, f"/{SID}/calibration")]
     assert states[0]["reason"] == "start" and len(states) >= 2
-    assert any(obj for _, obj, _ in rec.iter_json(mcap, f"/{SID}/plot"))
+    assert any(obj for _, obj, _ in rec.iter_plot(mcap, SID))
     # the recording replays to the same calibration, with no Zenoh
     out = replay(mcap, tmp_path / "replay.mcap", progress=False)
     assert out["sensors"][SID]["start"] == "recording" and out["samples"] == len(raw)
@@ -411,7 +411,8 @@ def test_bad_config_is_one_line_and_exit_code_2(tmp_path: Path) -> None:
                                  json.loads('{"pipeline": {"window_s": 0.5, "guard_s": 1.0}}'),
                                  json.loads('{"zenoh": {"mode": "p2p"}}'),
                                  json.loads('{"sensors": [{"id": "a", "prior": "nope"}]}'),
-                                 json.loads('{"tresholds": 1}')])
+                                 json.loads('{"tresholds": 1}'),
+                                 json.loads('{"batch_ms": -5}')])
 def test_config_errors_name_the_key(doc: dict) -> None:
     from recal.config import ConfigError
 
@@ -429,3 +430,161 @@ def test_shipped_configs_load() -> None:
     for s in cfg.sensors:
         model, prior = model_and_prior(s, cfg.pipeline)
         assert prior is not None and model.s0 == s.prior.counts_per_g
+
+
+# --------------------------------------------------------------------------- many ports
+
+
+def multi_config(tmp: Path, links: list[str], batch_ms: float = 0.0,
+                 idle_batch_ms: float = 0.0) -> ServiceConfig:
+    return parse_config({
+        "batch_ms": batch_ms, "idle_batch_ms": idle_batch_ms, "zenoh": {"enabled": False},
+        "mcap": {"flush_interval_s": 0.05},
+        "checkpoint": {"dir": str(tmp / "ck"), "interval_s": 60.0},
+        "sensors": [{"id": f"m{i}", "port": link, "aux_names": [], "rate_hz": RATE_HZ,
+                     "prior": {"counts_per_g": 1024.0}} for i, link in enumerate(links)],
+    }, tmp, "test")
+
+
+class ManyPorts:
+    """run_gateway over several ptys in a thread of this process (no Zenoh)."""
+
+    def __init__(self, cfg: ServiceConfig, mcap: Path, batch_s: float | None) -> None:
+        self.stop = threading.Event()
+        self.ready: list[Gateway] = []
+        self.lines: list[str] = []
+        self.thread = threading.Thread(target=lambda: run_gateway(
+            cfg, mcap_out=mcap, stop_event=self.stop, on_ready=self.ready.append,
+            out=self.lines.append, batch_s=batch_s), daemon=True)
+        self.thread.start()
+        assert wait_for(lambda: bool(self.ready) or not self.thread.is_alive(), 20), self.lines
+        self.gw = self.ready[0]
+        assert wait_for(lambda: all(p.is_open for p in self.gw.ports.values()), 10)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(30)
+        assert not self.thread.is_alive()
+
+
+@pytest.mark.parametrize("batch_s", [0.0, 0.05])
+def test_one_io_thread_serves_many_ports_every_sample_once(tmp_path: Path,
+                                                          batch_s: float) -> None:
+    n_ports, n = 6, 1500
+    raws = [sim_raw(n / RATE_HZ / 60.0, seed=20 + i) for i in range(n_ports)]
+    links = [str(tmp_path / f"tty{i}") for i in range(n_ports)]
+    mcap = tmp_path / "many.mcap"
+    devices = [PtyDevice(link) for link in links]
+    try:
+        live = ManyPorts(multi_config(tmp_path, links, idle_batch_ms=0.0), mcap, batch_s)
+        try:
+            names = [t.name for t in threading.enumerate()]
+            assert names.count("recal-io") == 1
+            assert not any(x.startswith(("recal-read", "recal-node")) for x in names)
+            for dev in devices:
+                dev.write_header(())  # ends the resync of the freshly opened port
+            start = time.monotonic()
+            for i in range(n):  # one sample per write, the ports interleaved, 2000/s each
+                for dev, raw in zip(devices, raws, strict=True):
+                    dev.write_batch(raw[i:i + 1])
+                if i % 20 == 19:
+                    time.sleep(max(0.0, start + i / 2000.0 - time.monotonic()))
+            ports = list(live.gw.ports.values())
+            assert wait_for(lambda: all(p.samples_logged == n for p in ports), 20), \
+                [p.samples_logged for p in ports]
+            if batch_s > 0:  # a 50 ms tick gathers ~100 samples of a port per batch
+                assert all(p.batches_logged <= n / 5 for p in ports), \
+                    [p.batches_logged for p in ports]
+        finally:
+            live.close()
+    finally:
+        for dev in devices:
+            dev.close()
+    for i, raw in enumerate(raws):
+        logged = rec.read_all_raw(mcap, f"m{i}")
+        np.testing.assert_array_equal(logged.t_us, raw.t_us)
+        np.testing.assert_array_equal(logged.v, raw.v)
+        assert len(rec.read_all_calibrated(mcap, f"m{i}")) == n
+
+
+def test_stop_logs_and_calibrates_what_the_ports_still_hold(tmp_path: Path) -> None:
+    raw = sim_raw(0.1, seed=31)[:100]  # a pty nobody reads holds ~4 kB: 100 lines fit
+    link = str(tmp_path / "tty0")
+    mcap = tmp_path / "held.mcap"
+    with PtyDevice(link) as dev:
+        # a 10 s tick (from the config): whatever is written now is still in the pty when the
+        # stop comes
+        live = ManyPorts(multi_config(tmp_path, [link], batch_ms=10_000), mcap, batch_s=None)
+        try:
+            dev.write_header(())
+            dev.write_batch(raw)
+            assert dev.bytes_dropped == 0 and live.gw.ports["m0"].samples_logged == 0
+        finally:
+            live.close()
+    logged = rec.read_all_raw(mcap, "m0")
+    np.testing.assert_array_equal(logged.t_us, raw.t_us)
+    assert len(rec.read_all_calibrated(mcap, "m0")) == len(raw)
+    start = next(obj for _, obj, _ in rec.iter_json(mcap, "/gateway/events"))
+    assert start["kind"] == "start" and start["detail"]["batch_s"] == 10.0
+
+
+def test_negative_batch_is_one_line_and_exit_code_2(tmp_path: Path) -> None:
+    lines: list[str] = []
+    stopped = threading.Event()
+    stopped.set()
+    assert run_gateway(None, ports=["/dev/null"], out=lines.append, stop_event=stopped,
+                       batch_s=-0.01) == 2
+    assert len(lines) == 1 and "--batch-ms" in lines[0]
+
+
+def test_latency_on_demand_ticks_until_someone_subscribes(tmp_path: Path) -> None:
+    raw = sim_raw(0.5, seed=41)
+    zport = free_port()
+    link = str(tmp_path / "tty0")
+    cfg = service_config(tmp_path, link, zport, idle_batch_ms=200.0)  # off by default
+    with PtyDevice(link) as dev:
+        live = LiveGateway(cfg, tmp_path / "demand.mcap")
+        p = live.gw.ports[SID]
+        bus = None
+        try:
+            dev.write_header(())
+            # nobody subscribes: 500 samples written one by one over ~1 s go in ~5 ticks
+            sent, _ = stream(dev, raw[:500], 500.0, chunk=1)
+            assert wait_for(lambda: p.samples_logged == sent, 10)
+            assert p.batches_logged <= 25, p.batches_logged
+            bus = peer(zport)
+            got: list[int] = []
+            bus.subscribe(key(SID, "calibrated"), lambda m: got.append(1))
+            assert wait_for(lambda: live.gw._tick_s() == 0.0, 10), "subscriber not noticed"
+            before = p.batches_logged
+            more, _ = stream(dev, raw[500:700], 100.0, chunk=1)  # 10 ms apart, each at once
+            assert wait_for(lambda: p.samples_logged == sent + more, 10)
+            assert p.batches_logged - before >= more / 2, p.batches_logged - before
+            assert wait_for(lambda: len(got) >= 100, 10)
+        finally:
+            if bus is not None:
+                bus.close()
+            assert live.close() == 0
+
+
+def test_checkpoints_are_spread_over_the_interval() -> None:
+    from recal.node import CheckpointSchedule
+
+    now = [0.0]
+    schedule = CheckpointSchedule(60.0, clock=lambda: now[0])
+    sensors = [f"s{i}" for i in range(200)]
+    for sid in sensors:
+        schedule.add(sid)
+    taken: list[tuple[float, list[str]]] = []
+    for step in range(1, 1201):  # two intervals, 0.1 s apart
+        now[0] = step * 0.1
+        due = schedule.take_due()
+        if due:
+            taken.append((now[0], due))
+    counts = [len(due) for _, due in taken]
+    assert max(counts) <= 3  # never all at once: 200 sensors over 600 wake-ups
+    first = [sid for t, due in taken if t <= 60.0 for sid in due]
+    assert sorted(first) == sorted(sensors)  # each once per interval
+    second = [sid for t, due in taken if 60.0 < t <= 120.0 for sid in due]
+    assert sorted(second) == sorted(sensors)
+    assert 0.0 <= schedule.next_due_s() <= 60.0

@@ -17,6 +17,7 @@ from recal.samples import CalibratedBatch, RawBatch
 
 OfficialRaw = m.protobuf_message_class("recal.RawBatch")
 OfficialCalibrated = m.protobuf_message_class("recal.CalibratedBatch")
+OfficialPlot = m.protobuf_message_class("recal.PlotSample")
 
 
 def _raw(n: int = 50, aux_names: tuple[str, ...] = ("temp_c", "vdd"), seed: int = 0) -> RawBatch:
@@ -85,7 +86,7 @@ def test_schema_is_a_file_descriptor_set_with_packed_fixed_width_fields() -> Non
     (file_proto,) = fds.file
     assert file_proto.package == "recal" and file_proto.syntax == "proto3"
     messages = {msg.name: msg for msg in file_proto.message_type}
-    assert set(messages) == {"RawBatch", "CalibratedBatch"}
+    assert set(messages) == {"RawBatch", "CalibratedBatch", "PlotSample"}
     fd = descriptor_pb2.FieldDescriptorProto
     for msg in messages.values():
         for field in msg.field:
@@ -95,10 +96,12 @@ def test_schema_is_a_file_descriptor_set_with_packed_fixed_width_fields() -> Non
     assert raw_types["t_us"] == fd.TYPE_SFIXED64 and raw_types["x"] == fd.TYPE_DOUBLE
     assert m.RAW_SCHEMA.name == "recal.RawBatch"
     assert m.CALIBRATED_SCHEMA.name == "recal.CalibratedBatch"
+    assert m.PLOT_SCHEMA.name == "recal.PlotSample"
+    assert m.PLOT_SCHEMA.encoding == m.PLOT_SCHEMA.message_encoding == "protobuf"
     assert m.RAW_SCHEMA.encoding == m.RAW_SCHEMA.message_encoding == "protobuf"
 
 
-@pytest.mark.parametrize("spec", [m.CALIBRATION_STATE_SCHEMA, m.EVENT_SCHEMA, m.PLOT_SCHEMA,
+@pytest.mark.parametrize("spec", [m.CALIBRATION_STATE_SCHEMA, m.EVENT_SCHEMA,
                                   m.GENERIC_JSON_SCHEMA])
 def test_json_schemas_are_permissive_objects(spec: m.SchemaSpec) -> None:
     doc = json.loads(spec.data)
@@ -299,6 +302,16 @@ def test_encode_json_converts_numpy_and_non_finite_values() -> None:
         m.encode_json({"x": object()})
 
 
+def test_encode_json_fast_path_writes_what_the_careful_path_writes() -> None:
+    # the C encoder handles a state with no NaN in it; the walk handles the rest: same text
+    state = {"params": np.array([1.5, -2.0]), "n": np.int64(3), "f32": np.float32(0.25),
+             "flags": (np.bool_(True), False), True: "t", None: 1, 2.5: "k",
+             "nested": {"cov": np.eye(2), "s": "ä"}}
+    walked = json.dumps(m._jsonable(state), separators=(",", ":"), allow_nan=False).encode()
+    assert m.encode_json(state) == walked
+    assert m.decode_json(walked)["true"] == "t" and m.decode_json(walked)["null"] == 1
+
+
 def test_event_message_has_the_four_fields() -> None:
     event = m.decode_json(m.encode_event("connected", t_us=np.int64(12), sensor_id="s1",
                                          detail={"port": "/dev/ttyUSB0"}))
@@ -314,25 +327,34 @@ def test_decode_json_rejects_garbage_with_value_error() -> None:
             m.decode_json(bad)
 
 
-def test_plot_messages_are_exact_per_sample_json() -> None:
+def test_plot_messages_are_exact_per_sample_protobuf() -> None:
     batch = _calibrated(12)
     batch.a_g[3, 1] = np.nan
     batch.detector_g[4] = np.inf
     messages = m.encode_plot(batch)
-    assert len(messages) == 12
+    assert len(messages) == 12 and {len(d) for d in messages} == {m.PLOT_DTYPE.itemsize}
     for i, data in enumerate(messages):
-        sample = json.loads(data)
+        sample = m.decode_plot(data)
+        official = OfficialPlot.FromString(data)  # the reference runtime reads the same
         assert set(sample) == {"t_us", "x_g", "y_g", "z_g", "norm_g", "quasi_static",
                                "detector_g"}
+        for name, value in sample.items():
+            assert value == getattr(official, name) or (math.isnan(value)
+                                                        and math.isnan(getattr(official, name)))
         assert sample["t_us"] == batch.t_us[i]
         assert sample["quasi_static"] is bool(batch.quasi_static[i])
         if i == 3:
-            assert sample["y_g"] is None and sample["norm_g"] is None
+            assert math.isnan(sample["y_g"]) and math.isnan(sample["norm_g"])
             continue
         assert sample["x_g"] == batch.a_g[i, 0] and sample["z_g"] == batch.a_g[i, 2]
         assert sample["norm_g"] == pytest.approx(float(np.linalg.norm(batch.a_g[i])),
                                                  rel=1e-15)
-        assert sample["detector_g"] == (None if i == 4 else batch.detector_g[i])
+        assert sample["detector_g"] == batch.detector_g[i]  # inf at i == 4 survives
     chosen = m.encode_plot(batch, [0, 5, 10])
-    assert [json.loads(d)["t_us"] for d in chosen] == batch.t_us[[0, 5, 10]].tolist()
+    assert [m.decode_plot(d)["t_us"] for d in chosen] == batch.t_us[[0, 5, 10]].tolist()
     assert m.encode_plot(batch, np.array([], dtype=np.intp)) == []
+    # what the official runtime writes (defaults omitted) decodes to the same sample
+    official = OfficialPlot(t_us=int(batch.t_us[1]), x_g=float(batch.a_g[1, 0]))
+    assert m.decode_plot(official.SerializeToString()) == {
+        "t_us": int(batch.t_us[1]), "x_g": float(batch.a_g[1, 0]), "y_g": 0.0, "z_g": 0.0,
+        "norm_g": 0.0, "quasi_static": False, "detector_g": 0.0}

@@ -94,7 +94,7 @@ def test_topics_schemas_and_encodings_follow_the_layout(tmp_path: Path) -> None:
         "/s1/calibrated": ("recal.CalibratedBatch", "protobuf", "protobuf"),
         "/s2/calibrated": ("recal.CalibratedBatch", "protobuf", "protobuf"),
         "/s1/body": ("recal.CalibratedBatch", "protobuf", "protobuf"),
-        "/s1/plot": ("recal.PlotSample", "jsonschema", "json"),
+        "/s1/plot": ("recal.PlotSample", "protobuf", "protobuf"),
         "/s1/calibration": ("recal.CalibrationState", "jsonschema", "json"),
         "/s2/events": ("recal.Event", "jsonschema", "json"),
     }
@@ -165,7 +165,7 @@ def test_plot_is_decimated_continuously_and_spread_in_log_time(tmp_path: Path) -
             written = w.write_plot("s1", batch, T0_NS + k * 10**9, every_n=3)
             assert written == len(range((-start) % 3, n, 3))
             start += n
-    plots = [(obj, log_ns) for _, obj, log_ns in rec.iter_json(path, "/s1/plot")]
+    plots = [(obj, log_ns) for _, obj, log_ns in rec.iter_plot(path, "s1")]
     assert [p["t_us"] // 1000 for p, _ in plots] == list(range(0, sum(sizes), 3))
     assert plots[0][0]["norm_g"] == pytest.approx(3 ** 0.5)
     # Within a batch, log times step back from the batch's log time by device time.

@@ -51,7 +51,7 @@ def live_run(tmp: Path, raw: RawBatch, mcap: Path, ckpt_dir: Path) -> None:
         for i in range(0, len(raw), 50):  # bounded: one pass over the data
             dev.write_batch(raw[i:i + 50])
             time.sleep(0.01)
-        assert wait_for(lambda: port.samples_logged == len(raw) and port.queue.empty(), 10)
+        assert wait_for(lambda: port.samples_logged == len(raw) and not port.pending, 10)
         stop.set()
         th.join(30)
         assert not th.is_alive()

@@ -236,3 +236,79 @@ def test_pty_is_raw_bytes_pass_unchanged(link: str) -> None:
         assert [e.detail for e in events if e.kind == "parse_errors"] == [
             {"port": link, "garbage": 1}]
         assert source.parser.errors.empty_lines == 0  # no CR -> LF translation happened
+
+
+# --------------------------------------------------------------------------- non-blocking poll
+
+
+def _poll_until(source: SerialSource, done: Callable[[RawBatch, list[SourceEvent]], bool],
+                timeout_s: float = 5.0) -> tuple[RawBatch, list[SourceEvent]]:
+    """poll() (never waits) until ``done``; bounded in time and in count."""
+    batches: list[RawBatch] = []
+    events: list[SourceEvent] = []
+    deadline_s = time.monotonic() + timeout_s
+    for _ in range(int(timeout_s / 0.005) + 1):
+        batch, new_events = source.poll()
+        events += new_events
+        if len(batch):
+            batches.append(batch)
+        if done(_concat(batches), events) or time.monotonic() > deadline_s:
+            break
+        time.sleep(0.005)
+    return _concat(batches), events
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "cobs"])
+def test_poll_opens_reads_what_is_waiting_and_never_waits(link: str, fmt: str) -> None:
+    sent = _batch(300)
+    with PtyDevice(link, fmt) as device, \
+            SerialSource(link, make_parser(fmt, AUX), read_timeout_s=5.0) as source:
+        assert source.fileno() is None
+        first, events = source.poll()  # opens; nothing is waiting yet
+        assert len(first) == 0 and _kinds(events) == ["port_opened"]
+        fd = source.fileno()
+        assert isinstance(fd, int) and not os.get_blocking(fd)
+        # With a 5 s pyserial timeout, a poll that read through pyserial (or waited for a
+        # first byte) would take 5 s; 20 empty polls must all come back at once.
+        started_s = time.monotonic()
+        for _ in range(20):
+            assert len(source.poll()[0]) == 0
+        assert time.monotonic() - started_s < 2.0
+        if fmt == "ascii":  # a header line ends the resync of a freshly opened port
+            device.write_header(AUX)
+        for i in range(0, len(sent), 7):  # many small writes, read as they come
+            device.write_batch(sent[i:i + 7])
+        got, _ = _poll_until(source, lambda s, e: len(s) >= len(sent))
+    np.testing.assert_array_equal(got.t_us, sent.t_us)
+    np.testing.assert_array_equal(got.v, sent.v)
+
+
+def test_poll_notices_an_unplug_and_reopens_after_a_replug(link: str) -> None:
+    with PtyDevice(link, "ascii") as device, \
+            SerialSource(link, AsciiLineParser(AUX), backoff_initial_s=0.02) as source:
+        source.poll()
+        device.write_header(AUX)
+        device.write_batch(_batch(10))
+        got, _ = _poll_until(source, lambda s, e: len(s) >= 10)
+        assert len(got) == 10
+        device.unplug()
+        _, events = source.poll(readable=True)  # the selector reports a hung-up tty readable
+        assert _kinds(events) == ["port_lost"] and source.fileno() is None
+        device.replug()
+        later = _batch(5, t0_us=10_000_000)
+        _, events = _poll_until(source, lambda s, e: "port_found" in _kinds(e))
+        assert "port_found" in _kinds(events) and source.fileno() is not None
+        device.write_header(AUX)
+        device.write_batch(later)
+        got, _ = _poll_until(source, lambda s, e: len(s) >= 5)
+    np.testing.assert_array_equal(got.t_us, later.t_us)
+
+
+def test_write_nowait_never_blocks_and_reports_what_fit(link: str) -> None:
+    with PtyDevice(link, "ascii") as device:
+        assert device.write_nowait(b"1,2,3,4\n") == 8
+        # nobody reads: the pty fills up, and then a write takes nothing instead of waiting
+        taken = [device.write_nowait(b"x" * 65536) for _ in range(1000)]
+        assert 0 in taken and 0 < sum(taken) < 1000 * 65536
+        device.unplug()
+        assert device.write_nowait(b"gone") == 0

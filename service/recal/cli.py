@@ -12,6 +12,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -20,6 +21,13 @@ __all__ = ["main"]
 
 class UsageError(Exception):
     """An error the user can fix; printed as one line."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """Argument mistakes as one ``recal: error:`` line too (argparse would add the usage)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"recal: error: {message} (see {self.prog} --help)\n")
 
 
 # --- simulate --------------------------------------------------------------------------------
@@ -63,6 +71,14 @@ def _cmd_import(a: argparse.Namespace) -> int:
     from recal.io import csv_table, recording
 
     table = csv_table.read_csv(a.input, units=a.units, rate_hz=a.rate)
+    t_us = table.batch.t_us
+    if len(t_us) == 0:
+        lines = ", ".join(map(str, table.skipped_lines[:5]))
+        raise UsageError(f"{a.input}: no valid rows ({table.skipped_rows} bad"
+                         + (f", first at lines {lines})" if lines else ")"))
+    if t_us.min() < 0 or t_us.max() >= 2**64 // 1000:  # MCAP log time = t_us * 1000 ns
+        raise UsageError(f"{a.input}: times must be from 0 to 584 years in microseconds "
+                         f"(found {t_us.min()} to {t_us.max()})")
     with recording.RecordingWriter(a.out, overwrite=True,
                                    metadata={"units": table.units}) as w:
         for i in range(0, len(table.batch), 1000):
@@ -120,6 +136,8 @@ def _read_static_table(path: str) -> np.ndarray:
             rows = [r for r in csv.reader(f) if r and not r[0].startswith("#")]
     except OSError as e:
         raise UsageError(f"cannot read {path}: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{path}: not UTF-8 text (byte {e.start})") from None
     if len(rows) < 2:
         raise UsageError(f"{path}: needs a header and at least one row")
     head = [h.strip().lower() for h in rows[0]]
@@ -166,6 +184,32 @@ def _cmd_static(a: argparse.Namespace) -> int:
     return 0
 
 
+# --- discover --------------------------------------------------------------------------------
+def _cmd_discover(a: argparse.Namespace) -> int:
+    from recal import discovery_report as dr
+    from recal.config import load_model_file
+    from recal.core.discovery import DiscoveryConfig, data_from_table
+
+    path = Path(a.input)
+    if path.suffix.lower() == ".csv" and a.rate is None and not dr.csv_has_time(path):
+        data = data_from_table(_read_static_table(a.input))  # one still row per pose
+    elif path.suffix.lower() == ".csv":
+        data = dr.data_from_csv(path, a.rate, a.units, a.window_s)
+    else:
+        data = dr.data_from_recording(path, a.sensor_id, a.window_s)[0]
+    model, p = None, None
+    if a.model:
+        model, prior = load_model_file(a.model)
+        p = prior.mean if prior is not None else None
+    try:
+        dr.run(data, model=model, p=p, cfg=DiscoveryConfig(blocks=a.blocks),
+               json_path=a.json, plots_dir=a.plots, model_path=a.write_model,
+               source=str(path))
+    except RuntimeError as e:  # matplotlib missing for --plots
+        raise UsageError(str(e)) from None
+    return 0
+
+
 # --- replay / repair / run / demo / router ---------------------------------------------------
 def _cmd_replay(a: argparse.Namespace) -> int:
     from recal.replay import replay
@@ -189,7 +233,8 @@ def _cmd_repair(a: argparse.Namespace) -> int:
 def _cmd_run(a: argparse.Namespace) -> int:
     from recal.gateway import run_gateway
 
-    return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model)
+    return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model,
+                       batch_s=None if a.batch_ms is None else a.batch_ms / 1e3)
 
 
 def _cmd_node(a: argparse.Namespace) -> int:
@@ -205,14 +250,20 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 
 
 def _cmd_router(a: argparse.Namespace) -> int:
+    import zenoh
+
     from recal.io.router import run_router
 
-    return run_router(listen_endpoints=a.listen or None, config_file=a.config)
+    try:
+        return run_router(listen_endpoints=a.listen or None, config_file=a.config)
+    except zenoh.ZError as e:  # bad endpoint or config file, port in use
+        # Zenoh appends the Rust source location: not for the user
+        raise UsageError(f"cannot start the router: {str(e).split(' at /')[0]}") from None
 
 
 # --- parser ----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="recal",
         description="Streaming in-use recalibration of triaxial accelerometers: whenever the "
                     "sensor is quasi-static its calibrated vector must be 1 g long (Lötters "
@@ -233,6 +284,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", help="service config (TOML), e.g. configs/gateway.toml")
     s.add_argument("--mcap", help="MCAP output path (default from config)")
     s.add_argument("--model", help="model file written by `recal discover --write-model`")
+    s.add_argument("--batch-ms", type=float, default=None,
+                   help="handle what arrived every this many ms instead of at once: less CPU, "
+                   "up to this much more latency (default: the config's batch_ms, 0 = at once; "
+                   "100 for a battery-powered gateway)")
     s.set_defaults(func=_cmd_run)
 
     s = sub.add_parser("node", help="a calibration node on its own: subscribes to recal/*/raw "
@@ -289,6 +344,24 @@ def build_parser() -> argparse.ArgumentParser:
                    help="least worst row (default) or least squares")
     s.add_argument("--json", help="write the report as JSON here")
     s.set_defaults(func=_cmd_static)
+
+    s = sub.add_parser("discover", help="find the effects the model lacks: fit, residual, "
+                       "candidate effects scored on held-out time blocks, before -> after")
+    s.add_argument("input", help="recording (.mcap), CSV time series (t_us/t_s, x, y, z, "
+                   "channels), or a static table (x, y, z, one still row per pose)")
+    s.add_argument("--json", help="write the report (effects_selected, heldout_error_mg, "
+                   "steps, ...) here")
+    s.add_argument("--plots", metavar="DIR", help="write PNG figures here (needs matplotlib)")
+    s.add_argument("--write-model", metavar="MODEL.json",
+                   help="the extended model and starting values for run/replay --model")
+    s.add_argument("--model", help="start from this model file instead of offsets + gains")
+    s.add_argument("--sensor-id", help="which sensor of a recording (default: the only one)")
+    s.add_argument("--blocks", type=int, default=10, help="held-out time blocks (default 10)")
+    s.add_argument("--window-s", type=float, help="window length for short still poses "
+                   "(default 2 s, as the daemon)")
+    s.add_argument("--rate", type=float, help="sample rate of a CSV without a time column")
+    s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
+    s.set_defaults(func=_cmd_discover)
 
     s = sub.add_parser("import", help="CSV (t_us or t_s, x, y, z, aux...) -> MCAP raw topic")
     s.add_argument("input")

@@ -10,6 +10,8 @@ relative to the file)::
 
     priors_file = "sensor-priors.toml"     # named priors, see below
     run_nodes = true                       # calibrate in the gateway (false: a remote node does)
+    batch_ms = 0                           # gateway: handle arrivals every N ms (0: at once)
+    idle_batch_ms = 0                      # ... and every N ms while nobody subscribes live
 
     [zenoh]     mode = "peer", listen = [...], connect = [...], config_file = "zenoh-peer.json5"
     [mcap]      dir = "recordings" | path = "rec.mcap", chunk_size = 32768, flush_interval_s,
@@ -19,6 +21,8 @@ relative to the file)::
                 plot_hz = 10, any other PipelineConfig field; [pipeline.estimator],
                 [pipeline.buffer] pass to EstimatorConfig / BufferConfig
     [alignment] enabled, min_still_s = 10, tilt_limit_deg = 7, upright_max_deg = 30
+    [discovery] every_h = 0 (off), min_windows = 60, blocks = 10: rediscover effects on the
+                live buffer (recal.core.discovery) and continue with the extended model
     [[sensors]] id, port, format = "ascii"|"cobs", baudrate, aux_names, rate_hz,
                 full_scale_g, model, prior = "<name in priors_file>" | { inline table }
 
@@ -53,6 +57,7 @@ __all__ = [
     "McapConfig",
     "PipelineSettings",
     "PriorConfig",
+    "RediscoveryConfig",
     "SensorConfig",
     "ServiceConfig",
     "ZenohSettings",
@@ -228,6 +233,25 @@ class AlignmentConfig:
 
 
 @dataclass(frozen=True)
+class RediscoveryConfig:
+    """Periodic effect discovery on a node's live window buffer (off by default).
+
+    Attributes:
+        every_h: device hours between runs; 0 = never.
+        min_windows: fewer buffered windows than this and the run is skipped.
+        blocks: held-out time blocks (see recal.core.discovery.DiscoveryConfig).
+    """
+
+    every_h: float = 0.0
+    min_windows: int = 60
+    blocks: int = 10
+
+    @property
+    def enabled(self) -> bool:
+        return self.every_h > 0
+
+
+@dataclass(frozen=True)
 class ServiceConfig:
     """The whole service configuration."""
 
@@ -238,7 +262,10 @@ class ServiceConfig:
     pipeline: PipelineSettings = field(default_factory=PipelineSettings)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     run_nodes: bool = True
+    batch_ms: float = 0.0
+    idle_batch_ms: float = 0.0
     source: Path | None = None
+    discovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
 
     def sensor(self, sensor_id: str) -> SensorConfig | None:
         return next((s for s in self.sensors if s.id == sensor_id), None)
@@ -334,6 +361,13 @@ def _path(ctx: _Ctx, d: Mapping, key: str, default: Path | None) -> Path | None:
         return default if v is None else None
     p = Path(v).expanduser()
     return p if p.is_absolute() else ctx.base / p
+
+
+def _batch_ms(ctx: _Ctx, d: Mapping, key: str, default: float) -> float:
+    v = _num(ctx, d, key, default)
+    if v < 0:
+        raise ctx.error(key, f"expected 0 or more, got {v!r}")
+    return float(v)
 
 
 def _numbers(ctx: _Ctx, d: Mapping, key: str) -> dict[str, float]:
@@ -490,6 +524,15 @@ def _alignment(ctx: _Ctx, d: Any) -> AlignmentConfig:
                            _num(ctx, d, "max_offset_sd_mg", 10.0, positive=True))
 
 
+def _discovery(ctx: _Ctx, d: Any) -> RediscoveryConfig:
+    d = _table(ctx, d, ("every_h", "min_windows", "blocks"))
+    every = _num(ctx, d, "every_h", 0.0)
+    if every < 0:
+        raise ctx.error("every_h", f"expected hours >= 0 (0 = off), got {every!r}")
+    return RediscoveryConfig(every, _int(ctx, d, "min_windows", 60, 10),
+                             _int(ctx, d, "blocks", 10, 3))
+
+
 def _read_toml(path: Path) -> dict[str, Any]:
     try:
         with open(path, "rb") as f:
@@ -511,8 +554,8 @@ def _priors_file(path: Path) -> dict[str, PriorConfig]:
     return {name: _prior(ctx.sub(f"priors.{name}"), d) for name, d in named.items()}
 
 
-_TOP_KEYS = ("priors_file", "run_nodes", "zenoh", "mcap", "checkpoint", "pipeline",
-             "alignment", "sensors", "priors")
+_TOP_KEYS = ("priors_file", "run_nodes", "batch_ms", "idle_batch_ms", "zenoh", "mcap",
+             "checkpoint", "pipeline", "alignment", "sensors", "priors", "discovery")
 
 
 def parse_config(doc: Mapping[str, Any], base_dir: Path | str = ".",
@@ -541,7 +584,10 @@ def parse_config(doc: Mapping[str, Any], base_dir: Path | str = ".",
         checkpoint=_checkpoint(ctx.sub("checkpoint"), doc.get("checkpoint", {})),
         pipeline=_pipeline(ctx.sub("pipeline"), doc.get("pipeline", {})),
         alignment=_alignment(ctx.sub("alignment"), doc.get("alignment", {})),
-        run_nodes=_bool(ctx, doc, "run_nodes", True))
+        run_nodes=_bool(ctx, doc, "run_nodes", True),
+        batch_ms=_batch_ms(ctx, doc, "batch_ms", 0.0),
+        idle_batch_ms=_batch_ms(ctx, doc, "idle_batch_ms", 0.0),
+        discovery=_discovery(ctx.sub("discovery"), doc.get("discovery", {})))
 
 
 def load_config(path: str | Path | None) -> ServiceConfig:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from recal.config import parse_config
-from recal.gateway import Gateway, run_gateway
+from recal.gateway import ERROR_PREFIX, Gateway, run_gateway
 from recal.io import recording as rec
 from recal.io.pty_device import PtyDevice
 from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
@@ -173,7 +173,7 @@ def run_demo(seconds: float = 45.0, out_dir: str | Path = "recal-demo", *,
         stop.set()
         th.join(30.0)
     for line in lines:
-        if line.startswith("recal gateway:"):
+        if line.startswith(ERROR_PREFIX):
             emit(line)  # an error from the daemon
     if not ready:
         emit("recal demo: the gateway did not start")

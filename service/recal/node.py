@@ -17,7 +17,7 @@ Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
 
 * ``calibrated`` (and ``body``): CalibratedBatch protobuf.
 * ``calibration``: JSON, the calibration state: ``sensor_id``, ``t_us`` (device time, us),
-  ``reason`` (start | restored | update | bootstrap | status), ``model`` (name),
+  ``reason`` (start | restored | update | bootstrap | status | discovery), ``model`` (name),
   ``model_spec``, ``param_names``, ``params`` (by name, raw units), ``described`` (mg, %),
   ``sd``, ``covariance``, ``residual_rms_mg``, ``residual_g``, ``last_update``, ``coverage``,
   ``counts``, ``update_count``, ``observable``, ``alignment``.
@@ -38,10 +38,11 @@ from __future__ import annotations
 import json
 import logging
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -51,6 +52,7 @@ from recal.config import (
     AlignmentConfig,
     ConfigError,
     PipelineSettings,
+    RediscoveryConfig,
     SensorConfig,
     ServiceConfig,
     load_config,
@@ -65,6 +67,7 @@ from recal.samples import CalibratedBatch, RawBatch
 __all__ = [
     "BusSink",
     "CalibrationNode",
+    "CheckpointSchedule",
     "MultiSink",
     "NodeSettings",
     "NullSink",
@@ -84,6 +87,12 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = 1
+NODE_READY_PREFIX = "recal node ready"
+RECV_ROUND = 4096  # most raw messages a remote node takes from its receiver per round
+# Raw messages a remote node buffers before Zenoh's thread waits (and after its 1 s wait,
+# drops): gateways handling every arrival at once send a message per sample, so 1024 was
+# 0.2 s of 50 sensors, and a node a second behind lost samples (bench/scale_out.py).
+RECV_CAPACITY = 1 << 17
 DEFAULT_RATE_HZ = 100.0  # only when a stream ends before its rate could be measured
 
 
@@ -158,13 +167,21 @@ class BusSink:
 
         self.bus = bus
         self._key = _bus.key
+        self._keys: dict[tuple[str, str], str] = {}
         self._topics = frozenset(_bus.TOPICS)
         self._messages = messages
         self.dropped = 0
 
+    def _key_of(self, sensor_id: str, suffix: str) -> str:
+        """The Zenoh key, validated once per (sensor, suffix) rather than per message."""
+        k = self._keys.get((sensor_id, suffix))
+        if k is None:
+            k = self._keys[(sensor_id, suffix)] = self._key(sensor_id, suffix)
+        return k
+
     def _put(self, sensor_id: str, suffix: str, data: bytes) -> None:
         try:
-            ok = self.bus.publish(self._key(sensor_id, suffix), data)
+            ok = self.bus.publish(self._key_of(sensor_id, suffix), data)
         except RuntimeError:  # the bus closed under us (shutdown)
             ok = False
         if not ok:
@@ -301,6 +318,40 @@ def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
     return doc
 
 
+class CheckpointSchedule:
+    """When each sensor's checkpoint is next due: every ``interval_s``, the sensors spread over
+    the interval (the k-th added at phase k * 0.618... of it, evenly for any count).
+
+    Why: one checkpoint is a ~75 kB JSON document; 200 sensors written at once held the GIL
+    for ~3 s of CPU every minute, and the I/O loop's latency p99 went from 0.5 s to 3 s.
+    Spread out, each sensor's turn costs tens of milliseconds, shared with the loop.
+    """
+
+    _PHASE_STEP = (5 ** 0.5 - 1) / 2  # golden-ratio steps stay evenly spread as sensors come
+
+    def __init__(self, interval_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.interval_s = float(interval_s)
+        self._clock = clock
+        self._due: dict[str, float] = {}
+
+    def add(self, sensor_id: str) -> None:
+        if sensor_id not in self._due:
+            phase = (len(self._due) * self._PHASE_STEP) % 1.0
+            self._due[sensor_id] = self._clock() + self.interval_s * (phase or 1.0)
+
+    def take_due(self) -> list[str]:
+        """The sensors due now, each rescheduled one interval on."""
+        now = self._clock()
+        due = [sid for sid, t in self._due.items() if t <= now]
+        for sid in due:
+            self._due[sid] = now + self.interval_s
+        return due
+
+    def next_due_s(self) -> float:
+        """Seconds until the next sensor is due (inf with none)."""
+        return max(0.0, min(self._due.values()) - self._clock()) if self._due else float("inf")
+
+
 # ---------------------------------------------------------------------------------------------
 # The node
 # ---------------------------------------------------------------------------------------------
@@ -328,6 +379,7 @@ class NodeSettings:
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     infer_samples: int = 50
     request_min_s: float = 2.0
+    rediscovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
 
 
 class CalibrationNode:
@@ -362,6 +414,11 @@ class CalibrationNode:
         self.samples_skipped = 0
         self.last_t_us: int | None = None
         self.last_state: dict[str, Any] | None = None
+        # (model, estimate, summary) of the batch being reported while process_many reports
+        # joined batches one by one; None: the pipeline as it is
+        self._view: tuple[SensorModel, Any, dict[str, Any] | None] | None = None
+        self._next_discovery_us: int | None = None
+        self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
         if pipeline is not None:
             self._tracker = self._make_tracker(pipeline.cfg.rate_hz)
 
@@ -387,6 +444,48 @@ class CalibrationNode:
             if not self._started:
                 self._announce(int(batch.t_us[0]), log_time_ns)
             return self._step(batch, log_time_ns)
+
+    def process_many(self, items: Sequence[tuple[RawBatch, int]]) -> None:
+        """`process` for consecutive (batch, log time) of this sensor, in one pipeline step.
+
+        The output is exactly what `process` gives each batch in turn (per batch, with its
+        log time: calibrated, plot, body, events, and the calibration state after updates,
+        as of that batch's end); only the per-call costs are paid once, since the pipeline
+        is batch-size invariant (replay joins a recording's small messages this way). Falls
+        back to `process` one by one when the batches cannot share a step: pipeline not
+        started, another channel layout, periodic rediscovery on.
+        """
+        items = [(b, t) for b, t in items if len(b)]
+        with self._lock:
+            while items and (self.pipeline is None or not self._started):
+                self.process(*items.pop(0))  # until the rate is known and the pipeline runs
+            pipe = self.pipeline
+            if (len(items) < 2 or pipe is None or self.settings.rediscovery.enabled
+                    or any(b.aux_names != pipe.aux_names for b, _ in items)):
+                for batch, log_ns in items:
+                    self.process(batch, log_ns)
+                return
+            ends = np.cumsum([len(b) for b, _ in items]).tolist()
+            model, estimate = pipe.model, pipe.estimate  # as of before the step
+            out = pipe.step(RawBatch.concat([b for b, _ in items]), marks=ends)
+            self._last_names = pipe.aux_names
+            todo = list(out.updates)
+            lo = 0
+            try:
+                for (_, log_ns), hi in zip(items, ends, strict=True):
+                    mine = []
+                    while todo and todo[0].index < hi:  # this batch's updates, its indices
+                        u = todo.pop(0)
+                        mine.append(replace(u, index=u.index - lo))
+                    if mine:
+                        model, estimate = mine[-1].model or model, mine[-1].estimate
+                    state = out.states.get(hi)  # (model, summary) after this batch
+                    self._view = (model, estimate, state[1] if state else None)
+                    cal = out.calibrated[lo:hi]
+                    self._emit(StepOutput(cal, tuple(mine), 0), log_ns)
+                    lo = hi
+            finally:
+                self._view = None
 
     def flush(self, log_time_ns: int) -> None:
         """End of stream: calibrate samples still held for rate measurement."""
@@ -453,7 +552,11 @@ class CalibrationNode:
             pipe = Pipeline.from_state_dict(doc["pipeline"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"checkpoint does not restore: {type(exc).__name__}: {exc}") from None
-        if [e.kind for e in pipe.model.effects] != [e.kind for e in settings.model.effects]:
+        kinds = [e.kind for e in pipe.model.effects]
+        configured = [e.kind for e in settings.model.effects]
+        grown = settings.rediscovery.enabled and {e.key for e in settings.model.effects} <= {
+            e.key for e in pipe.model.effects}  # rediscovery extended the configured model
+        if kinds != configured and not grown:
             raise ValueError(f"checkpoint model {model_name(pipe.model)} differs from the "
                              f"configured {model_name(settings.model)}")
         ali = doc.get("alignment")
@@ -518,17 +621,29 @@ class CalibrationNode:
         if fitted is None:
             return None
         out = pipe.step(fitted)
+        self._emit(out, log_ns)
+        return out
+
+    def _emit(self, out: StepOutput, log_ns: int) -> None:
+        """Everything a step's output produces: calibrated, plot, events, state, body."""
         cal = out.calibrated
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
         self.sink.calibrated(self.sensor_id, cal, log_ns)
         self.sink.plot(self.sensor_id, cal, log_ns, self._plot_every())
         self._report_updates(out, log_ns)
+        self._maybe_rediscover(log_ns)
         self._track_alignment(cal, log_ns)
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
                                  "body")
-        return out
+
+    def _as_of(self) -> tuple[SensorModel, Any]:
+        """Model and estimate as of the batch being reported (see ``_view``)."""
+        if self._view is not None:
+            return self._view[0], self._view[1]
+        assert self.pipeline is not None
+        return self.pipeline.model, self.pipeline.estimate
 
     def _fit_layout(self, batch: RawBatch, log_ns: int) -> RawBatch | None:
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
@@ -545,11 +660,45 @@ class CalibrationNode:
             return None
         return fitted
 
+    def _maybe_rediscover(self, log_ns: int) -> None:
+        """Every ``[discovery] every_h`` device hours, rerun effect discovery on the window
+        buffer; a model it extends becomes the live one (with its fitted values as the
+        estimate) and the calibration state is published with reason "discovery"."""
+        cfg, pipe = self.settings.rediscovery, self.pipeline
+        if not cfg.enabled or pipe is None or self.last_t_us is None:
+            return
+        every_us = round(cfg.every_h * 3.6e9)
+        if self._next_discovery_us is None:
+            self._next_discovery_us = self.last_t_us + every_us
+        if self.last_t_us < self._next_discovery_us:
+            return
+        self._next_discovery_us = self.last_t_us + every_us
+        windows = pipe.buffer.windows()
+        if not pipe.bootstrapped or len(windows) < cfg.min_windows:
+            return
+        from recal.core import discovery
+
+        try:
+            res = discovery.discover_pipeline(
+                windows, pipe.aux_names, pipe.t0_us or 0, pipe.model, pipe.params,
+                discovery.DiscoveryConfig(blocks=cfg.blocks))
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self._event("discovery_failed", self.last_t_us, log_ns, {"error": str(exc)})
+            return
+        self._event("discovery", self.last_t_us, log_ns, {
+            "effects_selected": [e.label for e in res.selected],
+            "steps": [f"{s.action} {s.effect.label}" for s in res.steps],
+            "heldout_error_mg": {"base": res.heldout_base_mg, "final": res.heldout_final_mg},
+            "windows": len(res.data)})
+        if res.selected:
+            pipe.adopt(res.model, res.prior)
+            self._publish_state(self.last_t_us, "discovery", log_ns)
+
     def _report_updates(self, out: StepOutput, log_ns: int) -> None:
         if not out.updates:
             return
-        assert self.pipeline is not None
-        names = self.pipeline.model.names
+        model = self._as_of()[0]
+        names = model.names
         for u in out.updates:
             if u.report.accepted:
                 self.accepted_updates += 1
@@ -557,7 +706,7 @@ class CalibrationNode:
                 self._event("update_rejected", u.t_us, log_ns, u.report.to_dict(names))
             if u.bootstrap:
                 self._event("bootstrap", u.t_us, log_ns, {
-                    "accepted": u.report.accepted, "s0": self.pipeline.model.s0})
+                    "accepted": u.report.accepted, "s0": model.s0})
         last = out.updates[-1]
         self._publish_state(last.t_us, "bootstrap" if last.bootstrap else "update", log_ns)
 
@@ -582,12 +731,20 @@ class CalibrationNode:
 
     def _tilt_offsets_known(self) -> bool:
         """Whether the x/y offsets' posterior sd is below ``max_offset_sd_mg`` (tilt error)."""
-        p = self.pipeline
-        if p is None or p.estimate is None or not p.model.has("offset"):
+        if self.pipeline is None:
+            return True
+        model, estimate = self._as_of()
+        if estimate is None or not model.has("offset"):
             return True  # nothing to wait for
-        sl = p.model.slice(("offset", None))
-        sd_mg = np.sqrt(np.diag(p.estimate.cov)[sl][:2]) / p.model.s0 * 1e3
-        return bool(np.all(sd_mg <= self.settings.alignment.max_offset_sd_mg))
+        # asked every batch until a reference is found; it changes only with the estimate
+        known = self._offsets_known
+        if known is not None and known[0] is model and known[1] is estimate:
+            return known[2]
+        sl = model.slice(("offset", None))
+        sd_mg = np.sqrt(np.diag(estimate.cov)[sl][:2]) / model.s0 * 1e3
+        answer = bool(np.all(sd_mg <= self.settings.alignment.max_offset_sd_mg))
+        self._offsets_known = (model, estimate, answer)
+        return answer
 
     def _set_alignment(self, mean: np.ndarray, n: int, t_us: int | None, source: str,
                        log_ns: int) -> al.Alignment:
@@ -612,13 +769,15 @@ class CalibrationNode:
     def _state(self, t_us: int | None, reason: str) -> dict[str, Any]:
         """The calibration state message: pipeline.summary() plus identity and alignment."""
         assert self.pipeline is not None
-        s = self.pipeline.summary()
+        view = self._view
+        s = view[2] if view is not None and view[2] is not None else self.pipeline.summary()
+        model = self._as_of()[0]
         spec = s.pop("model")
         rep = s.get("last_update") or {}
         rms = s.get("residual_rms_mg")
         return {"sensor_id": self.sensor_id, "t_us": t_us, "reason": reason,
-                "model": model_name(self.pipeline.model), "model_spec": spec,
-                "param_names": list(self.pipeline.model.names), **s,
+                "model": model_name(model), "model_spec": spec,
+                "param_names": list(model.names), **s,
                 "residual_g": None if rms is None else rms / 1e3,
                 "observable": rep.get("observable"),
                 "update_count": int(s["counts"]["updates"]),
@@ -643,7 +802,7 @@ def node_settings(sensor: SensorConfig, config: ServiceConfig,
     """NodeSettings for one configured sensor (ConfigError for a bad prior or model file)."""
     model, prior = model_and_prior(sensor, config.pipeline, model_path)
     return NodeSettings(sensor.id, config.pipeline, model, prior, sensor.rate_hz,
-                        sensor.full_scale_g, config.alignment)
+                        sensor.full_scale_g, config.alignment, rediscovery=config.discovery)
 
 
 def make_node(settings: NodeSettings, sink: Sink, checkpoint_dir: str | Path | None = None,
@@ -683,20 +842,32 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     sensors it takes (default: all). Stops on ``stop_event`` or SIGINT/SIGTERM (main thread).
     Returns 0, or 2 for a configuration error.
     """
-    from recal.gateway import install_stop_signals, open_bus, open_recording
+    from recal.gateway import ERROR_PREFIX, install_stop_signals, open_bus, open_recording
 
-    emit = out or print
+    emit = out or (lambda line: print(line, flush=True))
+    fail = out or (lambda line: print(line, file=sys.stderr, flush=True))
     try:
         cfg = config if isinstance(config, ServiceConfig) else load_config(config)
     except ConfigError as exc:
-        emit(f"recal node: {exc}")
+        fail(f"{ERROR_PREFIX} {exc}")
         return 2
+    own_bus = bus is None
+    try:
+        bus = open_bus(cfg) if own_bus else bus
+    except Exception as exc:  # zenoh.ZError: bad endpoint, port in use, router down
+        fail(f"{ERROR_PREFIX} cannot open Zenoh: {exc}")
+        return 1
+    try:
+        writer = open_recording(cfg, mcap_out) if mcap_out is not None else None
+    except (OSError, ValueError) as exc:
+        if own_bus:
+            bus.close()
+        fail(f"{ERROR_PREFIX} cannot open the recording: {exc}")
+        return 1
     stop = stop_event or threading.Event()
     restore = install_stop_signals(stop)
-    own_bus = bus is None
-    bus = open_bus(cfg) if own_bus else bus
-    writer = open_recording(cfg, mcap_out) if mcap_out is not None else None
     runner = _NodeRunner(cfg, bus, writer, set(sensor_ids), model_path, emit)
+    emit(f"{NODE_READY_PREFIX} mcap={writer.paths[0] if writer is not None else None}")
     try:
         runner.run(stop)
     finally:
@@ -710,7 +881,13 @@ def run_node(config: ServiceConfig | str | Path | None = None,
 
 
 class _NodeRunner:
-    """The loop of :func:`run_node`: bus messages -> nodes, checkpoints on a timer."""
+    """The loop of :func:`run_node`: bus messages -> nodes, checkpoints on a timer.
+
+    Messages are taken in rounds of whatever has arrived (up to ``RECV_ROUND``), and each
+    sensor's messages of a round are logged and calibrated as one batch (the pipeline is
+    batch-size invariant): under load, rounds grow and the per-batch costs are paid less
+    often, as in the gateway's read loop.
+    """
 
     def __init__(self, cfg: ServiceConfig, bus: Any, writer: Any, only: set[str],
                  model_path: str | Path | None, emit: Callable[[str], None]) -> None:
@@ -724,29 +901,55 @@ class _NodeRunner:
                            if writer is not None else BusSink(bus))
         self._messages = messages
         self._bus_mod = _bus
-        self.receiver = bus.receiver(_bus.key_pattern("raw"), capacity=1024)
+        self.receiver = bus.receiver(_bus.key_pattern("raw"), capacity=RECV_CAPACITY)
         self.bad_messages = 0
+        self.schedule = CheckpointSchedule(cfg.checkpoint.interval_s)
+        self._drops_reported = 0
+        self._next_drop_report_s = 0.0
 
     def run(self, stop: threading.Event) -> None:
-        next_ckpt = time.monotonic() + self.cfg.checkpoint.interval_s
         while not stop.is_set():
-            for msg in self.receiver.recv_batch(64, timeout=0.1):
-                self._handle(msg)
-            if time.monotonic() >= next_ckpt:
-                self.checkpoint()
-                next_ckpt = time.monotonic() + self.cfg.checkpoint.interval_s
-        for msg in self.receiver.recv_batch(10_000, timeout=0.0):  # what already arrived
-            self._handle(msg)
+            self._handle_round(self.receiver.recv_batch(RECV_ROUND, timeout=0.1))
+            self.checkpoint(self.schedule.take_due())  # a few sensors at a time
+            self._report_drops()
+        while True:  # what already arrived
+            msgs = self.receiver.recv_batch(RECV_ROUND, timeout=0.0)
+            if not msgs:
+                break
+            self._handle_round(msgs)
 
-    def _handle(self, msg: Any) -> None:
-        try:
-            sid, batch = self._messages.decode_raw(msg.payload)
-            sid = sid or msg.sensor
-        except ValueError:
-            self.bad_messages += 1
+    def _report_drops(self) -> None:
+        """Say so (at most once a second) when the receive buffer overflowed: samples lost
+        here are still in the gateways' logs, but this node's log and calibration miss them
+        (it is slower than the gateways; give them a --batch-ms)."""
+        dropped = self.receiver.dropped
+        if dropped == self._drops_reported or time.monotonic() < self._next_drop_report_s:
             return
-        if self.only and sid not in self.only:
-            return
+        self._next_drop_report_s = time.monotonic() + 1.0
+        log.warning("%d raw messages dropped: the node is behind the gateways",
+                    dropped - self._drops_reported)
+        self.emit(f"recal node: {dropped} raw messages dropped so far (node behind)")
+        self._drops_reported = dropped
+
+    def _handle_round(self, msgs: list[Any]) -> None:
+        """Decode a round of messages and hand each sensor its samples, in arrival order."""
+        from recal.gateway import join_by_layout
+
+        by_sensor: dict[str, list[RawBatch]] = {}
+        for msg in msgs:
+            try:
+                sid, batch = self._messages.decode_raw(msg.payload)
+                sid = sid or msg.sensor
+            except ValueError:
+                self.bad_messages += 1
+                continue
+            if not self.only or sid in self.only:
+                by_sensor.setdefault(sid, []).append(batch)
+        for sid, batches in by_sensor.items():
+            for batch in join_by_layout(batches):
+                self._handle(sid, batch)
+
+    def _handle(self, sid: str, batch: RawBatch) -> None:
         node = self.nodes.get(sid) or self._add(sid)
         log_ns = time.time_ns()
         if self.writer is not None:
@@ -758,6 +961,7 @@ class _NodeRunner:
         settings = node_settings(sensor, self.cfg, self.model_path)
         node = make_node(settings, self.sink, self.cfg.checkpoint.dir)
         self.nodes[sid] = node
+        self.schedule.add(sid)
         k = self._bus_mod.key
         self.bus.queryable(k(sid, "status"),
                            lambda _k, _p, n=node: self._messages.encode_json(n.status()))
@@ -767,11 +971,12 @@ class _NodeRunner:
         self.emit(f"recal node: calibrating {sid} (start: {node.start})")
         return node
 
-    def checkpoint(self) -> None:
+    def checkpoint(self, sensor_ids: Sequence[str] | None = None) -> None:
+        """Checkpoint these sensors (default: all)."""
         if self.cfg.checkpoint.dir is None:
             return
-        for sid, node in self.nodes.items():
-            doc = node.checkpoint()
+        for sid in self.nodes if sensor_ids is None else sensor_ids:
+            doc = self.nodes[sid].checkpoint()
             if doc is not None:
                 save_checkpoint(checkpoint_path(self.cfg.checkpoint.dir, sid), doc)
 

@@ -5,6 +5,12 @@ included), runs each sensor's :class:`recal.node.CalibrationNode` (the code path
 runs live) and writes raw + calibrated + body + calibration + plot + events + setup to a new
 recording, with the original log times.
 
+Speed: the raw messages are copied as logged (not encoded again); consecutive messages of a
+sensor go through the pipeline together (``JOIN_SAMPLES`` at a time, via
+``CalibrationNode.process_many``), which changes nothing in the output, still one of each per
+message (the pipeline is batch-size invariant and reports its state at each message's end);
+the output is written in 1 MiB chunks compressed on a second thread.
+
 How each sensor's pipeline starts, first match wins:
 1. ``model`` or a ``config`` whose sensor entry has a prior: a fresh pipeline from them;
 2. the recording's ``/<sensor>/setup`` message (written by the live node): the pipeline's exact
@@ -27,13 +33,20 @@ from recal.config import (
     SensorConfig,
     ServiceConfig,
     load_config,
+    load_model_file,
     model_and_prior,
 )
 from recal.core.pipeline import Pipeline
 from recal.io import recording as rec
 from recal.node import CalibrationNode, NodeSettings, RecordingSink, model_name, node_settings
+from recal.samples import RawBatch
 
 __all__ = ["replay"]
+
+
+#: Raw samples of consecutive messages handed to the node together (one pipeline step; the
+#: output is still one of each per message). Bigger saves little more and holds more memory.
+JOIN_SAMPLES = 8192
 
 
 @dataclass
@@ -43,6 +56,19 @@ class _SensorRun:
     batches: int = 0
     last_log_ns: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+    waiting: list[tuple[RawBatch, int]] = field(default_factory=list)
+    waiting_samples: int = 0
+
+    def add(self, batch: RawBatch, log_ns: int) -> None:
+        self.waiting.append((batch, log_ns))
+        self.waiting_samples += len(batch)
+        if self.waiting_samples >= JOIN_SAMPLES:
+            self.drain()
+
+    def drain(self) -> None:
+        if self.waiting:
+            self.node.process_many(self.waiting)
+        self.waiting, self.waiting_samples = [], 0
 
 
 def _raw_message_count(paths: list[Path]) -> int | None:
@@ -84,7 +110,8 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
         ali_cfg = setup.get("alignment_settings")
         settings = NodeSettings(sid, cfg.pipeline, pipe.model, pipe.prior, pipe.cfg.rate_hz,
                                 pipe.cfg.full_scale_g,
-                                AlignmentConfig(**ali_cfg) if ali_cfg else cfg.alignment)
+                                AlignmentConfig(**ali_cfg) if ali_cfg else cfg.alignment,
+                                rediscovery=cfg.discovery)
         from recal.core.alignment import Alignment
 
         ali = setup.get("alignment")
@@ -93,7 +120,7 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
         return node, "recording"
     m, prior = model_and_prior(sensor, cfg.pipeline)  # no prior known: bootstrap
     settings = NodeSettings(sid, cfg.pipeline, m, prior, sensor.rate_hz, sensor.full_scale_g,
-                            cfg.alignment)
+                            cfg.alignment, rediscovery=cfg.discovery)
     return CalibrationNode(settings, sink), "bootstrap"
 
 
@@ -117,18 +144,22 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     from tqdm import tqdm
 
     cfg = config if isinstance(config, ServiceConfig) else load_config(config)
+    if model is not None:
+        load_model_file(model)  # a bad model file fails now, before any output exists
     paths = rec.recording_parts(in_mcap)
     setups = _setups(paths)
     t0 = time.perf_counter()
     runs: dict[str, _SensorRun] = {}
-    writer = rec.RecordingWriter(out_mcap, chunk_size=256 * 1024, background_flush=False,
-                                 fsync=False, overwrite=overwrite,
+    # Big chunks, compressed on a thread beside the calibration: a replay can be redone, so
+    # it needs no crash-sized chunks or fsyncs.
+    writer = rec.RecordingWriter(out_mcap, chunk_size=1024 * 1024, background_flush=False,
+                                 fsync=False, overwrite=overwrite, background_compression=True,
                                  metadata={"replay_of": str(Path(in_mcap).name)})
     sink = RecordingSink(writer)
     bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
                disable=not progress, leave=False)
     try:
-        for sid, batch, log_ns in rec.iter_raw(paths):
+        for sid, batch, logged in rec.iter_raw_logged(paths):
             bar.update(1)
             if sensor_ids is not None and sid not in sensor_ids:
                 continue
@@ -136,12 +167,16 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
             if run is None:
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
                 run = runs[sid] = _SensorRun(node, extra={"start": start})
-            writer.write_raw(sid, batch, log_ns)
-            run.node.process(batch, log_ns)
+            log_ns = logged.log_time_ns
+            # the raw topic is copied as logged (same bytes, times), not encoded again
+            writer.write_encoded(logged.topic, logged.data, log_ns, logged.publish_time_ns,
+                                 schema=rec.messages.RAW_SCHEMA)
+            run.add(batch, log_ns)  # several messages per pipeline step, output per message
             run.samples += len(batch)
             run.batches += 1
             run.last_log_ns = log_ns
         for run in runs.values():
+            run.drain()
             run.node.flush(run.last_log_ns)
     finally:
         bar.close()

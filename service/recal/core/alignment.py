@@ -183,14 +183,25 @@ class StillTracker:
         gate = np.asarray(gate, bool)
         if len(t_us) == 0:
             return None
-        prev = t_us[0] - 1 if self.last_us is None else self.last_us
-        dt = np.diff(t_us, prepend=prev)
+        quick = self._feed_uniform(t_us, a_g, gate, armed)
+        if quick is not False:
+            return quick
+        prev = int(t_us[0]) - 1 if self.last_us is None else self.last_us
+        dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev)
+        dt[0] = int(t_us[0]) - prev
+        np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
         joined = gate & (dt > 0) & (dt <= self.max_gap_us)
         # a run starts where the gate opens, or continues across a break in time
-        prev_gate = np.r_[self.last_gate, gate[:-1]]
+        prev_gate = np.empty_like(gate)
+        prev_gate[0] = self.last_gate
+        prev_gate[1:] = gate[:-1]
         starts = gate & ~(prev_gate & joined)
         result = None
-        bounds = np.unique(np.r_[0, np.flatnonzero(starts | ~gate), len(gate)])
+        # segments: each run, and each stretch of ungated samples as a whole (ending a run is
+        # idempotent, so one call per stretch, not one per sample)
+        first_ungated = ~gate & np.concatenate(([True], gate[:-1]))
+        bounds = np.concatenate(([0], np.flatnonzero(starts | first_ungated), [len(gate)]))
+        bounds = np.unique(bounds)
         for i0, i1 in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
             if not gate[i0]:
                 self._end_run()
@@ -203,6 +214,25 @@ class StillTracker:
         self.last_us = int(t_us[-1])
         self.last_gate = bool(gate[-1])
         return result
+
+    def _feed_uniform(self, t_us: np.ndarray, a_g: np.ndarray, gate: np.ndarray,
+                      armed: bool) -> tuple[np.ndarray, int, int] | bool | None:
+        """`feed` for the common batches, all moving or all continuing the open run, without
+        the segment bookkeeping; False when the batch is neither (the general path runs)."""
+        if not gate.any():
+            self._end_run()
+        elif (gate.all() and self.last_gate and self.start_us is not None
+              and self.last_us is not None
+              and 0 < int(t_us[0]) - self.last_us <= self.max_gap_us
+              and (len(t_us) == 1 or bool(np.all((np.diff(t_us) > 0)
+                                                 & (np.diff(t_us) <= self.max_gap_us))))):
+            hit = self._extend(t_us, a_g, armed)
+            self.last_us, self.last_gate = int(t_us[-1]), True
+            return hit
+        else:
+            return False
+        self.last_us, self.last_gate = int(t_us[-1]), False
+        return None
 
     def _start_run(self, t0_us: int) -> None:
         self.start_us, self.n, self.sum_g, self.fired = t0_us, 0, np.zeros(3), False

@@ -11,8 +11,10 @@ Georgieva: offsets and a 3x3 sensitivity with the rotation gauge fixed) adds `cr
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -47,6 +49,13 @@ class SensorModel:
             raise ValueError(f"duplicate effects in model: {keys}")
         object.__setattr__(self, "effects", tuple(e for e, _ in pairs))
         object.__setattr__(self, "spreads", tuple(sp for _, sp in pairs))
+        # Slices and names are asked for many times per estimator update: compute them once.
+        bounds = np.cumsum([0, *(e.size for e in self.effects)]).tolist()
+        slices = tuple(slice(a, b) for a, b in pairwise(bounds))
+        object.__setattr__(self, "_slices", slices)
+        object.__setattr__(self, "_slice_of", {e.key: sl for e, sl in zip(self.effects, slices,
+                                                                          strict=True)})
+        object.__setattr__(self, "_names", tuple(n for e in self.effects for n in e.param_names))
 
     # --- construction ------------------------------------------------------------------------
     @classmethod
@@ -74,20 +83,18 @@ class SensorModel:
     # --- the named parameter vector ----------------------------------------------------------
     @property
     def names(self) -> tuple[str, ...]:
-        return tuple(n for e in self.effects for n in e.param_names)
+        return self._names
 
     @property
     def size(self) -> int:
-        return sum(e.size for e in self.effects)
+        return len(self._names)
 
     def slice(self, effect: Effect | tuple[str, str | None]) -> slice:
         key = effect if isinstance(effect, tuple) else effect.key
-        start = 0
-        for e in self.effects:
-            if e.key == key:
-                return slice(start, start + e.size)
-            start += e.size
-        raise KeyError(f"model has no effect {key}")
+        try:
+            return self._slice_of[key]
+        except KeyError:
+            raise KeyError(f"model has no effect {key}") from None
 
     def has(self, kind: str, covariate: str | None = None) -> bool:
         return any(e.key == (kind, covariate) for e in self.effects)
@@ -97,20 +104,38 @@ class SensorModel:
 
     @property
     def covariates(self) -> tuple[str, ...]:
-        return tuple(sorted({e.covariate for e in self.effects if e.covariate is not None}))
+        return tuple(sorted({c for e in self.effects for c in e.channels}))
 
     def nominal(self) -> np.ndarray:
-        return np.concatenate([e.nominal(self.s0) for e in self.effects])
+        return self._nominal.copy()
 
     def prior_sd(self) -> np.ndarray:
+        return self._prior_sd.copy()
+
+    def process_sd_per_sqrt_h(self) -> np.ndarray:
+        return self._process_sd.copy()
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = self._bounds
+        return lo.copy(), hi.copy()
+
+    # The model is immutable: these are built once (each estimator update asks for them).
+    @functools.cached_property
+    def _nominal(self) -> np.ndarray:
+        return np.concatenate([e.nominal(self.s0) for e in self.effects])
+
+    @functools.cached_property
+    def _prior_sd(self) -> np.ndarray:
         return np.concatenate([e.prior_sd(self.s0, sp)
                                for e, sp in zip(self.effects, self.spreads, strict=True)])
 
-    def process_sd_per_sqrt_h(self) -> np.ndarray:
+    @functools.cached_property
+    def _process_sd(self) -> np.ndarray:
         return np.concatenate([e.process_sd_per_sqrt_h(self.s0, sp)
                                for e, sp in zip(self.effects, self.spreads, strict=True)])
 
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+    @functools.cached_property
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = zip(*(e.bounds(self.s0, sp)
                        for e, sp in zip(self.effects, self.spreads, strict=True)), strict=True)
         return np.concatenate(lo), np.concatenate(hi)
@@ -128,9 +153,15 @@ class SensorModel:
     def correct(self, p: np.ndarray, v: np.ndarray, cov: Covariates) -> np.ndarray:
         """Raw readings (N,3) -> acceleration in g (N,3): the inverse of Lötters eq. 3."""
         x = np.asarray(v, np.float64)
-        for e in self.effects:
-            x = e.apply(x, cov, p[self.slice(e)])
+        for e, sl in zip(self.effects, self._slices, strict=True):
+            x = e.apply(x, cov, p[sl])
         return x
+
+    def residual(self, p: np.ndarray, v: np.ndarray, cov: Covariates) -> np.ndarray:
+        """xi = 1 - |a| alone (Lötters eq. 14), as `residual_jacobian` computes it: what a
+        step-length test needs, without the Jacobian."""
+        a = self.correct(p, v, cov)
+        return 1.0 - np.sqrt(np.add.reduce(a * a, axis=1))  # np.linalg.norm's own arithmetic
 
     def residual_jacobian(self, p: np.ndarray, v: np.ndarray,
                           cov: Covariates) -> tuple[np.ndarray, np.ndarray]:
@@ -139,18 +170,16 @@ class SensorModel:
         Returns (xi (N,), B (N, P)).
         """
         xs = [np.asarray(v, np.float64)]
-        for e in self.effects:
-            xs.append(e.apply(xs[-1], cov, p[self.slice(e)]))
+        for e, sl in zip(self.effects, self._slices, strict=True):
+            xs.append(e.apply(xs[-1], cov, p[sl]))
         a = xs[-1]
-        r = np.linalg.norm(a, axis=1)
+        r = np.sqrt(np.add.reduce(a * a, axis=1))  # np.linalg.norm's arithmetic, without its checks
         g = a / np.maximum(r, 1e-12)[:, None]  # d|a|/da
         B = np.empty((len(a), self.size))
         for k in range(len(self.effects) - 1, -1, -1):
-            e, x_in = self.effects[k], xs[k]
-            theta = p[self.slice(e)]
-            B[:, self.slice(e)] = np.einsum("ni,nip->np", g, e.d_theta(x_in, cov, theta))
-            if k:
-                g = np.einsum("ni,nij->nj", g, e.d_x(x_in, cov, theta))
+            sl = self._slices[k]
+            B[:, sl], g_in = self.effects[k].vjp(g, xs[k], cov, p[sl], k > 0)
+            g = g_in if k else g
         return 1.0 - r, B
 
     # --- reporting and files -----------------------------------------------------------------
@@ -177,13 +206,13 @@ class SensorModel:
 
     def to_dict(self) -> dict:
         return {"s0": self.s0,
-                "effects": [{"kind": e.kind, "covariate": e.covariate, "ref": e.ref,
-                             "spread": sp} for e, sp in zip(self.effects, self.spreads,
-                                                            strict=True)]}
+                "effects": [{**e.spec(), "spread": sp}
+                            for e, sp in zip(self.effects, self.spreads, strict=True)]}
 
     @classmethod
     def from_dict(cls, d: dict) -> SensorModel:
-        effects = [make_effect(e["kind"], e.get("covariate"), e.get("ref", 0.0))
+        effects = [make_effect(e["kind"], e.get("covariate"), e.get("ref", 0.0),
+                               e.get("reference"), e.get("reference_ref", 0.0))
                    for e in d["effects"]]
         spreads = [float(e.get("spread", 1.0)) for e in d["effects"]]
         return cls(tuple(effects), float(d.get("s0", 1.0)), tuple(spreads))

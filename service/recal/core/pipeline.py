@@ -6,7 +6,10 @@ Per batch:
 2. gated samples form windows of `window_s` (time-aligned to the start of each quasi-static run);
    a window is committed to the buffer only once its run has gone on `guard_s` past it, because
    the detector's low-pass reacts ~0.5 s late to the start of a movement;
-3. every `update_every` committed windows the estimator updates (Lötters eq. 11a/11b);
+3. every `update_every` committed windows the estimator updates (Lötters eq. 11a/11b), unless
+   the windows since the last update agree with the estimate (`estimator.consistent`), it has
+   settled, no new orientation cell arrived and less than `max_update_interval_s` of device
+   time passed: on a 24 h wearer that skips ~9 of 10 re-fits, the core's main cost;
 4. samples are calibrated with the parameters in force when they arrived: an update that
    happens at sample j applies from sample j on.
 
@@ -16,20 +19,31 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
+from itertools import pairwise
 
 import numpy as np
 
 from recal.core import detector as det
 from recal.core.bootstrap import initial_params
 from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
-from recal.core.effects import Covariates, Scale
-from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport, update
+from recal.core.effects import TIME, Covariates, Scale
+from recal.core.estimator import (
+    Estimate,
+    EstimatorConfig,
+    Prior,
+    UpdateReport,
+    consistent,
+    innovations,
+    update,
+)
 from recal.core.model import SensorModel
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "from_state_dict",
-           "state_dict"]
+           "state_dict", "window_means"]
 
 
 @dataclass(frozen=True)
@@ -43,7 +57,11 @@ class PipelineConfig:
         window_s: length of a window mean. guard_s: how long a run must go on past a window.
         min_fill: fraction of a window's nominal samples it must hold.
         norm_tol_g: a window whose calibrated norm is further than this from 1 g is rejected.
-        update_every: committed windows between estimator updates.
+        update_every: committed windows between estimator updates (tried: see next).
+        max_update_interval_s: device time after which an update runs even when the windows
+            since the last one agree with the estimate (`estimator.consistent`); until then a
+            try is skipped when they agree, the estimate has settled and no new orientation
+            cell or half-axis arrived. 0: every try updates (re-fit every update_every).
         bootstrap_min_cells: orientation cells needed before a sensor without prior is fitted.
     """
 
@@ -58,6 +76,7 @@ class PipelineConfig:
     min_fill: float = 0.8
     norm_tol_g: float = 0.1
     update_every: int = 5
+    max_update_interval_s: float = 300.0
     bootstrap_min_cells: int = 8
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     buffer: BufferConfig = field(default_factory=BufferConfig)
@@ -81,19 +100,39 @@ class PipelineConfig:
 
 @dataclass(frozen=True)
 class UpdateEvent:
-    """An estimator update that happened at sample `index` of the batch (device time t_us)."""
+    """An estimator update that happened at sample `index` of the batch (device time t_us),
+    with the estimate and model in force after it."""
 
     index: int
     t_us: int
     report: UpdateReport
     bootstrap: bool = False
+    estimate: Estimate | None = field(default=None, compare=False)
+    model: SensorModel | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True, eq=False)
 class StepOutput:
+    """What one step produced. ``states``: for each mark given to `Pipeline.step` whose
+    stretch since the previous mark holds an update, the model and `Pipeline.summary()` as
+    they were after that many samples."""
+
     calibrated: CalibratedBatch
     updates: tuple[UpdateEvent, ...]
     windows_committed: int
+    states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class _Marks:
+    """Sample counts into the current batch at which the caller wants the state (see step)."""
+
+    todo: list[int]
+    gate: np.ndarray
+    samples0: int
+    quasi_static0: int
+    dirty: bool = False  # an update happened since the last mark passed
+    states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,6 +152,22 @@ class _Acc:
            t_us: np.ndarray) -> _Acc:
         return cls(run_start_us, k, len(v), v.sum(0), (v * v).sum(0), aux.sum(0),
                    float((t_us - run_start_us).sum()))
+
+    @classmethod
+    def each(cls, run_start_us: int, k: np.ndarray, starts: list[int], v: np.ndarray,
+             aux: np.ndarray, t_us: np.ndarray) -> list[_Acc]:
+        """`of` for every window of one run at once (starts: each window's first sample):
+        one reduction per quantity instead of four per window."""
+        idx = np.asarray(starts, np.intp)
+        n = np.diff(np.append(idx, len(v))).tolist()
+        sv = np.add.reduceat(v, idx, axis=0)
+        sv2 = np.add.reduceat(v * v, idx, axis=0)
+        saux = (np.add.reduceat(aux, idx, axis=0) if aux.shape[1]
+                else np.zeros((len(idx), 0)))
+        st = np.add.reduceat(t_us - run_start_us, idx).tolist()  # int64: exact
+        ks = k[idx].tolist()
+        return [cls(run_start_us, ks[j], n[j], sv[j], sv2[j], saux[j], float(st[j]))
+                for j in range(len(idx))]
 
     def merge(self, other: _Acc) -> _Acc:
         return replace(self, n=self.n + other.n, sum_v=self.sum_v + other.sum_v,
@@ -182,6 +237,12 @@ class Pipeline:
         self.counts = {"samples": 0, "quasi_static": 0, "windows": 0, "windows_rejected": 0,
                        "updates": 0, "updates_rejected": 0}
         self.last_report: UpdateReport | None = None
+        # what the last update saw, to skip re-fits that would not move it (`_needs_update`)
+        self.settled = False
+        self.coverage_at_update: int | None = None
+        # fresh windows tested so far, and the sums of their normalized innovations
+        self.tested = (0, 0.0, 0.0)
+        self._marks: _Marks | None = None  # only during a step with marks
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -190,30 +251,51 @@ class Pipeline:
             return self.estimate.p
         return self.model.nominal()
 
-    def step(self, batch: RawBatch) -> StepOutput:
-        """Process one batch of raw samples (any size, in time order)."""
+    def step(self, batch: RawBatch, marks: Sequence[int] = ()) -> StepOutput:
+        """Process one batch of raw samples (any size, in time order).
+
+        ``marks``: increasing sample counts into the batch (1..len), e.g. where the caller
+        joined smaller batches into this one. For each mark whose stretch since the previous
+        mark holds an update, ``StepOutput.states[mark]`` is the model and `summary()` as they
+        were after that many samples: what stepping the smaller batches one at a time would
+        have shown after each (replay joins a recording's messages and still writes one
+        calibration state per message, exactly as the live node did).
+        """
         if batch.aux_names != self.aux_names:
             raise ValueError(f"batch channels {batch.aux_names} differ from {self.aux_names}")
         n = len(batch)
         if n == 0:
             return StepOutput(CalibratedBatch.empty(), (), 0)
+        marks = [int(m) for m in marks]
+        if any(not 0 < m <= n for m in marks) or any(b <= a for a, b in pairwise(marks)):
+            raise ValueError(f"marks must increase within 1..{n}")
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
         if self.det_state is None:  # bootstrap: the first sample's norm stands in for 1 g
-            s0 = float(np.linalg.norm(batch.v[0])) or 1.0
+            norms = np.linalg.norm(batch.v, axis=1)
+            usable = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
+            s0 = float(usable[0]) if len(usable) else 1.0
             self.model = SensorModel(self.model.effects, s0, self.model.spreads)
             self._start_detector(s0)
         self.det_state, d = det.detect(self.det_cfg, self.det_state, batch.v)
-        gate = d.gate
+        gate = d.gate & self._usable(batch)
         start = (self.model, self.params.copy())
-        events, committed = self._windows(batch, gate)
+        if marks:
+            self._marks = _Marks(marks, gate, self.counts["samples"],
+                                 self.counts["quasi_static"])
+        try:
+            events, committed = self._windows(batch, gate)
+            self._reach(n)  # the marks no later change came before
+        finally:
+            done, self._marks = self._marks, None
         cal = self._calibrate(batch, start, events)
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
         self.last_t_us = int(batch.t_us[-1])
         self.last_gate = bool(gate[-1])
         return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g),
-                          tuple(e.update for e in events), committed)
+                          tuple(e.update for e in events), committed,
+                          done.states if done is not None else {})
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""
@@ -226,8 +308,46 @@ class Pipeline:
     def covariates(self, t_us: np.ndarray, aux: np.ndarray) -> Covariates:
         return Covariates.from_samples(t_us, aux, self.aux_names, self.t0_us or 0)
 
+    def _usable(self, b: RawBatch) -> np.ndarray:
+        """Samples whose reading and the channels the model uses are finite: only they may
+        enter a window (an imported row may lack a value; a NaN must never reach the estimator
+        or a checkpoint)."""
+        ok = np.isfinite(b.v).all(axis=1)
+        cols = [self.aux_names.index(c) for c in self.model.covariates if c != TIME]
+        if cols:
+            ok &= np.isfinite(b.aux[:, cols]).all(axis=1)
+        return ok
+
     def coverage(self) -> Coverage:
         return self.buffer.coverage()
+
+    def adopt(self, model: SensorModel, prior: Prior) -> None:
+        """Continue with another model (one effect discovery extended): its prior becomes the
+        pre-calibration and the estimate; detector, buffer and windows carry on."""
+        missing = set(model.covariates) - {"time", *self.aux_names}
+        if missing:
+            raise ValueError(f"model needs channels {sorted(missing)} the input lacks")
+        self.model = model
+        self.prior = prior
+        self.estimate = Estimate.from_prior(prior)
+        self.bootstrapped = True
+        self._redirect()
+
+    def _reach(self, idx: int) -> None:
+        """Called before anything in the state changes at sample ``idx`` of the batch: the
+        state now is the state after ``m`` samples for every mark m <= idx not yet passed."""
+        mk = self._marks
+        if mk is None:
+            return
+        while mk.todo and mk.todo[0] <= idx:
+            m = mk.todo.pop(0)
+            if mk.dirty:  # an update since the previous mark: the caller publishes this state
+                s = self.summary()
+                s["counts"]["samples"] = mk.samples0 + m  # counted at the end of the step
+                s["counts"]["quasi_static"] = mk.quasi_static0 + int(
+                    np.count_nonzero(mk.gate[:m]))
+                mk.states[m] = (self.model, s)
+                mk.dirty = False
 
     def summary(self) -> dict:
         """The calibration state: parameters by name, covariance, residual, coverage, ..."""
@@ -254,10 +374,13 @@ class Pipeline:
         continues the run that was open at the end of the previous batch."""
         gap_us = 3.0e6 / self.cfg.rate_hz
         prev_t = int(t_us[0]) - 1 if self.last_t_us is None else self.last_t_us
-        dt = np.diff(t_us, prepend=prev_t)
+        dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
+        dt[0] = int(t_us[0]) - prev_t
+        np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
         ok_dt = (dt > 0) & (dt <= gap_us)
-        start = gate & np.r_[True, ~gate[:-1] | ~ok_dt[1:]]
-        stops = np.r_[np.flatnonzero(~gate | start), len(gate)]
+        start = gate.copy()
+        start[1:] &= ~gate[:-1] | ~ok_dt[1:]
+        stops = np.append(np.flatnonzero(~gate | start), len(gate))
         s_idx = np.flatnonzero(start)
         ends = stops[np.searchsorted(stops, s_idx, side="right")]
         continues = (len(s_idx) > 0 and s_idx[0] == 0 and self.last_gate and bool(ok_dt[0])
@@ -276,27 +399,28 @@ class Pipeline:
                 self.pending[0].run_start_us if self.pending is not None else int(b.t_us[i0]))
             t = b.t_us[i0:i1]
             k = (t - run_start) // W
-            cuts = np.flatnonzero(np.diff(k)) + 1
-            for g0, g1 in zip(np.r_[0, cuts].tolist(), np.r_[cuts, len(t)].tolist(),
-                              strict=True):
-                acc = _Acc.of(run_start, int(k[g0]), b.v[i0 + g0:i0 + g1],
-                              b.aux[i0 + g0:i0 + g1], t[g0:g1])
+            cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
+            accs = _Acc.each(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
+            for g0, g1, acc in zip([0, *cuts], [*cuts, len(t)], accs, strict=True):
                 if self.open is not None and self.open.k == acc.k:
                     acc = self.open.merge(acc)
                 elif self.open is not None:  # the open window ended where this one begins
-                    self._finish(self.open, W)
+                    self._finish(self.open, W, i0 + g0)
                 self.open = acc
                 if self.pending is not None:  # commit once the run is guard_s past the window
-                    due = np.flatnonzero(t[g0:g1] >= self.pending[1])
-                    if len(due):
-                        idx = i0 + g0 + int(due[0])
+                    # t rises within a run: the first sample at or past the commit time
+                    due = int(np.searchsorted(t[g0:g1], self.pending[1]))
+                    if due < g1 - g0:
+                        idx = i0 + g0 + due
                         ev = self._commit(self.pending[0], idx, int(b.t_us[idx]))
                         committed += 1
                         self.pending = None
                         if ev is not None:
                             events.append(_Event(ev, idx, self.model, self.params.copy()))
+                            if self._marks is not None:
+                                self._marks.dirty = True
                 if g1 < len(t):  # a later window follows in this run: this one is complete
-                    self._finish(self.open, W)
+                    self._finish(self.open, W, i0 + g1)
                     self.open = None
         if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
             self.open, self.pending = None, None
@@ -304,53 +428,79 @@ class Pipeline:
             self.open, self.pending = None, None
         return events, committed
 
-    def _finish(self, acc: _Acc, W: int) -> None:
-        """A window is complete; keep it pending until the guard time has passed."""
+    def _finish(self, acc: _Acc, W: int, idx: int) -> None:
+        """A window is complete (seen at sample idx, the next window's first); keep it
+        pending until the guard time has passed."""
         need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
         if acc.n < need:
+            self._reach(idx)
             self.counts["windows_rejected"] += 1
             return
         end_us = acc.run_start_us + (acc.k + 1) * W
         self.pending = (acc, end_us + round(self.cfg.guard_s * 1e6))
 
     def _commit(self, acc: _Acc, idx: int, t_us: int) -> UpdateEvent | None:
+        self._reach(idx)
         n = acc.n
         v = acc.sum_v / n
-        var = float(np.mean(np.maximum(acc.sum_v2 / n - v * v, 0.0)) * n / max(n - 1, 1))
+        # the mean per-axis variance, in the order np.mean sums three values
+        s2 = np.maximum(acc.sum_v2 / n - v * v, 0.0).tolist()
+        var = (s2[0] + s2[1] + s2[2]) / 3 * n / max(n - 1, 1)
         aux = acc.sum_aux / n
         t_mid = acc.run_start_us + round(acc.sum_t / n)
         cov = self.covariates(np.array([t_mid]), aux[None, :])
         a = self.model.correct(self.params, v[None, :], cov)[0]
-        norm = float(np.linalg.norm(a))
+        norm = math.sqrt(float(a @ a))  # what np.linalg.norm computes for a vector
         if self.bootstrapped and abs(norm - 1.0) > self.cfg.norm_tol_g:
             self.counts["windows_rejected"] += 1
             return None
         direction = a / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
-        self.buffer.add(v, aux, t_mid, n, var, direction)
+        self.buffer.add(v, aux, t_mid, n, var, direction, run=acc.run_start_us)
         self.fresh.append((v, aux, t_mid, n, var))
         self.counts["windows"] += 1
         if not self.bootstrapped:
             return self._try_bootstrap(idx, t_us)
-        if self.counts["windows"] % self.cfg.update_every == 0:
+        if self.counts["windows"] % self.cfg.update_every == 0 and self._needs_update(t_us):
             return self._update(idx, t_us)
         return None
 
     # --- estimation --------------------------------------------------------------------------
+    def _needs_update(self, now_us: int) -> bool:
+        """Whether a re-fit can tell anything new: most of a day's windows repeat what the
+        buffer already says, and a re-fit is the core's main cost. It runs when the estimate
+        has not settled (the last update moved it), the buffer covers a new cell or half-axis,
+        max_update_interval_s of device time passed since the last accepted update, or the
+        windows since then disagree with the estimate (a knock, a drift: `consistent`)."""
+        est = self.estimate
+        if (self.cfg.max_update_interval_s <= 0 or est is None or est.t_us is None
+                or not self.settled or self.buffer.cells_opened != self.coverage_at_update
+                or now_us - est.t_us >= self.cfg.max_update_interval_s * 1e6):
+            return True
+        m, s2, s1 = self.tested
+        w = self._fresh_windows(m)  # only the untested ones: the estimate did not change
+        z = innovations(self.model, est, w, self.covariates(w.t_us, w.aux), self.cfg.estimator)
+        self.tested = (m + len(z), s2 + float(z @ z), s1 + float(z.sum()))
+        return not consistent(*self.tested)
+
     def _update(self, idx: int, now_us: int, windows: Windows | None = None) -> UpdateEvent:
-        w = windows if windows is not None else self._fresh_windows()
+        # every window the buffer holds, re-fitted from the current estimate (estimator doc)
+        w = windows if windows is not None else self.buffer.windows()
         self.fresh = []
         cov = self.covariates(w.t_us, w.aux)
         assert self.prior is not None and self.estimate is not None
-        free = self.model.observable_with(self.buffer.coverage().axes_covered)
+        before = self.estimate
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
-                                    self.cfg.estimator, free)
+                                    self.cfg.estimator)
+        self.settled = rep.accepted and _settled(before, self.estimate)
+        self.coverage_at_update = self.buffer.cells_opened
+        self.tested = (0, 0.0, 0.0)
         self.counts["updates"] += 1
         if not rep.accepted:
             self.counts["updates_rejected"] += 1
         else:
             self._redirect()
         self.last_report = rep
-        return UpdateEvent(idx, now_us, rep)
+        return UpdateEvent(idx, now_us, rep, estimate=self.estimate, model=self.model)
 
     def _try_bootstrap(self, idx: int, now_us: int) -> UpdateEvent | None:
         cov = self.buffer.coverage()
@@ -384,13 +534,14 @@ class Pipeline:
         a = self.model.correct(self.params, self.buffer.v[m], cov)
         self.buffer.redirect(a / np.linalg.norm(a, axis=1, keepdims=True))
 
-    def _fresh_windows(self) -> Windows:
-        m, k = len(self.fresh), len(self.aux_names)
-        return Windows(np.array([f[0] for f in self.fresh]).reshape(m, 3),
-                       np.array([f[1] for f in self.fresh]).reshape(m, k),
-                       np.array([f[2] for f in self.fresh], np.int64),
-                       np.array([f[3] for f in self.fresh], np.int64),
-                       np.array([f[4] for f in self.fresh], float))
+    def _fresh_windows(self, first: int = 0) -> Windows:
+        fresh = self.fresh[first:]
+        m, k = len(fresh), len(self.aux_names)
+        return Windows(np.array([f[0] for f in fresh]).reshape(m, 3),
+                       np.array([f[1] for f in fresh]).reshape(m, k),
+                       np.array([f[2] for f in fresh], np.int64),
+                       np.array([f[3] for f in fresh], np.int64),
+                       np.array([f[4] for f in fresh], float))
 
     # --- correction --------------------------------------------------------------------------
     def _calibrate(self, b: RawBatch, start: tuple[SensorModel, np.ndarray],
@@ -410,6 +561,27 @@ class Pipeline:
             rate_hz=self.cfg.rate_hz, threshold_g=self.cfg.threshold_g, hp_hz=self.cfg.hp_hz,
             lp_hz=self.cfg.lp_hz, s0=s0, clip_raw=clip, flat_s=self.cfg.flat_s)
         self.det_state = det.init_state(self.det_cfg)
+
+
+#: An update that moved no parameter by more than this fraction of its standard deviation
+#: leaves the estimate settled: later windows that agree with it need no re-fit.
+SETTLED_SD_FRACTION = 0.1
+
+
+def _settled(before: Estimate, after: Estimate) -> bool:
+    sd = np.sqrt(np.clip(np.diag(after.cov), 1e-300, None))
+    return bool(np.all(np.abs(after.p - before.p) <= SETTLED_SD_FRACTION * sd))
+
+
+def window_means(batch: RawBatch, cfg: PipelineConfig, s0: float) -> Windows:
+    """Every quasi-static window mean of a recording, by exactly the live detector (Lötters
+    eq. 1-2, in units of s0 raw per g) and windowing (window_s, guard_s, min_fill), but with no
+    norm gate and no estimator update: the raw material of `core.discovery`."""
+    collect = replace(cfg, norm_tol_g=float("inf"), update_every=2**62)
+    model = SensorModel.diagonal(float(s0))
+    pipe = Pipeline(collect, model, Prior.default(model), batch.aux_names)
+    pipe.step(batch)  # batch-size invariant: one call is the same as streaming it
+    return pipe._fresh_windows()  # never cleared: no update ever runs
 
 
 def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | None) -> dict | None:
@@ -443,6 +615,9 @@ def state_dict(pipe: Pipeline) -> dict:
         "last_gate": pipe.last_gate,
         "counts": dict(pipe.counts),
         "last_report": asdict(rep) if rep is not None else None,
+        "settled": pipe.settled,
+        "coverage_at_update": pipe.coverage_at_update,
+        "tested": list(pipe.tested),
     }
 
 
@@ -475,6 +650,11 @@ def from_state_dict(d: dict) -> Pipeline:
     pipe.last_t_us = d["last_t_us"]
     pipe.last_gate = bool(d["last_gate"])
     pipe.counts = dict(d["counts"])
+    pipe.settled = bool(d.get("settled", False))
+    cov_key = d.get("coverage_at_update")
+    pipe.coverage_at_update = int(cov_key) if cov_key is not None else None
+    m, s2, s1 = d.get("tested", (0, 0.0, 0.0))
+    pipe.tested = (int(m), float(s2), float(s1))
     rep = d.get("last_report")
     pipe.last_report = (UpdateReport(**{**rep, "observable": tuple(rep["observable"]),
                                         "free": tuple(rep["free"])}) if rep else None)

@@ -16,8 +16,8 @@ What ``read_csv`` accepts:
   returned so the caller knows (no conversion here).
 - Every other column is an auxiliary channel named by its header, as written.
 - A row with the wrong number of fields, a field that is not a number (an empty auxiliary
-  field is NaN), or a non-finite time is skipped and counted; a missing header or axis column,
-  or duplicate column names, are errors.
+  field is NaN), or a time that is not finite or beyond an int64 of microseconds is skipped
+  and counted; a missing header or axis column, or duplicate column names, are errors.
 
 ``write_raw_csv`` writes ``t_us,x,y,z,<aux...>`` and ``write_calibrated_csv`` writes
 ``t_us,x_g,y_g,z_g`` (optionally ``quasi_static,detector_g``), with Python's shortest
@@ -172,7 +172,8 @@ def _parse_slow(lines: Iterable[tuple[int, str]], layout: _Layout
     bad = 0
     for number, line in lines:
         row = _parse_row(_split_row(line), layout)
-        if row is None or (layout.time is not None and not math.isfinite(row[layout.time])):
+        if row is None or (layout.time is not None and not _times_ok(
+                np.array([row[layout.time]]), layout.time_name)[0]):
             bad += 1
             if len(bad_lines) < _MAX_REPORTED_BAD_LINES:
                 bad_lines.append(number)
@@ -180,6 +181,12 @@ def _parse_slow(lines: Iterable[tuple[int, str]], layout: _Layout
         rows.append(row)
     table = np.array(rows, dtype=np.float64).reshape(len(rows), len(layout.names))
     return table, bad_lines, bad
+
+
+def _times_ok(t: np.ndarray, time_name: str) -> np.ndarray:
+    """Times that are finite and fit an int64 of microseconds (NaN compares False)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.abs(t * TIME_COLUMNS[time_name]) < 2.0**63
 
 
 def _times_us(table: np.ndarray, layout: _Layout, rate_hz: float | None, t0_us: int
@@ -201,12 +208,18 @@ def read_csv(path: str | os.PathLike[str], units: Units | None = None,
         rate_hz: sample rate, required (only) when there is no time column.
         t0_us: time of the first sample when times are synthesized.
     """
-    all_lines = Path(path).read_text(encoding="utf-8-sig").splitlines(keepends=True)
+    try:
+        all_lines = Path(path).read_text(encoding="utf-8-sig").splitlines(keepends=True)
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text (byte {exc.start})") from None
     header = next(_data_lines(all_lines, 1), None)
     if header is None:
         raise ValueError(f"{path}: no header row")
-    layout = _layout(_split_header(header[1]))
-    resolved_units = _resolve_units(units, layout.header_units)
+    try:  # name the file in the one-line error
+        layout = _layout(_split_header(header[1]))
+        resolved_units = _resolve_units(units, layout.header_units)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
     rows = all_lines[header[0]:]  # header[0] is 1-based, so this starts after the header
     table: np.ndarray | None = np.zeros((0, len(layout.names)))
     if any(True for _ in _data_lines(rows, 0)):  # loadtxt warns on empty input
@@ -214,7 +227,7 @@ def read_csv(path: str | os.PathLike[str], units: Units | None = None,
     bad_lines: list[int] = []
     bad = 0
     if table is None or (layout.time is not None
-                         and not np.isfinite(table[:, layout.time]).all()):
+                         and not _times_ok(table[:, layout.time], layout.time_name).all()):
         table, bad_lines, bad = _parse_slow(_data_lines(rows, header[0] + 1), layout)
     t_us = _times_us(table, layout, rate_hz, t0_us)
     batch = RawBatch(t_us, table[:, list(layout.axes)], table[:, list(layout.aux)],

@@ -162,6 +162,21 @@ class PtyDevice:
         self.bytes_dropped += len(view) - done
         return done
 
+    def write_nowait(self, data: bytes | memoryview) -> int:
+        """One non-blocking write attempt; bytes written (0 if the pty is full or unplugged).
+
+        For a caller that drives many devices from one thread (``bench/pty_fleet.py``): it
+        keeps what did not fit and retries later, instead of waiting on one device.
+        """
+        with self._lock:
+            fd = self._master
+            if fd is None:
+                return 0
+            try:
+                return os.write(fd, data)
+            except OSError:  # BlockingIOError (full) or the reader side is gone
+                return 0
+
     def write_batch(self, batch: RawBatch) -> int:
         """Write samples in the device's format (after the boot header if due); bytes written."""
         with self._lock:  # the streaming thread and the caller may both write

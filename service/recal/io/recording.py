@@ -8,7 +8,7 @@ Topic layout (one MCAP file, or a rotated series ``rec.mcap``, ``rec-0001.mcap``
 | /<sensor>/calibrated  | recal.CalibratedBatch (protobuf)  | the batch calibrated, sensor frame|
 | /<sensor>/body        | recal.CalibratedBatch (protobuf)  | the batch rotated to body frame   |
 | /<sensor>/calibration | recal.CalibrationState (json)     | calibration state after an update |
-| /<sensor>/plot        | recal.PlotSample (json)           | one calibrated sample (decimated) |
+| /<sensor>/plot        | recal.PlotSample (protobuf)       | one calibrated sample (decimated) |
 | /<sensor>/events      | recal.Event (json)                | a sensor event                    |
 | /gateway/events       | recal.Event (json)                | a gateway event                   |
 
@@ -30,17 +30,25 @@ series) and yield messages in file order; ``repair`` works on one file at a time
 Crash tolerance: chunks are small (32 KiB by default) and the open chunk is closed, the file
 flushed and ``fsync``ed at least every ``flush_interval_s``, so a SIGKILL or power cut loses about
 that much; ``repair`` turns the truncated file into a valid indexed one.
+
+Memory: the writer holds the open chunk and a few counters; the chunk indexes the summary needs
+wait in a temporary file (a week flushed every second is ~600k chunks), so a recording of any
+length is written in constant memory.
 """
 
 from __future__ import annotations
 
 import fnmatch
+import functools
 import os
+import queue
 import re
 import struct
+import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+import zlib
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -49,9 +57,23 @@ from typing import IO, Any, Literal, NamedTuple
 import lz4.frame
 import numpy as np
 import zstandard
+from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.reader import McapReader, make_reader
-from mcap.records import Attachment, Channel, ChunkIndex, Footer, Message, Metadata, Schema
+from mcap.records import (
+    Attachment,
+    Channel,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 from mcap.writer import LIBRARY_IDENTIFIER, MCAP0_MAGIC, CompressionType
@@ -73,7 +95,9 @@ __all__ = [
     "iter_calibrated",
     "iter_json",
     "iter_messages",
+    "iter_plot",
     "iter_raw",
+    "iter_raw_logged",
     "read_all_calibrated",
     "read_all_raw",
     "recording_parts",
@@ -116,6 +140,7 @@ class RecordingError(ValueError):
 # Topics and paths
 # ---------------------------------------------------------------------------------------------
 
+@functools.lru_cache(maxsize=4096)
 def sensor_topic(sensor_id: str, suffix: str) -> str:
     """``/<sensor_id>/<suffix>``, after checking the sensor id is topic- and key-safe."""
     if not _SENSOR_ID.fullmatch(sensor_id) or sensor_id == GATEWAY:
@@ -155,6 +180,327 @@ def _as_paths(paths: Paths) -> list[Path]:
 
 
 # ---------------------------------------------------------------------------------------------
+# MCAP file writer (records)
+# ---------------------------------------------------------------------------------------------
+
+_RECORD_HEADER = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel_id", "<u2"),
+                           ("sequence", "<u4"), ("log_time", "<u8"), ("publish_time", "<u8")])
+_MESSAGE_RECORD = struct.Struct("<BQHIQQ")  # the same 31 bytes, one message at a time
+_MESSAGE_FIXED = 2 + 4 + 8 + 8  # message record fields before the data
+_CHUNK_FIXED = struct.Struct("<BQQQQI")  # opcode, length, start, end, uncompressed size, crc
+_MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")  # opcode, length, channel id, records length
+_COMPRESSION_NAMES = {"zstd": "zstd", "lz4": "lz4", "none": ""}
+# start, end, offset, length, message index length, compressed size, size, channels
+_CHUNK_INDEX_SPILL = struct.Struct("<QQQQQQQH")
+_CHANNEL_OFFSET = struct.Struct("<HQ")  # channel id, its message index record's offset
+
+
+class _McapFile:
+    """MCAP records, laid out as ``mcap.writer.Writer`` lays them out: schemas, channels and
+    messages in chunks, a message index per channel after each chunk, then a summary
+    (schemas, channels, statistics, chunk and metadata indexes, summary offsets) and footer.
+
+    Why not that Writer: it builds a Python object and several small writes per message, which
+    cost more than calibrating the samples. Here a message is one ``struct.pack`` and a batch
+    of fixed-size messages (the plot topic) one numpy array, the chunk is joined once, and one
+    zstd context is reused.
+
+    With ``background``, a thread compresses finished chunks and writes everything to the
+    stream, in order (zstd, lz4, crc32 and file writes release the GIL, so this runs beside
+    the caller on another core). At most ``_QUEUED_CHUNKS`` chunks wait, so memory stays
+    bounded; ``flush`` and ``finish`` wait until the thread has written everything, and an
+    error in the thread is raised by the next call.
+    """
+
+    _QUEUED_CHUNKS = 4
+
+    def __init__(self, stream: IO[bytes], chunk_size: int, compression: Compression,
+                 background: bool = False) -> None:
+        self._out = stream
+        self._chunk_size = chunk_size
+        self._compression = _COMPRESSION_NAMES[compression]
+        self._zstd = zstandard.ZstdCompressor() if compression == "zstd" else None
+        self.position = 0  # bytes written to the stream (by the thread, if there is one)
+        self._pieces: list[bytes] = []  # records of the open chunk
+        self._size = 0
+        self._times: dict[int, list[int]] = {}  # per channel: log times, chunk offsets
+        self._offsets: dict[int, list[int]] = {}
+        self._chunk_start = self._chunk_end = 0
+        self._schemas: list[Schema] = []
+        self._channels: list[Channel] = []
+        # Chunk indexes go to a temporary file until the summary is written: a week-long
+        # recording flushed every second has ~600k chunks, too many to keep in memory.
+        self._chunk_spill: IO[bytes] | None = None
+        self._chunks = 0
+        self._metadata_indexes: list[MetadataIndex] = []
+        self._counts: dict[int, int] = {}
+        self._messages = 0
+        self._start_ns = self._end_ns = 0
+        self._error: BaseException | None = None
+        self._jobs: queue.Queue[tuple[Callable[..., None], tuple] | None] | None = None
+        self._thread: threading.Thread | None = None
+        if background:
+            self._jobs = queue.Queue(self._QUEUED_CHUNKS)
+            self._thread = threading.Thread(target=self._work, name="recal-mcap-chunks",
+                                            daemon=True)
+            self._thread.start()
+
+    # -- output, in order, on the caller's thread or the writer thread ------------------------
+    def _submit(self, job: Callable[..., None], *args: Any) -> None:
+        self._raise_error()
+        if self._jobs is None:
+            job(*args)
+        else:
+            self._jobs.put((job, args))
+
+    def _work(self) -> None:
+        assert self._jobs is not None
+        while True:
+            item = self._jobs.get()
+            try:
+                if item is None:
+                    return
+                if self._error is None:  # after a failure the file is broken: drop the rest
+                    item[0](*item[1])
+            except BaseException as exc:  # handed to the owner's next call
+                self._error = exc
+            finally:
+                self._jobs.task_done()
+
+    def _drain(self) -> None:
+        """Wait until every submitted write is in the stream."""
+        if self._jobs is not None:
+            self._jobs.join()
+        self._raise_error()
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            raise RuntimeError("writing the recording failed") from self._error
+
+    def _write(self, data: bytes) -> None:
+        self._out.write(data)
+        self.position += len(data)
+
+    @staticmethod
+    def _record(rec: Any) -> bytes:
+        builder = RecordBuilder()
+        rec.write(builder)
+        return builder.end()
+
+    # -- records outside chunks ---------------------------------------------------------------
+    def start(self, profile: str, library: str) -> None:
+        self._submit(self._write, MCAP0_MAGIC + self._record(Header(profile=profile,
+                                                                     library=library)))
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        self._submit(self._write_metadata, name, self._record(Metadata(name=name,
+                                                                        metadata=dict(data))))
+
+    def _write_metadata(self, name: str, record: bytes) -> None:
+        self._metadata_indexes.append(MetadataIndex(offset=self.position, length=len(record),
+                                                    name=name))
+        self._write(record)
+
+    # -- records inside chunks ----------------------------------------------------------------
+    def _append(self, data: bytes) -> None:
+        self._pieces.append(data)
+        self._size += len(data)
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
+        self._schemas.append(schema)
+        self._append(self._record(schema))
+        return schema.id
+
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
+        channel = Channel(id=len(self._channels) + 1, topic=topic,
+                          message_encoding=message_encoding, schema_id=schema_id, metadata={})
+        self._channels.append(channel)
+        self._counts[channel.id] = 0
+        self._append(self._record(channel))
+        return channel.id
+
+    def _note(self, channel_id: int, log_times: list[int], offsets: list[int]) -> None:
+        """Index and statistics for messages just appended (log times in write order)."""
+        lo, hi = min(log_times), max(log_times)
+        if not self._times:  # first message of the chunk
+            self._chunk_start, self._chunk_end = lo, hi
+        else:
+            self._chunk_start = min(self._chunk_start, lo)
+            self._chunk_end = max(self._chunk_end, hi)
+        if self._messages == 0:
+            self._start_ns, self._end_ns = lo, hi
+        else:
+            self._start_ns, self._end_ns = min(self._start_ns, lo), max(self._end_ns, hi)
+        self._times.setdefault(channel_id, []).extend(log_times)
+        self._offsets.setdefault(channel_id, []).extend(offsets)
+        self._counts[channel_id] += len(log_times)
+        self._messages += len(log_times)
+        if self._size > self._chunk_size:
+            self.end_chunk()
+
+    def add_messages(self, channel_id: int, items: Sequence[tuple[bytes, int, int]],
+                     sequence: int) -> int:
+        """Append (data, log ns, publish ns) messages; returns the next sequence number."""
+        if not items:
+            return sequence
+        pack, pieces = _MESSAGE_RECORD.pack, self._pieces
+        offsets, log_times, size = [], [], self._size
+        for data, log_ns, publish_ns in items:
+            head = pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence,
+                        log_ns, publish_ns)
+            pieces.append(head)
+            pieces.append(data)
+            offsets.append(size)
+            log_times.append(log_ns)
+            size += len(head) + len(data)
+            sequence = (sequence + 1) & 0xFFFFFFFF  # MCAP sequence is uint32
+        self._size = size
+        self._note(channel_id, log_times, offsets)
+        return sequence
+
+    def add_fixed(self, channel_id: int, payloads: np.ndarray, log_times: np.ndarray,
+                  publish_times: np.ndarray, sequence: int) -> int:
+        """Append one message per row of a structured array (each row is a message's bytes),
+        built as one array of records; returns the next sequence number."""
+        n = len(payloads)
+        if n == 0:
+            return sequence
+        records = np.empty(n, [("head", _RECORD_HEADER), ("body", payloads.dtype)])
+        head = records["head"]
+        head["opcode"] = Opcode.MESSAGE
+        head["length"] = _MESSAGE_FIXED + payloads.dtype.itemsize
+        head["channel_id"] = channel_id
+        head["sequence"] = (sequence + np.arange(n, dtype=np.uint64)) & 0xFFFFFFFF
+        head["log_time"] = log_times
+        head["publish_time"] = publish_times
+        records["body"] = payloads
+        offsets = self._size + records.dtype.itemsize * np.arange(n)
+        self._append(records.tobytes())
+        self._note(channel_id, np.asarray(log_times, np.uint64).tolist(), offsets.tolist())
+        return (sequence + n) & 0xFFFFFFFF
+
+    def end_chunk(self) -> None:
+        """Hand the open chunk and its message indexes to the output (nothing if empty)."""
+        if not self._times:  # schema and channel records alone wait for the next chunk,
+            return  # as in mcap's Writer (a chunk without messages is not written)
+        self._submit(self._write_chunk, b"".join(self._pieces), self._chunk_start,
+                     self._chunk_end, self._times, self._offsets)
+        self._pieces, self._size = [], 0
+        self._times, self._offsets = {}, {}
+
+    def _write_chunk(self, data: bytes, start_ns: int, end_ns: int,
+                     times: dict[int, list[int]], offsets: dict[int, list[int]]) -> None:
+        if self._zstd is not None:
+            packed = self._zstd.compress(data)
+        elif self._compression == "lz4":
+            packed = lz4.frame.compress(data)
+        else:
+            packed = data
+        name = self._compression.encode()
+        body_len = 8 + 8 + 8 + 4 + 4 + len(name) + 8 + len(packed)
+        chunk_start = self.position
+        self._write(b"".join((
+            _CHUNK_FIXED.pack(Opcode.CHUNK, body_len, start_ns, end_ns, len(data),
+                              zlib.crc32(data)),
+            struct.pack("<I", len(name)), name, struct.pack("<Q", len(packed)), packed)))
+        chunk_length = self.position - chunk_start
+        index_start = self.position
+        index_offsets = {}
+        for channel_id, log_times in times.items():
+            pairs = np.empty((len(log_times), 2), "<u8")
+            pairs[:, 0] = log_times
+            pairs[:, 1] = offsets[channel_id]
+            index_offsets[channel_id] = self.position
+            self._write(_MESSAGE_INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + pairs.nbytes,
+                                                 channel_id, pairs.nbytes) + pairs.tobytes())
+        if self._chunk_spill is None:
+            self._chunk_spill = tempfile.TemporaryFile(prefix="recal-chunk-index-")
+        self._chunk_spill.write(_CHUNK_INDEX_SPILL.pack(
+            start_ns, end_ns, chunk_start, chunk_length, self.position - index_start,
+            len(packed), len(data), len(index_offsets)) + b"".join(
+                _CHANNEL_OFFSET.pack(c, o) for c, o in index_offsets.items()))
+        self._chunks += 1
+
+    def _chunk_indexes(self) -> Iterator[ChunkIndex]:
+        """The spilled chunk indexes, read back in order."""
+        if self._chunk_spill is None:
+            return
+        spill = self._chunk_spill
+        spill.flush()
+        spill.seek(0)
+        for _ in range(self._chunks):
+            start, end, offset, length, mi_length, packed, size, n = _CHUNK_INDEX_SPILL.unpack(
+                spill.read(_CHUNK_INDEX_SPILL.size))
+            pairs = spill.read(_CHANNEL_OFFSET.size * n)
+            yield ChunkIndex(
+                message_start_time=start, message_end_time=end, chunk_start_offset=offset,
+                chunk_length=length,
+                message_index_offsets=dict(_CHANNEL_OFFSET.iter_unpack(pairs)),
+                message_index_length=mi_length, compression=self._compression,
+                compressed_size=packed, uncompressed_size=size)
+
+    def flush(self) -> None:
+        """End the open chunk, wait until it is written, flush the stream."""
+        self.end_chunk()
+        self._drain()
+        self._out.flush()
+
+    def finish(self) -> None:
+        """The last chunk, data end, summary, footer and closing magic; stops the thread."""
+        try:
+            self.end_chunk()
+            self._drain()
+        finally:
+            if self._jobs is not None and self._thread is not None:
+                self._jobs.put(None)
+                self._thread.join()
+                self._jobs = None
+        self._write(self._record(DataEnd(data_section_crc=0)))
+        summary_start = self.position
+        groups: list[tuple[int, Iterable[Any]]] = [
+            (Opcode.SCHEMA, self._schemas), (Opcode.CHANNEL, self._channels),
+            (Opcode.STATISTICS, [Statistics(
+                message_count=self._messages, schema_count=len(self._schemas),
+                channel_count=len(self._channels), attachment_count=0,
+                metadata_count=len(self._metadata_indexes),
+                chunk_count=self._chunks, message_start_time=self._start_ns,
+                message_end_time=self._end_ns, channel_message_counts=dict(self._counts))]),
+            (Opcode.CHUNK_INDEX, self._chunk_indexes()),
+            (Opcode.METADATA_INDEX, self._metadata_indexes)]
+        crc = 0
+        offsets = []
+        for opcode, records in groups:  # written as they are built: the summary can be big
+            group_start = self.position
+            builder = RecordBuilder()
+            for record in records:
+                record.write(builder)
+                if builder.count >= 1 << 20:
+                    crc = self._write_summary(builder.end(), crc)
+            crc = self._write_summary(builder.end(), crc)
+            if self.position > group_start:
+                offsets.append(SummaryOffset(group_opcode=opcode, group_start=group_start,
+                                             group_length=self.position - group_start))
+        offset_start = self.position
+        builder = RecordBuilder()
+        for offset in offsets:
+            offset.write(builder)
+        crc = self._write_summary(builder.end(), crc)
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, offset_start),
+                         crc)
+        footer = Footer(summary_start=summary_start, summary_offset_start=offset_start,
+                        summary_crc=crc)
+        self._write(self._record(footer) + MCAP0_MAGIC)
+        self._out.flush()
+        if self._chunk_spill is not None:
+            self._chunk_spill.close()
+
+    def _write_summary(self, data: bytes, crc: int) -> int:
+        self._write(data)
+        return zlib.crc32(data, crc)
+
+
+# ---------------------------------------------------------------------------------------------
 # Writer
 # ---------------------------------------------------------------------------------------------
 
@@ -163,6 +509,15 @@ def _publish_ns(t_us: int | None, fallback_ns: int) -> int:
         return fallback_ns
     # MCAP times are unsigned 64-bit; device clocks before their epoch are clamped, not lost.
     return min(max(int(t_us) * 1000, 0), _MAX_U64)
+
+
+def _publish_ns_array(t_us: np.ndarray) -> np.ndarray:
+    """`_publish_ns` of each device time (us), as uint64."""
+    t = np.clip(np.asarray(t_us, np.int64), 0, None).astype(np.uint64)
+    big = t > np.uint64(_MAX_U64 // 1000)
+    out = t * np.uint64(1000)
+    out[big] = _MAX_U64
+    return out
 
 
 def _check_log_time(log_time_ns: int) -> int:
@@ -186,7 +541,8 @@ class RecordingWriter:
         flush_interval_s: the open chunk is closed, the file flushed and fsynced when this long
             has passed since the last flush, checked on every write and by the flush thread.
         rotate_bytes: start a new part once the current file reached this size (checked before
-            each write, so a part overshoots by at most one chunk and its index).
+            each write, so a part overshoots by at most one chunk and its index; with
+            background_compression, also by the chunks still queued).
         rotate_s: start a new part once the log time passed the current part's first log
             time by this much.
         compression: chunk compression.
@@ -196,6 +552,9 @@ class RecordingWriter:
         metadata: string pairs stored in each part's ``recal`` metadata record.
         overwrite: replace an existing file (and remove stale rotated parts of it); otherwise an
             existing file is an error.
+        background_compression: compress and write finished chunks on a thread, beside the
+            caller (replay: the calibration runs while the previous chunk is compressed). A
+            flush still returns only once everything is in the file.
     """
 
     def __init__(self, path: PathLike, *, chunk_size: int = 32 * 1024,
@@ -203,7 +562,7 @@ class RecordingWriter:
                  rotate_s: float | None = None, compression: Compression = "zstd",
                  clock: Callable[[], float] = time.monotonic, background_flush: bool = True,
                  fsync: bool = True, metadata: Mapping[str, str] | None = None,
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, background_compression: bool = False) -> None:
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
         if chunk_size <= 0 or flush_interval_s <= 0:
@@ -211,8 +570,6 @@ class RecordingWriter:
         if (rotate_bytes is not None and rotate_bytes <= 0) or (rotate_s is not None
                                                                and rotate_s <= 0):
             raise ValueError("rotate_bytes and rotate_s must be positive (or None)")
-        if not hasattr(_McapWriter, "flush"):
-            raise RuntimeError("mcap>=1.6 is required (Writer.flush ends a chunk early)")
         self._base = Path(path)
         self._base.parent.mkdir(parents=True, exist_ok=True)
         self._prepare_target(overwrite)
@@ -220,9 +577,11 @@ class RecordingWriter:
         self._flush_interval_s = float(flush_interval_s)
         self._rotate_bytes = rotate_bytes
         self._rotate_ns = None if rotate_s is None else round(rotate_s * 1e9)
-        self._compression = _COMPRESSION[compression]
+        self._compression: Compression = compression
+        self._background_compression = background_compression
         self._clock = clock
         self._fsync = fsync
+        self._fsync_due = False  # flushed to the OS, not yet fsynced (see _flush_locked)
         self._metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._lock = threading.RLock()
         self._paths: list[Path] = []
@@ -284,7 +643,7 @@ class RecordingWriter:
         return data
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes:
-        """Log a JSON object; the schema follows the topic suffix (calibration, events, plot,
+        """Log a JSON object; the schema follows the topic suffix (calibration, events,
         anything else a permissive object schema). Returns the encoded bytes."""
         spec = _SUFFIX_SCHEMAS.get(split_topic(topic)[1], messages.GENERIC_JSON_SCHEMA)
         if spec.message_encoding != "json":
@@ -327,15 +686,19 @@ class RecordingWriter:
         indices = np.arange((-phase) % every_n, len(batch), every_n)
         if not len(indices):
             return 0
-        payloads = messages.encode_plot(batch, indices)
         t_us = batch.t_us[indices]
         # Spread the samples back from the log time by their device-time distance to the end.
         last_us = int(batch.t_us[-1])
-        log_times = np.clip(log_ns - (last_us - t_us) * 1000, 0, None).tolist()
-        items = [(data, lt, _publish_ns(t, lt))
-                 for data, lt, t in zip(payloads, log_times, t_us.tolist(), strict=True)]
-        self._write_many(topic, messages.PLOT_SCHEMA, items, log_ns)
-        return len(items)
+        if len(indices) <= 16:  # a few samples: packed one by one (no array set-up)
+            items = [(data, lt, _publish_ns(t, lt)) for data, t in zip(
+                messages.encode_plot(batch, indices), t_us.tolist(), strict=True)
+                for lt in (max(log_ns - (last_us - t) * 1000, 0),)]
+            self._write_many(topic, messages.PLOT_SCHEMA, items, log_ns)
+            return len(items)
+        log_times = np.clip(log_ns - (last_us - t_us) * 1000, 0, None)
+        self._write_fixed(topic, messages.PLOT_SCHEMA, messages.plot_payloads(batch, indices),
+                          log_times, _publish_ns_array(t_us), log_ns)
+        return len(indices)
 
     def write_encoded(self, topic: str, data: bytes, log_time_ns: int,
                       publish_time_ns: int | None = None, *,
@@ -345,7 +708,7 @@ class RecordingWriter:
         The schema defaults to the one the topic suffix implies (see the layout above).
         """
         log_ns = _check_log_time(log_time_ns)
-        if not _TOPIC.fullmatch(topic):
+        if topic not in self._topic_specs and not _TOPIC.fullmatch(topic):
             raise ValueError(f"invalid topic {topic!r}: expected /<owner>/<name>")
         spec = schema or self._topic_specs.get(topic) or _SUFFIX_SCHEMAS.get(
             split_topic(topic)[1], messages.GENERIC_JSON_SCHEMA)
@@ -359,6 +722,8 @@ class RecordingWriter:
             self._raise_background_error()
             if not self._closed:
                 self._flush_locked()
+            fd = self._take_fsync()
+        _fsync_and_close(fd)
 
     def close(self) -> None:
         """Flush, write the index (summary) and close the file. Idempotent."""
@@ -392,8 +757,8 @@ class RecordingWriter:
     def _open_part(self) -> None:
         path = _part_path(self._base, len(self._paths))
         self._file: IO[bytes] = open(path, "wb")  # closed in _finish_part
-        self._mcap = _McapWriter(self._file, chunk_size=self._chunk_size,
-                                 compression=self._compression)
+        self._mcap = _McapFile(self._file, self._chunk_size, self._compression,
+                               self._background_compression)
         self._mcap.start(profile="", library=_LIBRARY)
         self._mcap.add_metadata("recal", {"version": __version__,
                                           "part": str(len(self._paths)), **self._metadata})
@@ -405,17 +770,19 @@ class RecordingWriter:
         self._last_flush_s = self._clock()
 
     def _finish_part(self) -> None:
-        self._mcap.finish()
-        self._file.flush()
-        if self._fsync:
-            os.fsync(self._file.fileno())
-        self._file.close()
+        try:
+            self._mcap.finish()
+            self._file.flush()
+            if self._fsync:
+                os.fsync(self._file.fileno())
+        finally:
+            self._file.close()
         self._messages_flushed = self._messages_written
 
     def _rotation_due(self, log_ns: int) -> bool:
         if self._part_messages == 0:
             return False  # never leave an empty part behind
-        if self._rotate_bytes is not None and self._file.tell() >= self._rotate_bytes:
+        if self._rotate_bytes is not None and self._mcap.position >= self._rotate_bytes:
             return True
         return self._rotate_ns is not None and log_ns - self._part_start_ns >= self._rotate_ns
 
@@ -446,13 +813,29 @@ class RecordingWriter:
             if self._part_messages == 0:
                 self._part_start_ns = call_log_ns
             channel_id = self._channel_id(topic, spec)
-            sequence = self._sequence.get(topic, 0)
-            for data, log_ns, publish_ns in items:
-                self._mcap.add_message(channel_id, log_ns, data, publish_ns, sequence)
-                sequence = (sequence + 1) & 0xFFFFFFFF  # MCAP sequence is uint32
-            self._sequence[topic] = sequence
+            self._sequence[topic] = self._mcap.add_messages(channel_id, items,
+                                                            self._sequence.get(topic, 0))
             self._part_messages += len(items)
             self._messages_written += len(items)
+            self._maybe_flush()
+
+    def _write_fixed(self, topic: str, spec: SchemaSpec, payloads: np.ndarray,
+                     log_times: np.ndarray, publish_times: np.ndarray, call_log_ns: int) -> None:
+        """Like `_write_many` for messages that are the rows of a structured array."""
+        with self._lock:
+            self._raise_background_error()
+            if self._closed:
+                raise ValueError("recording writer is closed")
+            if self._rotation_due(call_log_ns):
+                self._finish_part()
+                self._open_part()
+            if self._part_messages == 0:
+                self._part_start_ns = call_log_ns
+            channel_id = self._channel_id(topic, spec)
+            self._sequence[topic] = self._mcap.add_fixed(
+                channel_id, payloads, log_times, publish_times, self._sequence.get(topic, 0))
+            self._part_messages += len(payloads)
+            self._messages_written += len(payloads)
             self._maybe_flush()
 
     def _maybe_flush(self) -> None:
@@ -464,10 +847,21 @@ class RecordingWriter:
         if self._messages_flushed == self._messages_written:
             return  # nothing new: skip the fsync
         self._mcap.flush()  # ends the open chunk and flushes the Python buffer
-        if self._fsync:
-            os.fsync(self._file.fileno())
+        # The fsync itself (~6 ms here) happens outside the lock, on the flush thread: a
+        # writer calling in to log a sample must not wait for the disk (the gateway's
+        # latency p99 showed it). The data is with the OS already, so a killed process
+        # loses nothing by this; a power cut may lose up to a quarter interval more.
+        self._fsync_due = self._fsync
         self._messages_flushed = self._messages_written
         self._flush_count += 1
+
+    def _take_fsync(self) -> int | None:
+        """With the lock held: a duplicate descriptor to fsync if one is due (the duplicate
+        stays valid should the file be rotated or closed meanwhile), else None."""
+        if not self._fsync_due or self._closed:
+            return None
+        self._fsync_due = False
+        return os.dup(self._file.fileno())
 
     def _flush_loop(self) -> None:
         # Wakes several times per interval so a quiet writer is still flushed on time.
@@ -477,14 +871,30 @@ class RecordingWriter:
                     return
                 try:
                     self._maybe_flush()
+                    fd = self._take_fsync()
                 except Exception as exc:  # surfaced to the owner on its next call
                     self._background_error = exc
                     return
+            try:
+                _fsync_and_close(fd)
+            except OSError as exc:
+                self._background_error = exc
+                return
 
     def _raise_background_error(self) -> None:
         if self._background_error is not None:
             error, self._background_error = self._background_error, None
             raise RuntimeError("background flush of the recording failed") from error
+
+
+def _fsync_and_close(fd: int | None) -> None:
+    """fsync a duplicated descriptor (see ``RecordingWriter._take_fsync``) and close it."""
+    if fd is None:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -632,6 +1042,14 @@ def iter_raw(path: Paths, sensor_id: str | None = None
         yield split_topic(m.topic)[0], messages.decode_raw(m.data)[1], m.log_time_ns
 
 
+def iter_raw_logged(path: Paths, sensor_id: str | None = None
+                    ) -> Iterator[tuple[str, RawBatch, LoggedMessage]]:
+    """(sensor_id, batch, message as logged) of every raw batch, in file order: for copying
+    the raw topic into another recording byte for byte (replay)."""
+    for m in _iter(path, _batch_filter("raw", messages.RAW_MESSAGE_NAME, sensor_id)):
+        yield split_topic(m.topic)[0], messages.decode_raw(m.data)[1], m
+
+
 def iter_calibrated(path: Paths, sensor_id: str | None = None,
                     topic_suffix: str = "calibrated"
                     ) -> Iterator[tuple[str, CalibratedBatch, int]]:
@@ -651,6 +1069,19 @@ def iter_json(path: Paths, topic_glob: str) -> Iterator[tuple[str, Any, int]]:
                                                                           topic_glob)
     for m in _iter(path, want):
         yield m.topic, messages.decode_json(m.data), m.log_time_ns
+
+
+def iter_plot(path: Paths, sensor_id: str | None = None) -> Iterator[tuple[str, dict, int]]:
+    """(sensor_id, sample dict, log_time_ns) of every plot message, in file order (protobuf,
+    or JSON in recordings written before the plot topic became protobuf)."""
+    def want(channel: Channel, name: str) -> bool:
+        owner, suffix = split_topic(channel.topic)
+        return (suffix == "plot" and name == messages.PLOT_SCHEMA.name
+                and (sensor_id is None or owner == sensor_id))
+    for m in _iter(path, want):
+        obj = (messages.decode_json(m.data) if m.message_encoding == "json"
+               else messages.decode_plot(m.data))
+        yield split_topic(m.topic)[0], obj, m.log_time_ns
 
 
 def read_all_raw(path: Paths, sensor_id: str) -> RawBatch:
@@ -735,7 +1166,10 @@ def _extent(m: LoggedMessage) -> tuple[int, int | None, int | None]:
     if m.schema_name in (messages.RAW_MESSAGE_NAME, messages.CALIBRATED_MESSAGE_NAME):
         return messages.batch_extent(m.data)
     if m.schema_name == messages.PLOT_SCHEMA.name:
-        t_us = messages.decode_json(m.data).get("t_us")
+        if m.message_encoding == "json":  # recordings from before the plot became protobuf
+            t_us = messages.decode_json(m.data).get("t_us")
+        else:
+            t_us = messages.decode_plot(m.data)["t_us"]
         return 1, t_us, t_us
     return 0, None, None
 

@@ -1,12 +1,15 @@
 """Samples from a serial port: chunked reads through a streaming parser, reconnect with backoff.
 
 A :class:`SerialSource` owns one pyserial port (``serial.serial_for_url``, so ``/dev/ttyACM0``,
-a pty symlink and ``loop://`` all work) and one parser from :mod:`recal.io.frames`. Its single
-verb is :meth:`SerialSource.read_batch`: it reads whatever the port has in ``read(max(1,
-in_waiting))`` chunks (never ``readline()``, which costs a system call per byte), parses, and
-returns the valid samples plus what happened as :class:`SourceEvent` s. It never raises for a
-device that is missing, unplugged or talking nonsense: the port is closed, ``port_lost`` is
-reported, and opening is retried with exponential backoff until ``port_found``.
+a pty symlink and ``loop://`` all work) and one parser from :mod:`recal.io.frames`. It reads
+in two ways: :meth:`SerialSource.read_batch` waits up to a deadline and reads whatever the
+port has in ``read(max(1, in_waiting))`` chunks (never ``readline()``, which costs a system
+call per byte); :meth:`SerialSource.poll` never waits, reads the non-blocking descriptor
+directly and exposes it (:meth:`SerialSource.fileno`) so that one selector serves many ports
+(the gateway). Both parse and return the valid samples plus what happened as
+:class:`SourceEvent` s. Neither raises for a device that is missing, unplugged or talking
+nonsense: the port is closed, ``port_lost`` is reported, and opening is retried with
+exponential backoff until ``port_found``.
 
 Memory is bounded: one partial line or frame in the parser, at most ``max_batch_bytes`` read
 per call, a handful of events per call.
@@ -54,6 +57,21 @@ class SourceEvent:
     t_s: float = 0.0
 
 
+def _descriptor(ser: Any) -> int | None:
+    """A pyserial port's non-blocking file descriptor, or None (URL ports, other platforms).
+
+    pyserial's POSIX ports open the device with O_NONBLOCK and read it directly, so reading
+    the descriptor ourselves skips its per-call select and in_waiting ioctl without changing
+    what is read."""
+    try:
+        fd = ser.fileno()
+    except (AttributeError, OSError, serial.SerialException, NotImplementedError):
+        return None
+    if not isinstance(fd, int) or fd < 0 or os.get_blocking(fd):
+        return None
+    return fd
+
+
 class _PortGone(Exception):
     """The device path vanished or now names another device."""
 
@@ -94,6 +112,7 @@ class SerialSource:
         self._serial_kwargs = dict(serial_kwargs or {})
         self._clock = clock
         self._ser: Any = None
+        self._fd: int | None = None
         self._closed = False
         self._ever_opened = False
         self._lost_at_s: float | None = None
@@ -155,6 +174,70 @@ class SerialSource:
         self._report_parse_errors(events)
         return self._join(batches), events
 
+    def fileno(self) -> int | None:
+        """The open port's file descriptor, for a selector; None if closed or not a file."""
+        return self._fd
+
+    @property
+    def next_open_s(self) -> float:
+        """When (on ``clock``) the next open attempt of a closed port is due."""
+        return self._next_open_s
+
+    def poll(self, readable: bool = False) -> tuple[RawBatch, list[SourceEvent]]:
+        """Never wait: open the port if an attempt is due, read what is waiting, parse it.
+
+        The non-blocking twin of :meth:`read_batch` for a caller that serves many ports from
+        one selector loop (``recal.gateway``): call it when the selector reports the port
+        readable (``readable=True``: no bytes then means the device hung up, as pyserial
+        decides too), and now and then regardless, so that opening retries and the path check
+        run. Reads at most ``max_batch_bytes``. Never raises for port or data trouble.
+        """
+        events: list[SourceEvent] = []
+        batches: list[RawBatch] = [self._carry] if self._carry is not None else []
+        self._carry = None
+        if self._ser is None and not self._closed and self._clock() >= self._next_open_s:
+            self._try_open(events)
+        if self._ser is not None:
+            try:
+                data = self._read_waiting(readable)
+                self._check_path()
+            except (*_PORT_ERRORS, _PortGone) as exc:
+                data = b""
+                self._lose(exc, events)
+            if data:
+                batch = self.parser.feed(data)
+                if len(batch) and batches and batch.aux.shape[1] != batches[0].aux.shape[1]:
+                    self._carry, batch = batch, RawBatch.empty(batch.aux_names)
+                if len(batch):
+                    batches.append(batch)
+        self._report_parse_errors(events)
+        return self._join(batches), events
+
+    def _read_waiting(self, readable: bool) -> bytes:
+        """Every byte the port has now, up to ``max_batch_bytes``, without waiting.
+
+        A tty in pyserial's raw mode (VMIN = VTIME = 0) answers an empty read with 0 bytes,
+        not EAGAIN, so 0 bytes means "hung up" only when the selector said readable."""
+        if self._fd is None:  # a URL port without a descriptor (loop://): ask pyserial
+            waiting = self._ser.in_waiting
+            return bytes(self._ser.read(min(waiting, self.max_batch_bytes))) if waiting else b""
+        parts: list[bytes] = []
+        total = 0
+        while total < self.max_batch_bytes:
+            try:
+                part = os.read(self._fd, min(self.max_read_bytes, self.max_batch_bytes - total))
+            except BlockingIOError:
+                break
+            if not part:
+                if readable and not parts:
+                    raise _PortGone(f"{self.port} reports data but returns none (hung up)")
+                break
+            parts.append(part)
+            total += len(part)
+            if len(part) < self.max_read_bytes:
+                break  # drained: a further read would only say EAGAIN
+        return b"".join(parts)
+
     def write(self, data: bytes) -> int:
         """Send bytes to the device (a command); bytes written, 0 if the port is not open.
 
@@ -206,6 +289,7 @@ class SerialSource:
             self._open_failed(exc, now_s, events)
             return
         self._ser, self._device_id = ser, device_id
+        self._fd = _descriptor(ser)
         self._next_path_check_s = now_s + self.path_check_interval_s
         self._backoff_s, self._attempts = self.backoff_initial_s, 0
         # The first bytes may be the tail of a line the device was sending before we looked.
@@ -238,7 +322,7 @@ class SerialSource:
         events.append(SourceEvent("port_lost", {"port": self.port, "error": str(exc)}, now_s))
 
     def _close_port(self) -> None:
-        ser, self._ser = self._ser, None
+        ser, self._ser, self._fd = self._ser, None, None
         if ser is not None:
             try:
                 ser.close()
@@ -271,6 +355,8 @@ class SerialSource:
     # -- results
 
     def _report_parse_errors(self, events: list[SourceEvent]) -> None:
+        if self.parser.errors == self._errors_seen:
+            return  # the usual case, checked without building the difference
         delta: ParseErrors = self.parser.errors - self._errors_seen
         self._errors_seen = self.parser.errors.copy()
         if delta.total > 0:

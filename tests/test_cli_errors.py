@@ -1,0 +1,186 @@
+"""Bad configuration and bad command lines: `recal ...` as a real process.
+
+Every case must end with exactly one line on stderr, ``recal: error: <what, naming the file or
+key>``, a non-zero exit status, nothing on stdout and never a traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from recal.io.pty_device import PtyDevice
+from recal.io.recording import RecordingWriter
+from recal.sim import simulate
+
+NO_ZENOH = "[zenoh]\nenabled = false\n"
+FILES: dict[str, bytes] = {
+    "syntax.toml": b"[pipeline\nthreshold_g = 0.01\n",
+    "unknown_table.toml": b"[pipelin]\nthreshold_g = 0.01\n",
+    "unknown_key.toml": b"[pipeline]\ntreshold_g = 0.01\n",
+    "wrong_type.toml": b'[pipeline]\nthreshold_g = "high"\n',
+    "wrong_list.toml": b"[zenoh]\nlisten = \"tcp/127.0.0.1:7447\"\n",
+    "bad_sensor_id.toml": b"[[sensors]]\nid = \"a/b\"\nport = \"/dev/null\"\n",
+    "no_zenoh.toml": NO_ZENOH.encode(),
+    "portless.toml": (NO_ZENOH + '[[sensors]]\nid = "wrist"\n').encode(),
+    "not_utf8.csv": b"t_us,x,y,z\n1,2,3,4\n\xff\xfe,1,2,3\n",
+    "empty.csv": b"",
+    "no_axes.csv": b"t_us,a,b,c\n1,2,3,4\n",
+    "duplicate.csv": b"t_us,x,y,z,x\n1,2,3,4,5\n",
+    "all_bad.csv": b"t_us,x,y,z\n1,2,3\nfoo,bar,baz,qux\n",
+    "no_time.csv": b"x,y,z\n1,2,3\n",
+    "negative_time.csv": b"t_us,x,y,z\n-5,1,2,3\n",
+    "static_bad.csv": b"x,y,z\n1,2\n",
+    "a_file": b"not a directory\n",
+}
+
+# (case id, arguments, expected exit status, fragment the one line must contain)
+CASES = [
+    # a bad config file
+    ("toml syntax", ["run", "--config", "syntax.toml"], 2, "syntax.toml: not valid TOML"),
+    ("unknown table", ["run", "--config", "unknown_table.toml"], 2, "pipelin: unknown key"),
+    ("unknown key", ["run", "--config", "unknown_key.toml"], 2, "treshold_g: unknown key"),
+    ("wrong type", ["run", "--config", "wrong_type.toml"], 2,
+     "[pipeline] threshold_g: expected a number"),
+    ("wrong list", ["run", "--config", "wrong_list.toml"], 2, "listen"),
+    ("bad sensor id", ["run", "--config", "bad_sensor_id.toml"], 2, "invalid sensor id"),
+    ("missing config", ["run", "--config", "nowhere.toml"], 2, "nowhere.toml: no such file"),
+    ("replay bad config", ["replay", "{mcap}", "--out", "o.mcap", "--config", "syntax.toml"],
+     2, "syntax.toml: not valid TOML"),
+    ("node bad config", ["node", "--config", "wrong_type.toml"], 2, "threshold_g"),
+    ("missing model", ["replay", "{mcap}", "--out", "o.mcap", "--model", "nowhere.json"], 2,
+     "nowhere.json"),
+    # a missing port
+    ("no port at all", ["run", "--config", "no_zenoh.toml"], 2, "no sensors"),
+    ("port does not exist", ["run", "--config", "no_zenoh.toml", "--port", "ttyNOPE"], 2,
+     "port ttyNOPE: no such device"),
+    ("sensor without port", ["run", "--config", "portless.toml"], 2, "'wrist' has no port"),
+    ("ports and ids differ", ["run", "--config", "no_zenoh.toml", "--port", "{tty}",
+                              "--sensor-id", "a", "--sensor-id", "b"], 2, "1 ports but 2"),
+    # an MCAP path that cannot be written (root may write anywhere, but not under a file)
+    ("run mcap under a file", ["run", "--config", "no_zenoh.toml", "--port", "{tty}",
+                               "--mcap", "a_file/x.mcap"], 1, "cannot open the recording"),
+    ("run mcap in /proc", ["run", "--config", "no_zenoh.toml", "--port", "{tty}",
+                           "--mcap", "/proc/recal.mcap"], 1, "/proc/recal.mcap"),
+    ("replay out under a file", ["replay", "{mcap}", "--out", "a_file/o.mcap", "--quiet"], 2,
+     "a_file"),
+    ("simulate out under a file", ["simulate", "--out", "a_file/s.mcap", "--hours", "0.001"], 2,
+     "a_file"),
+    ("export csv under a file", ["export", "{mcap}", "--csv", "a_file/o.csv", "--topic", "raw"],
+     2, "a_file"),
+    ("repair out under a file", ["repair", "{mcap}", "--out", "a_file/o.mcap"], 2, "a_file"),
+    # a missing input file
+    ("replay missing input", ["replay", "nowhere.mcap", "--out", "o.mcap"], 2, "nowhere.mcap"),
+    ("import missing input", ["import", "nowhere.csv", "--out", "o.mcap"], 2, "nowhere.csv"),
+    ("export missing input", ["export", "nowhere.mcap", "--csv", "o.csv"], 2, "nowhere.mcap"),
+    ("repair missing input", ["repair", "nowhere.mcap", "--out", "o.mcap"], 2, "nowhere.mcap"),
+    ("static missing input", ["static", "nowhere.csv"], 2, "nowhere.csv"),
+    ("replay not an mcap", ["replay", "all_bad.csv", "--out", "o.mcap"], 2, "all_bad.csv"),
+    # a bad CSV
+    ("csv not utf-8", ["import", "not_utf8.csv", "--out", "o.mcap"], 2,
+     "not_utf8.csv: not UTF-8"),
+    ("csv empty", ["import", "empty.csv", "--out", "o.mcap"], 2, "empty.csv: no header row"),
+    ("csv no axes", ["import", "no_axes.csv", "--out", "o.mcap"], 2, "no_axes.csv: no axis"),
+    ("csv duplicate", ["import", "duplicate.csv", "--out", "o.mcap"], 2, "duplicate column"),
+    ("csv all rows bad", ["import", "all_bad.csv", "--out", "o.mcap"], 2,
+     "all_bad.csv: no valid rows (2 bad, first at lines 2, 3)"),
+    ("csv no time", ["import", "no_time.csv", "--out", "o.mcap"], 2, "no time column"),
+    ("csv negative time", ["import", "negative_time.csv", "--out", "o.mcap"], 2,
+     "negative_time.csv: times must be"),
+    ("csv units clash", ["import", "no_time.csv", "--out", "o.mcap", "--units", "parsecs"], 2,
+     "--units"),
+    ("static bad rows", ["static", "static_bad.csv"], 2, "static_bad.csv"),
+    ("static not utf-8", ["static", "not_utf8.csv"], 2, "not_utf8.csv: not UTF-8"),
+    # the command line itself
+    ("unknown command", ["frobnicate"], 2, "invalid choice"),
+    ("missing argument", ["import", "no_time.csv"], 2, "required: --out"),
+    ("not a number", ["simulate", "--out", "s.mcap", "--hours", "two"], 2, "--hours"),
+    ("router bad endpoint", ["router", "--listen", "tcp/999.1.1.1:1"], 2,
+     "cannot start the router"),
+    ("router missing config", ["router", "--config", "nowhere.json5"], 2,
+     "cannot start the router"),
+]
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The files every case may read, a small valid recording, and a real pty for --port."""
+    root = tmp_path_factory.mktemp("cli")
+    for name, data in FILES.items():
+        (root / name).write_bytes(data)
+    raw = simulate(0.002, 50.0, 1).raw
+    with RecordingWriter(root / "ok.mcap", overwrite=True) as writer:
+        writer.write_raw("s1", raw, int(raw.t_us[0]) * 1000)
+    with PtyDevice(str(root / "ttyOK"), "ascii"):
+        yield root
+
+
+def _args(args: list[str], workdir: Path) -> list[str]:
+    return [a.replace("{mcap}", "ok.mcap").replace("{tty}", str(workdir / "ttyOK"))
+            for a in args]
+
+
+def _main(args: list[str], capfd: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    """``recal.cli.main`` in this process (the console script's code); an exception other
+    than SystemExit escaping it would be the traceback, and fails the test by itself."""
+    from recal.cli import main
+
+    capfd.readouterr()
+    try:
+        status = main(args)
+    except SystemExit as exc:  # argparse
+        status = exc.code if isinstance(exc.code, int) else 1
+    out, err = capfd.readouterr()
+    return status, out, err
+
+
+def _assert_one_error_line(status: int, out: str, err: str, want_status: int,
+                           fragment: str) -> None:
+    lines = err.splitlines()
+    assert "Traceback" not in err + out, err
+    assert len(lines) == 1, err
+    assert lines[0].startswith("recal: error: ") and fragment in lines[0], lines[0]
+    assert status == want_status, (status, lines[0])
+    assert out == "", out
+
+
+@pytest.mark.parametrize(("args", "status", "fragment"), [c[1:] for c in CASES],
+                         ids=[c[0] for c in CASES])
+def test_one_clear_error_line_and_no_traceback(
+        workdir: Path, args: list[str], status: int, fragment: str,
+        capfd: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(workdir)
+    _assert_one_error_line(*_main(_args(args, workdir), capfd), status, fragment)
+
+
+# One case of each kind again as a real `python -m recal` process: what a user sees.
+AS_PROCESS = ["toml syntax", "port does not exist", "run mcap under a file",
+              "csv all rows bad", "missing argument", "router bad endpoint"]
+
+
+@pytest.mark.parametrize("case", AS_PROCESS)
+def test_as_a_real_process(workdir: Path, case: str) -> None:
+    _, args, status, fragment = next(c for c in CASES if c[0] == case)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    done = subprocess.run([sys.executable, "-m", "recal", *_args(args, workdir)], cwd=workdir,
+                          env=env, capture_output=True, text=True, timeout=60)
+    _assert_one_error_line(done.returncode, done.stdout, done.stderr, status, fragment)
+
+
+def test_nothing_is_left_behind_by_a_failed_start(
+        workdir: Path, capfd: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A start that fails on its recording, port or model writes no file and no checkpoint."""
+    monkeypatch.chdir(workdir)
+    before = set(os.listdir(workdir))
+    for case in ("run mcap under a file", "port does not exist", "missing model",
+                 "csv all rows bad"):
+        args = next(c[1] for c in CASES if c[0] == case)
+        status, _, _ = _main(_args(args, workdir), capfd)
+        assert status != 0
+    assert set(os.listdir(workdir)) == before

@@ -1,0 +1,300 @@
+"""Process faults: the gateway killed with SIGKILL at random moments, and its Zenoh router killed.
+
+Real parts only: `python -m recal run` as a child process reading a pseudo-terminal (PtyDevice),
+MCAP files on disk repaired with `recal repair`, checkpoints on disk, a `recal router` child
+process and Zenoh sessions on 127.0.0.1. Every wait is bounded in count and time.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from polling import wait_for
+from recal.cli import main as recal_main
+from recal.demo import free_port
+from recal.gateway import READY_PREFIX
+from recal.io import recording as rec
+from recal.io.bus import Bus, key, zenoh_config
+from recal.io.messages import decode_raw
+from recal.io.pty_device import PtyDevice
+from recal.io.router import RouterProcess
+from recal.node import checkpoint_path, load_checkpoint
+from recal.samples import RawBatch
+from recal.sim import SensorSpec, WearerSpec, simulate
+
+SID = "s1"
+RATE_HZ = 100.0  # the sensor's rate (device time)
+SEND_PER_S = 1000.0  # how fast the test device writes: 10x real time, to reach updates soon
+CHUNK = 10  # samples per write
+FLUSH_S = 0.01  # [mcap] flush_interval_s: what a kill may lose, at most (plus read latency)
+KILLS = 10
+
+
+def _raw(minutes: float, seed: int) -> RawBatch:
+    spec = SensorSpec.random(np.random.default_rng(seed), offset_mg=40.0, gain_pct=3.0)
+    return simulate(minutes / 60.0, RATE_HZ, seed, spec,
+                    WearerSpec(still_s=(8.0, 20.0), move_s=(2.0, 5.0))).raw
+
+
+def _config(tmp: Path, link: str, zenoh: str) -> Path:
+    path = tmp / "gateway.toml"
+    path.write_text(f"""{zenoh}
+[mcap]
+flush_interval_s = {FLUSH_S}
+
+[checkpoint]
+dir = "{tmp / 'ck'}"
+interval_s = 0.25
+
+[[sensors]]
+id = "{SID}"
+port = "{link}"
+aux_names = []
+rate_hz = {RATE_HZ}
+prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
+""")
+    return path
+
+
+class Gateway:
+    """`python -m recal run` as a child process; its output is read by a thread."""
+
+    def __init__(self, config: Path, mcap: Path) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "recal", "run", "--config", str(config), "--mcap", str(mcap)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self.lines: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+        ready = wait_for(lambda: self.ready_line is not None or self.proc.poll() is not None,
+                         30, 0.02)
+        if not ready or self.ready_line is None:
+            self.kill()
+            raise AssertionError(f"gateway did not start: {self.lines}")
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            if len(self.lines) < 1000:
+                self.lines.append(line.rstrip("\n"))
+
+    @property
+    def ready_line(self) -> str | None:
+        return next((ln for ln in self.lines if ln.startswith(READY_PREFIX)), None)
+
+    @property
+    def mcap(self) -> Path:
+        """The file it writes (a time-stamped sibling when --mcap already exists)."""
+        assert self.ready_line is not None
+        match = re.search(r"mcap=(\S+)", self.ready_line)
+        assert match is not None
+        return Path(match.group(1))
+
+    def has_open(self, device_path: str) -> bool:
+        """Whether the process holds ``device_path`` open (Linux: /proc/<pid>/fd)."""
+        fd_dir = f"/proc/{self.proc.pid}/fd"
+        try:
+            names = os.listdir(fd_dir)
+        except OSError:
+            return False
+        for name in names:
+            try:
+                if os.readlink(f"{fd_dir}/{name}") == device_path:
+                    return True
+            except OSError:
+                continue  # closed meanwhile
+        return False
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+
+
+@pytest.fixture
+def children() -> Iterator[list[Gateway]]:
+    """Gateway processes a test started; any still running at the end are killed."""
+    procs: list[Gateway] = []
+    yield procs
+    for gp in procs:
+        gp.kill()
+
+
+def _start(config: Path, mcap: Path, dev: PtyDevice, children: list[Gateway]) -> Gateway:
+    """Start the gateway and wait until it reads the device; the device then re-announces
+    itself with a header, so the first line the gateway reads is whole."""
+    gw = Gateway(config, mcap)
+    children.append(gw)
+    assert wait_for(lambda: gw.has_open(dev.slave_name), 20, 0.02), gw.lines
+    time.sleep(0.2)  # pyserial flushes the input right after opening: write after that
+    dev.write_header(())
+    return gw
+
+
+def _stream(dev: PtyDevice, raw: RawBatch, start: int, seconds: float) -> int:
+    """Write samples from ``start`` at SEND_PER_S for ``seconds``; return how many."""
+    began = time.monotonic()
+    i = start
+    for _ in range(int(seconds * SEND_PER_S / CHUNK) + 1):  # bounded in count
+        wait = began + (i - start) / SEND_PER_S - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        if time.monotonic() - began >= seconds or i >= len(raw):
+            break
+        dev.write_batch(raw[i:i + CHUNK])
+        i += len(raw[i:i + CHUNK])
+    return i - start
+
+
+def _repair(broken: Path, fixed: Path) -> None:
+    """`recal repair BROKEN --out FIXED`, the command's own code."""
+    assert recal_main(["repair", str(broken), "--out", str(fixed)]) == 0
+
+
+def _first_state(path: Path) -> dict:
+    return next(obj for _, obj, _ in rec.iter_json(path, f"/{SID}/calibration"))
+
+
+def _params(doc: dict) -> np.ndarray:
+    return np.asarray(doc["pipeline"]["estimate"]["p"], float)
+
+
+def test_kill9_at_ten_random_moments_then_repair_and_restart(tmp_path: Path,
+                                                             children: list[Gateway]) -> None:
+    rng = np.random.default_rng(2024)
+    kill_after_s = rng.uniform(0.8, 2.0, KILLS)  # stream time before each kill
+    raw = _raw(12.0, seed=5)
+    link = str(tmp_path / "ttyKILL")
+    config = _config(tmp_path, link, "[zenoh]\nenabled = false\n")
+    ckpt = checkpoint_path(tmp_path / "ck", SID)
+    sent_total = got_total = 0
+    table = []
+    saved: dict | None = None
+    with PtyDevice(link, "ascii", header=False, write_timeout_s=5.0) as dev:
+        for k in range(KILLS + 1):
+            gw = _start(config, tmp_path / "live.mcap", dev, children)
+            assert ("'checkpoint'" in gw.ready_line) == (saved is not None), gw.ready_line
+            if k == KILLS:  # the last run ends with SIGTERM: a clean stop
+                sent = _stream(dev, raw, sent_total, 1.0)
+                gw.proc.send_signal(signal.SIGTERM)
+                assert gw.proc.wait(30) == 0, gw.lines
+                fixed = gw.mcap  # closed and indexed: no repair needed
+            else:
+                sent = _stream(dev, raw, sent_total, float(kill_after_s[k]))
+                time.sleep(float(rng.uniform(0.0, 0.02)))  # the kill lands mid-stream
+                os.kill(gw.proc.pid, signal.SIGKILL)
+                gw.proc.wait(10)
+                fixed = tmp_path / f"fixed{k}.mcap"
+                _repair(gw.mcap, fixed)
+            assert dev.bytes_dropped == 0
+            got = rec.read_all_raw(fixed, SID)
+            # exactly once, in order, bit for bit: a prefix of what this run was sent
+            np.testing.assert_array_equal(got.t_us, raw.t_us[sent_total:sent_total + len(got)])
+            np.testing.assert_array_equal(got.v, raw.v[sent_total:sent_total + len(got)])
+            lost = sent - len(got)
+            table.append((k, sent, len(got), lost))
+            # the state resumed is the checkpoint the killed run left
+            first = _first_state(fixed)
+            if saved is not None:
+                assert first["reason"] == "restored", first["reason"]
+                p_first = np.array([first["params"][n] for n in first["param_names"]])
+                np.testing.assert_allclose(p_first, _params(saved), rtol=0, atol=1e-9)
+            before = saved
+            saved = load_checkpoint(ckpt)  # never half written, whenever the kill came
+            assert saved is not None
+            if before is not None:
+                assert (saved["pipeline"]["counts"]["samples"]
+                        >= before["pipeline"]["counts"]["samples"])
+            sent_total += sent
+            got_total += len(got)
+    assert saved is not None and saved["pipeline"]["counts"]["updates"] >= 5
+    assert np.max(np.abs(_params(saved) - np.asarray(saved["pipeline"]["prior"]["mean"]))) > 1
+    losses = np.array([row[3] for row in table[:KILLS]])
+    print("\nrun  sent  recovered  lost\n" + "\n".join(f"{k:3d} {s:5d} {g:10d} {lo:5d}"
+                                                     for k, s, g, lo in table))
+    print(f"recovered {got_total}/{sent_total} = {100 * got_total / sent_total:.2f} %")
+    assert got_total >= 0.99 * sent_total
+    assert np.all(losses <= 0.01 * np.array([row[1] for row in table[:KILLS]]) + 30), table
+    assert table[KILLS][3] == 0  # the clean stop loses nothing
+    # a kill during a checkpoint write leaves at most its own temporary file behind
+    leftovers = [p.name for p in (tmp_path / "ck").iterdir() if p.name != ckpt.name]
+    assert len(leftovers) <= KILLS, leftovers
+
+
+# --------------------------------------------------------------------------- router
+
+
+def test_router_killed_gateway_keeps_logging_and_resumes_publishing(
+        tmp_path: Path, children: list[Gateway]) -> None:
+    """Gateway and subscriber are Zenoh clients of a `recal router`. The router is killed
+    (SIGKILL) and restarted on the same endpoint: meanwhile the gateway logs every sample, and
+    once both clients have reconnected by themselves every sample is published again."""
+    raw = _raw(4.0, seed=6)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    retry = {"period_init_ms": 50, "period_max_ms": 200}
+    client_cfg = tmp_path / "zenoh-client.json5"
+    client_cfg.write_text(json.dumps({
+        "mode": "client", "connect": {"endpoints": [endpoint], "retry": retry},
+        "scouting": {"multicast": {"enabled": False}}}))
+    link = str(tmp_path / "ttyROUTE")
+    config = _config(tmp_path, link, f'[zenoh]\nconfig_file = "{client_cfg}"\n')
+    router = RouterProcess([endpoint]).start()
+    heard: list[np.ndarray] = []  # t_us of the raw samples the subscriber heard, per message
+
+    def heard_t() -> np.ndarray:
+        return np.concatenate(heard) if heard else np.zeros(0, np.int64)
+
+    try:
+        with PtyDevice(link, "ascii", header=False, write_timeout_s=5.0) as dev:
+            gw = _start(config, tmp_path / "route.mcap", dev, children)
+            sub = Bus(zenoh_config("client", connect=[endpoint],
+                                   overrides={"connect/retry": retry}))
+            try:
+                sub.subscribe(key(SID, "raw"),
+                              lambda m: heard.append(decode_raw(m.payload)[1].t_us))
+                sent = _stream(dev, raw, 0, 1.0)
+                assert wait_for(lambda: len(heard_t()) == sent, 10), (len(heard_t()), sent)
+
+                router.kill()  # a crash: no goodbye
+                down = _stream(dev, raw, sent, 1.5)  # logged, but nobody can hear them
+                heard_while_down = len(heard_t()) - sent
+                router.start()  # the same endpoint
+                for _ in range(50):  # bounded: up to ~20 s of 0.2 s bursts until heard again
+                    down += _stream(dev, raw, sent + down, 0.2)
+                    if wait_for(lambda: len(heard_t()) > sent, 0.2, 0.02):
+                        break
+                assert len(heard_t()) > sent, "publishing did not resume"
+                after = _stream(dev, raw, sent + down, 1.0)
+                total = sent + down + after
+                want = raw.t_us[sent + down:total]
+                assert wait_for(lambda: np.isin(want, heard_t()).all(), 10), \
+                    (np.isin(want, heard_t()).sum(), after)
+            finally:
+                sub.close()
+            gw.proc.send_signal(signal.SIGTERM)
+            assert gw.proc.wait(30) == 0, gw.lines
+    finally:
+        router.kill()
+    t = heard_t()
+    assert heard_while_down == 0  # the router really was down
+    assert len(np.unique(t)) == len(t)  # nothing heard twice
+    np.testing.assert_array_equal(t[:sent], raw.t_us[:sent])
+    print(f"\nheard: {sent} of {sent} before the kill, "
+          f"{np.isin(raw.t_us[sent:sent + down], t).sum()} of {down} while the router was down "
+          f"or the clients reconnecting, {after} of {after} after")
+    logged = rec.read_all_raw(gw.mcap, SID)  # the local log never stopped
+    np.testing.assert_array_equal(logged.t_us, raw.t_us[:total])
+    events = [obj["kind"] for _, obj, _ in rec.iter_json(gw.mcap, "/gateway/events")]
+    assert events[0] == "start" and events[-1] == "stop"
