@@ -276,9 +276,13 @@ def test_poll_opens_reads_what_is_waiting_and_never_waits(link: str, fmt: str) -
         assert time.monotonic() - started_s < 2.0
         if fmt == "ascii":  # a header line ends the resync of a freshly opened port
             device.write_header(AUX)
-        for i in range(0, len(sent), 7):  # many small writes, read as they come
-            device.write_batch(sent[i:i + 7])
-        got, _ = _poll_until(source, lambda s, e: len(s) >= len(sent))
+        parts: list[RawBatch] = []
+        for i in range(0, len(sent), 7):  # many small writes, read as they come (reading
+            device.write_batch(sent[i:i + 7])  # only at the end can fill the pty under load)
+            parts.append(source.poll()[0])
+        rest, _ = _poll_until(source, lambda s, e: sum(map(len, parts)) + len(s) >= len(sent))
+        got = _concat([*parts, rest])
+        assert device.bytes_dropped == 0
     np.testing.assert_array_equal(got.t_us, sent.t_us)
     np.testing.assert_array_equal(got.v, sent.v)
 
