@@ -282,6 +282,19 @@ def test_status_queryable_answers_get(peer_pair: tuple[Bus, Bus]) -> None:
     assert time.monotonic() - t0 < 2.0
 
 
+def test_get_keeps_every_reply_on_the_same_key(peer_pair: tuple[Bus, Bus]) -> None:
+    # A gateway and a remote node both answer recal/<sensor>/status; neither may be dropped.
+    node, gateway = peer_pair
+    node.queryable(key("s1", "status"), lambda _k, _p: b"from-node")
+    gateway.queryable(key("s1", "status"), lambda _k, _p: b"from-gateway")
+    want = [("recal/s1/status", b"from-gateway"), ("recal/s1/status", b"from-node")]
+    for asker in (gateway, node):  # a local and a remote queryable, from both sides
+        assert wait_until(lambda a=asker: len(a.get(key("s1", "status"), timeout_s=0.5)) == 2,
+                          5.0)
+        for _ in range(10):
+            assert sorted(asker.get(key("s1", "status"), timeout_s=1.0)) == want
+
+
 def test_close_is_prompt_with_a_full_blocking_receiver(
     open_bus: Callable[[zenoh.Config], Bus],
 ) -> None:

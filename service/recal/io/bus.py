@@ -832,13 +832,16 @@ class Bus:
         """Query every matching queryable; return ``(key, payload)`` of the successful replies.
 
         Waits at most ``timeout_s`` (Zenoh ends the query then) and keeps at most
-        ``max_replies``. Error replies are skipped and counted in ``stats()``.
+        ``max_replies``. Error replies are skipped and counted in ``stats()``. Every reply is
+        kept: Zenoh's default consolidation keeps one per key, and a gateway and a remote
+        node both answer ``recal/<sensor>/status`` (which one survived was a coin toss).
         """
         self._check_open()
         replies = self._session.get(
             zenoh.KeyExpr(key_expr),
             zenoh.handlers.FifoChannel(max(1, max_replies)),
             target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
             payload=payload,
             timeout=max(0.001, float(timeout_s)),
         )
