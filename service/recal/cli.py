@@ -47,7 +47,9 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         offset_drift_g_per_h=tuple(np.full(3, a.drift_mg_per_h / 1e3) * rng.choice([-1, 1], 3)),
         q_per_g=tuple(np.full(3, a.nonlinearity_pct / 100) * rng.choice([-1, 1], 3)),
         temp_channel=a.temp_name, supply_channel=a.supply_name)
-    wearer = sim.WearerSpec(upright_only=a.upright_only, always_aux=a.aux)
+    temp = {k: v for k, v in (("temp_wander_c", a.temp_wander_c),
+                              ("temp_wander_tau_min", a.temp_tau_min)) if v is not None}
+    wearer = sim.WearerSpec(upright_only=a.upright_only, always_aux=a.aux, **temp)
     res = sim.simulate(a.hours, a.rate, a.seed, sensor, wearer)
     out = Path(a.out)
     if out.suffix.lower() == ".csv":
@@ -331,6 +333,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--supply-name", default="vdd_v", help="name of the supply channel")
     s.add_argument("--aux", action="store_true", help="always write temperature and supply")
     s.add_argument("--upright-only", action="store_true", help="never lie down (tilt <= 30 deg)")
+    s.add_argument("--temp-wander-c", type=float,
+                   help="sd of the slow temperature wander, deg C (default: the simulator's)")
+    s.add_argument("--temp-tau-min", type=float,
+                   help="correlation time of that wander, minutes (default: the simulator's)")
     s.set_defaults(func=_cmd_simulate)
 
     s = sub.add_parser("static", help="lab calibration from a table of still positions")
