@@ -803,25 +803,20 @@ class RecordingWriter:
     def _write_many(self, topic: str, spec: SchemaSpec,
                     items: Sequence[tuple[bytes, int, int]], call_log_ns: int) -> None:
         """Append (data, log_time_ns, publish_time_ns) messages to one topic, in order."""
-        with self._lock:
-            self._raise_background_error()
-            if self._closed:
-                raise ValueError("recording writer is closed")
-            if self._rotation_due(call_log_ns):
-                self._finish_part()
-                self._open_part()
-            if self._part_messages == 0:
-                self._part_start_ns = call_log_ns
-            channel_id = self._channel_id(topic, spec)
-            self._sequence[topic] = self._mcap.add_messages(channel_id, items,
-                                                            self._sequence.get(topic, 0))
-            self._part_messages += len(items)
-            self._messages_written += len(items)
-            self._maybe_flush()
+        self._append(topic, spec, call_log_ns, len(items),
+                     lambda channel_id, seq: self._mcap.add_messages(channel_id, items, seq))
 
     def _write_fixed(self, topic: str, spec: SchemaSpec, payloads: np.ndarray,
                      log_times: np.ndarray, publish_times: np.ndarray, call_log_ns: int) -> None:
         """Like `_write_many` for messages that are the rows of a structured array."""
+        self._append(topic, spec, call_log_ns, len(payloads),
+                     lambda channel_id, seq: self._mcap.add_fixed(
+                         channel_id, payloads, log_times, publish_times, seq))
+
+    def _append(self, topic: str, spec: SchemaSpec, call_log_ns: int, count: int,
+                add: Callable[[int, int], int]) -> None:
+        """Rotate if due, then ``add(channel_id, first_sequence)`` -> next sequence; ``add``
+        reads ``self._mcap`` when called, i.e. the part open after any rotation."""
         with self._lock:
             self._raise_background_error()
             if self._closed:
@@ -832,10 +827,9 @@ class RecordingWriter:
             if self._part_messages == 0:
                 self._part_start_ns = call_log_ns
             channel_id = self._channel_id(topic, spec)
-            self._sequence[topic] = self._mcap.add_fixed(
-                channel_id, payloads, log_times, publish_times, self._sequence.get(topic, 0))
-            self._part_messages += len(payloads)
-            self._messages_written += len(payloads)
+            self._sequence[topic] = add(channel_id, self._sequence.get(topic, 0))
+            self._part_messages += count
+            self._messages_written += count
             self._maybe_flush()
 
     def _maybe_flush(self) -> None:
