@@ -6,8 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -17,11 +15,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from gateway_process import GatewayProcess
 from polling import wait_for
 from recal.config import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
 from recal.demo import free_port
-from recal.gateway import READY_PREFIX, Gateway, run_gateway
+from recal.gateway import Gateway, run_gateway
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
@@ -254,44 +253,6 @@ rate_hz = {RATE_HZ}
 prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
 """)
     return path
-
-
-class GatewayProcess:
-    """``python -m recal.gateway`` as a child process; its output is read by a thread."""
-
-    def __init__(self, config: Path, mcap: Path) -> None:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "recal.gateway", "--config", str(config), "--mcap",
-             str(mcap)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-        ready = wait_for(lambda: any(ln.startswith(READY_PREFIX) for ln in self.lines)
-                         or self.proc.poll() is not None, 30, 0.05)
-        if not ready or self.proc.poll() is not None:
-            self.kill()
-            raise AssertionError(f"gateway did not start: {self.lines}")
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            if len(self.lines) < 1000:
-                self.lines.append(line.rstrip("\n"))
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-
-
-@pytest.fixture
-def children() -> Any:
-    """Gateway processes started by a test; any still running at the end are killed."""
-    procs: list[GatewayProcess] = []
-    yield procs
-    for gp in procs:
-        gp.kill()
 
 
 def test_kill9_repair_then_restart_resumes_from_checkpoint(tmp_path: Path,

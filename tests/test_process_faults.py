@@ -9,22 +9,16 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
-import subprocess
-import sys
-import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import pytest
 
+from gateway_process import GatewayProcess
 from polling import wait_for
 from recal.cli import main as recal_main
 from recal.demo import free_port
-from recal.gateway import READY_PREFIX
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_raw
@@ -68,74 +62,11 @@ prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
     return path
 
 
-class Gateway:
-    """`python -m recal run` as a child process; its output is read by a thread."""
-
-    def __init__(self, config: Path, mcap: Path) -> None:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "recal", "run", "--config", str(config), "--mcap", str(mcap)],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-        self.lines: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-        ready = wait_for(lambda: self.ready_line is not None or self.proc.poll() is not None,
-                         30, 0.02)
-        if not ready or self.ready_line is None:
-            self.kill()
-            raise AssertionError(f"gateway did not start: {self.lines}")
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            if len(self.lines) < 1000:
-                self.lines.append(line.rstrip("\n"))
-
-    @property
-    def ready_line(self) -> str | None:
-        return next((ln for ln in self.lines if ln.startswith(READY_PREFIX)), None)
-
-    @property
-    def mcap(self) -> Path:
-        """The file it writes (a time-stamped sibling when --mcap already exists)."""
-        assert self.ready_line is not None
-        match = re.search(r"mcap=(\S+)", self.ready_line)
-        assert match is not None
-        return Path(match.group(1))
-
-    def has_open(self, device_path: str) -> bool:
-        """Whether the process holds ``device_path`` open (Linux: /proc/<pid>/fd)."""
-        fd_dir = f"/proc/{self.proc.pid}/fd"
-        try:
-            names = os.listdir(fd_dir)
-        except OSError:
-            return False
-        for name in names:
-            try:
-                if os.readlink(f"{fd_dir}/{name}") == device_path:
-                    return True
-            except OSError:
-                continue  # closed meanwhile
-        return False
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-
-
-@pytest.fixture
-def children() -> Iterator[list[Gateway]]:
-    """Gateway processes a test started; any still running at the end are killed."""
-    procs: list[Gateway] = []
-    yield procs
-    for gp in procs:
-        gp.kill()
-
-
-def _start(config: Path, mcap: Path, dev: PtyDevice, children: list[Gateway]) -> Gateway:
+def _start(config: Path, mcap: Path, dev: PtyDevice,
+           children: list[GatewayProcess]) -> GatewayProcess:
     """Start the gateway and wait until it reads the device; the device then re-announces
     itself with a header, so the first line the gateway reads is whole."""
-    gw = Gateway(config, mcap)
+    gw = GatewayProcess(config, mcap)
     children.append(gw)
     assert wait_for(lambda: gw.has_open(dev.slave_name), 20, 0.02), gw.lines
     time.sleep(0.2)  # pyserial flushes the input right after opening: write after that
@@ -171,8 +102,8 @@ def _params(doc: dict) -> np.ndarray:
     return np.asarray(doc["pipeline"]["estimate"]["p"], float)
 
 
-def test_kill9_at_ten_random_moments_then_repair_and_restart(tmp_path: Path,
-                                                             children: list[Gateway]) -> None:
+def test_kill9_at_ten_random_moments_then_repair_and_restart(
+        tmp_path: Path, children: list[GatewayProcess]) -> None:
     rng = np.random.default_rng(2024)
     kill_after_s = rng.uniform(0.8, 2.0, KILLS)  # stream time before each kill
     raw = _raw(12.0, seed=5)
@@ -237,7 +168,7 @@ def test_kill9_at_ten_random_moments_then_repair_and_restart(tmp_path: Path,
 
 
 def test_router_killed_gateway_keeps_logging_and_resumes_publishing(
-        tmp_path: Path, children: list[Gateway]) -> None:
+        tmp_path: Path, children: list[GatewayProcess]) -> None:
     """Gateway and subscriber are Zenoh clients of a `recal router`. The router is killed
     (SIGKILL) and restarted on the same endpoint: meanwhile the gateway logs every sample, and
     once both clients have reconnected by themselves every sample is published again."""

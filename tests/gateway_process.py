@@ -1,0 +1,69 @@
+"""The gateway daemon as a child process (`python -m recal run`), for the tests that kill it."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from polling import wait_for
+from recal.gateway import READY_PREFIX
+
+
+class GatewayProcess:
+    """`python -m recal run` as a child process; its output is read by a thread."""
+
+    def __init__(self, config: Path, mcap: Path) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "recal", "run", "--config", str(config), "--mcap", str(mcap)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self.lines: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+        ready = wait_for(lambda: self.ready_line is not None or self.proc.poll() is not None,
+                         30, 0.02)
+        if not ready or self.ready_line is None or self.proc.poll() is not None:
+            self.kill()
+            raise AssertionError(f"gateway did not start: {self.lines}")
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            if len(self.lines) < 1000:
+                self.lines.append(line.rstrip("\n"))
+
+    @property
+    def ready_line(self) -> str | None:
+        return next((ln for ln in self.lines if ln.startswith(READY_PREFIX)), None)
+
+    @property
+    def mcap(self) -> Path:
+        """The file it writes (a time-stamped sibling when --mcap already exists)."""
+        assert self.ready_line is not None
+        match = re.search(r"mcap=(\S+)", self.ready_line)
+        assert match is not None
+        return Path(match.group(1))
+
+    def has_open(self, device_path: str) -> bool:
+        """Whether the process holds ``device_path`` open (Linux: /proc/<pid>/fd)."""
+        fd_dir = f"/proc/{self.proc.pid}/fd"
+        try:
+            names = os.listdir(fd_dir)
+        except OSError:
+            return False
+        for name in names:
+            try:
+                if os.readlink(f"{fd_dir}/{name}") == device_path:
+                    return True
+            except OSError:
+                continue  # closed meanwhile
+        return False
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+
