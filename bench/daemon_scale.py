@@ -193,10 +193,10 @@ def run_rung(n: int, batch_ms: float, a: argparse.Namespace, root: Path) -> dict
             raise RuntimeError(f"ports did not open:\n{daemon.output()[-2000:]}")
         started = fleet.go()
         warm_ns = started["start_ns"] + int(a.warmup_s * 1e9)
-        _sleep_until(warm_ns)
+        sleep_until(warm_ns)
         cpu0, wall0 = daemon.cpu_seconds(), time.monotonic()
         end_ns = started["start_ns"] + int(a.seconds * 1e9)
-        _sleep_until(end_ns)
+        sleep_until(end_ns)
         cpu1, wall1 = daemon.cpu_seconds(), time.monotonic()
         rss = daemon.rss_mb()
         written = fleet.done(60 + a.seconds)
@@ -215,7 +215,7 @@ def run_rung(n: int, batch_ms: float, a: argparse.Namespace, root: Path) -> dict
             "writer_cpu_pct": 100 * written["cpu_s"] / a.seconds,
             "writer_late_p99_ms": written["late_ms"]["p99"],
             "writer_backlog_bytes": written["max_backlog_bytes"],
-            "lat_p50_ms": _pct(lat, 50), "lat_p99_ms": _pct(lat, 99),
+            "lat_p50_ms": pct(lat, 50), "lat_p99_ms": pct(lat, 99),
             "lat_max_ms": float(lat.max()) if len(lat) else float("nan"),
             "probed_samples": len(lat), "catchup_s": catchup, "sent": total, **check,
             "exit": code, "load1": os.getloadavg()[0],
@@ -235,11 +235,11 @@ def run_rung(n: int, batch_ms: float, a: argparse.Namespace, root: Path) -> dict
             shutil.rmtree(work, ignore_errors=True)
 
 
-def _pct(x: np.ndarray, q: float) -> float:
+def pct(x: np.ndarray, q: float) -> float:
     return float(np.percentile(x, q)) if len(x) else float("nan")
 
 
-def _sleep_until(t_ns: int) -> None:
+def sleep_until(t_ns: int) -> None:
     wait = (t_ns - time.time_ns()) / 1e9
     if wait > 0:
         time.sleep(wait)
@@ -258,11 +258,13 @@ COLUMNS = [("sensors", "sensors", "{:d}"), ("batch_ms", "batch ms", "{:g}"),
            ("load1", "load avg", "{:.1f}"), ("sustained", "sustained", "{}")]
 
 
-def print_table(rows: Sequence[dict[str, Any]], out: Any = sys.stdout) -> None:
-    print("| " + " | ".join(h for _, h, _ in COLUMNS) + " |", file=out)
-    print("|" + "---|" * len(COLUMNS), file=out)
+def print_table(rows: Sequence[dict[str, Any]], out: Any = sys.stdout,
+                columns: Sequence[tuple[str, str, str]] = COLUMNS) -> None:
+    """A markdown table of ``rows``: (key, header, format) per column."""
+    print("| " + " | ".join(h for _, h, _ in columns) + " |", file=out)
+    print("|" + "---|" * len(columns), file=out)
     for r in rows:
-        print("| " + " | ".join(fmt.format(r[k]) for k, _, fmt in COLUMNS) + " |", file=out)
+        print("| " + " | ".join(fmt.format(r[k]) for k, _, fmt in columns) + " |", file=out)
     out.flush()
 
 

@@ -45,7 +45,17 @@ from typing import Any
 import numpy as np
 
 from child_process import ChildProcess
-from daemon_scale import RATE_HZ, READY_PREFIX, gateway_toml, latencies_ms, sensor_id, verify
+from daemon_scale import (
+    RATE_HZ,
+    READY_PREFIX,
+    gateway_toml,
+    latencies_ms,
+    pct,
+    print_table,
+    sensor_id,
+    sleep_until,
+    verify,
+)
 from pty_fleet import FleetProcess
 from recal.demo import free_port
 from recal.io.bus import Bus, key, zenoh_config
@@ -167,9 +177,9 @@ def run_row(gateways: int, a: argparse.Namespace, root: Path) -> dict[str, Any]:
             raise RuntimeError("gateways did not open every port")
         started = fleet.go()
         warm_ns = started["start_ns"] + int(a.warmup_s * 1e9)
-        _sleep_until(warm_ns)
+        sleep_until(warm_ns)
         cpu0, wall0 = dep.cpu(), time.monotonic()
-        _sleep_until(started["start_ns"] + int(a.seconds * 1e9))
+        sleep_until(started["start_ns"] + int(a.seconds * 1e9))
         cpu1, wall1 = dep.cpu(), time.monotonic()
         written = fleet.done(60 + a.seconds)
         total = sum(written["sent"])
@@ -192,7 +202,7 @@ def run_row(gateways: int, a: argparse.Namespace, root: Path) -> dict[str, Any]:
                "gw_lost": sum(c["lost"] + c["wrong"] for c in gw_check),
                "node_lost": node_check["lost"] + node_check["wrong"],
                "node_not_calibrated": node_check["cal_missing"], "catchup_s": catchup,
-               "lat_p50_ms": _pct(lat, 50), "lat_p99_ms": _pct(lat, 99),
+               "lat_p50_ms": pct(lat, 50), "lat_p99_ms": pct(lat, 99),
                "node_cpu_pct": share["node"], "router_cpu_pct": share["router"],
                "gw_cpu_pct": max(v for k, v in share.items() if k.startswith("gw")),
                "writer_cpu_pct": 100 * written["cpu_s"] / a.seconds,
@@ -223,16 +233,6 @@ def _verify(mcap: Path, sent: list[int], calibrated: bool = True, first: int = 0
         return {**verify(fixed, sent, calibrated, first), "unclosed": 1}
 
 
-def _pct(x: np.ndarray, q: float) -> float:
-    return float(np.percentile(x, q)) if len(x) else float("nan")
-
-
-def _sleep_until(t_ns: int) -> None:
-    wait = (t_ns - time.time_ns()) / 1e9
-    if wait > 0:
-        time.sleep(wait)
-
-
 COLUMNS = [("gateways", "gateways", "{:d}"), ("sensors", "sensors", "{:d}"),
            ("offered_per_s", "offered samples/s", "{:.0f}"),
            ("delivered_per_s", "calibrated samples/s", "{:.0f}"),
@@ -246,12 +246,6 @@ COLUMNS = [("gateways", "gateways", "{:d}"), ("sensors", "sensors", "{:d}"),
            ("writer_cpu_pct", "writer CPU %", "{:.1f}"), ("load1", "load avg", "{:.1f}"),
            ("complete", "nothing lost", "{}")]
 
-
-def print_table(rows: Sequence[dict[str, Any]]) -> None:
-    print("| " + " | ".join(h for _, h, _ in COLUMNS) + " |")
-    print("|" + "---|" * len(COLUMNS))
-    for r in rows:
-        print("| " + " | ".join(fmt.format(r[k]) for k, _, fmt in COLUMNS) + " |", flush=True)
 
 
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -292,7 +286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"# scale_out: {a.seconds:.0f} s per row, {a.sensors_per_gateway} sensors of "
           f"{RATE_HZ:.0f} Hz per gateway, gateways and node as Zenoh clients of one router; "
           f"{os.cpu_count()} cores shared by every process")
-    print_table(rows)
+    print_table(rows, columns=COLUMNS)
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
     return 0
