@@ -363,6 +363,6 @@ def test_missing_auxiliary_values_never_reach_the_estimator() -> None:
     model = SensorModel.diagonal(S0).with_effect(Offset("temp_c", 25.0), 10.0)
     r = run(raw, model=model)
     assert not r.gate[missing].any()
-    assert r.pipe.counts["updates"] > 50 and r.pipe.counts["updates_rejected"] == 0
+    assert r.pipe.counts["updates"] > 20 and r.pipe.counts["updates_rejected"] == 0
     assert np.isfinite(r.pipe.buffer.aux[r.pipe.buffer.filled]).all()
     assert np.isfinite(r.cal[~missing]).all()

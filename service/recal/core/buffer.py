@@ -131,51 +131,121 @@ def _norm3(x: list[float]) -> float:
     return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
 
 
+class _Flushed:
+    """A per-slot array of WindowBuffer, brought up to date with the slot being merged into
+    (`WindowBuffer._hot`) whenever it is read or replaced."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.attr = "_" + name
+
+    def __get__(self, obj: WindowBuffer | None, objtype: type | None = None) -> np.ndarray:
+        if obj is None:
+            return self  # type: ignore[return-value]
+        obj._flush()
+        return getattr(obj, self.attr)
+
+    def __set__(self, obj: WindowBuffer, value: np.ndarray) -> None:
+        obj._flush()
+        obj._hot = None
+        setattr(obj, self.attr, value)
+
+
+@dataclass(slots=True)
+class _Hot:
+    """The slot windows are being merged into, in Python numbers: a merge is a few float
+    operations, and numpy's per-call overhead made it the buffer's main cost. Written back to
+    the arrays (`WindowBuffer._flush`) before anything reads them."""
+
+    slot: int
+    v: list[float]
+    aux: list[float]
+    t_us: int
+    var: float
+    dir: list[float]
+    n: int
+    k: int
+    nmean: float
+    nm2: float
+    dirty: bool = False
+
+
 class WindowBuffer:
     """Fixed-size arrays; `add` places a window in its direction cell, evicting the cell's oldest.
 
     Mutable by design (it is the one large piece of pipeline state); `copy()` for snapshots.
     """
 
+    v = _Flushed()
+    aux = _Flushed()
+    t_us = _Flushed()
+    n = _Flushed()
+    var = _Flushed()
+    dir = _Flushed()
+    k = _Flushed()  # windows merged into each slot
+    nmean = _Flushed()  # mean of the merged windows' norms |v|, raw units
+    nm2 = _Flushed()  # their sum of squared deviations (Welford)
+
     def __init__(self, cfg: BufferConfig, n_aux: int) -> None:
         self.cfg = cfg
         size = cfg.cells * cfg.per_cell
-        self.v = np.zeros((size, 3))
-        self.aux = np.zeros((size, n_aux))
-        self.t_us = np.zeros(size, np.int64)
-        self.n = np.zeros(size, np.int64)
-        self.var = np.zeros(size)
-        self.dir = np.zeros((size, 3))
+        self._hot: _Hot | None = None
+        self._v = np.zeros((size, 3))
+        self._aux = np.zeros((size, n_aux))
+        self._t_us = np.zeros(size, np.int64)
+        self._n = np.zeros(size, np.int64)
+        self._var = np.zeros(size)
+        self._dir = np.zeros((size, 3))
         self.filled = np.zeros(size, bool)
         self.added = 0
         self.cells_opened = 0  # adds that put a window in an empty cell: new coverage
         self._coverage: dict[float, Coverage] = {}  # until the next add or redirect
         self._cell = np.zeros(size, np.int64)  # cell_of(dir) per slot, kept with dir
-        self.k = np.zeros(size, np.int64)  # windows merged into each slot
-        self.nmean = np.zeros(size)  # mean of the merged windows' norms |v|, raw units
-        self.nm2 = np.zeros(size)  # their sum of squared deviations (Welford)
+        self._k = np.zeros(size, np.int64)
+        self._nmean = np.zeros(size)
+        self._nm2 = np.zeros(size)
         self.last: tuple[int, int] | None = None  # (slot, run) of the latest add, to merge into
 
+    def _flush(self) -> None:
+        h = self._hot
+        if h is None or not h.dirty:
+            return
+        s = h.slot
+        self._v[s], self._t_us[s], self._var[s], self._dir[s] = h.v, h.t_us, h.var, h.dir
+        if self._aux.shape[1]:
+            self._aux[s] = h.aux
+        self._n[s], self._k[s], self._nmean[s], self._nm2[s] = h.n, h.k, h.nmean, h.nm2
+        h.dirty = False
+
+    def _load(self, slot: int) -> _Hot:
+        return _Hot(slot, self._v[slot].tolist(), self._aux[slot].tolist(),
+                    int(self._t_us[slot]), float(self._var[slot]), self._dir[slot].tolist(),
+                    int(self._n[slot]), int(self._k[slot]), float(self._nmean[slot]),
+                    float(self._nm2[slot]))
+
     def add(self, v: np.ndarray, aux: np.ndarray, t_us: int, n: int, var: float,
-            direction: np.ndarray, run: int | None = None) -> int:
+            direction: np.ndarray, run: int | None = None, cell: int | None = None) -> int:
         """Store one window mean; `direction` is gravity's direction (unit, sensor frame);
-        `run` identifies its still run (None: never merge it)."""
-        cell = _cell_of_one(np.asarray(direction, np.float64).reshape(3), self.cfg.grid)
+        `run` identifies its still run (None: never merge it); `cell`: `cell_of(direction)`
+        if the caller has it (the pipeline bins a batch's windows at once)."""
+        if cell is None:
+            cell = _cell_of_one(np.asarray(direction, np.float64).reshape(3), self.cfg.grid)
         if run is not None and self._merge(v, aux, t_us, n, var, direction, run, cell):
             return cell
+        self._flush()
         base = cell * self.cfg.per_cell
         slots = slice(base, base + self.cfg.per_cell)
         free = np.flatnonzero(~self.filled[slots])
         self.cells_opened += len(free) == self.cfg.per_cell
-        slot = base + (int(free[0]) if len(free) else int(np.argmin(self.t_us[slots])))
-        self.v[slot], self.aux[slot], self.t_us[slot] = v, aux, t_us
-        self.n[slot], self.var[slot], self.dir[slot] = n, var, direction
+        slot = base + (int(free[0]) if len(free) else int(np.argmin(self._t_us[slots])))
+        self._v[slot], self._aux[slot], self._t_us[slot] = v, aux, t_us
+        self._n[slot], self._var[slot], self._dir[slot] = n, var, direction
         self.filled[slot] = True
         self.added += 1
         self._cell[slot] = cell
-        self.k[slot] = 1
-        self.nmean[slot], self.nm2[slot] = _norm3(np.asarray(v).tolist()), 0.0
+        self._k[slot] = 1
+        self._nmean[slot], self._nm2[slot] = _norm3(np.asarray(v).tolist()), 0.0
         self.last = None if run is None else (slot, int(run))
+        self._hot = None
         self._coverage.clear()
         return cell
 
@@ -186,32 +256,36 @@ class WindowBuffer:
         if self.last is None or self.last[1] != run:
             return False
         slot = self.last[0]
-        cos_tol = math.cos(math.radians(self.cfg.merge_deg))
-        if (not self.filled[slot] or self._cell[slot] != cell
-                or self.k[slot] >= self.cfg.merge_max):
+        if not self.filled[slot] or self._cell[slot] != cell:
             return False
-        d_old, d_new = self.dir[slot].tolist(), np.asarray(direction, np.float64).tolist()
-        if d_old[0] * d_new[0] + d_old[1] * d_new[1] + d_old[2] * d_new[2] < cos_tol:
+        h = self._hot
+        if h is None or h.slot != slot:
+            h = self._hot = self._load(slot)
+        if h.k >= self.cfg.merge_max:
             return False
-        n0, n1 = int(self.n[slot]), int(n)
+        d_old, d_new = h.dir, np.asarray(direction, np.float64).tolist()
+        if (d_old[0] * d_new[0] + d_old[1] * d_new[1] + d_old[2] * d_new[2]
+                < math.cos(math.radians(self.cfg.merge_deg))):
+            return False
+        n0, n1 = h.n, int(n)
         w0, w1 = n0 / (n0 + n1), n1 / (n0 + n1)
-        self.v[slot] = w0 * self.v[slot] + w1 * np.asarray(v)
-        if self.aux.shape[1]:
-            self.aux[slot] = w0 * self.aux[slot] + w1 * np.asarray(aux)
-        self.t_us[slot] = round(w0 * int(self.t_us[slot]) + w1 * int(t_us))
-        self.var[slot] = w0 * self.var[slot] + w1 * var  # pooled within-window variance
-        # three-vectors in Python floats: numpy's per-call overhead dominates at this size
+        vs = np.asarray(v).tolist()
+        h.v = [w0 * a + w1 * b for a, b in zip(h.v, vs, strict=True)]
+        if h.aux:
+            h.aux = [w0 * a + w1 * b for a, b in zip(h.aux, np.asarray(aux).tolist(),
+                                                      strict=True)]
+        h.t_us = round(w0 * h.t_us + w1 * int(t_us))
+        h.var = w0 * h.var + w1 * float(var)  # pooled within-window variance
         d = [w0 * a + w1 * b for a, b in zip(d_old, d_new, strict=True)]
         nd = _norm3(d)
-        self.dir[slot] = [c / nd for c in d]
-        self.n[slot] = n0 + n1
-        k = int(self.k[slot]) + 1
-        self.k[slot] = k
-        x = _norm3(np.asarray(v).tolist())  # Welford: how much the windows' norms disagree
-        mean0 = float(self.nmean[slot])
-        mean1 = mean0 + (x - mean0) / k
-        self.nmean[slot] = mean1
-        self.nm2[slot] += (x - mean0) * (x - mean1)
+        h.dir = [c / nd for c in d]
+        h.n = n0 + n1
+        h.k += 1
+        x = _norm3(vs)  # Welford: how much the windows' norms disagree
+        mean1 = h.nmean + (x - h.nmean) / h.k
+        h.nm2 += (x - h.nmean) * (x - mean1)
+        h.nmean = mean1
+        h.dirty = True
         self.added += 1
         self._coverage.clear()
         return True
@@ -241,8 +315,10 @@ class WindowBuffer:
 
     def redirect(self, directions: np.ndarray) -> None:
         """Replace the stored gravity directions (after a recalibration changed them)."""
-        self.dir[self.filled] = directions
-        self._cell[self.filled] = cell_of(self.dir[self.filled], self.cfg.grid)
+        self._flush()
+        self._hot = None
+        self._dir[self.filled] = directions
+        self._cell[self.filled] = cell_of(self._dir[self.filled], self.cfg.grid)
         self._coverage.clear()
 
     def copy(self) -> WindowBuffer:

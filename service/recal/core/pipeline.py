@@ -19,7 +19,6 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from itertools import pairwise
@@ -28,7 +27,7 @@ import numpy as np
 
 from recal.core import detector as det
 from recal.core.bootstrap import initial_params
-from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
+from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows, cell_of
 from recal.core.effects import TIME, Covariates, Scale
 from recal.core.estimator import (
     Estimate,
@@ -135,7 +134,7 @@ class _Marks:
     states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, slots=True)
 class _Acc:
     """Running sums of one window (k-th window of a run that started at run_start_us)."""
 
@@ -196,6 +195,62 @@ class _Event:
     index: int
     model: SensorModel
     p: np.ndarray
+
+
+def _means(accs: list[_Acc], n_aux: int) -> tuple[Windows, np.ndarray]:
+    """Window means of finished windows (and the run each belongs to), all at once."""
+    n = np.array([a.n for a in accs], np.int64)
+    nf = n[:, None]
+    v = np.array([a.sum_v for a in accs]).reshape(-1, 3) / nf
+    s2 = np.maximum(np.array([a.sum_v2 for a in accs]).reshape(-1, 3) / nf - v * v, 0.0)
+    # the mean per-axis variance, unbiased
+    var = (s2[:, 0] + s2[:, 1] + s2[:, 2]) / 3 * n / np.maximum(n - 1, 1)
+    aux = np.array([a.sum_aux for a in accs]).reshape(len(accs), n_aux) / nf
+    runs = np.array([a.run_start_us for a in accs], np.int64)
+    t_mid = runs + np.rint(np.array([a.sum_t for a in accs]) / n).astype(np.int64)
+    return Windows(v, aux, t_mid, n, var), runs
+
+
+@dataclass(eq=False)
+class _Stretch:
+    """Windows first.. of a batch under one set of parameters: their norm gate, gravity
+    directions and cells, and (when first asked) their normalized innovations."""
+
+    w: Windows
+    runs: np.ndarray
+    first: int
+    ok: np.ndarray
+    dirs: np.ndarray
+    cells: np.ndarray
+    fresh0: int  # len(pipe.fresh) when the stretch began
+    taken: list[int] = field(default_factory=list)  # stretch index of each window added since
+    z: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, pipe: Pipeline, w: Windows, runs: np.ndarray, first: int) -> _Stretch:
+        mine = Windows(w.v[first:], w.aux[first:], w.t_us[first:], w.n[first:], w.var[first:])
+        a = pipe.model.correct(pipe.params, mine.v, pipe.covariates(mine.t_us, mine.aux))
+        norm = np.sqrt(np.add.reduce(a * a, axis=1))
+        ok = (np.abs(norm - 1.0) <= pipe.cfg.norm_tol_g if pipe.bootstrapped
+              else np.ones(len(a), bool))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dirs = np.where((norm > 0)[:, None], a / norm[:, None], [0.0, 0.0, 1.0])
+        return cls(mine, runs[first:], first, ok, dirs, cell_of(dirs, pipe.cfg.buffer.grid),
+                   len(pipe.fresh))
+
+    def innovations(self, pipe: Pipeline, m: int) -> np.ndarray:
+        """`estimator.innovations` of pipe.fresh[m:] (the estimate has not changed since the
+        stretch began): the ones from before it computed now, its own once for all."""
+        z = []
+        if m < self.fresh0:
+            w = pipe._fresh_windows(m, self.fresh0)
+            z.append(innovations(pipe.model, pipe.estimate, w, pipe.covariates(w.t_us, w.aux),
+                                 pipe.cfg.estimator))
+        if self.z is None:
+            self.z = innovations(pipe.model, pipe.estimate, self.w,
+                                 pipe.covariates(self.w.t_us, self.w.aux), pipe.cfg.estimator)
+        z.append(self.z[self.taken[max(m - self.fresh0, 0):]])
+        return np.concatenate(z)
 
 
 class Pipeline:
@@ -388,8 +443,18 @@ class Pipeline:
         return list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues
 
     def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[_Event], int]:
-        events: list[_Event] = []
-        committed = 0
+        """Cut the gated runs into windows and commit the finished ones (see module doc).
+
+        Which windows finish and when they commit depends on the gates and times alone, so it
+        is worked out first for the whole batch (`_schedule`); committing them then depends on
+        the parameters, which change only at updates (`_commit_all`)."""
+        due = self._schedule(b, gate)
+        return self._commit_all(b, due), sum(acc is not None for _, acc in due)
+
+    def _schedule(self, b: RawBatch, gate: np.ndarray) -> list[tuple[int, _Acc | None]]:
+        """The batch's window events in sample order: (index, window) for a window that
+        commits at sample index, (index, None) for one too short to keep (`_finish`)."""
+        due: list[tuple[int, _Acc | None]] = []
         W = round(self.cfg.window_s * 1e6)
         runs, continues = self._runs(b.t_us, gate)
         for r, (i0, i1) in enumerate(runs):
@@ -405,67 +470,89 @@ class Pipeline:
                 if self.open is not None and self.open.k == acc.k:
                     acc = self.open.merge(acc)
                 elif self.open is not None:  # the open window ended where this one begins
-                    self._finish(self.open, W, i0 + g0)
+                    self._finish(self.open, W, i0 + g0, due)
                 self.open = acc
                 if self.pending is not None:  # commit once the run is guard_s past the window
                     # t rises within a run: the first sample at or past the commit time
-                    due = int(np.searchsorted(t[g0:g1], self.pending[1]))
-                    if due < g1 - g0:
-                        idx = i0 + g0 + due
-                        ev = self._commit(self.pending[0], idx, int(b.t_us[idx]))
-                        committed += 1
+                    at = int(np.searchsorted(t[g0:g1], self.pending[1]))
+                    if at < g1 - g0:
+                        due.append((i0 + g0 + at, self.pending[0]))
                         self.pending = None
-                        if ev is not None:
-                            events.append(_Event(ev, idx, self.model, self.params.copy()))
-                            if self._marks is not None:
-                                self._marks.dirty = True
                 if g1 < len(t):  # a later window follows in this run: this one is complete
-                    self._finish(self.open, W, i0 + g1)
+                    self._finish(self.open, W, i0 + g1, due)
                     self.open = None
         if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
             self.open, self.pending = None, None
         if not runs:
             self.open, self.pending = None, None
-        return events, committed
+        return due
 
-    def _finish(self, acc: _Acc, W: int, idx: int) -> None:
+    def _finish(self, acc: _Acc, W: int, idx: int,
+                due: list[tuple[int, _Acc | None]]) -> None:
         """A window is complete (seen at sample idx, the next window's first); keep it
         pending until the guard time has passed."""
         need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
         if acc.n < need:
-            self._reach(idx)
-            self.counts["windows_rejected"] += 1
+            due.append((idx, None))
             return
         end_us = acc.run_start_us + (acc.k + 1) * W
         self.pending = (acc, end_us + round(self.cfg.guard_s * 1e6))
 
-    def _commit(self, acc: _Acc, idx: int, t_us: int) -> UpdateEvent | None:
-        self._reach(idx)
-        n = acc.n
-        v = acc.sum_v / n
-        # the mean per-axis variance, in the order np.mean sums three values
-        s2 = np.maximum(acc.sum_v2 / n - v * v, 0.0).tolist()
-        var = (s2[0] + s2[1] + s2[2]) / 3 * n / max(n - 1, 1)
-        aux = acc.sum_aux / n
-        t_mid = acc.run_start_us + round(acc.sum_t / n)
-        cov = self.covariates(np.array([t_mid]), aux[None, :])
-        a = self.model.correct(self.params, v[None, :], cov)[0]
-        norm = math.sqrt(float(a @ a))  # what np.linalg.norm computes for a vector
-        if self.bootstrapped and abs(norm - 1.0) > self.cfg.norm_tol_g:
+    def _commit_all(self, b: RawBatch, due: list[tuple[int, _Acc | None]]) -> list[_Event]:
+        """Commit the scheduled windows in order, vectorized over each stretch with the same
+        parameters: the norm gate, the gravity directions, their cells and the innovations
+        are computed once per stretch, which ends where an update changes the parameters."""
+        events: list[_Event] = []
+        accs = [acc for _, acc in due if acc is not None]
+        if not accs:
+            for idx, _ in due:
+                self._reach(idx)
+                self.counts["windows_rejected"] += 1
+            return events
+        w, runs = _means(accs, len(self.aux_names))
+        j = 0  # next item of `due`; c: next window of `w`
+        c = 0
+        while j < len(due):
+            seg = _Stretch.of(self, w, runs, c)
+            while j < len(due):
+                idx, acc = due[j]
+                j += 1
+                self._reach(idx)
+                if acc is None:
+                    self.counts["windows_rejected"] += 1
+                    continue
+                ev = self._commit(seg, c, idx, int(b.t_us[idx]))
+                c += 1
+                if ev is not None:
+                    events.append(_Event(ev, idx, self.model, self.params.copy()))
+                    if self._marks is not None:
+                        self._marks.dirty = True
+                    break  # the parameters changed: a new stretch
+        return events
+
+    def _commit(self, seg: _Stretch, c: int, idx: int, t_us: int) -> UpdateEvent | None:
+        """Window c of the stretch enters the buffer (unless its norm is off), and an update
+        may follow (every update_every windows, if `_needs_update`)."""
+        i = c - seg.first
+        if not seg.ok[i]:
             self.counts["windows_rejected"] += 1
             return None
-        direction = a / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
-        self.buffer.add(v, aux, t_mid, n, var, direction, run=acc.run_start_us)
+        w = seg.w
+        v, aux, t_mid, n, var = w.v[i], w.aux[i], int(w.t_us[i]), int(w.n[i]), float(w.var[i])
+        self.buffer.add(v, aux, t_mid, n, var, seg.dirs[i], run=int(seg.runs[i]),
+                        cell=int(seg.cells[i]))
         self.fresh.append((v, aux, t_mid, n, var))
+        seg.taken.append(i)
         self.counts["windows"] += 1
         if not self.bootstrapped:
             return self._try_bootstrap(idx, t_us)
-        if self.counts["windows"] % self.cfg.update_every == 0 and self._needs_update(t_us):
+        if (self.counts["windows"] % self.cfg.update_every == 0
+                and self._needs_update(t_us, seg)):
             return self._update(idx, t_us)
         return None
 
     # --- estimation --------------------------------------------------------------------------
-    def _needs_update(self, now_us: int) -> bool:
+    def _needs_update(self, now_us: int, seg: _Stretch) -> bool:
         """Whether a re-fit can tell anything new: most of a day's windows repeat what the
         buffer already says, and a re-fit is the core's main cost. It runs when the estimate
         has not settled (the last update moved it), the buffer covers a new cell or half-axis,
@@ -477,8 +564,7 @@ class Pipeline:
                 or now_us - est.t_us >= self.cfg.max_update_interval_s * 1e6):
             return True
         m, s2, s1 = self.tested
-        w = self._fresh_windows(m)  # only the untested ones: the estimate did not change
-        z = innovations(self.model, est, w, self.covariates(w.t_us, w.aux), self.cfg.estimator)
+        z = seg.innovations(self, m)  # only the untested ones: the estimate did not change
         self.tested = (m + len(z), s2 + float(z @ z), s1 + float(z.sum()))
         return not consistent(*self.tested)
 
@@ -534,8 +620,8 @@ class Pipeline:
         a = self.model.correct(self.params, self.buffer.v[m], cov)
         self.buffer.redirect(a / np.linalg.norm(a, axis=1, keepdims=True))
 
-    def _fresh_windows(self, first: int = 0) -> Windows:
-        fresh = self.fresh[first:]
+    def _fresh_windows(self, first: int = 0, stop: int | None = None) -> Windows:
+        fresh = self.fresh[first:stop]
         m, k = len(fresh), len(self.aux_names)
         return Windows(np.array([f[0] for f in fresh]).reshape(m, 3),
                        np.array([f[1] for f in fresh]).reshape(m, k),
@@ -565,7 +651,7 @@ class Pipeline:
 
 #: An update that moved no parameter by more than this fraction of its standard deviation
 #: leaves the estimate settled: later windows that agree with it need no re-fit.
-SETTLED_SD_FRACTION = 0.1
+SETTLED_SD_FRACTION = 0.25
 
 
 def _settled(before: Estimate, after: Estimate) -> bool:
