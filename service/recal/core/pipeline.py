@@ -157,6 +157,8 @@ class _Acc:
              aux: np.ndarray, t_us: np.ndarray) -> list[_Acc]:
         """`of` for every window of one run at once (starts: each window's first sample):
         one reduction per quantity instead of four per window."""
+        if len(starts) == 1:  # one window (a live sensor's few samples): plain sums
+            return [cls.of(run_start_us, int(k[0]), v, aux, t_us)]
         idx = np.asarray(starts, np.intp)
         n = np.diff(np.append(idx, len(v))).tolist()
         sv = np.add.reduceat(v, idx, axis=0)
@@ -169,9 +171,9 @@ class _Acc:
                 for j in range(len(idx))]
 
     def merge(self, other: _Acc) -> _Acc:
-        return replace(self, n=self.n + other.n, sum_v=self.sum_v + other.sum_v,
-                       sum_v2=self.sum_v2 + other.sum_v2, sum_aux=self.sum_aux + other.sum_aux,
-                       sum_t=self.sum_t + other.sum_t)
+        return _Acc(self.run_start_us, self.k, self.n + other.n, self.sum_v + other.sum_v,
+                    self.sum_v2 + other.sum_v2, self.sum_aux + other.sum_aux,
+                    self.sum_t + other.sum_t)
 
     def to_dict(self) -> dict:
         return {"run_start_us": self.run_start_us, "k": self.k, "n": self.n,
