@@ -128,7 +128,7 @@ def test_ascii_comments_and_empty_lines_are_informational() -> None:
 @pytest.mark.parametrize("vectorized", [True, False])
 def test_ascii_bad_line_is_counted_and_neighbours_kept(line: bytes, error: str,
                                                        vectorized: bool) -> None:
-    parser = AsciiLineParser(AUX, vectorized=vectorized)
+    parser = AsciiLineParser(AUX, vectorized=vectorized, vectorize_min_lines=1)
     out = parser.feed(b"10,1,2,3,4,5\n" + line + b"\n20,1,2,3,4,5\n")
     np.testing.assert_array_equal(out.t_us, [10, 20])
     assert parser.errors.nonzero() == {error: 1}
@@ -210,6 +210,22 @@ def test_ascii_garbage_storm_keeps_every_valid_sample_in_order() -> None:
         assert parser.errors.total + parser.errors.comment_lines == 500  # "#" is a comment
 
 
+def test_ascii_a_line_per_feed_gives_what_the_vectorized_path_gives() -> None:
+    """A sensor read as it sends gives a line or two per feed, which take the per-line path
+    (below ``vectorize_min_lines``): the same samples and counts as the stream vectorized."""
+    batch = _batch(300, counts=False, seed=3)
+    lines = encode_ascii(batch, header=True).splitlines(keepends=True)
+    junk = [b"\xff\xfe\x00\n", b"hello world\n", b"1,2\n", b"5,nan,1,2,3,4\n", b"6,1,2\n"]
+    stream = lines[0] + b"".join(line + junk[i % len(junk)] for i, line in enumerate(lines[1:]))
+    whole = AsciiLineParser(vectorize_min_lines=1)
+    expected = whole.feed(stream)
+    few = AsciiLineParser()
+    got = [few.feed(stream[i:i + 40]) for i in range(0, len(stream), 40)]
+    _assert_same(RawBatch.concat([b for b in got if len(b)]), expected)
+    assert few.errors == whole.errors and whole.errors.total == 300  # every junk line
+    assert len(expected) == 300
+
+
 def test_make_parser() -> None:
     assert isinstance(make_parser("ascii", AUX), AsciiLineParser)
     cobs_parser = make_parser("cobs", AUX, max_frame_bytes=100)
@@ -286,7 +302,8 @@ def _ascii_stream(draw: st.DrawFn) -> bytes:
 def test_ascii_split_anywhere_gives_identical_output_and_counts(
         stream: bytes, cuts: list[int], config: bool, resync: bool) -> None:
     def parser(vectorized: bool = True) -> AsciiLineParser:
-        made = AsciiLineParser(AUX if config else None, max_line_bytes=200, vectorized=vectorized)
+        made = AsciiLineParser(AUX if config else None, max_line_bytes=200, vectorized=vectorized,
+                               vectorize_min_lines=1)
         made.reset(resync=resync)
         return made
 

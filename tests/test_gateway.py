@@ -141,9 +141,10 @@ def test_end_to_end_exactly_once_matches_pipeline_and_replay(tmp_path: Path) -> 
         live = LiveGateway(cfg, mcap)
         bus = peer(zport)
         got: list[int] = []
+        payloads: list[bytes] = []
         try:
-            bus.subscribe(key(SID, "calibrated"),
-                          lambda m: got.append(len(decode_calibrated(m.payload)[1])))
+            bus.subscribe(key(SID, "calibrated"), lambda m: (
+                payloads.append(m.payload), got.append(len(decode_calibrated(m.payload)[1]))))
             pub = live.gw.bus.publisher(key(SID, "calibrated"))
             assert pub.wait_for_subscribers(10)
             sent, bad = stream(dev, raw, 3000.0, garbage_every=25)
@@ -172,6 +173,8 @@ def test_end_to_end_exactly_once_matches_pipeline_and_replay(tmp_path: Path) -> 
     np.testing.assert_array_equal(logged.v, raw.v)
     # the live calibration is Pipeline.step on the same samples (any batching)
     cal = rec.read_all_calibrated(mcap, SID)
+    # what was published is, message for message, the bytes that were logged (encoded once)
+    assert payloads == [m.data for m in rec.iter_messages(mcap, f"/{SID}/calibrated")]
     pipe = direct_pipeline(cfg)
     direct = [pipe.step(logged[i:i + 997]).calibrated for i in range(0, len(logged), 997)]
     ref = type(cal).concat(direct)

@@ -72,10 +72,9 @@ from recal.io.frames import make_parser
 from recal.io.recording import RecordingWriter
 from recal.io.serial_source import SerialSource, SourceEvent
 from recal.node import (
-    BusSink,
     CalibrationNode,
     CheckpointSchedule,
-    MultiSink,
+    LoggedBusSink,
     RecordingSink,
     Sink,
     checkpoint_path,
@@ -188,6 +187,7 @@ class _Port:
     source: SerialSource
     node: CalibrationNode | None
     keys: dict[str, str] = field(default_factory=dict)  # topic -> Zenoh key, built once
+    raw_publisher: Any = None  # the bus's Publisher of recal/<sensor>/raw, looked up once
     fd: int | None = None  # registered with the selector
     polled_s: float = 0.0  # last poll, for the periodic poll of quiet ports
     pending: list[RawBatch] = field(default_factory=list)  # read this round, not yet handled
@@ -270,6 +270,7 @@ class Gateway:
 
             for sid, p in self.ports.items():
                 p.keys = {t: key(sid, t) for t in ("raw", "events")}
+                p.raw_publisher = self.bus.publisher(p.keys["raw"])
                 self._declare_queries(sid, p)
         self._io_thread = threading.Thread(target=self._io_loop, name="recal-io", daemon=True)
         self._io_thread.start()
@@ -437,7 +438,8 @@ class Gateway:
         data = self.writer.write_raw(p.sensor_id, batch, log_ns)
         p.samples_logged += len(batch)
         p.batches_logged += 1
-        self._publish(p.sensor_id, "raw", data, p.keys.get("raw"))
+        if p.raw_publisher is not None and not self.bus.closed:
+            p.raw_publisher.put(data)  # a refusal is counted in the bus stats (reported)
         if p.node is None:
             return
         try:
@@ -678,8 +680,7 @@ def _serve(cfg: ServiceConfig, mcap_out: str | Path | None, model_path: str | Pa
         writer.close()
         fail(f"{ERROR_PREFIX} cannot open Zenoh: {exc}")
         return 1
-    sink: Sink = RecordingSink(writer) if bus is None else MultiSink(RecordingSink(writer),
-                                                                      BusSink(bus))
+    sink: Sink = RecordingSink(writer) if bus is None else LoggedBusSink(writer, bus)
     problems: list[tuple[str, str, dict]] = []
     try:
         nodes = _nodes(cfg, sink, model_path, problems)

@@ -5,7 +5,8 @@ A :class:`CalibrationNode` takes raw batches and hands everything it derives to 
 sensor id) whenever an update happened, the decimated per-sample plot topic, events (rejected
 updates, bootstrap, alignment, tilt alarm) and, once the mounting is known, the acceleration
 rotated into the body frame. Sinks exist for a recording (:class:`RecordingSink`), for Zenoh
-(:class:`BusSink`) and for both (:class:`MultiSink`), so the gateway (in-process), a node on
+(:class:`BusSink`) and for both (:class:`LoggedBusSink`, each message encoded once; or any
+mix with :class:`MultiSink`), so the gateway (in-process), a node on
 another machine (:func:`run_node`, subscribed to ``recal/*/raw``) and ``replay`` (no Zenoh)
 run this same code.
 
@@ -68,6 +69,7 @@ __all__ = [
     "BusSink",
     "CalibrationNode",
     "CheckpointSchedule",
+    "LoggedBusSink",
     "MultiSink",
     "NodeSettings",
     "NullSink",
@@ -167,40 +169,74 @@ class BusSink:
 
         self.bus = bus
         self._key = _bus.key
-        self._keys: dict[tuple[str, str], str] = {}
-        self._topics = frozenset(_bus.TOPICS)
+        self._publishers: dict[tuple[str, str], Any] = {}
+        self.topics = frozenset(_bus.TOPICS)
         self._messages = messages
         self.dropped = 0
 
-    def _key_of(self, sensor_id: str, suffix: str) -> str:
-        """The Zenoh key, validated once per (sensor, suffix) rather than per message."""
-        k = self._keys.get((sensor_id, suffix))
-        if k is None:
-            k = self._keys[(sensor_id, suffix)] = self._key(sensor_id, suffix)
-        return k
-
-    def _put(self, sensor_id: str, suffix: str, data: bytes) -> None:
+    def put(self, sensor_id: str, suffix: str, data: bytes) -> None:
+        """Publish encoded bytes on ``recal/<sensor>/<suffix>`` (counted in ``dropped`` if
+        refused). The key is validated and the publisher looked up once per (sensor, suffix),
+        not per message: with samples handled as they arrive, that is per sample."""
+        pub = self._publishers.get((sensor_id, suffix))
         try:
-            ok = self.bus.publish(self._key_of(sensor_id, suffix), data)
+            if self.bus.closed:
+                raise RuntimeError("bus is closed")
+            if pub is None:
+                pub = self._publishers[(sensor_id, suffix)] = self.bus.publisher(
+                    self._key(sensor_id, suffix))
+            ok = pub.put(data)
         except RuntimeError:  # the bus closed under us (shutdown)
             ok = False
         if not ok:
             self.dropped += 1
 
     def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        self._put(sensor_id, "raw", self._messages.encode_raw(sensor_id, batch))
+        self.put(sensor_id, "raw", self._messages.encode_raw(sensor_id, batch))
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
-        self._put(sensor_id, suffix, self._messages.encode_calibrated(sensor_id, batch))
+        self.put(sensor_id, suffix, self._messages.encode_calibrated(sensor_id, batch))
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
              every_n: int) -> None:
         pass  # the plot topic is for the log's Plot panel; the bus carries whole batches
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix in self._topics:
-            self._put(sensor_id, suffix, self._messages.encode_json(obj))
+        if suffix in self.topics:
+            self.put(sensor_id, suffix, self._messages.encode_json(obj))
+
+
+class LoggedBusSink:
+    """Logs to a recording, then publishes the very bytes it logged: what
+    ``MultiSink(RecordingSink(writer), BusSink(bus))`` does, with each message encoded once
+    instead of twice (the gateway's sink; per sample at 100 Hz, the second encoding of a
+    calibrated sample cost as much as its bus put)."""
+
+    def __init__(self, writer: Any, bus: Any) -> None:
+        self.writer = writer
+        self.bus = BusSink(bus)
+
+    @property
+    def dropped(self) -> int:
+        return self.bus.dropped
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        self.bus.put(sensor_id, "raw", self.writer.write_raw(sensor_id, batch, log_time_ns))
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self.bus.put(sensor_id, suffix,
+                     self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix))
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+        if suffix in self.bus.topics:
+            self.bus.put(sensor_id, suffix, data)
 
 
 class MultiSink:
@@ -897,8 +933,7 @@ class _NodeRunner:
         self.cfg, self.bus, self.writer, self.only = cfg, bus, writer, only
         self.model_path, self.emit = model_path, emit
         self.nodes: dict[str, CalibrationNode] = {}
-        self.sink: Sink = (MultiSink(RecordingSink(writer), BusSink(bus))
-                           if writer is not None else BusSink(bus))
+        self.sink: Sink = LoggedBusSink(writer, bus) if writer is not None else BusSink(bus)
         self._messages = messages
         self._bus_mod = _bus
         self.receiver = bus.receiver(_bus.key_pattern("raw"), capacity=RECV_CAPACITY)

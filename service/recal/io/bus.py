@@ -336,8 +336,9 @@ class Publisher:
     block/wait_before_close`` (5 s by default) is closed, which bounds the wait (not measured).
 
     Counters: ``sent`` (accepted by Zenoh), ``failed`` (Zenoh raised, e.g. closed session),
-    ``unmatched`` (accepted while no subscriber matched the key, so nobody received it; this is
-    how samples are lost while a router is down). Thread-safe.
+    ``unmatched`` (no subscriber matched the key, so nobody would receive it and the put was
+    skipped, though counted in ``sent`` too; this is how samples are lost while a router is
+    down). Thread-safe.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, *, express: bool = False) -> None:
@@ -354,8 +355,9 @@ class Publisher:
 
     def _matching_now(self) -> bool:
         # Asking costs ~0.3 us, cheaper than a matching listener (which would need a Python
-        # callback thread). The 1.10 stub says ``matching_status`` is a bool, but it returns a
-        # MatchingStatus object, which is always truthy: read its ``matching`` field.
+        # callback thread, and whose news arrive after the routing changed). The 1.10 stub
+        # says ``matching_status`` is a bool, but it returns a MatchingStatus object, which is
+        # always truthy: read its ``matching`` field.
         status: Any = self._publisher.matching_status
         return bool(status.matching)
 
@@ -399,15 +401,20 @@ class Publisher:
         May block while the transmission queue is full (congestion control BLOCK).
         """
         try:
+            if not self._matching_now():
+                # Nobody would receive it: Zenoh routes a sample to matching subscribers
+                # only, so the put itself is skipped (it cost as much again as this check, per
+                # sample, on a gateway's raw topic that nobody watches). Counted as before.
+                self._sent.add()
+                self._unmatched.add()
+                return True
             self._publisher.put(payload, attachment=attachment)
-        except zenoh.ZError as exc:
+        except zenoh.ZError as exc:  # e.g. undeclared (the bus closed)
             self._failed.add()
             if self._errors.should_log():
                 log.warning("put on %s failed: %s", self._key, exc)
             return False
         self._sent.add()
-        if not self._matching_now():
-            self._unmatched.add()
         return True
 
     def undeclare(self) -> None:

@@ -55,7 +55,9 @@ COBS, control characters in a line), ``non_utf8``, ``too_long``, ``non_numeric``
 
 Speed: clean input takes a vectorized path (numpy over the whole chunk; ``np.fromstring`` for
 ASCII numbers; a vectorized COBS decode and CRC for frames); only suspect lines or frames go
-through the per-item path, which is the reference the fast path must agree with.
+through the per-item path, which is the reference the fast path must agree with. So do chunks
+of a few lines or frames (a sensor read as it sends), where setting up the vectorized path
+would cost more than it saves.
 """
 
 from __future__ import annotations
@@ -307,15 +309,20 @@ class AsciiLineParser:
             partial line kept between calls.
         max_abs_xyz: samples with a larger |x|, |y| or |z| are ``out_of_range``.
         vectorized: False parses every line on the per-line path (for tests and debugging).
+        vectorize_min_lines: a chunk with fewer complete lines than this goes line by line,
+            which is cheaper at the read sizes of a sensor handled as it sends (one line per
+            read: 10 us against 35 us warm, 90 us against 170 us right after a wake-up).
     """
 
     def __init__(self, aux_names: Sequence[str] | None = None, *,
                  max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
-                 max_abs_xyz: float = DEFAULT_MAX_ABS_XYZ, vectorized: bool = True) -> None:
+                 max_abs_xyz: float = DEFAULT_MAX_ABS_XYZ, vectorized: bool = True,
+                 vectorize_min_lines: int = 7) -> None:
         self.errors = ParseErrors()
         self.max_line_bytes = int(max_line_bytes)
         self.max_abs_xyz = float(max_abs_xyz)
         self.vectorized = vectorized
+        self.vectorize_min_lines = int(vectorize_min_lines)
         self._layout = _Layout(aux_names)
         self._pending = b""
         self._discarding = False  # inside a too-long line: drop bytes until its end
@@ -367,6 +374,13 @@ class AsciiLineParser:
 
     def _parse_lines(self, chunk: bytes, rows: _Rows) -> None:
         """Parse complete lines (``chunk`` ends with a newline)."""
+        if chunk.count(b"\n") < self.vectorize_min_lines:
+            # A sensor handled as its samples arrive sends one line per call: setting up the
+            # vectorized path (a dozen numpy calls) costs more than the per-line path, which
+            # is the reference the vectorized one agrees with, so the result is the same.
+            for line in chunk.split(b"\n")[:-1]:
+                self._one_line(line, rows)
+            return
         arr = np.frombuffer(chunk, np.uint8)
         ends = np.flatnonzero(arr == 10)
         starts = np.concatenate(([0], ends[:-1] + 1))

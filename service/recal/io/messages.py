@@ -266,15 +266,19 @@ def _string_fields(field: int, text: str) -> list[bytes | memoryview]:
 
 
 def _le_bytes(values: np.ndarray, dtype: str) -> memoryview:
-    """The values as one C-ordered run of little-endian bytes (a copy only if needed)."""
-    flat = np.ascontiguousarray(values, dtype=dtype).reshape(-1)
-    return memoryview(flat.view(np.uint8))
+    """The values as one C-ordered run of little-endian bytes (a copy only if needed).
+
+    Few numpy calls on purpose: a gateway encodes every sample as it arrives, and each call
+    costs microseconds there, more than the bytes themselves."""
+    if values.dtype.str != dtype or not values.flags.c_contiguous:
+        values = np.ascontiguousarray(values, dtype=dtype)
+    return memoryview(values).cast("B") if values.size else memoryview(b"")
 
 
 def _axes_bytes(v: np.ndarray) -> list[memoryview]:
-    """x, y, z columns as three byte runs, from one transposing copy."""
+    """x, y, z columns as three byte runs, from one column-major copy."""
     n = len(v)
-    columns = _le_bytes(v.T, "<f8")
+    columns = memoryview(v.astype("<f8", copy=False).tobytes(order="F"))
     return [columns[i * 8 * n:(i + 1) * 8 * n] for i in range(3)]
 
 
@@ -287,7 +291,8 @@ def encode_raw(sensor_id: str, batch: RawBatch) -> bytes:
     for name in batch.aux_names:
         # An empty name is still a list element, so it must be written (not omitted).
         parts += _len_prefixed(_F_RAW_AUX_NAMES, name.encode())
-    parts += _packed(_F_RAW_AUX, _le_bytes(batch.aux, "<f8"))
+    if batch.aux.size:  # (an empty packed field is omitted)
+        parts += _packed(_F_RAW_AUX, _le_bytes(batch.aux, "<f8"))
     return b"".join(parts)
 
 
@@ -295,7 +300,7 @@ def encode_calibrated(sensor_id: str, batch: CalibratedBatch) -> bytes:
     """Serialize a calibrated batch as a ``recal.CalibratedBatch`` protobuf message."""
     x, y, z = _axes_bytes(batch.a_g)
     # Packed bools are varints; 0 and 1 are single bytes, so uint8 is the wire form.
-    quasi = np.ascontiguousarray(batch.quasi_static, dtype=np.uint8).tobytes()
+    quasi = _le_bytes(batch.quasi_static, "|u1")
     detector = _le_bytes(batch.detector_g, "<f8")
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_packed(_F_T_US, _le_bytes(batch.t_us, "<i8")),

@@ -588,6 +588,7 @@ class RecordingWriter:
         self._topic_specs: dict[str, SchemaSpec] = {}
         self._sequence: dict[str, int] = {}
         self._plot_phase: dict[str, int] = {}
+        self._topics: dict[tuple[str, str], str] = {}  # (sensor, suffix) -> checked topic
         self._messages_written = 0
         self._messages_flushed = 0
         self._flush_count = 0
@@ -625,7 +626,7 @@ class RecordingWriter:
         """Log a raw batch on ``/<sensor>/raw``; returns the encoded bytes (for the bus)."""
         data = messages.encode_raw(sensor_id, batch)
         first = int(batch.t_us[0]) if len(batch) else None
-        self.write_encoded(sensor_topic(sensor_id, "raw"), data, log_time_ns,
+        self.write_encoded(self._sensor_topic(sensor_id, "raw"), data, log_time_ns,
                            _publish_ns(first, int(log_time_ns)), schema=messages.RAW_SCHEMA)
         return data
 
@@ -637,7 +638,7 @@ class RecordingWriter:
             raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
         data = messages.encode_calibrated(sensor_id, batch)
         first = int(batch.t_us[0]) if len(batch) else None
-        self.write_encoded(sensor_topic(sensor_id, topic_suffix), data, log_time_ns,
+        self.write_encoded(self._sensor_topic(sensor_id, topic_suffix), data, log_time_ns,
                            _publish_ns(first, int(log_time_ns)),
                            schema=messages.CALIBRATED_SCHEMA)
         return data
@@ -678,14 +679,15 @@ class RecordingWriter:
         """
         if every_n < 1:
             raise ValueError("every_n must be >= 1")
-        topic = sensor_topic(sensor_id, "plot")
+        topic = self._sensor_topic(sensor_id, "plot")
         log_ns = _check_log_time(log_time_ns)
         with self._lock:
             phase = self._plot_phase.get(sensor_id, 0)
             self._plot_phase[sensor_id] = (phase + len(batch)) % every_n
-        indices = np.arange((-phase) % every_n, len(batch), every_n)
-        if not len(indices):
-            return 0
+        first = (-phase) % every_n
+        if first >= len(batch):
+            return 0  # most calls when samples are handled as they arrive: no numpy at all
+        indices = np.arange(first, len(batch), every_n)
         t_us = batch.t_us[indices]
         # Spread the samples back from the log time by their device-time distance to the end.
         last_us = int(batch.t_us[-1])
@@ -745,6 +747,14 @@ class RecordingWriter:
         self.close()
 
     # -- internals ----------------------------------------------------------------------------
+
+    def _sensor_topic(self, sensor_id: str, suffix: str) -> str:
+        """`sensor_topic`, checked once per (sensor, suffix): a gateway writes each sample as
+        it arrives, and the check (a regex) would otherwise run per message."""
+        topic = self._topics.get((sensor_id, suffix))
+        if topic is None:
+            topic = self._topics[(sensor_id, suffix)] = sensor_topic(sensor_id, suffix)
+        return topic
 
     def _prepare_target(self, overwrite: bool) -> None:
         stale = recording_parts(self._base)[1:]

@@ -372,5 +372,7 @@ class SerialSource:
         # Within one connection only a rename can happen (a header naming positional
         # channels); label the whole batch with the newest names.
         last = batches[-1].aux_names
+        if len(batches) == 1:
+            return batches[0]  # the usual case: no copy
         return RawBatch.concat([b if b.aux_names == last else
                                 RawBatch(b.t_us, b.v, b.aux, last) for b in batches])
