@@ -24,6 +24,7 @@ from recal.core.model import SensorModel
 from recal.io import csv_table
 from recal.io import recording as rec
 from recal.node import CalibrationNode, NodeSettings
+from recal.samples import CalibratedBatch, RawBatch
 
 RATE_HZ = 25.0
 HOURS = 0.5
@@ -178,16 +179,23 @@ def test_ratiometric_with_a_reference_rail_jacobian_and_model_file() -> None:
 
 
 class _Capture:
-    """A sink that keeps the JSON messages (state and events)."""
+    """A sink that keeps the JSON messages (state and events) and the calibrated output."""
 
     def __init__(self) -> None:
         self.json_messages: list[tuple[str, dict]] = []
+        self.cal: list[tuple[np.ndarray, np.ndarray]] = []  # (t_us, a_g) per batch
 
     def raw(self, *args: object, **kw: object) -> None:
         pass
 
-    def calibrated(self, *args: object, **kw: object) -> None:
-        pass
+    def calibrated(self, sensor_id: str, cal: CalibratedBatch, log_time_ns: int,
+                   topic: str = "calibrated") -> None:
+        if topic == "calibrated":
+            self.cal.append((cal.t_us.copy(), cal.a_g.copy()))
+
+    def calibrated_output(self) -> tuple[np.ndarray, np.ndarray]:
+        return (np.concatenate([t for t, _ in self.cal]),
+                np.concatenate([a for _, a in self.cal]))
 
     def plot(self, *args: object, **kw: object) -> None:
         pass
@@ -196,15 +204,22 @@ class _Capture:
         self.json_messages.append((suffix, obj))
 
 
-def test_the_daemon_rediscovers_on_its_buffer_and_publishes_the_extended_state() -> None:
-    raw = sim.simulate(1.0, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
+def _rediscovering_node(raw: RawBatch, every_h: float, adopt_after_s: float = 60.0,
+                        batch: int = 500) -> tuple[CalibrationNode, _Capture]:
     model = SensorModel.diagonal(1024.0)
     settings = NodeSettings("s1", PipelineSettings(), model, Prior.default(model), RATE_HZ,
-                            rediscovery=RediscoveryConfig(every_h=0.5))
+                            rediscovery=RediscoveryConfig(every_h=every_h,
+                                                          adopt_after_s=adopt_after_s))
     sink = _Capture()
     node = CalibrationNode(settings, sink)
-    for i in range(0, len(raw), 500):  # bounded: one pass over one hour
-        node.process(raw[i:i + 500], 0)
+    for i in range(0, len(raw), batch):  # bounded: one pass over the recording
+        node.process(raw[i:i + batch], 0)
+    return node, sink
+
+
+def test_the_daemon_rediscovers_on_its_buffer_and_publishes_the_extended_state() -> None:
+    raw = sim.simulate(1.0, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
+    node, sink = _rediscovering_node(raw, every_h=0.5)
     events = [o for s, o in sink.json_messages if s == "events" and o["kind"] == "discovery"]
     states = [o for s, o in sink.json_messages
               if s == "calibration" and o["reason"] == "discovery"]
@@ -212,8 +227,30 @@ def test_the_daemon_rediscovers_on_its_buffer_and_publishes_the_extended_state()
     assert {f"o_board_temp_{ax}" for ax in "xyz"} <= set(states[0]["param_names"])
     later = [o for s, o in sink.json_messages if s == "calibration"][-1]
     assert "offset[board_temp]" in later["described"]  # the live estimator carries it on
-    restored = CalibrationNode.from_checkpoint(settings, sink, node.checkpoint())
+    restored = CalibrationNode.from_checkpoint(node.settings, sink, node.checkpoint())
     assert restored.pipeline is not None and restored.pipeline.model.has("offset", "board_temp")
+
+    # the run worked in its own thread on a copy: it is taken on at the first batch 60 device
+    # seconds after it started, and until then the output is exactly a node's without it
+    started, adopted = events[0]["detail"]["started_t_us"], events[0]["t_us"]
+    batch_us = 500 / RATE_HZ * 1e6
+    assert started + 60e6 <= adopted < started + 60e6 + batch_us + 1e6
+    t, a = sink.calibrated_output()
+    t0, a0 = _rediscovering_node(raw, every_h=0.0)[1].calibrated_output()
+    np.testing.assert_array_equal(t, t0)
+    before = t <= adopted
+    np.testing.assert_array_equal(a[before], a0[before])
+    assert np.abs(a[~before] - a0[~before]).max() > 1e-4  # the extended model took over
+    # and whenever the thread finishes, the same samples see the new model: run it again
+    np.testing.assert_array_equal(_rediscovering_node(raw, every_h=0.5)[1].calibrated_output()[1],
+                                  a)
+
+
+def test_rediscovery_with_no_delay_is_taken_on_where_it_starts() -> None:
+    raw = sim.simulate(0.7, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
+    _, sink = _rediscovering_node(raw, every_h=0.5, adopt_after_s=0.0)
+    events = [o for s, o in sink.json_messages if s == "events" and o["kind"] == "discovery"]
+    assert len(events) == 1 and events[0]["t_us"] == events[0]["detail"]["started_t_us"]
 
 
 def test_discovery_is_off_by_default_in_the_daemon() -> None:

@@ -240,11 +240,16 @@ class RediscoveryConfig:
         every_h: device hours between runs; 0 = never.
         min_windows: fewer buffered windows than this and the run is skipped.
         blocks: held-out time blocks (see recal.core.discovery.DiscoveryConfig).
+        adopt_after_s: a run works on a copy of the buffer in a thread of its own (1-2 s of
+            CPU) while the node goes on calibrating; its result is taken on at the first batch
+            this many device seconds after it started, waiting for it then if need be, so a
+            replay (which gets there sooner) adopts it at the same sample as the live node.
     """
 
     every_h: float = 0.0
     min_windows: int = 60
     blocks: int = 10
+    adopt_after_s: float = 60.0
 
     @property
     def enabled(self) -> bool:
@@ -525,12 +530,15 @@ def _alignment(ctx: _Ctx, d: Any) -> AlignmentConfig:
 
 
 def _discovery(ctx: _Ctx, d: Any) -> RediscoveryConfig:
-    d = _table(ctx, d, ("every_h", "min_windows", "blocks"))
+    d = _table(ctx, d, ("every_h", "min_windows", "blocks", "adopt_after_s"))
     every = _num(ctx, d, "every_h", 0.0)
     if every < 0:
         raise ctx.error("every_h", f"expected hours >= 0 (0 = off), got {every!r}")
+    adopt = _num(ctx, d, "adopt_after_s", 60.0)
+    if adopt < 0:
+        raise ctx.error("adopt_after_s", f"expected seconds >= 0, got {adopt!r}")
     return RediscoveryConfig(every, _int(ctx, d, "min_windows", 60, 10),
-                             _int(ctx, d, "blocks", 10, 3))
+                             _int(ctx, d, "blocks", 10, 3), adopt)
 
 
 def _read_toml(path: Path) -> dict[str, Any]:

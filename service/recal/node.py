@@ -418,6 +418,44 @@ class NodeSettings:
     rediscovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
 
 
+class _Rediscovery:
+    """One effect-discovery run on a copy of a node's buffer, in a daemon thread (the core is
+    pure: it shares nothing with the node's pipeline); `result` waits for it."""
+
+    def __init__(self, started_us: int, due_us: int, model_names: tuple[str, ...]) -> None:
+        self.started_us = started_us
+        self.due_us = due_us
+        self.model_names = model_names
+        self._done = threading.Event()
+        self._result: Any = None
+
+    @classmethod
+    def start(cls, sensor_id: str, windows: Any, pipe: Pipeline, started_us: int,
+              due_us: int, blocks: int) -> _Rediscovery:
+        from recal.core import discovery
+
+        run = cls(started_us, due_us, pipe.model.names)
+        args = (windows, pipe.aux_names, pipe.t0_us or 0, pipe.model, pipe.params.copy(),
+                discovery.DiscoveryConfig(blocks=blocks))
+
+        def work() -> None:
+            try:
+                run._result = discovery.discover_pipeline(*args)
+            except Exception as exc:  # reported as discovery_failed: the waiter must wake
+                if not isinstance(exc, (ValueError, np.linalg.LinAlgError)):
+                    log.exception("rediscovery of %s failed", sensor_id)
+                run._result = exc
+            finally:
+                run._done.set()
+
+        threading.Thread(target=work, name=f"recal-discover-{sensor_id}", daemon=True).start()
+        return run
+
+    def result(self) -> Any:
+        self._done.wait()
+        return self._result
+
+
 class CalibrationNode:
     """Runs one sensor's pipeline and publishes what it produces (thread-safe).
 
@@ -454,6 +492,7 @@ class CalibrationNode:
         # joined batches one by one; None: the pipeline as it is
         self._view: tuple[SensorModel, Any, dict[str, Any] | None] | None = None
         self._next_discovery_us: int | None = None
+        self._discovery: _Rediscovery | None = None  # a run in its thread
         self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
         if pipeline is not None:
             self._tracker = self._make_tracker(pipeline.cfg.rate_hz)
@@ -697,37 +736,49 @@ class CalibrationNode:
         return fitted
 
     def _maybe_rediscover(self, log_ns: int) -> None:
-        """Every ``[discovery] every_h`` device hours, rerun effect discovery on the window
-        buffer; a model it extends becomes the live one (with its fitted values as the
-        estimate) and the calibration state is published with reason "discovery"."""
+        """Every ``[discovery] every_h`` device hours, rerun effect discovery on a copy of the
+        window buffer in a thread of its own (`_Rediscovery`); ``adopt_after_s`` device
+        seconds later its result is taken on: a model it extends becomes the live one (with
+        its fitted values as the estimate) and the state is published with reason
+        "discovery"."""
         cfg, pipe = self.settings.rediscovery, self.pipeline
         if not cfg.enabled or pipe is None or self.last_t_us is None:
             return
+        if self._discovery is not None:
+            if self.last_t_us >= self._discovery.due_us:
+                run, self._discovery = self._discovery, None
+                self._adopt_discovery(run, log_ns)
+            return  # one run at a time
         every_us = round(cfg.every_h * 3.6e9)
         if self._next_discovery_us is None:
             self._next_discovery_us = self.last_t_us + every_us
         if self.last_t_us < self._next_discovery_us:
             return
         self._next_discovery_us = self.last_t_us + every_us
-        windows = pipe.buffer.windows()
+        windows = pipe.buffer.windows()  # fresh arrays: the thread's own copy
         if not pipe.bootstrapped or len(windows) < cfg.min_windows:
             return
-        from recal.core import discovery
+        self._discovery = _Rediscovery.start(
+            self.sensor_id, windows, pipe, self.last_t_us,
+            self.last_t_us + round(cfg.adopt_after_s * 1e6), cfg.blocks)
+        if cfg.adopt_after_s <= 0:
+            run, self._discovery = self._discovery, None
+            self._adopt_discovery(run, log_ns)
 
-        try:
-            res = discovery.discover_pipeline(
-                windows, pipe.aux_names, pipe.t0_us or 0, pipe.model, pipe.params,
-                discovery.DiscoveryConfig(blocks=cfg.blocks))
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            self._event("discovery_failed", self.last_t_us, log_ns, {"error": str(exc)})
+    def _adopt_discovery(self, run: _Rediscovery, log_ns: int) -> None:
+        assert self.pipeline is not None and self.last_t_us is not None
+        res = run.result()  # waits if it is still running (a replay gets here sooner)
+        if isinstance(res, Exception):
+            self._event("discovery_failed", self.last_t_us, log_ns,
+                        {"error": str(res), "started_t_us": run.started_us})
             return
         self._event("discovery", self.last_t_us, log_ns, {
             "effects_selected": [e.label for e in res.selected],
             "steps": [f"{s.action} {s.effect.label}" for s in res.steps],
             "heldout_error_mg": {"base": res.heldout_base_mg, "final": res.heldout_final_mg},
-            "windows": len(res.data)})
-        if res.selected:
-            pipe.adopt(res.model, res.prior)
+            "windows": len(res.data), "started_t_us": run.started_us})
+        if res.selected and self.pipeline.model.names == run.model_names:
+            self.pipeline.adopt(res.model, res.prior)
             self._publish_state(self.last_t_us, "discovery", log_ns)
 
     def _report_updates(self, out: StepOutput, log_ns: int) -> None:
