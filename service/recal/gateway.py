@@ -15,7 +15,7 @@ One I/O thread serves every port (one serial port per sensor) from a selector:
   kernel buffers) are the back-pressure point, as with a real UART.
 * ``batch_s`` > 0 (``--batch-ms``) makes the loop wake on a fixed tick instead of on every
   arrival: CPU per sample falls, latency rises by up to one tick.
-* latency on demand (config ``idle_batch_ms``, off by default, 100 ms in
+* latency on demand (config ``idle_batch_ms``, off by default, 200 ms in
   configs/gateway.toml): with ``batch_s`` = 0, while nobody subscribes to any sensor's live
   topics (raw, calibrated, body; e.g. a wearable gateway that only logs), the loop runs on an
   ``idle_batch_s`` tick, since nobody would see the lower latency; the first subscriber
