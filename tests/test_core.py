@@ -129,6 +129,26 @@ def test_buffer_merges_a_still_run_into_slots_and_nothing_else():
     assert list(restored.windows().merged) == [1, 2]  # the checkpoint resumes the merge
 
 
+def test_buffer_arrays_read_between_merges_are_current_and_copies_stay_apart():
+    """A merge updates its slot in Python numbers and writes it back only when the arrays are
+    read: every read (attributes, windows, coverage, state, copy) must see every merge."""
+    buf = WindowBuffer(BufferConfig(grid=3, per_cell=2, merge_max=10, merge_deg=1.0), n_aux=1)
+    up = np.array([0.0, 0.0, 1.0])
+    v = np.array([[0.0, 1.0, 1000.0], [0.0, 3.0, 1002.0], [0.0, 2.0, 1007.0]])
+    n = np.array([100, 50, 150])
+    for i in range(3):
+        buf.add(v[i], np.array([10.0 * i]), 1000 * i, int(n[i]), 4.0 + i, up, run=7)
+        slot = int(np.flatnonzero(buf.filled)[0])
+        mean = (v[:i + 1] * n[:i + 1, None]).sum(0) / n[:i + 1].sum()
+        assert np.allclose(buf.v[slot], mean, rtol=0, atol=1e-9) and buf.k[slot] == i + 1
+        assert buf.n[slot] == n[:i + 1].sum() and np.allclose(buf.windows().v[0], mean)
+        assert buf.state_dict()["k"][slot] == i + 1
+    snap = buf.copy()
+    buf.add(np.array([0.0, 0.0, 900.0]), np.array([0.0]), 4000, 100, 4.0, up, run=7)
+    assert snap.k[slot] == 3 and buf.k[slot] == 4  # the copy does not see later merges
+    assert np.allclose(snap.windows().v[0], mean)
+
+
 # --- bootstrap and static --------------------------------------------------------------------
 def test_ellipsoid_fit_recovers_offsets_and_triangular_sensitivity():
     rng = np.random.default_rng(1)
