@@ -506,30 +506,23 @@ class Pipeline:
         are computed once per stretch, which ends where an update changes the parameters."""
         events: list[_Event] = []
         accs = [acc for _, acc in due if acc is not None]
-        if not accs:
-            for idx, _ in due:
-                self._reach(idx)
+        w, runs = _means(accs, len(self.aux_names)) if accs else (None, None)
+        seg: _Stretch | None = None
+        c = 0  # next window of `w`
+        for idx, acc in due:
+            self._reach(idx)
+            if acc is None:
                 self.counts["windows_rejected"] += 1
-            return events
-        w, runs = _means(accs, len(self.aux_names))
-        j = 0  # next item of `due`; c: next window of `w`
-        c = 0
-        while j < len(due):
-            seg = _Stretch.of(self, w, runs, c)
-            while j < len(due):
-                idx, acc = due[j]
-                j += 1
-                self._reach(idx)
-                if acc is None:
-                    self.counts["windows_rejected"] += 1
-                    continue
-                ev = self._commit(seg, c, idx, int(b.t_us[idx]))
-                c += 1
-                if ev is not None:
-                    events.append(_Event(ev, idx, self.model, self.params.copy()))
-                    if self._marks is not None:
-                        self._marks.dirty = True
-                    break  # the parameters changed: a new stretch
+                continue
+            if seg is None:
+                seg = _Stretch.of(self, w, runs, c)
+            ev = self._commit(seg, c, idx, int(b.t_us[idx]))
+            c += 1
+            if ev is not None:
+                events.append(_Event(ev, idx, self.model, self.params.copy()))
+                if self._marks is not None:
+                    self._marks.dirty = True
+                seg = None  # the parameters changed: the next window starts a new stretch
         return events
 
     def _commit(self, seg: _Stretch, c: int, idx: int, t_us: int) -> UpdateEvent | None:
