@@ -110,23 +110,6 @@ def cell_of(u: np.ndarray, grid: int) -> np.ndarray:
     return face * grid * grid + ij[:, 0] * grid + ij[:, 1]
 
 
-def _cell_of_one(u: np.ndarray, grid: int) -> int:
-    """`cell_of` for one direction in Python floats (same operations, same result): a window
-    commit places one direction at a time, where numpy's per-call overhead dominates."""
-    x, y, z = u.tolist()
-    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-        return int(cell_of(u, grid)[0])
-    ax_, ay, az = abs(x), abs(y), abs(z)
-    ax = 0 if ax_ >= ay and ax_ >= az else (1 if ay >= az else 2)  # argmax: first of ties
-    c = (x, y, z)
-    dom = c[ax]
-    face = 2 * ax + (dom < 0)
-    scale = max(abs(dom), 1e-12)
-    i, j = (min(max(int((c[(ax + k) % 3] / scale + 1.0) * 0.5 * grid), 0), grid - 1)
-            for k in (1, 2))
-    return face * grid * grid + i * grid + j
-
-
 def _norm3(x: list[float]) -> float:
     return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
 
@@ -228,7 +211,7 @@ class WindowBuffer:
         `run` identifies its still run (None: never merge it); `cell`: `cell_of(direction)`
         if the caller has it (the pipeline bins a batch's windows at once)."""
         if cell is None:
-            cell = _cell_of_one(np.asarray(direction, np.float64).reshape(3), self.cfg.grid)
+            cell = int(cell_of(direction, self.cfg.grid)[0])
         if run is not None and self._merge(v, aux, t_us, n, var, direction, run, cell):
             return cell
         self._flush()
