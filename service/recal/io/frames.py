@@ -374,10 +374,10 @@ class AsciiLineParser:
 
     def _parse_lines(self, chunk: bytes, rows: _Rows) -> None:
         """Parse complete lines (``chunk`` ends with a newline)."""
-        if chunk.count(b"\n") < self.vectorize_min_lines:
-            # A sensor handled as its samples arrive sends one line per call: setting up the
-            # vectorized path (a dozen numpy calls) costs more than the per-line path, which
-            # is the reference the vectorized one agrees with, so the result is the same.
+        if not self.vectorized or chunk.count(b"\n") < self.vectorize_min_lines:
+            # Also for a sensor handled as its samples arrive (one line per call): setting up
+            # the vectorized path (a dozen numpy calls) costs more than the per-line path,
+            # which is the reference the vectorized one agrees with, so the result is the same.
             for line in chunk.split(b"\n")[:-1]:
                 self._one_line(line, rows)
             return
@@ -387,8 +387,7 @@ class AsciiLineParser:
         first = 0
         # Until the layout is known (and while a resync is due) each line may change how the
         # next ones read, so go line by line; that is a handful of lines per connection.
-        while first < len(ends) and (self._resync or not self._layout.settled
-                                     or not self.vectorized):
+        while first < len(ends) and (self._resync or not self._layout.settled):
             self._one_line(chunk[starts[first]:ends[first]], rows)
             first += 1
         if first < len(ends):
