@@ -13,6 +13,29 @@ from polling import wait_for
 from recal.gateway import READY_PREFIX
 
 
+def write_config(tmp: Path, link: str, zenoh: str, flush_s: float, sensor_id: str = "s1",
+                 rate_hz: float = 100.0) -> Path:
+    """``tmp/gateway.toml`` for one sensor on ``link``: the ``zenoh`` table as given, MCAP
+    flushed every ``flush_s``, checkpoints every 0.25 s in ``tmp/ck``, a 1024 counts/g prior."""
+    path = tmp / "gateway.toml"
+    path.write_text(f"""{zenoh}
+[mcap]
+flush_interval_s = {flush_s}
+
+[checkpoint]
+dir = "{tmp / 'ck'}"
+interval_s = 0.25
+
+[[sensors]]
+id = "{sensor_id}"
+port = "{link}"
+aux_names = []
+rate_hz = {rate_hz}
+prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
+""")
+    return path
+
+
 class GatewayProcess:
     """`python -m recal run` as a child process; its output is read by a thread."""
 

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gateway_process import GatewayProcess
+from gateway_process import GatewayProcess, write_config
 from polling import wait_for
 from recal.config import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
@@ -233,37 +233,13 @@ def test_unplug_and_replug_reconnects(tmp_path: Path) -> None:
     assert kinds.index("port_lost") < kinds.index("port_found")
 
 
-def _toml(tmp: Path, link: str, zport: int) -> Path:
-    path = tmp / "gateway.toml"
-    path.write_text(f"""
-[zenoh]
-mode = "peer"
-listen = ["tcp/127.0.0.1:{zport}"]
-connect = []
-
-[mcap]
-flush_interval_s = 0.02
-
-[checkpoint]
-dir = "ck"
-interval_s = 0.25
-
-[[sensors]]
-id = "{SID}"
-port = "{link}"
-aux_names = []
-rate_hz = {RATE_HZ}
-prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
-""")
-    return path
-
-
 def test_kill9_repair_then_restart_resumes_from_checkpoint(tmp_path: Path,
                                                           children: list) -> None:
     raw = sim_raw(4.0, seed=5)
     zport = free_port()
     link = str(tmp_path / "tty0")
-    config = _toml(tmp_path, link, zport)
+    zenoh = f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{zport}"]\nconnect = []\n'
+    config = write_config(tmp_path, link, zenoh, 0.02, SID, RATE_HZ)
     ckpt = tmp_path / "ck" / f"{SID}.json"
     run1, run2 = tmp_path / "run1.mcap", tmp_path / "run2.mcap"
     with PtyDevice(link) as dev:

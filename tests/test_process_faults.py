@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway_process import GatewayProcess
+from gateway_process import GatewayProcess, write_config
 from polling import wait_for
 from recal.cli import main as recal_main
 from recal.demo import free_port
@@ -40,26 +40,6 @@ def _raw(minutes: float, seed: int) -> RawBatch:
     spec = SensorSpec.random(np.random.default_rng(seed), offset_mg=40.0, gain_pct=3.0)
     return simulate(minutes / 60.0, RATE_HZ, seed, spec,
                     WearerSpec(still_s=(8.0, 20.0), move_s=(2.0, 5.0))).raw
-
-
-def _config(tmp: Path, link: str, zenoh: str) -> Path:
-    path = tmp / "gateway.toml"
-    path.write_text(f"""{zenoh}
-[mcap]
-flush_interval_s = {FLUSH_S}
-
-[checkpoint]
-dir = "{tmp / 'ck'}"
-interval_s = 0.25
-
-[[sensors]]
-id = "{SID}"
-port = "{link}"
-aux_names = []
-rate_hz = {RATE_HZ}
-prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
-""")
-    return path
 
 
 def _start(config: Path, mcap: Path, dev: PtyDevice,
@@ -108,7 +88,7 @@ def test_kill9_at_ten_random_moments_then_repair_and_restart(
     kill_after_s = rng.uniform(0.8, 2.0, KILLS)  # stream time before each kill
     raw = _raw(12.0, seed=5)
     link = str(tmp_path / "ttyKILL")
-    config = _config(tmp_path, link, "[zenoh]\nenabled = false\n")
+    config = write_config(tmp_path, link, "[zenoh]\nenabled = false\n", FLUSH_S, SID, RATE_HZ)
     ckpt = checkpoint_path(tmp_path / "ck", SID)
     sent_total = got_total = 0
     table = []
@@ -180,7 +160,8 @@ def test_router_killed_gateway_keeps_logging_and_resumes_publishing(
         "mode": "client", "connect": {"endpoints": [endpoint], "retry": retry},
         "scouting": {"multicast": {"enabled": False}}}))
     link = str(tmp_path / "ttyROUTE")
-    config = _config(tmp_path, link, f'[zenoh]\nconfig_file = "{client_cfg}"\n')
+    config = write_config(tmp_path, link, f'[zenoh]\nconfig_file = "{client_cfg}"\n',
+                          FLUSH_S, SID, RATE_HZ)
     router = RouterProcess([endpoint]).start()
     heard: list[np.ndarray] = []  # t_us of the raw samples the subscriber heard, per message
 
