@@ -268,6 +268,15 @@ def print_table(rows: Sequence[dict[str, Any]], out: Any = sys.stdout,
     out.flush()
 
 
+def report(rows: Sequence[dict[str, Any]], header: str, json_path: str | None,
+           columns: Sequence[tuple[str, str, str]] = COLUMNS) -> None:
+    """The bench's output: a comment line saying what ran, the table, the rows as JSON."""
+    print(header)
+    print_table(rows, columns=columns)
+    if json_path:
+        Path(json_path).write_text(json.dumps(list(rows), indent=1))
+
+
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sensors", default="1,10,50,100,200,300,400",
@@ -318,12 +327,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if not a.keep:
             shutil.rmtree(root, ignore_errors=True)
-    print(f"# daemon_scale: {a.seconds:.0f} s per rung, {RATE_HZ:.0f} Hz sensors, "
-          f"{a.chunk} sample(s) per write, latency over {a.probe} sensors, daemon nice "
-          f"{a.nice}; {os.cpu_count()} cores shared by writer, daemon and probe")
-    print_table(rows)
-    if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1))
+    report(rows, f"# daemon_scale: {a.seconds:.0f} s per rung, {RATE_HZ:.0f} Hz sensors, "
+           f"{a.chunk} sample(s) per write, latency over {a.probe} sensors, daemon nice "
+           f"{a.nice}; {os.cpu_count()} cores shared by writer, daemon and probe", a.json)
     return 0
 
 

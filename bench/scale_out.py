@@ -51,7 +51,7 @@ from daemon_scale import (
     gateway_toml,
     latencies_ms,
     pct,
-    print_table,
+    report,
     sensor_id,
     sleep_until,
     verify,
@@ -283,12 +283,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if not a.keep:
             shutil.rmtree(root, ignore_errors=True)
-    print(f"# scale_out: {a.seconds:.0f} s per row, {a.sensors_per_gateway} sensors of "
-          f"{RATE_HZ:.0f} Hz per gateway, gateways and node as Zenoh clients of one router; "
-          f"{os.cpu_count()} cores shared by every process")
-    print_table(rows, columns=COLUMNS)
-    if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1))
+    report(rows, f"# scale_out: {a.seconds:.0f} s per row, {a.sensors_per_gateway} sensors of "
+           f"{RATE_HZ:.0f} Hz per gateway, gateways and node as Zenoh clients of one router; "
+           f"{os.cpu_count()} cores shared by every process", a.json, COLUMNS)
     return 0
 
 
