@@ -20,6 +20,7 @@ from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.core.static import fit_known_orientations, fit_unknown_orientations
+from recal.core.triaxial import all3, any3, norm3
 from recal.sim import SensorSpec, WearerSpec, simulate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -79,8 +80,23 @@ def test_detector_is_batch_invariant_bit_for_bit():
     st, parts = det.init_state(cfg), []
     for i in range(len(raw)):
         st, o = det.detect(cfg, st, raw.v[i:i + 1])
-        parts.append(o.detector_g)
-    assert np.array_equal(np.concatenate(parts), whole.detector_g)
+        parts.append((o.detector_g, o.flat))
+    assert np.array_equal(np.concatenate([p[0] for p in parts]), whole.detector_g)
+    assert np.array_equal(np.concatenate([p[1] for p in parts]), whole.flat)
+
+
+def test_row_reductions_equal_numpys_to_the_bit():
+    rng = np.random.default_rng(5)
+    v = rng.normal(0, 1e3, (5000, 3)) * rng.choice([1e-300, 1.0, 1e200], (5000, 3))
+    v[::7, 1] = np.nan
+    v[::11, 2] = -np.inf
+    v[::13] = v[::13].round()  # ties, and whole rows equal to the previous one below
+    v[1::13] = v[::13][: len(v[1::13])]
+    with np.errstate(over="ignore", invalid="ignore"):
+        assert np.array_equal(norm3(v), np.linalg.norm(v, axis=1), equal_nan=True)
+    for m in (np.isfinite(v), v[1:] == v[:-1], np.abs(v) > 1e3):
+        assert np.array_equal(all3(m), m.all(axis=1))
+        assert np.array_equal(any3(m), m.any(axis=1))
 
 
 def test_detector_separates_still_from_walking_and_rejects_flat_and_clipped():

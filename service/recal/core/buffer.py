@@ -21,6 +21,7 @@ mean of unit vectors within 1 deg of each other is short by at most 0.15 mg.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,6 +115,11 @@ def _norm3(x: list[float]) -> float:
     return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
 
 
+def _floats(x: Sequence[float] | np.ndarray) -> list[float]:
+    """A window's vector as Python floats (the pipeline passes lists already)."""
+    return x if type(x) is list else np.asarray(x, np.float64).tolist()
+
+
 class _Flushed:
     """A per-slot array of WindowBuffer, brought up to date with the slot being merged into
     (`WindowBuffer._hot`) whenever it is read or replaced."""
@@ -187,6 +193,7 @@ class WindowBuffer:
         self._nmean = np.zeros(size)
         self._nm2 = np.zeros(size)
         self.last: tuple[int, int] | None = None  # (slot, run) of the latest add, to merge into
+        self._cos_merge = math.cos(math.radians(cfg.merge_deg))
 
     def _flush(self) -> None:
         h = self._hot
@@ -205,8 +212,8 @@ class WindowBuffer:
                     int(self._n[slot]), int(self._k[slot]), float(self._nmean[slot]),
                     float(self._nm2[slot]))
 
-    def add(self, v: np.ndarray, aux: np.ndarray, t_us: int, n: int, var: float,
-            direction: np.ndarray, run: int | None = None, cell: int | None = None) -> int:
+    def add(self, v: Sequence[float], aux: Sequence[float], t_us: int, n: int, var: float,
+            direction: Sequence[float], run: int | None = None, cell: int | None = None) -> int:
         """Store one window mean; `direction` is gravity's direction (unit, sensor frame);
         `run` identifies its still run (None: never merge it); `cell`: `cell_of(direction)`
         if the caller has it (the pipeline bins a batch's windows at once)."""
@@ -226,14 +233,14 @@ class WindowBuffer:
         self.added += 1
         self._cell[slot] = cell
         self._k[slot] = 1
-        self._nmean[slot], self._nm2[slot] = _norm3(np.asarray(v).tolist()), 0.0
+        self._nmean[slot], self._nm2[slot] = _norm3(_floats(v)), 0.0
         self.last = None if run is None else (slot, int(run))
         self._hot = None
         self._coverage.clear()
         return cell
 
-    def _merge(self, v: np.ndarray, aux: np.ndarray, t_us: int, n: int, var: float,
-               direction: np.ndarray, run: int, cell: int) -> bool:
+    def _merge(self, v: Sequence[float], aux: Sequence[float], t_us: int, n: int, var: float,
+               direction: Sequence[float], run: int, cell: int) -> bool:
         """Fold the window into the latest slot if it continues that slot's run, in the same
         cell, within merge_deg of its direction and below merge_max windows."""
         if self.last is None or self.last[1] != run:
@@ -246,22 +253,21 @@ class WindowBuffer:
             h = self._hot = self._load(slot)
         if h.k >= self.cfg.merge_max:
             return False
-        d_old, d_new = h.dir, np.asarray(direction, np.float64).tolist()
-        if (d_old[0] * d_new[0] + d_old[1] * d_new[1] + d_old[2] * d_new[2]
-                < math.cos(math.radians(self.cfg.merge_deg))):
+        d_old, d_new = h.dir, _floats(direction)
+        if d_old[0] * d_new[0] + d_old[1] * d_new[1] + d_old[2] * d_new[2] < self._cos_merge:
             return False
         n0, n1 = h.n, int(n)
         w0, w1 = n0 / (n0 + n1), n1 / (n0 + n1)
-        vs = np.asarray(v).tolist()
-        h.v = [w0 * a + w1 * b for a, b in zip(h.v, vs, strict=True)]
+        vs, a = _floats(v), h.v
+        h.v = [w0 * a[0] + w1 * vs[0], w0 * a[1] + w1 * vs[1], w0 * a[2] + w1 * vs[2]]
         if h.aux:
-            h.aux = [w0 * a + w1 * b for a, b in zip(h.aux, np.asarray(aux).tolist(),
-                                                      strict=True)]
+            h.aux = [w0 * a + w1 * b for a, b in zip(h.aux, _floats(aux), strict=True)]
         h.t_us = round(w0 * h.t_us + w1 * int(t_us))
         h.var = w0 * h.var + w1 * float(var)  # pooled within-window variance
-        d = [w0 * a + w1 * b for a, b in zip(d_old, d_new, strict=True)]
+        d = [w0 * d_old[0] + w1 * d_new[0], w0 * d_old[1] + w1 * d_new[1],
+             w0 * d_old[2] + w1 * d_new[2]]
         nd = _norm3(d)
-        h.dir = [c / nd for c in d]
+        h.dir = [d[0] / nd, d[1] / nd, d[2] / nd]
         h.n = n0 + n1
         h.k += 1
         x = _norm3(vs)  # Welford: how much the windows' norms disagree

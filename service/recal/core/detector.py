@@ -19,6 +19,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import signal
 
+from recal.core.triaxial import all3, any3, norm3
+
 try:  # the Cython kernel behind signal.sosfilt; its checks cost ~10x the filtering per batch
     from scipy.signal._sosfilt import _sosfilt
 except ImportError:  # pragma: no cover - a scipy that moved it: the public function
@@ -130,8 +132,9 @@ def _start(cfg: DetectorConfig, state: DetectorState, x0_g: float) -> DetectorSt
 
 def _flat_runs(v: np.ndarray, last_v: np.ndarray, run0: int) -> np.ndarray:
     """For each sample, how many samples before it were bit-identical in a row (carried)."""
-    prev = np.vstack([last_v[None, :], v[:-1]])
-    same = np.all(v == prev, axis=1)
+    same = np.empty(len(v), bool)
+    same[0] = bool(np.all(v[0] == last_v))
+    same[1:] = all3(v[1:] == v[:-1])
     idx = np.arange(len(v))
     last_reset = np.maximum.accumulate(np.where(same, -1, idx))
     return np.where(last_reset >= 0, idx - last_reset, run0 + 1 + idx)
@@ -144,7 +147,7 @@ def detect(cfg: DetectorConfig, state: DetectorState,
     if len(v) == 0:
         empty = np.zeros(0, bool)
         return state, DetectorOutput(np.zeros(0), empty, empty, empty)
-    v_in = np.linalg.norm(v, axis=1) / cfg.s0  # eq. 1
+    v_in = norm3(v) / cfg.s0  # eq. 1
     finite = np.isfinite(v_in)
     if not finite.all():  # NaN/inf skip the filters: one would poison their state for good
         return _detect_finite(cfg, state, v, finite)
@@ -154,7 +157,7 @@ def detect(cfg: DetectorConfig, state: DetectorState,
     y_hp, zi_hp = _filter(hp, v_in, state.zi_hp)
     v_out, zi_lp = _filter(lp, np.abs(y_hp), state.zi_lp)  # eq. 2
     runs = _flat_runs(v, state.last_v, state.same_run)
-    clipped = (np.any(np.abs(v) >= cfg.clip_raw, axis=1) if cfg.clip_raw is not None
+    clipped = (any3(np.abs(v) >= cfg.clip_raw) if cfg.clip_raw is not None
                else np.zeros(len(v), bool))
     out = DetectorOutput(v_out, v_out < cfg.threshold_g, clipped, runs >= cfg.flat_n - 1)
     return DetectorState(zi_hp, zi_lp, v[-1].copy(), int(runs[-1]), True), out

@@ -19,6 +19,7 @@ from itertools import pairwise
 import numpy as np
 
 from recal.core.effects import Covariates, CrossAxis, Effect, Offset, Scale, make_effect
+from recal.core.triaxial import norm3
 
 __all__ = ["SensorModel"]
 
@@ -161,7 +162,7 @@ class SensorModel:
         """xi = 1 - |a| alone (Lötters eq. 14), as `residual_jacobian` computes it: what a
         step-length test needs, without the Jacobian."""
         a = self.correct(p, v, cov)
-        return 1.0 - np.sqrt(np.add.reduce(a * a, axis=1))  # np.linalg.norm's own arithmetic
+        return 1.0 - norm3(a)
 
     def residual_jacobian(self, p: np.ndarray, v: np.ndarray,
                           cov: Covariates) -> tuple[np.ndarray, np.ndarray]:
@@ -173,7 +174,7 @@ class SensorModel:
         for e, sl in zip(self.effects, self._slices, strict=True):
             xs.append(e.apply(xs[-1], cov, p[sl]))
         a = xs[-1]
-        r = np.sqrt(np.add.reduce(a * a, axis=1))  # np.linalg.norm's arithmetic, without its checks
+        r = norm3(a)
         g = a / np.maximum(r, 1e-12)[:, None]  # d|a|/da
         B = np.empty((len(a), self.size))
         for k in range(len(self.effects) - 1, -1, -1):

@@ -19,6 +19,7 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from itertools import pairwise
@@ -39,6 +40,7 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
+from recal.core.triaxial import all3, norm3
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "from_state_dict",
@@ -167,8 +169,8 @@ class _Acc:
                 else np.zeros((len(idx), 0)))
         st = np.add.reduceat(t_us - run_start_us, idx).tolist()  # int64: exact
         ks = k[idx].tolist()
-        return [cls(run_start_us, ks[j], n[j], sv[j], sv2[j], saux[j], float(st[j]))
-                for j in range(len(idx))]
+        return [cls(run_start_us, kj, nj, a, b, c, float(sj))
+                for kj, nj, a, b, c, sj in zip(ks, n, sv, sv2, saux, st, strict=True)]
 
     def merge(self, other: _Acc) -> _Acc:
         return _Acc(self.run_start_us, self.k, self.n + other.n, self.sum_v + other.sum_v,
@@ -216,29 +218,46 @@ def _means(accs: list[_Acc], n_aux: int) -> tuple[Windows, np.ndarray]:
 @dataclass(eq=False)
 class _Stretch:
     """Windows first.. of a batch under one set of parameters: their norm gate, gravity
-    directions and cells, and (when first asked) their normalized innovations."""
+    directions and cells, and (when first asked) their normalized innovations.
 
+    Most stretches end after a few windows (at an update), so `row` works the windows out in
+    chunks that double, as they are reached, rather than all remaining ones at every update;
+    each row is a tuple of Python numbers, since indexing numpy arrays one element at a time
+    cost more than the commit's own arithmetic."""
+
+    pipe: Pipeline
     w: Windows
     runs: np.ndarray
     first: int
-    ok: np.ndarray
-    dirs: np.ndarray
-    cells: np.ndarray
     fresh0: int  # len(pipe.fresh) when the stretch began
+    rows: list[tuple] = field(default_factory=list)  # (ok, v, aux, t_us, n, var, dir, run, cell)
     taken: list[int] = field(default_factory=list)  # stretch index of each window added since
     z: np.ndarray | None = None
 
     @classmethod
     def of(cls, pipe: Pipeline, w: Windows, runs: np.ndarray, first: int) -> _Stretch:
         mine = Windows(w.v[first:], w.aux[first:], w.t_us[first:], w.n[first:], w.var[first:])
-        a = pipe.model.correct(pipe.params, mine.v, pipe.covariates(mine.t_us, mine.aux))
-        norm = np.sqrt(np.add.reduce(a * a, axis=1))
+        return cls(pipe, mine, runs[first:], first, len(pipe.fresh))
+
+    def row(self, i: int) -> tuple:
+        """(ok, v, aux, t_us, n, var, dir, run, cell) of window i of the stretch."""
+        if i >= len(self.rows):
+            self._extend(min(len(self.w), max(2 * len(self.rows), i + 1, 64)))
+        return self.rows[i]
+
+    def _extend(self, stop: int) -> None:
+        pipe, s = self.pipe, slice(len(self.rows), stop)
+        v, aux, t = self.w.v[s], self.w.aux[s], self.w.t_us[s]
+        a = pipe.model.correct(pipe.params, v, pipe.covariates(t, aux))
+        norm = norm3(a)
         ok = (np.abs(norm - 1.0) <= pipe.cfg.norm_tol_g if pipe.bootstrapped
               else np.ones(len(a), bool))
         with np.errstate(invalid="ignore", divide="ignore"):
             dirs = np.where((norm > 0)[:, None], a / norm[:, None], [0.0, 0.0, 1.0])
-        return cls(mine, runs[first:], first, ok, dirs, cell_of(dirs, pipe.cfg.buffer.grid),
-                   len(pipe.fresh))
+        self.rows.extend(zip(ok.tolist(), v.tolist(), aux.tolist(), t.tolist(),
+                             self.w.n[s].tolist(), self.w.var[s].tolist(), dirs.tolist(),
+                             self.runs[s].tolist(), cell_of(dirs, pipe.cfg.buffer.grid).tolist(),
+                             strict=True))
 
     def innovations(self, pipe: Pipeline, m: int) -> np.ndarray:
         """`estimator.innovations` of pipe.fresh[m:] (the estimate has not changed since the
@@ -369,7 +388,7 @@ class Pipeline:
         """Samples whose reading and the channels the model uses are finite: only they may
         enter a window (an imported row may lack a value; a NaN must never reach the estimator
         or a checkpoint)."""
-        ok = np.isfinite(b.v).all(axis=1)
+        ok = all3(np.isfinite(b.v))
         cols = [self.aux_names.index(c) for c in self.model.covariates if c != TIME]
         if cols:
             ok &= np.isfinite(b.aux[:, cols]).all(axis=1)
@@ -476,7 +495,7 @@ class Pipeline:
                 self.open = acc
                 if self.pending is not None:  # commit once the run is guard_s past the window
                     # t rises within a run: the first sample at or past the commit time
-                    at = int(np.searchsorted(t[g0:g1], self.pending[1]))
+                    at = bisect.bisect_left(t, self.pending[1], g0, g1) - g0
                     if at < g1 - g0:
                         due.append((i0 + g0 + at, self.pending[0]))
                         self.pending = None
@@ -529,13 +548,11 @@ class Pipeline:
         """Window c of the stretch enters the buffer (unless its norm is off), and an update
         may follow (every update_every windows, if `_needs_update`)."""
         i = c - seg.first
-        if not seg.ok[i]:
+        ok, v, aux, t_mid, n, var, direction, run, cell = seg.row(i)
+        if not ok:
             self.counts["windows_rejected"] += 1
             return None
-        w = seg.w
-        v, aux, t_mid, n, var = w.v[i], w.aux[i], int(w.t_us[i]), int(w.n[i]), float(w.var[i])
-        self.buffer.add(v, aux, t_mid, n, var, seg.dirs[i], run=int(seg.runs[i]),
-                        cell=int(seg.cells[i]))
+        self.buffer.add(v, aux, t_mid, n, var, direction, run=run, cell=cell)
         self.fresh.append((v, aux, t_mid, n, var))
         seg.taken.append(i)
         self.counts["windows"] += 1
