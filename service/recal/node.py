@@ -5,10 +5,9 @@ A :class:`CalibrationNode` takes raw batches and hands everything it derives to 
 sensor id) whenever an update happened, the decimated per-sample plot topic, events (rejected
 updates, bootstrap, alignment, tilt alarm) and, once the mounting is known, the acceleration
 rotated into the body frame. Sinks exist for a recording (:class:`RecordingSink`), for Zenoh
-(:class:`BusSink`) and for both (:class:`LoggedBusSink`, each message encoded once; or any
-mix with :class:`MultiSink`), so the gateway (in-process), a node on
-another machine (:func:`run_node`, subscribed to ``recal/*/raw``) and ``replay`` (no Zenoh)
-run this same code.
+(:class:`BusSink`) and for both (:class:`LoggedBusSink`, each message encoded once), so the
+gateway (in-process), a node on another machine (:func:`run_node`, subscribed to
+``recal/*/raw``) and ``replay`` (no Zenoh) run this same code.
 
 No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math in
 ``recal.core.alignment``.
@@ -70,7 +69,6 @@ __all__ = [
     "CalibrationNode",
     "CheckpointSchedule",
     "LoggedBusSink",
-    "MultiSink",
     "NodeSettings",
     "NullSink",
     "RecordingSink",
@@ -208,10 +206,9 @@ class BusSink:
 
 
 class LoggedBusSink:
-    """Logs to a recording, then publishes the very bytes it logged: what
-    ``MultiSink(RecordingSink(writer), BusSink(bus))`` does, with each message encoded once
-    instead of twice (the gateway's sink; per sample at 100 Hz, the second encoding of a
-    calibrated sample cost as much as its bus put)."""
+    """Logs to a recording, then publishes the very bytes it logged: a RecordingSink and a
+    BusSink in one, with each message encoded once instead of twice (the gateway's sink; per
+    sample at 100 Hz, the second encoding of a calibrated sample cost as much as its bus put)."""
 
     def __init__(self, writer: Any, bus: Any) -> None:
         self.writer = writer
@@ -237,31 +234,6 @@ class LoggedBusSink:
         data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
         if suffix in self.bus.topics:
             self.bus.put(sensor_id, suffix, data)
-
-
-class MultiSink:
-    """Hands everything to several sinks, in order (e.g. log first, then the bus)."""
-
-    def __init__(self, *sinks: Sink) -> None:
-        self.sinks = sinks
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        for s in self.sinks:
-            s.raw(sensor_id, batch, log_time_ns)
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   suffix: str = "calibrated") -> None:
-        for s in self.sinks:
-            s.calibrated(sensor_id, batch, log_time_ns, suffix)
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None:
-        for s in self.sinks:
-            s.plot(sensor_id, batch, log_time_ns, every_n)
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        for s in self.sinks:
-            s.json(sensor_id, suffix, obj, log_time_ns)
 
 
 # ---------------------------------------------------------------------------------------------
