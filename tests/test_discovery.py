@@ -246,6 +246,30 @@ def test_the_daemon_rediscovers_on_its_buffer_and_publishes_the_extended_state()
                                   a)
 
 
+def test_a_rediscovery_pending_at_a_checkpoint_runs_again_after_the_restart() -> None:
+    raw = sim.simulate(1.0, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
+    cut = int(np.searchsorted(raw.t_us, raw.t_us[0] + (0.5 * 3600 + 30) * 1e6))
+    cut -= cut % 500
+    node, _ = _rediscovering_node(raw[:cut], every_h=0.5)  # the run started, not yet taken on
+    doc = json.loads(json.dumps(node.checkpoint()))
+    assert doc["next_discovery_us"] <= doc["t_us"]  # due again: the pending run is not saved
+    sink = _Capture()
+    restored = CalibrationNode.from_checkpoint(node.settings, sink, doc)
+    for i in range(cut, len(raw), 500):  # bounded: the rest of the recording
+        restored.process(raw[i:i + 500], 0)
+    events = [o for s, o in sink.json_messages if s == "events" and o["kind"] == "discovery"]
+    # without the saved schedule the next run would be due every_h after the restart, past
+    # the end of this recording
+    assert len(events) == 1
+    assert events[0]["detail"]["started_t_us"] == int(raw.t_us[min(cut + 500, len(raw)) - 1])
+    assert events[0]["detail"]["effects_selected"] == ["offset[board_temp]"]
+    # a checkpoint between runs keeps the next one's time
+    again = CalibrationNode.from_checkpoint(node.settings, _Capture(),
+                                            json.loads(json.dumps(restored.checkpoint())))
+    assert again.checkpoint()["next_discovery_us"] == restored.checkpoint()["next_discovery_us"]
+    assert again.checkpoint()["next_discovery_us"] > restored.checkpoint()["t_us"]
+
+
 def test_rediscovery_with_no_delay_is_taken_on_where_it_starts() -> None:
     raw = sim.simulate(0.7, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
     _, sink = _rediscovering_node(raw, every_h=0.5, adopt_after_s=0.0)

@@ -583,10 +583,16 @@ class CalibrationNode:
         with self._lock:
             if self.pipeline is None:
                 return None
+            # a rediscovery still running is not saved: it is due again at once on restart,
+            # rather than every_h after it, which a daemon restarted more often than every_h
+            # would otherwise never reach
+            due = (self._discovery.started_us if self._discovery is not None
+                   else self._next_discovery_us)
             return {"format": CHECKPOINT_FORMAT, "sensor_id": self.sensor_id,
                     "saved_unix_s": time.time(), "t_us": self.last_t_us,
                     "pipeline": self.pipeline.state_dict(),
-                    "alignment": self.alignment.to_dict() if self.alignment else None}
+                    "alignment": self.alignment.to_dict() if self.alignment else None,
+                    "next_discovery_us": due}
 
     @classmethod
     def from_checkpoint(cls, settings: NodeSettings, sink: Sink,
@@ -607,8 +613,11 @@ class CalibrationNode:
             raise ValueError(f"checkpoint model {model_name(pipe.model)} differs from the "
                              f"configured {model_name(settings.model)}")
         ali = doc.get("alignment")
-        return cls(settings, sink, pipeline=pipe,
+        node = cls(settings, sink, pipeline=pipe,
                    alignment=al.Alignment.from_dict(ali) if ali else None, start="checkpoint")
+        due = doc.get("next_discovery_us")  # absent in checkpoints from before it was kept
+        node._next_discovery_us = int(due) if isinstance(due, (int, float)) else None
+        return node
 
     # -- starting -----------------------------------------------------------------------------
 
