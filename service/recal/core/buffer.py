@@ -258,8 +258,8 @@ class WindowBuffer:
             return False
         n0, n1 = h.n, int(n)
         w0, w1 = n0 / (n0 + n1), n1 / (n0 + n1)
-        vs, a = _floats(v), h.v
-        h.v = [w0 * a[0] + w1 * vs[0], w0 * a[1] + w1 * vs[1], w0 * a[2] + w1 * vs[2]]
+        vs, hv = _floats(v), h.v
+        h.v = [w0 * hv[0] + w1 * vs[0], w0 * hv[1] + w1 * vs[1], w0 * hv[2] + w1 * vs[2]]
         if h.aux:
             h.aux = [w0 * a + w1 * b for a, b in zip(h.aux, _floats(aux), strict=True)]
         h.t_us = round(w0 * h.t_us + w1 * int(t_us))
