@@ -97,7 +97,7 @@ def run_stage(stage: str, seconds: float, warmup_s: float, root: Path) -> dict[s
         started = fleet.go()
         t_warm = started["start_ns"] / 1e9 + warmup_s
         t_end = started["start_ns"] / 1e9 + warmup_s + seconds
-        wakes, cpu0, n0 = 0, None, 0
+        wakes, cpu0, n0, wall0 = 0, None, 0, time.monotonic()
         while time.time() < t_end:
             if cpu0 is None and time.time() >= t_warm:
                 cpu0, wall0, n0, wakes = _cpu_s(), time.monotonic(), handler.samples, 0
@@ -122,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=float, default=3.0, help="seconds before measuring")
     ap.add_argument("--runs", type=int, default=3)
     a = ap.parse_args(argv)
+    if a.seconds <= 0 or a.warmup < 0 or a.runs < 1:
+        ap.error("--seconds must be positive, --warmup not negative, --runs at least 1")
     res: dict[str, list[dict[str, float]]] = {s: [] for s in STAGES}
     with tempfile.TemporaryDirectory(prefix="wake-floor-") as tmp:
         for r in range(a.runs):
