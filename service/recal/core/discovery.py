@@ -343,7 +343,7 @@ def _fit(model: SensorModel, p0: np.ndarray, data: DiscoveryData,
 
 def _xi(model: SensorModel, p: np.ndarray, data: DiscoveryData) -> np.ndarray:
     """|a| - 1 g per window (the sign of Lötters eq. 14 flipped: positive = too long)."""
-    return np.linalg.norm(model.correct(p, data.windows.v, data.cov), axis=1) - 1.0
+    return -model.residual(p, data.windows.v, data.cov)
 
 
 def _half_axes(v: np.ndarray) -> int:

@@ -630,7 +630,7 @@ class Pipeline:
             return
         cov = self.covariates(self.buffer.t_us[m], self.buffer.aux[m])
         a = self.model.correct(self.params, self.buffer.v[m], cov)
-        self.buffer.redirect(a / np.linalg.norm(a, axis=1, keepdims=True))
+        self.buffer.redirect(a / norm3(a)[:, None])
 
     def _fresh_windows(self, first: int = 0, stop: int | None = None) -> Windows:
         fresh = self.fresh[first:stop]
