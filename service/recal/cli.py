@@ -232,7 +232,21 @@ def _cmd_repair(a: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_run(a: argparse.Namespace) -> int:
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The daemon's options: `recal run` and `python -m recal.gateway` take the same ones."""
+    p.add_argument("--port", action="append", default=[], help="serial port (repeatable)")
+    p.add_argument("--sensor-id", action="append", default=[], help="id per --port")
+    p.add_argument("--config", help="service config (TOML), e.g. configs/gateway.toml")
+    p.add_argument("--mcap", help="MCAP output path (default from config)")
+    p.add_argument("--model", help="model file written by `recal discover --write-model`")
+    p.add_argument("--batch-ms", type=float, default=None,
+                   help="handle what arrived every this many ms instead of at once: less CPU, "
+                   "up to this much more latency (default: the config's batch_ms, 0 = at once; "
+                   "100 for a battery-powered gateway)")
+
+
+def run_from_args(a: argparse.Namespace) -> int:
+    """The daemon, with the options of `add_run_arguments`."""
     from recal.gateway import run_gateway
 
     return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model,
@@ -281,16 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser("run", help="the daemon: serial ports -> Zenoh -> calibration -> MCAP")
-    s.add_argument("--port", action="append", default=[], help="serial port (repeatable)")
-    s.add_argument("--sensor-id", action="append", default=[], help="id per --port")
-    s.add_argument("--config", help="service config (TOML), e.g. configs/gateway.toml")
-    s.add_argument("--mcap", help="MCAP output path (default from config)")
-    s.add_argument("--model", help="model file written by `recal discover --write-model`")
-    s.add_argument("--batch-ms", type=float, default=None,
-                   help="handle what arrived every this many ms instead of at once: less CPU, "
-                   "up to this much more latency (default: the config's batch_ms, 0 = at once; "
-                   "100 for a battery-powered gateway)")
-    s.set_defaults(func=_cmd_run)
+    add_run_arguments(s)
+    s.set_defaults(func=run_from_args)
 
     s = sub.add_parser("node", help="a calibration node on its own: subscribes to recal/*/raw "
                        "(gateways elsewhere run with run_nodes = false)")

@@ -66,6 +66,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from recal.cli import add_run_arguments, run_from_args
 from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
 from recal.io import messages
 from recal.io.frames import make_parser
@@ -108,8 +109,6 @@ LISTEN_CHECK_S = 0.5  # how often the loop asks whether anyone subscribes to liv
 LIVE_TOPICS = ("raw", "calibrated", "body")  # a subscriber to any of these wants low latency
 REPORT_INTERVAL_S = 1.0  # aggregated events (parse errors, dropped publishes) at most this often
 STOP_JOIN_S = 10.0
-BATCH_MS_HELP = ("handle what arrived every this many ms instead of at once: less CPU, up to "
-                 "this much more latency (default: the config's batch_ms, 0 = at once)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -710,16 +709,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m recal.gateway --config gateway.toml [--port P --sensor-id ID ...]``."""
     ap = argparse.ArgumentParser(prog="python -m recal.gateway", description=__doc__.split(
         "\n")[0])
-    ap.add_argument("--config", help="service TOML (configs/gateway.toml)")
-    ap.add_argument("--port", action="append", default=[], help="serial port (repeatable)")
-    ap.add_argument("--sensor-id", action="append", default=[], help="id per --port")
-    ap.add_argument("--mcap", help="recording file or directory")
-    ap.add_argument("--model", help="model file for every sensor")
-    ap.add_argument("--batch-ms", type=float, default=None, help=BATCH_MS_HELP)
+    add_run_arguments(ap)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return run_gateway(args.config, args.port, args.sensor_id, args.mcap, args.model,
-                       batch_s=None if args.batch_ms is None else args.batch_ms / 1e3)
+    return run_from_args(args)
 
 
 if __name__ == "__main__":
