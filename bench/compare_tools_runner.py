@@ -6,7 +6,8 @@ Started by bench/compare_tools.py as ``<tool venv>/bin/python compare_tools_runn
 CASE is a directory with ``v_g.npy`` (N,3 float64 readings in g, the same array every tool and the
 recal core get), ``t_us.npy`` (N int64 Unix time stamps in microseconds) and ``meta.json``
 (``rate_hz``). Converting the arrays into the tool's input type (pandas DataFrame, polars series)
-is not timed; only the calibration call is. One JSON line goes to stdout:
+and the tool's output back into an (N,3) array are not timed; only the calibration call is.
+One JSON line goes to stdout:
 
     {"tool", "version", "seconds", "status": "calibrated" | "refused", "reason", "params"}
 
@@ -32,7 +33,9 @@ import numpy as np
 #: which refuses a 24 h recording outright); both round to 12 h blocks.
 MIN_HOURS = 12
 
-Result = tuple[np.ndarray, str, str, dict]  # calibrated (N,3) g, status, reason, parameters
+#: what a tool's call returns: its calibrated output as an (N,3) array in g (a function, run
+#: after the timer stops), status, reason, parameters
+Result = tuple[Callable[[], np.ndarray], str, str, dict]
 
 
 def _actipy_reason(info: dict) -> str:
@@ -59,8 +62,8 @@ def _actipy(v: np.ndarray, t_us: np.ndarray, rate_hz: float) -> tuple[Callable[[
         reason = _actipy_reason(info) if not ok else ""
         params = {k: (float(x) if isinstance(x, int | float | np.floating) else str(x))
                   for k, x in info.items()}
-        return (out[["x", "y", "z"]].to_numpy(np.float64), "calibrated" if ok else "refused",
-                reason, params)
+        return (lambda: out[["x", "y", "z"]].to_numpy(np.float64),
+                "calibrated" if ok else "refused", reason, params)
 
     return call, metadata.version("actipy")
 
@@ -69,17 +72,18 @@ def _skdh(v: np.ndarray, t_us: np.ndarray, rate_hz: float) -> tuple[Callable[[],
     from skdh.preprocessing import CalibrateAccelerometer
 
     t_s = t_us / 1e6
+    accel = v.copy()  # its own copy (the call is made once), so `v` stays the input
 
     def call() -> Result:
         cal = CalibrateAccelerometer(min_hours=MIN_HOURS)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = cal.predict(time=t_s, accel=v.copy(), fs=rate_hz)
+            res = cal.predict(time=t_s, accel=accel, fs=rate_hz)
         msgs = [str(w.message) for w in caught
                 if "No Calibration" in str(w.message) or "not done" in str(w.message)]
         if msgs or "offset" not in res:
-            return v, "refused", (msgs or ["no result"])[0], {}
-        return (np.asarray(res["accel"], np.float64), "calibrated", "",
+            return lambda: v, "refused", (msgs or ["no result"])[0], {}
+        return (lambda: np.asarray(res["accel"], np.float64), "calibrated", "",
                 {"offset_g": np.asarray(res["offset"]).tolist(),
                  "scale": np.asarray(res["scale"]).tolist()})
 
@@ -107,8 +111,8 @@ def _wristpy(which: str) -> Callable[..., tuple[Callable[[], Result], str]]:
             try:
                 out = cal.run_calibration(accel)
             except refusals as exc:
-                return v, "refused", f"{type(exc).__name__}: {exc}", {}
-            return np.asarray(out.measurements, np.float64), "calibrated", "", {}
+                return lambda: v, "refused", f"{type(exc).__name__}: {exc}", {}
+            return lambda: np.asarray(out.measurements, np.float64), "calibrated", "", {}
 
         return call, metadata.version("wristpy")
 
@@ -137,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     out, status, reason, params = call()
     seconds = time.perf_counter() - t0
     if a.out is not None:
-        np.save(a.out, np.ascontiguousarray(out, np.float64))
+        np.save(a.out, np.ascontiguousarray(out(), np.float64))
     print(json.dumps({"tool": a.tool, "version": version, "seconds": seconds, "status": status,
                       "reason": reason, "params": params}))
     return 0
