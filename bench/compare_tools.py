@@ -55,14 +55,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from recal.core.effects import Ratiometric
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, SimResult, WearerSpec, inverse_model, simulate
+from recal.sim import SensorSpec, SimResult, WearerSpec, error_1s_mg, inverse_model, simulate
 
 HERE = Path(__file__).resolve().parent
 VENVS = HERE / ".venvs"
@@ -266,10 +265,7 @@ def still_norm_mg(cal: np.ndarray, still: np.ndarray, first: int) -> float:
 
 def vector_err_mg(cal: np.ndarray, truth: np.ndarray, first: int) -> float:
     """RMS over 1 s windows of |mean(cal - truth)| after the best rotation (as tests/test_core)."""
-    c, a = cal[first:], truth[first:]
-    rot, _ = Rotation.align_vectors(a[::10], c[::10])
-    e = _window_means(rot.apply(c) - a, int(RATE_HZ))
-    return 1e3 * float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return error_1s_mg(cal[first:], truth[first:], RATE_HZ, align=True)
 
 
 def score(row: Row, cal: np.ndarray, sim: SimResult, first: int) -> None:

@@ -43,7 +43,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from recal.core import detector as det
 from recal.core.effects import Covariates
@@ -52,7 +51,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.core.static import fit_unknown_orientations
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, simulate
+from recal.sim import SensorSpec, error_1s_mg, simulate
 
 XSENS = (Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
          / "xsens_imutk_multipos.npz")
@@ -72,12 +71,7 @@ def err_1s_mg(cal: np.ndarray, truth: np.ndarray, t_us: np.ndarray, after_s: flo
               rate_hz: float) -> float:
     """RMS over 1 s windows of |calibrated - true| after `after_s`, after the best rotation."""
     m = t_us >= t_us[0] + after_s * 1e6
-    c, a = cal[m], truth[m]
-    rot, _ = Rotation.align_vectors(a[::10], c[::10])
-    n = round(rate_hz)
-    k = len(c) // n
-    e = (rot.apply(c) - a)[:k * n].reshape(k, n, 3).mean(axis=1)
-    return 1e3 * float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return error_1s_mg(cal[m], truth[m], rate_hz, align=True)
 
 
 def run_pipeline(raw: RawBatch, model: SensorModel, rate_hz: float,

@@ -20,12 +20,11 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
-from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
+from recal.sim import SensorSpec, SimResult, WearerSpec, error_1s_mg, simulate
 
 CASES = {  # group: (seeds, cross-axis deg, full model, upright only, drift g/h, target mg)
     "cross-axis, full model": ((2, 5, 8, 9, 10, 14, 15, 16), 1.5, True, False, 0.0, 1.5),
@@ -45,13 +44,7 @@ def wearer(seed: int, cross_deg: float, upright: bool, drift: float) -> SimResul
 
 def err_1s_mg(cal: np.ndarray, truth: np.ndarray, t_us: np.ndarray, align: bool) -> float:
     m = t_us >= 1800e6
-    c, a = cal[m], truth[m]
-    if align:
-        rot, _ = Rotation.align_vectors(a[::10], c[::10])
-        c = rot.apply(c)
-    k = len(c) // 50
-    e = (c - a)[:k * 50].reshape(k, 50, 3).mean(axis=1)
-    return 1e3 * float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return error_1s_mg(cal[m], truth[m], 50.0, align)
 
 
 def run_case(seed: int, cross: float, full: bool, upright: bool, drift: float) -> dict:

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from recal.core import detector as det
 from recal.core.bootstrap import fit_ellipsoid
@@ -21,7 +20,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.core.static import fit_known_orientations, fit_unknown_orientations
 from recal.core.triaxial import all3, any3, norm3
-from recal.sim import SensorSpec, WearerSpec, simulate
+from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -33,16 +32,9 @@ def _run(raw, model, prior, batch=1000, cfg=None):
 
 
 def _err_1s_mg(cal, truth, t_us, after_s=1800.0, align=False):
-    """RMS over 1 s windows of the vector error against truth, after `after_s`."""
+    """`sim.error_1s_mg` (50 Hz) after `after_s`."""
     m = t_us >= after_s * 1e6
-    c, a = cal[m], truth[m]
-    if align:  # a rotation of the frame is not observable from gravity alone
-        rot, _ = Rotation.align_vectors(a[::10], c[::10])
-        c = rot.apply(c)
-    n = 50
-    k = len(c) // n
-    e = (c - a)[:k * n].reshape(k, n, 3).mean(axis=1)
-    return 1e3 * float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return error_1s_mg(cal[m], truth[m], 50.0, align)
 
 
 # --- model -----------------------------------------------------------------------------------

@@ -69,6 +69,7 @@ __all__ = [
     "SimResult",
     "Truth",
     "WearerSpec",
+    "error_1s_mg",
     "forward_model",
     "inverse_model",
     "load_truth",
@@ -287,6 +288,22 @@ def _adc(u: np.ndarray, sensor: SensorSpec) -> np.ndarray:
     if lim is not None:
         np.clip(u, -lim, lim, out=u)
     return u
+
+
+def error_1s_mg(cal_g: np.ndarray, truth_g: np.ndarray, rate_hz: float,
+                align: bool = False) -> float:
+    """The accuracy figure of the tests, benches and README, in mg: RMS over 1 s windows of
+    |mean(calibrated - true)|. align: rotate the calibrated output onto the truth first (the
+    best rotation, fitted on every 10th sample): a rotation of the sensor frame is not
+    observable from gravity alone."""
+    c, a = np.asarray(cal_g, np.float64), np.asarray(truth_g, np.float64)
+    if align:
+        rot, _ = Rotation.align_vectors(a[::10], c[::10])
+        c = rot.apply(c)
+    n = round(rate_hz)
+    k = len(c) // n
+    e = (c - a)[:k * n].reshape(k, n, 3).mean(axis=1)
+    return 1e3 * float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
 
 
 def inverse_model(v: np.ndarray, sensor: SensorSpec, *, temp_c: np.ndarray | None = None,
