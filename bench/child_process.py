@@ -11,7 +11,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["ChildProcess", "cpu_seconds", "rss_mb"]
+__all__ = ["ChildProcess", "cpu_seconds", "rss_mb", "status_mb"]
 
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
@@ -23,13 +23,20 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime
 
 
-def rss_mb(pid: int) -> float:
-    """Resident set size of ``pid`` in MB (VmRSS)."""
+def status_mb(pid: int | str, *keys: str) -> dict[str, float]:
+    """Memory fields of /proc/<pid>/status in MB (VmRSS, VmHWM, ...; pid may be "self")."""
+    out = {}
     with open(f"/proc/{pid}/status") as f:
         for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
+            key, _, value = line.partition(":")
+            if key in keys:
+                out[key] = int(value.split()[0]) / 1024.0
+    return out
+
+
+def rss_mb(pid: int) -> float:
+    """Resident set size of ``pid`` in MB (VmRSS)."""
+    return status_mb(pid, "VmRSS").get("VmRSS", float("nan"))
 
 
 class ChildProcess:

@@ -41,7 +41,7 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -50,13 +50,13 @@ import numpy as np
 from child_process import ChildProcess
 from pty_fleet import FleetProcess
 from recal.demo import free_port
+from recal.gateway import READY_PREFIX
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
 
 __all__ = ["main", "run_rung"]
 
-READY_PREFIX = "recal gateway ready"
 RATE_HZ = 100.0
 
 
@@ -81,43 +81,46 @@ def gateway_toml(links: Sequence[str], zenoh_port: int, workdir: Path, *,
 
 
 class LatencyProbe:
-    """A Zenoh peer stamping the arrival of calibrated messages of a few sensors."""
+    """A Zenoh session that stamps the arrival of calibrated messages of a few sensors and asks
+    the status queryables how far the gateways (and nodes) got."""
 
-    def __init__(self, daemon_port: int, sensors: Sequence[int], topic: str = "calibrated"
-                 ) -> None:
-        self.bus = Bus(zenoh_config("peer", ["tcp/127.0.0.1:0"],
-                                    [f"tcp/127.0.0.1:{daemon_port}"]))
+    def __init__(self, config: Any, sensors: Sequence[int], topic: str = "calibrated") -> None:
+        self.bus = Bus(config)
         self.records: list[tuple[int, int, bytes]] = []
         for i in sensors:
             self.bus.subscribe(key(sensor_id(i), topic),
                                lambda m, i=i: self.records.append((time.time_ns(), i, m.payload)))
 
-    def wait_open(self, n_sensors: int, timeout_s: float) -> bool:
-        """Until the daemon reports every port open (bounded)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            replies = self.bus.get("recal/*/status", timeout_s=2.0, max_replies=n_sensors + 8)
-            opened = sum(1 for _, p in replies if decode_json(p).get("gateway", {}).get("open"))
-            if opened >= n_sensors:
-                return True
-            time.sleep(0.2)
-        return False
+    @classmethod
+    def peer_of(cls, daemon_port: int, sensors: Sequence[int]) -> LatencyProbe:
+        """A peer connected straight to a daemon listening on ``daemon_port``."""
+        return cls(zenoh_config("peer", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{daemon_port}"]),
+                   sensors)
 
-    def logged(self, n_sensors: int) -> tuple[int, int]:
-        """(raw samples logged, samples calibrated) summed over sensors, from the status."""
-        replies = self.bus.get("recal/*/status", timeout_s=3.0, max_replies=n_sensors + 8)
-        docs = [decode_json(p) for _, p in replies]
-        raw = sum(d.get("gateway", {}).get("samples_logged", 0) for d in docs)
-        cal = sum((d.get("node") or {}).get("samples", 0) for d in docs)
-        return raw, cal
-
-    def latencies_ms(self, written: dict, chunk: int, after_ns: int) -> np.ndarray:
-        """Arrival minus write time of every probed calibrated sample written after
-        ``after_ns`` (write times from the fleet, see pty_fleet.stream_all)."""
-        return latencies_ms(self.records, written, chunk, after_ns)
+    def counts(self, n_sensors: int) -> tuple[int, int, int]:
+        """(ports open at gateways, raw samples logged by gateways, samples calibrated), summed
+        over the status replies (gateways and nodes both answer)."""
+        docs = [decode_json(p) for _, p in self.bus.get(
+            "recal/*/status", timeout_s=3.0, max_replies=2 * n_sensors + 8)]
+        gw = [d["gateway"] for d in docs if "gateway" in d]
+        cal = sum(d["node"].get("samples", 0) for d in docs if d.get("node"))
+        return (sum(1 for g in gw if g.get("open")), sum(g.get("samples_logged", 0) for g in gw),
+                cal)
 
     def close(self) -> None:
         self.bus.close()
+
+
+def until(cond: Callable[[], bool], timeout_s: float, interval_s: float = 0.25) -> float:
+    """Seconds until ``cond()`` held (bounded by ``timeout_s``); inf if it never did."""
+    t0 = time.monotonic()
+    for _ in range(int(timeout_s / interval_s) + 1):
+        if cond():
+            return time.monotonic() - t0
+        if time.monotonic() - t0 >= timeout_s:
+            break
+        time.sleep(interval_s)
+    return float("inf")
 
 
 def latencies_ms(records: Sequence[tuple[int, int, bytes]], written: dict, chunk: int,
@@ -140,14 +143,27 @@ def verify(mcap: Path, sent: Sequence[int], calibrated: bool = True,
     sensors ``first``, ``first + 1``, ...
 
     Every sensor's raw time stamps must be exactly 0, 10 ms, ... in order (the fleet's
-    stream), one per sample sent."""
+    stream), one per sample sent. A file its process did not close (killed after its stop
+    timeout) is checked on a repaired copy: what it had written still counts, the rest is
+    lost."""
+    try:
+        parts = rec.recording_parts(mcap)
+        return _missing(parts, sent, calibrated, first)
+    except rec.RecordingError:
+        fixed = mcap.with_suffix(".repaired.mcap")
+        rec.repair(mcap, fixed)
+        return _missing(rec.recording_parts(fixed), sent, calibrated, first)
+
+
+def _missing(parts: list[Path], sent: Sequence[int], calibrated: bool,
+             first: int) -> dict[str, int]:
     want = {sensor_id(i): n for i, n in enumerate(sent, start=first)}
     raw: dict[str, list[np.ndarray]] = {s: [] for s in want}
     cal: dict[str, int] = dict.fromkeys(want, 0)
-    for sid, batch, _ in rec.iter_raw(rec.recording_parts(mcap)):
+    for sid, batch, _ in rec.iter_raw(parts):
         raw.setdefault(sid, []).append(batch.t_us)
     if calibrated:
-        for sid, batch, _ in rec.iter_calibrated(rec.recording_parts(mcap)):
+        for sid, batch, _ in rec.iter_calibrated(parts):
             cal[sid] = cal.get(sid, 0) + len(batch)
     lost = wrong = cal_missing = 0
     step_us = round(1e6 / RATE_HZ)
@@ -159,18 +175,6 @@ def verify(mcap: Path, sent: Sequence[int], calibrated: bool = True,
         wrong += int(np.count_nonzero(t[:good] != expected[:good])) + max(0, len(t) - n)
         cal_missing += max(0, n - cal[sid]) if calibrated else 0
     return {"lost": lost, "wrong": wrong, "cal_missing": cal_missing}
-
-
-def _wait_caught_up(probe: LatencyProbe, n: int, total: int, calibrated: bool,
-                    timeout_s: float) -> float:
-    """Seconds until the daemon has logged (and calibrated) ``total`` samples; inf if never."""
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout_s:
-        raw, cal = probe.logged(n)
-        if raw >= total and (cal >= total or not calibrated):
-            return time.monotonic() - t0
-        time.sleep(0.2)
-    return float("inf")
 
 
 def run_rung(n: int, batch_ms: float, a: argparse.Namespace, root: Path) -> dict[str, Any]:
@@ -188,8 +192,8 @@ def run_rung(n: int, batch_ms: float, a: argparse.Namespace, root: Path) -> dict
     probe: LatencyProbe | None = None
     try:
         daemon.wait_line(READY_PREFIX, 120)
-        probe = LatencyProbe(zport, range(min(n, a.probe)))
-        if not probe.wait_open(n, 60):
+        probe = LatencyProbe.peer_of(zport, range(min(n, a.probe)))
+        if until(lambda: probe.counts(n)[0] >= n, 60) == float("inf"):
             raise RuntimeError(f"ports did not open:\n{daemon.output()[-2000:]}")
         started = fleet.go()
         warm_ns = started["start_ns"] + int(a.warmup_s * 1e9)
@@ -201,8 +205,8 @@ def run_rung(n: int, batch_ms: float, a: argparse.Namespace, root: Path) -> dict
         rss = daemon.rss_mb()
         written = fleet.done(60 + a.seconds)
         total = sum(written["sent"])
-        catchup = _wait_caught_up(probe, n, total, True, a.max_catchup_s + 60)
-        lat = probe.latencies_ms(written, a.chunk, warm_ns)
+        catchup = until(lambda: min(probe.counts(n)[1:]) >= total, a.max_catchup_s + 60)
+        lat = latencies_ms(probe.records, written, a.chunk, warm_ns)
         probe.close()
         probe = None
         code = daemon.terminate(120)

@@ -39,21 +39,14 @@ from typing import Any
 
 import numpy as np
 
+from child_process import status_mb
+
 RATE_HZ = 100.0
 SENSOR = "s1"
 T0_NS = 1_700_000_000_000_000_000
 SAMPLES_PER_MESSAGE = 1000
-
-
-def proc_status_mb(*keys: str) -> dict[str, float]:
-    """Fields of /proc/self/status in MB (VmRSS, VmHWM, ...)."""
-    out = {}
-    with open("/proc/self/status") as f:
-        for line in f:
-            key, _, value = line.partition(":")
-            if key in keys:
-                out[key] = int(value.split()[0]) / 1024.0
-    return out
+#: longest a generating or measuring child may take (a week runs in 2-5 min on this machine)
+CHILD_TIMEOUT_S = 3600.0
 
 
 def generate(path: Path, hours: int, seed: int) -> None:
@@ -105,9 +98,9 @@ def measure(path: Path, out_dir: Path, warmup_samples: int) -> dict[str, Any]:
 
     def sample() -> None:
         while not stop.wait(0.5):
-            trace.append((time.perf_counter() - t0, done[0], proc_status_mb("VmRSS")["VmRSS"]))
+            trace.append((time.perf_counter() - t0, done[0], status_mb("self", "VmRSS")["VmRSS"]))
 
-    rss_start = proc_status_mb("VmRSS")["VmRSS"]
+    rss_start = status_mb("self", "VmRSS")["VmRSS"]
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
     for _, batch, log_ns in rec.iter_raw(path):
@@ -115,7 +108,7 @@ def measure(path: Path, out_dir: Path, warmup_samples: int) -> dict[str, Any]:
         writer.write_raw(SENSOR, batch, log_ns)
         node.process(batch, log_ns)
         done[0] += len(batch)
-    rss_end = proc_status_mb("VmRSS")["VmRSS"]  # before close (the summary is written then)
+    rss_end = status_mb("self", "VmRSS")["VmRSS"]  # before close (the summary is written then)
     writer.close()
     seconds = time.perf_counter() - t0
     stop.set()
@@ -126,7 +119,7 @@ def measure(path: Path, out_dir: Path, warmup_samples: int) -> dict[str, Any]:
             "rss_warm_mb": rss_warm, "rss_end_mb": rss_end,
             "growth_mb": rss_end - rss_warm,
             "max_growth_mb": max([*after, rss_end]) - rss_warm,
-            "peak_mb": proc_status_mb("VmHWM")["VmHWM"],
+            "peak_mb": status_mb("self", "VmHWM")["VmHWM"],
             "updates": node.pipeline.counts["updates"] if node.pipeline else 0,
             "out_bytes": sum(p.stat().st_size for p in writer.paths),
             "trace": trace}
@@ -161,13 +154,14 @@ def main(argv: list[str] | None = None) -> int:
         if not src.exists():
             t = time.perf_counter()
             subprocess.run([*me, "--generate", str(src), "--hours", str(hours), "--seed",
-                            str(a.seed)], check=True)
+                            str(a.seed)], check=True, timeout=CHILD_TIMEOUT_S)
             print(f"generated {src.name}: {n_samples:,} samples in "
                   f"{time.perf_counter() - t:.0f} s", flush=True)
         runs = []
         for k in range(a.runs):
             res = subprocess.run([*me, "--measure", str(src), "--out-dir", tmp, "--warmup",
-                                  str(warmup)], check=True, capture_output=True, text=True)
+                                  str(warmup)], check=True, capture_output=True, text=True,
+                                 timeout=CHILD_TIMEOUT_S)
             r = json.loads(res.stdout)
             runs.append(r)
             print(f"  run {k + 1}: {r['samples']:,} samples in {r['seconds']:.0f} s, RSS "

@@ -95,9 +95,8 @@ def phase_ns(sensor_index: int, rate_hz: float) -> int:
 class _Writer:
     """Writes every device's chunks on schedule from one thread, keeping unsent backlogs."""
 
-    def __init__(self, devices: Sequence[PtyDevice], streams: Sequence[Stream]) -> None:
+    def __init__(self, devices: Sequence[PtyDevice]) -> None:
         self.devices = devices
-        self.streams = streams
         self.backlog: list[bytes] = [b""] * len(devices)
         self.max_backlog = 0
         self.blocked_writes = 0
@@ -131,17 +130,20 @@ def stream_all(devices: Sequence[PtyDevice], streams: Sequence[Stream], samples:
     The moment each group of devices was written is saved to ``times_path`` (int64 ns,
     shape (chunks, groups)): sensor ``i``'s sample ``k`` went out at
     ``[k // chunk, i % 10]`` (give or take the writes to the group's other devices)."""
-    writer = _Writer(devices, streams)
+    writer = _Writer(devices)
     groups = [[i for i in range(len(devices)) if i % _PHASES == g] for g in range(_PHASES)]
     groups = [g for g in groups if g]
-    period_ns = 1e9 / rate_hz
-    written_ns = np.zeros((-(-samples // chunk), len(groups)), np.int64)
+    n_chunks = -(-samples // chunk)
+    # chunk c goes out when its last sample is due, at the group's phase
+    last = np.minimum(np.arange(n_chunks) * chunk + chunk, samples) - 1
+    due_ns = (start_ns + np.round(last * (1e9 / rate_hz)).astype(np.int64)[:, None]
+              + np.array([phase_ns(m[0], rate_hz) for m in groups], np.int64)[None, :])
+    written_ns = np.zeros((n_chunks, len(groups)), np.int64)
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     for c, k0 in enumerate(range(0, samples, chunk)):
         k1 = min(samples, k0 + chunk)
         for g, members in enumerate(groups):
-            due = start_ns + round((k1 - 1) * period_ns) + phase_ns(members[0], rate_hz)
-            wait_ns = due - time.time_ns()
+            wait_ns = int(due_ns[c, g]) - time.time_ns()
             if wait_ns > 0:
                 time.sleep(wait_ns / 1e9)
             written_ns[c, g] = time.time_ns()
@@ -151,9 +153,6 @@ def stream_all(devices: Sequence[PtyDevice], streams: Sequence[Stream], samples:
     cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     np.save(times_path, written_ns)
     delimiter = b"\n" if streams[0].data.endswith(b"\n") else b"\x00"
-    due_ns = (start_ns + np.round((np.minimum(np.arange(len(written_ns)) * chunk + chunk,
-                                              samples) - 1) * period_ns)[:, None]
-              + np.array([phase_ns(m[0], rate_hz) for m in groups])[None, :])
     late = (written_ns - due_ns).ravel() / 1e6
     return {"times": str(times_path),
             "sent": [samples - writer.unsent_samples(i, delimiter) for i in range(len(devices))],

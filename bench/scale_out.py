@@ -48,24 +48,24 @@ from child_process import ChildProcess
 from daemon_scale import (
     RATE_HZ,
     READY_PREFIX,
+    LatencyProbe,
     gateway_toml,
     latencies_ms,
     pct,
     report,
     sensor_id,
     sleep_until,
+    until,
     verify,
 )
 from pty_fleet import FleetProcess
 from recal.demo import free_port
-from recal.io.bus import Bus, key, zenoh_config
-from recal.io.messages import decode_json
-from recal.io.recording import RecordingError, repair
+from recal.io.bus import zenoh_config
+from recal.io.router import READY_PREFIX as ROUTER_READY_PREFIX
+from recal.node import NODE_READY_PREFIX
 
 __all__ = ["main", "run_row"]
 
-NODE_READY = "recal node ready"
-ROUTER_READY = "recal-router ready"
 
 
 def node_toml(n_sensors: int, router: str, workdir: Path) -> str:
@@ -78,41 +78,6 @@ def node_toml(n_sensors: int, router: str, workdir: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-class _Probe:
-    """A client of the router that stamps calibrated messages and asks for node status."""
-
-    def __init__(self, router: str, sensors: Sequence[int]) -> None:
-        self.bus = Bus(zenoh_config("client", [], [router]))
-        self.records: list[tuple[int, int, bytes]] = []
-        for i in sensors:
-            self.bus.subscribe(key(sensor_id(i), "calibrated"),
-                               lambda m, i=i: self.records.append((time.time_ns(), i, m.payload)))
-
-    def counts(self, n: int) -> tuple[int, int, int]:
-        """(ports open at gateways, raw samples logged by gateways, samples calibrated by
-        the node), summed over the status replies (gateways and node both answer)."""
-        docs = [decode_json(p) for _, p in
-                self.bus.get("recal/*/status", timeout_s=3.0, max_replies=2 * n + 8)]
-        gw = [d["gateway"] for d in docs if "gateway" in d]
-        cal = sum(d["node"]["samples"] for d in docs if d.get("node"))
-        return (sum(1 for g in gw if g.get("open")), sum(g["samples_logged"] for g in gw), cal)
-
-    def close(self) -> None:
-        self.bus.close()
-
-
-def _until(cond: Any, timeout_s: float, interval_s: float = 0.25) -> float:
-    """Seconds until ``cond()`` held (bounded by ``timeout_s``); inf if it never did."""
-    t0 = time.monotonic()
-    for _ in range(int(timeout_s / interval_s) + 1):
-        if cond():
-            return time.monotonic() - t0
-        if time.monotonic() - t0 >= timeout_s:
-            break
-        time.sleep(interval_s)
-    return float("inf")
-
-
 class _Deployment:
     """Router, G gateways and the node, started in order and stopped in reverse."""
 
@@ -120,7 +85,7 @@ class _Deployment:
         self.router_ep = f"tcp/127.0.0.1:{free_port()}"
         self.router = ChildProcess.python("recal.io.router", ["--listen", self.router_ep],
                                           work / "router.log")
-        self.router.wait_line(ROUTER_READY, 30)
+        self.router.wait_line(ROUTER_READY_PREFIX, 30)
         per = -(-len(links) // gateways)
         self.gateways: list[ChildProcess] = []
         self.mcaps: list[Path] = []
@@ -143,7 +108,7 @@ class _Deployment:
                                                        str(self.node_mcap)], work / "node.log")
         for gw in self.gateways:
             gw.wait_line(READY_PREFIX, 120)
-        self.node.wait_line(NODE_READY, 60)
+        self.node.wait_line(NODE_READY_PREFIX, 60)
 
     def processes(self) -> dict[str, ChildProcess]:
         return {"router": self.router, "node": self.node,
@@ -169,11 +134,11 @@ def run_row(gateways: int, a: argparse.Namespace, root: Path) -> dict[str, Any]:
     work = Path(tempfile.mkdtemp(prefix=f"g{gateways}-", dir=root))
     fleet = FleetProcess(work, n, a.seconds, rate_hz=RATE_HZ, chunk=a.chunk)
     dep: _Deployment | None = None
-    probe: _Probe | None = None
+    probe: LatencyProbe | None = None
     try:
         dep = _Deployment(work, fleet.links, gateways, a.batch_ms)
-        probe = _Probe(dep.router_ep, range(min(n, a.probe)))
-        if _until(lambda: probe.counts(n)[0] >= n, 60) == float("inf"):
+        probe = LatencyProbe(zenoh_config("client", [], [dep.router_ep]), range(min(n, a.probe)))
+        if until(lambda: probe.counts(n)[0] >= n, 60) == float("inf"):
             raise RuntimeError("gateways did not open every port")
         started = fleet.go()
         warm_ns = started["start_ns"] + int(a.warmup_s * 1e9)
@@ -184,17 +149,17 @@ def run_row(gateways: int, a: argparse.Namespace, root: Path) -> dict[str, Any]:
         written = fleet.done(60 + a.seconds)
         total = sum(written["sent"])
         t_done = time.monotonic()
-        catchup = _until(lambda: probe.counts(n)[2] >= total, a.max_catchup_s + 60)
+        catchup = until(lambda: probe.counts(n)[2] >= total, a.max_catchup_s + 60)
         delivered_s = time.monotonic() - t_done + a.seconds
         lat = latencies_ms(probe.records, written, a.chunk, warm_ns)
         probe.close()
         probe = None
         codes = dep.stop()
         fleet.close()
-        gw_check = [_verify(m, [written["sent"][i] for i in part], calibrated=False,
+        gw_check = [verify(m, [written["sent"][i] for i in part], calibrated=False,
                             first=part.start)
                     for m, part in zip(dep.mcaps, dep.slices, strict=True)]
-        node_check = _verify(dep.node_mcap, written["sent"])
+        node_check = verify(dep.node_mcap, written["sent"])
         share = {k: 100 * (cpu1[k] - cpu0[k]) / (wall1 - wall0) for k in cpu0}
         row = {"gateways": gateways, "sensors": n, "offered_per_s": n * RATE_HZ,
                "delivered_per_s": total / delivered_s if np.isfinite(catchup) else 0.0,
@@ -219,18 +184,6 @@ def run_row(gateways: int, a: argparse.Namespace, root: Path) -> dict[str, Any]:
         fleet.close()
         if not a.keep:
             shutil.rmtree(work, ignore_errors=True)
-
-
-def _verify(mcap: Path, sent: list[int], calibrated: bool = True, first: int = 0
-            ) -> dict[str, int]:
-    """daemon_scale.verify, on a repaired copy if the process did not close its file (killed
-    after its stop timeout): what it had written still counts, what it had not is lost."""
-    try:
-        return verify(mcap, sent, calibrated, first)
-    except RecordingError:
-        fixed = mcap.with_suffix(".repaired.mcap")
-        repair(mcap, fixed)
-        return {**verify(fixed, sent, calibrated, first), "unclosed": 1}
 
 
 COLUMNS = [("gateways", "gateways", "{:d}"), ("sensors", "sensors", "{:d}"),

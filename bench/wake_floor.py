@@ -27,12 +27,9 @@ import os
 import resource
 import selectors
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from pty_fleet import FleetProcess
 from recal.config import SensorConfig, ServiceConfig, model_and_prior
