@@ -6,6 +6,7 @@ key>``, a non-zero exit status, nothing on stdout and never a traceback.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -107,16 +108,21 @@ CASES = [
 ]
 
 
-@pytest.fixture(scope="module")
-def workdir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+@contextlib.contextmanager
+def _workdir_in(root: Path) -> Iterator[Path]:
     """The files every case may read, a small valid recording, and a real pty for --port."""
-    root = tmp_path_factory.mktemp("cli")
     for name, data in FILES.items():
         (root / name).write_bytes(data)
     raw = simulate(0.002, 50.0, 1).raw
     with RecordingWriter(root / "ok.mcap", overwrite=True) as writer:
         writer.write_raw("s1", raw, int(raw.t_us[0]) * 1000)
     with PtyDevice(str(root / "ttyOK"), "ascii"):
+        yield root
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    with _workdir_in(tmp_path_factory.mktemp("cli")) as root:
         yield root
 
 
@@ -173,14 +179,16 @@ def test_as_a_real_process(workdir: Path, case: str) -> None:
 
 
 def test_nothing_is_left_behind_by_a_failed_start(
-        workdir: Path, capfd: pytest.CaptureFixture[str],
+        tmp_path: Path, capfd: pytest.CaptureFixture[str],
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """A start that fails on its recording, port or model writes no file and no checkpoint."""
-    monkeypatch.chdir(workdir)
-    before = set(os.listdir(workdir))
-    for case in ("run mcap under a file", "port does not exist", "missing model",
-                 "csv all rows bad"):
-        args = next(c[1] for c in CASES if c[0] == case)
-        status, _, _ = _main(_args(args, workdir), capfd)
-        assert status != 0
-    assert set(os.listdir(workdir)) == before
+    """A start that fails on its recording, port or model writes no file and no checkpoint
+    (in a directory of its own: the shared one has seen every other case first)."""
+    with _workdir_in(tmp_path) as root:
+        monkeypatch.chdir(root)
+        before = set(os.listdir(root))
+        for case in ("run mcap under a file", "port does not exist", "missing model",
+                     "csv all rows bad"):
+            args = next(c[1] for c in CASES if c[0] == case)
+            status, _, _ = _main(_args(args, root), capfd)
+            assert status != 0
+        assert set(os.listdir(root)) == before
