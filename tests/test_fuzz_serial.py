@@ -15,7 +15,6 @@ through a real pseudo-terminal into SerialSource.
 
 from __future__ import annotations
 
-import struct
 import threading
 import time
 from collections import Counter
@@ -35,13 +34,14 @@ from recal.io.frames import (
     CobsFrameParser,
     ParseErrors,
     cobs_payload_bytes,
-    crc16_ccitt_false,
     encode_cobs,
     make_parser,
 )
 from recal.io.pty_device import PtyDevice
 from recal.io.serial_source import SerialSource
 from recal.samples import RawBatch
+from test_frames import _assert_same, _frame
+from test_frames import _payload as frame_payload
 
 AUX = ("temp_c", "vdd_v")
 HEADER = b"#t_us,x,y,z,temp_c,vdd_v"
@@ -209,14 +209,8 @@ def ascii_stream(kind_idx: np.ndarray, seed: int) -> Stream:
 
 def _payload(t_us: int, xyz: tuple[float, float, float], aux: tuple[float, ...], *,
              version: int = 1, flags: int = COBS_FLAG_XYZ_FLOAT32) -> bytes:
-    fmt = "f" if flags & COBS_FLAG_XYZ_FLOAT32 else "i"
-    body = struct.pack(f"<BBBq3{fmt}{len(aux)}f", version, flags, len(aux), t_us, *xyz, *aux)
-    crc = int(crc16_ccitt_false(np.frombuffer(body, np.uint8)[None, :])[0])
-    return body + struct.pack("<H", crc)
-
-
-def _frame(payload: bytes) -> bytes:
-    return cobs.encode(payload) + b"\x00"
+    """`test_frames._payload` with float32 axes (its CRC is binascii's, not the parser's)."""
+    return frame_payload(t_us, xyz, aux, version=version, flags=flags)  # type: ignore[arg-type]
 
 
 def _hostile_frame(kind: str, t_us: int, frame: bytes, rng: np.random.Generator) -> bytes:
@@ -314,12 +308,8 @@ def _random_cuts(n_bytes: int, rng: np.random.Generator) -> np.ndarray:
 
 def _assert_delivered(got: RawBatch, stream: Stream) -> None:
     """The valid frames, exactly once, in order, bit for bit."""
-    exp = stream.expected
-    assert len(got) == len(exp), (len(got), len(exp))
-    np.testing.assert_array_equal(got.t_us, exp.t_us)
-    assert np.array_equal(got.v.view(np.int64), exp.v.view(np.int64))
-    assert np.array_equal(got.aux.view(np.int64), exp.aux.view(np.int64))
-    assert got.aux_names == AUX
+    assert len(got) == len(stream.expected), (len(got), len(stream.expected))
+    _assert_same(got, stream.expected)
 
 
 def _assert_counted(errors: ParseErrors, stream: Stream,
