@@ -26,7 +26,7 @@ from recal.io.pty_device import PtyDevice
 from recal.io.router import RouterProcess
 from recal.node import checkpoint_path, load_checkpoint
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, WearerSpec, simulate
+from test_gateway import sim_raw, stream
 
 SID = "s1"
 RATE_HZ = 100.0  # the sensor's rate (device time)
@@ -34,12 +34,6 @@ SEND_PER_S = 1000.0  # how fast the test device writes: 10x real time, to reach 
 CHUNK = 10  # samples per write
 FLUSH_S = 0.01  # [mcap] flush_interval_s: what a kill may lose, at most (plus read latency)
 KILLS = 10
-
-
-def _raw(minutes: float, seed: int) -> RawBatch:
-    spec = SensorSpec.random(np.random.default_rng(seed), offset_mg=40.0, gain_pct=3.0)
-    return simulate(minutes / 60.0, RATE_HZ, seed, spec,
-                    WearerSpec(still_s=(8.0, 20.0), move_s=(2.0, 5.0))).raw
 
 
 def _start(config: Path, mcap: Path, dev: PtyDevice,
@@ -55,18 +49,8 @@ def _start(config: Path, mcap: Path, dev: PtyDevice,
 
 
 def _stream(dev: PtyDevice, raw: RawBatch, start: int, seconds: float) -> int:
-    """Write samples from ``start`` at SEND_PER_S for ``seconds``; return how many."""
-    began = time.monotonic()
-    i = start
-    for _ in range(int(seconds * SEND_PER_S / CHUNK) + 1):  # bounded in count
-        wait = began + (i - start) / SEND_PER_S - time.monotonic()
-        if wait > 0:
-            time.sleep(wait)
-        if time.monotonic() - began >= seconds or i >= len(raw):
-            break
-        dev.write_batch(raw[i:i + CHUNK])
-        i += len(raw[i:i + CHUNK])
-    return i - start
+    """Write samples from ``start`` at SEND_PER_S for about ``seconds``; return how many."""
+    return stream(dev, raw[start:], SEND_PER_S, chunk=CHUNK, stop_after_s=seconds)[0]
 
 
 def _repair(broken: Path, fixed: Path) -> None:
@@ -86,7 +70,7 @@ def test_kill9_at_ten_random_moments_then_repair_and_restart(
         tmp_path: Path, children: list[GatewayProcess]) -> None:
     rng = np.random.default_rng(2024)
     kill_after_s = rng.uniform(0.8, 2.0, KILLS)  # stream time before each kill
-    raw = _raw(12.0, seed=5)
+    raw = sim_raw(12.0, seed=5)
     link = str(tmp_path / "ttyKILL")
     config = write_config(tmp_path, link, "[zenoh]\nenabled = false\n", FLUSH_S, SID, RATE_HZ)
     ckpt = checkpoint_path(tmp_path / "ck", SID)
@@ -152,7 +136,7 @@ def test_router_killed_gateway_keeps_logging_and_resumes_publishing(
     """Gateway and subscriber are Zenoh clients of a `recal router`. The router is killed
     (SIGKILL) and restarted on the same endpoint: meanwhile the gateway logs every sample, and
     once both clients have reconnected by themselves every sample is published again."""
-    raw = _raw(4.0, seed=6)
+    raw = sim_raw(4.0, seed=6)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     retry = {"period_init_ms": 50, "period_max_ms": 200}
     client_cfg = tmp_path / "zenoh-client.json5"
