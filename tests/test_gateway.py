@@ -80,21 +80,22 @@ def service_config(tmp: Path, port: str, zenoh_port: int | None, **over: Any) ->
 class LiveGateway:
     """run_gateway in a thread of this process, stopped through its stop event."""
 
-    def __init__(self, cfg: ServiceConfig, mcap: Path) -> None:
+    def __init__(self, cfg: ServiceConfig, mcap: Path, batch_s: float | None = None) -> None:
         self.stop = threading.Event()
         self.ready: list[Gateway] = []
         self.lines: list[str] = []
         self.rc: list[int] = []
         self.thread = threading.Thread(target=lambda: self.rc.append(run_gateway(
             cfg, mcap_out=mcap, stop_event=self.stop, on_ready=self.ready.append,
-            out=self.lines.append)), daemon=True)
+            out=self.lines.append, batch_s=batch_s)), daemon=True)
         self.thread.start()
         try:
             assert wait_for(lambda: bool(self.ready) or not self.thread.is_alive(), 20), \
                 self.lines
             assert self.ready, self.lines
             self.gw = self.ready[0]
-            assert wait_for(lambda: self.gw.ports[SID].is_open, 10), "port never opened"
+            assert wait_for(lambda: all(p.is_open for p in self.gw.ports.values()), 10), \
+                "port never opened"
         except AssertionError:
             self.stop.set()
             self.thread.join(30)
@@ -377,34 +378,12 @@ def test_shipped_configs_load() -> None:
 
 def multi_config(tmp: Path, links: list[str], batch_ms: float = 0.0,
                  idle_batch_ms: float = 0.0) -> ServiceConfig:
-    return parse_config({
-        "batch_ms": batch_ms, "idle_batch_ms": idle_batch_ms, "zenoh": {"enabled": False},
-        "mcap": {"flush_interval_s": 0.05},
-        "checkpoint": {"dir": str(tmp / "ck"), "interval_s": 60.0},
-        "sensors": [{"id": f"m{i}", "port": link, "aux_names": [], "rate_hz": RATE_HZ,
-                     "prior": {"counts_per_g": 1024.0}} for i, link in enumerate(links)],
-    }, tmp, "test")
-
-
-class ManyPorts:
-    """run_gateway over several ptys in a thread of this process (no Zenoh)."""
-
-    def __init__(self, cfg: ServiceConfig, mcap: Path, batch_s: float | None) -> None:
-        self.stop = threading.Event()
-        self.ready: list[Gateway] = []
-        self.lines: list[str] = []
-        self.thread = threading.Thread(target=lambda: run_gateway(
-            cfg, mcap_out=mcap, stop_event=self.stop, on_ready=self.ready.append,
-            out=self.lines.append, batch_s=batch_s), daemon=True)
-        self.thread.start()
-        assert wait_for(lambda: bool(self.ready) or not self.thread.is_alive(), 20), self.lines
-        self.gw = self.ready[0]
-        assert wait_for(lambda: all(p.is_open for p in self.gw.ports.values()), 10)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(30)
-        assert not self.thread.is_alive()
+    """`service_config` without Zenoh for sensors m0, m1, ... on these ports."""
+    return service_config(
+        tmp, links[0], None, batch_ms=batch_ms, idle_batch_ms=idle_batch_ms,
+        checkpoint={"dir": str(tmp / "ck"), "interval_s": 60.0},
+        sensors=[{"id": f"m{i}", "port": link, "aux_names": [], "rate_hz": RATE_HZ,
+                  "prior": {"counts_per_g": 1024.0}} for i, link in enumerate(links)])
 
 
 @pytest.mark.parametrize("batch_s", [0.0, 0.05])
@@ -416,7 +395,7 @@ def test_one_io_thread_serves_many_ports_every_sample_once(tmp_path: Path,
     mcap = tmp_path / "many.mcap"
     devices = [PtyDevice(link) for link in links]
     try:
-        live = ManyPorts(multi_config(tmp_path, links, idle_batch_ms=0.0), mcap, batch_s)
+        live = LiveGateway(multi_config(tmp_path, links, idle_batch_ms=0.0), mcap, batch_s)
         try:
             names = [t.name for t in threading.enumerate()]
             assert names.count("recal-io") == 1
@@ -454,7 +433,7 @@ def test_stop_logs_and_calibrates_what_the_ports_still_hold(tmp_path: Path) -> N
     with PtyDevice(link) as dev:
         # a 10 s tick (from the config): whatever is written now is still in the pty when the
         # stop comes
-        live = ManyPorts(multi_config(tmp_path, [link], batch_ms=10_000), mcap, batch_s=None)
+        live = LiveGateway(multi_config(tmp_path, [link], batch_ms=10_000), mcap)
         try:
             dev.write_header(())
             dev.write_batch(raw)
@@ -468,7 +447,7 @@ def test_stop_logs_and_calibrates_what_the_ports_still_hold(tmp_path: Path) -> N
     assert start["kind"] == "start" and start["detail"]["batch_s"] == 10.0
 
 
-def test_negative_batch_is_one_line_and_exit_code_2(tmp_path: Path) -> None:
+def test_negative_batch_is_one_line_and_exit_code_2() -> None:
     lines: list[str] = []
     stopped = threading.Event()
     stopped.set()
