@@ -26,19 +26,21 @@ def _batch(n: int, t0_us: int = 0, rate_hz: float = 1000.0) -> RawBatch:
 
 
 def _read_until(source: SerialSource, done: Callable[[RawBatch, list[SourceEvent]], bool],
-                timeout_s: float = 5.0) -> tuple[RawBatch, list[SourceEvent]]:
-    """read_batch until ``done(samples, events)`` or the timeout; every loop is bounded."""
+                timeout_s: float = 5.0, poll: bool = False) -> tuple[RawBatch, list[SourceEvent]]:
+    """read_batch(0.05) (or with ``poll``, poll(), which never waits, every 5 ms) until
+    ``done(samples, events)`` or the timeout; bounded in time and in count."""
     batches: list[RawBatch] = []
     events: list[SourceEvent] = []
     deadline_s = time.monotonic() + timeout_s
-    while time.monotonic() < deadline_s:
-        batch, new_events = source.read_batch(0.05)
+    for _ in range(int(timeout_s / 0.005) + 1):
+        batch, new_events = source.poll() if poll else source.read_batch(0.05)
         events += new_events
         if len(batch):
             batches.append(batch)
-        samples = _concat(batches)
-        if done(samples, events):
+        if done(_concat(batches), events) or time.monotonic() > deadline_s:
             break
+        if poll:
+            time.sleep(0.005)
     return _concat(batches), events
 
 
@@ -241,23 +243,6 @@ def test_pty_is_raw_bytes_pass_unchanged(link: str) -> None:
 # --------------------------------------------------------------------------- non-blocking poll
 
 
-def _poll_until(source: SerialSource, done: Callable[[RawBatch, list[SourceEvent]], bool],
-                timeout_s: float = 5.0) -> tuple[RawBatch, list[SourceEvent]]:
-    """poll() (never waits) until ``done``; bounded in time and in count."""
-    batches: list[RawBatch] = []
-    events: list[SourceEvent] = []
-    deadline_s = time.monotonic() + timeout_s
-    for _ in range(int(timeout_s / 0.005) + 1):
-        batch, new_events = source.poll()
-        events += new_events
-        if len(batch):
-            batches.append(batch)
-        if done(_concat(batches), events) or time.monotonic() > deadline_s:
-            break
-        time.sleep(0.005)
-    return _concat(batches), events
-
-
 @pytest.mark.parametrize("fmt", ["ascii", "cobs"])
 def test_poll_opens_reads_what_is_waiting_and_never_waits(link: str, fmt: str) -> None:
     sent = _batch(300)
@@ -280,7 +265,8 @@ def test_poll_opens_reads_what_is_waiting_and_never_waits(link: str, fmt: str) -
         for i in range(0, len(sent), 7):  # many small writes, read as they come (reading
             device.write_batch(sent[i:i + 7])  # only at the end can fill the pty under load)
             parts.append(source.poll()[0])
-        rest, _ = _poll_until(source, lambda s, e: sum(map(len, parts)) + len(s) >= len(sent))
+        rest, _ = _read_until(source, lambda s, e: sum(map(len, parts)) + len(s) >= len(sent),
+                              poll=True)
         got = _concat([*parts, rest])
         assert device.bytes_dropped == 0
     np.testing.assert_array_equal(got.t_us, sent.t_us)
@@ -293,18 +279,18 @@ def test_poll_notices_an_unplug_and_reopens_after_a_replug(link: str) -> None:
         source.poll()
         device.write_header(AUX)
         device.write_batch(_batch(10))
-        got, _ = _poll_until(source, lambda s, e: len(s) >= 10)
+        got, _ = _read_until(source, lambda s, e: len(s) >= 10, poll=True)
         assert len(got) == 10
         device.unplug()
         _, events = source.poll(readable=True)  # the selector reports a hung-up tty readable
         assert _kinds(events) == ["port_lost"] and source.fileno() is None
         device.replug()
         later = _batch(5, t0_us=10_000_000)
-        _, events = _poll_until(source, lambda s, e: "port_found" in _kinds(e))
+        _, events = _read_until(source, lambda s, e: "port_found" in _kinds(e), poll=True)
         assert "port_found" in _kinds(events) and source.fileno() is not None
         device.write_header(AUX)
         device.write_batch(later)
-        got, _ = _poll_until(source, lambda s, e: len(s) >= 5)
+        got, _ = _read_until(source, lambda s, e: len(s) >= 5, poll=True)
     np.testing.assert_array_equal(got.t_us, later.t_us)
 
 
