@@ -160,21 +160,32 @@ def test_router_killed_gateway_keeps_logging_and_resumes_publishing(
             try:
                 sub.subscribe(key(SID, "raw"),
                               lambda m: heard.append(decode_raw(m.payload)[1].t_us))
-                sent = _stream(dev, raw, 0, 1.0)
-                assert wait_for(lambda: len(heard_t()) == sent, 10), (len(heard_t()), sent)
+                # until the gateway's client has learnt of the subscriber through the router,
+                # it publishes to nobody: a warm-up (logged, maybe not heard) until one is heard
+                warm = 0
+                for _ in range(50):  # bounded: up to ~20 s of 0.2 s bursts
+                    warm += _stream(dev, raw, warm, 0.2)
+                    if wait_for(lambda: bool(heard), 0.2, 0.02):
+                        break
+                assert wait_for(lambda: raw.t_us[warm - 1] in heard_t(), 10), "never heard"
+                base = len(heard_t())
+                sent = _stream(dev, raw, warm, 1.0)
+                assert wait_for(lambda: len(heard_t()) == base + sent, 10), \
+                    (len(heard_t()) - base, sent)
 
                 router.kill()  # a crash: no goodbye
-                down = _stream(dev, raw, sent, 1.5)  # logged, but nobody can hear them
-                heard_while_down = len(heard_t()) - sent
+                start = warm + sent
+                down = _stream(dev, raw, start, 1.5)  # logged, but nobody can hear them
+                heard_while_down = len(heard_t()) - base - sent
                 router.start()  # the same endpoint
                 for _ in range(50):  # bounded: up to ~20 s of 0.2 s bursts until heard again
-                    down += _stream(dev, raw, sent + down, 0.2)
-                    if wait_for(lambda: len(heard_t()) > sent, 0.2, 0.02):
+                    down += _stream(dev, raw, start + down, 0.2)
+                    if wait_for(lambda: len(heard_t()) > base + sent, 0.2, 0.02):
                         break
-                assert len(heard_t()) > sent, "publishing did not resume"
-                after = _stream(dev, raw, sent + down, 1.0)
-                total = sent + down + after
-                want = raw.t_us[sent + down:total]
+                assert len(heard_t()) > base + sent, "publishing did not resume"
+                after = _stream(dev, raw, start + down, 1.0)
+                total = start + down + after
+                want = raw.t_us[start + down:total]
                 assert wait_for(lambda: np.isin(want, heard_t()).all(), 10), \
                     (np.isin(want, heard_t()).sum(), after)
             finally:
@@ -186,10 +197,10 @@ def test_router_killed_gateway_keeps_logging_and_resumes_publishing(
     t = heard_t()
     assert heard_while_down == 0  # the router really was down
     assert len(np.unique(t)) == len(t)  # nothing heard twice
-    np.testing.assert_array_equal(t[:sent], raw.t_us[:sent])
-    print(f"\nheard: {sent} of {sent} before the kill, "
-          f"{np.isin(raw.t_us[sent:sent + down], t).sum()} of {down} while the router was down "
-          f"or the clients reconnecting, {after} of {after} after")
+    np.testing.assert_array_equal(t[base:base + sent], raw.t_us[warm:start])
+    print(f"\nheard: {base} of {warm} in the warm-up, {sent} of {sent} before the kill, "
+          f"{np.isin(raw.t_us[start:start + down], t).sum()} of {down} while the router was "
+          f"down or the clients reconnecting, {after} of {after} after")
     logged = rec.read_all_raw(gw.mcap, SID)  # the local log never stopped
     np.testing.assert_array_equal(logged.t_us, raw.t_us[:total])
     events = [obj["kind"] for _, obj, _ in rec.iter_json(gw.mcap, "/gateway/events")]
