@@ -16,7 +16,12 @@ Each stage adds to the one before, in a run of its own:
 CPU is this process's user + system time over the run after a warm-up, per arrival and as a
 share of one core; medians of --runs runs.
 
-    python bench/wake_floor.py                 # 20 s per stage, 3 runs (~4 min)
+A second table runs the same work in this process without the pty (lines from memory, so no
+read): each call back to back ("warm"), then each after `IDLE_S` of sleep, as between two
+arrivals of a 100 Hz sensor ("after idling"). The ratio is what idling between arrivals does
+to the cost of the same code on this machine (caches and predictors cold again).
+
+    python bench/wake_floor.py                 # 20 s per stage, 3 runs, then the warm table (~6 min)
     python bench/wake_floor.py --seconds 5 --runs 1
 """
 
@@ -35,11 +40,14 @@ from pty_fleet import FleetProcess
 from recal.config import SensorConfig, ServiceConfig, model_and_prior
 from recal.core.pipeline import Pipeline
 from recal.io import recording as rec
-from recal.io.frames import make_parser
+from recal.io.frames import encode_ascii, make_parser
 from recal.io.serial_source import SerialSource
+from recal.samples import RawBatch
+from recal.sim import simulate
 
 RATE_HZ = 100.0
 STAGES = ("wake", "parse", "step", "log")
+IDLE_S = 1.0 / RATE_HZ
 
 
 def _cpu_s() -> float:
@@ -50,7 +58,7 @@ def _cpu_s() -> float:
 class _Handler:
     """What the loop does with one arrival, up to `stage`."""
 
-    def __init__(self, stage: str, src: SerialSource, out: Path) -> None:
+    def __init__(self, stage: str, src: SerialSource | None, out: Path) -> None:
         self.stage, self.src = stage, src
         cfg = ServiceConfig()
         model, prior = model_and_prior(SensorConfig(id="s1"), cfg.pipeline)
@@ -63,7 +71,11 @@ class _Handler:
         if self.stage == "wake":
             self.samples += len(os.read(fd, 65536)) > 0
             return
-        batch, _ = self.src.poll(readable=True)
+        assert self.src is not None, "a handler without a source is fed by work()"
+        self.work(self.src.poll(readable=True)[0])
+
+    def work(self, batch: RawBatch) -> None:
+        """Everything after the read and parse, up to `stage`."""
         self.samples += len(batch)
         if self.stage == "parse" or not len(batch):
             return
@@ -113,14 +125,40 @@ def run_stage(stage: str, seconds: float, warmup_s: float, root: Path) -> dict[s
         fleet.close()
 
 
+def warm_and_idle(stage: str, calls: int, root: Path) -> tuple[float, float]:
+    """CPU us per call of `stage`'s work on one line each: back to back, and each call after
+    IDLE_S of sleep (the sleep's own wake-up counted, as an arrival's is)."""
+    raw = simulate(2 * calls / RATE_HZ / 3600, RATE_HZ, 1).raw
+    lines = encode_ascii(raw).splitlines(keepends=True)
+    work = Path(tempfile.mkdtemp(prefix=f"warm-{stage}-", dir=root))
+    handler = _Handler(stage, None, work / "out.mcap")
+    parser = make_parser("ascii")
+    try:
+        per_call = []
+        for gap_s, part in ((0.0, lines[:calls]), (IDLE_S, lines[calls:2 * calls])):
+            cpu0 = _cpu_s()
+            for line in part:
+                if gap_s:
+                    time.sleep(gap_s)
+                if stage != "wake":
+                    handler.work(parser.feed(line))
+            per_call.append(1e6 * (_cpu_s() - cpu0) / len(part))
+        return per_call[0], per_call[1]
+    finally:
+        handler.close()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="measured seconds per stage")
     ap.add_argument("--warmup", type=float, default=3.0, help="seconds before measuring")
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--calls", type=int, default=500,
+                    help="calls per run in the warm / after-idling table")
     a = ap.parse_args(argv)
-    if a.seconds <= 0 or a.warmup < 0 or a.runs < 1:
-        ap.error("--seconds must be positive, --warmup not negative, --runs at least 1")
+    if a.seconds <= 0 or a.warmup < 0 or a.runs < 1 or a.calls < 1:
+        ap.error("--seconds must be positive, --warmup not negative, --runs and --calls at "
+                 "least 1")
     res: dict[str, list[dict[str, float]]] = {s: [] for s in STAGES}
     with tempfile.TemporaryDirectory(prefix="wake-floor-") as tmp:
         for r in range(a.runs):
@@ -137,6 +175,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{stage:>6} | {med['cpu_pct']:>15.2f} | {med['us_per_wake']:>14.0f} | "
               f"{med['wakes_per_s']:>10.1f} | {med['samples']:>7.0f}")
     print("\ngoal: 2 % of a core at 1 sensor = 200 us per arrival at 100 arrivals/s")
+    print(f"\nthe same work per line without the pty, CPU us per call, medians of {a.runs} runs "
+          f"of {a.calls} calls\n")
+    print(f"{'stage':>6} | {'warm (back to back)':>19} | {'after idling 10 ms':>18} | "
+          f"{'ratio':>5}")
+    print("-" * 60)
+    with tempfile.TemporaryDirectory(prefix="wake-warm-") as tmp:
+        for stage in STAGES:
+            pairs = [warm_and_idle(stage, a.calls, Path(tmp)) for _ in range(a.runs)]
+            warm = statistics.median(w for w, _ in pairs)
+            idle = statistics.median(i for _, i in pairs)
+            ratio = f"{idle / warm:5.1f}" if warm >= 1.0 else "    -"
+            print(f"{stage:>6} | {warm:>19.0f} | {idle:>18.0f} | {ratio}")
     return 0
 
 
