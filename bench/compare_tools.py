@@ -18,6 +18,9 @@ Compared, on the same arrays (readings in g, Unix time stamps):
   fallback) and reused; `bench/compare_tools_runner.py` runs one tool there and times only its
   calibration call. skdh and wristpy's GGIR calibrator refuse recordings shorter than 72 h by
   default; they are given their smallest setting, 12 h.
+* a floor row, timed only: the two passes over every sample the core cannot skip (the detector
+  and the correction, `run_floor`), without windows, buffer or estimator. Whatever the core
+  does on top costs more, so this row bounds how fast any core of this design in numpy can be.
 
 Cases, simulated with `recal.sim` (truth included), offsets +-50 mg, gains +-3 %, 4 mg noise,
 1024 counts/g, passed to everyone in g (counts / 1024):
@@ -56,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recal.core.detector import detect
 from recal.core.effects import Ratiometric
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
@@ -67,6 +71,7 @@ HERE = Path(__file__).resolve().parent
 VENVS = HERE / ".venvs"
 RUNNER = HERE / "compare_tools_runner.py"
 RATE_HZ = 50.0
+FLOOR = "floor"  # the contender that times recal's per-sample passes alone (run_floor)
 COUNTS_PER_G = 1024.0
 START_US = 1_704_067_200_000_000  # 2024-01-01 00:00 UTC: the tools want calendar time stamps
 RATIOMETRIC_PER_V = 0.05
@@ -240,6 +245,22 @@ def run_recal(raw_g: RawBatch, model: SensorModel,
     return out, time.perf_counter() - t0, pipe
 
 
+def run_floor(raw_g: RawBatch, model: SensorModel, batch: int) -> float:
+    """Seconds of the two passes over every sample the core cannot skip, alone: the detector
+    (Lötters eq. 1-2) and the correction with fixed parameters, in the same batches as
+    `run_recal`. No windows, buffer or estimator: a lower bound on the core's time, not a
+    calibration."""
+    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model),
+                    raw_g.aux_names)
+    t0 = time.perf_counter()
+    state = pipe.det_state
+    for i in range(0, len(raw_g), batch):
+        b = raw_g[i:i + batch]
+        state, _ = detect(pipe.det_cfg, state, b.v)
+        pipe.model.correct(pipe.params, b.v, pipe.covariates(b.t_us, b.aux))
+    return time.perf_counter() - t0
+
+
 def recal_status(pipe: Pipeline) -> str:
     c = pipe.counts
     held = [n for n, free in zip(pipe.model.names,
@@ -302,7 +323,9 @@ def run_case(case: Case, args: argparse.Namespace, tools: list[str], workdir: Pa
     ours = {label: Row(case.name, f"recal core ({label})", "streaming")
             for label, _ in case.models}
     models = dict(case.models)
-    contenders = [*tools, *ours]
+    floor = Row(case.name, "recal's per-sample passes alone (detector + correction)", "floor",
+                status="timed only: no estimator, not a calibration")
+    contenders = [*tools, *ours, FLOOR]
     for r in range(runs):
         # take turns, starting with a different contender each run: drift in machine load
         # then spreads over everyone instead of always hitting the same one
@@ -310,6 +333,8 @@ def run_case(case: Case, args: argparse.Namespace, tools: list[str], workdir: Pa
         for who in order:
             if who in tool_rows:
                 _run_tool_once(tool_rows[who], who, case_dir, sim, first, score_it=r == 0)
+            elif who == FLOOR:
+                floor.seconds.append(run_floor(raw_g, models[case.models[0][0]](), args.batch))
             else:
                 _log(f"[{case.name}] recal core ({who}), run {r + 1}/{runs}")
                 cal, sec, pipe = run_recal(raw_g, models[who](), args.batch)
@@ -318,7 +343,7 @@ def run_case(case: Case, args: argparse.Namespace, tools: list[str], workdir: Pa
                     ours[who].status = recal_status(pipe)
                     score(ours[who], cal, sim, first)
                 del cal, pipe
-    rows += [tool_rows[t] for t in tools] + list(ours.values())
+    rows += [tool_rows[t] for t in tools] + list(ours.values()) + [floor]
     shutil.rmtree(case_dir, ignore_errors=True)
     return rows, n
 
