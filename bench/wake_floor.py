@@ -21,7 +21,7 @@ read): each call back to back ("warm"), then each after `IDLE_S` of sleep, as be
 arrivals of a 100 Hz sensor ("after idling"). The ratio is what idling between arrivals does
 to the cost of the same code on this machine (caches and predictors cold again).
 
-    python bench/wake_floor.py                 # 20 s per stage, 3 runs, then the warm table (~6 min)
+    python bench/wake_floor.py                 # 20 s per stage, 3 runs, the warm table: ~6 min
     python bench/wake_floor.py --seconds 5 --runs 1
 """
 
