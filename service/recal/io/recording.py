@@ -922,8 +922,8 @@ def _open_summary(f: IO[bytes], path: Path) -> tuple[McapReader, Summary | None]
         reader = make_reader(f)
         return reader, reader.get_summary()
     except Exception as exc:  # the mcap reader raises many types on a damaged tail
-        raise RecordingError(f"{path} is not a finished MCAP file ({exc}); "
-                             f"recover it with repair()") from exc
+        raise RecordingError(f"{path} is not a finished MCAP file ({exc}); recover what it "
+                             f"holds with: recal repair {path} --out FIXED.mcap") from exc
 
 
 def _iter_file(path: Path, want: Callable[[Channel, str], bool]) -> Iterator[LoggedMessage]:
