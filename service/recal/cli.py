@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -278,6 +279,81 @@ def _cmd_router(a: argparse.Namespace) -> int:
 
 
 # --- parser ----------------------------------------------------------------------------------
+#: what each command does, at more length than the one-line help, and how it is called
+_ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
+    "demo": ("Runs the main job with nothing attached: a simulated sensor with known offsets "
+             "and gains writes ASCII lines to a pseudo-terminal faster than real time, the "
+             "daemon reads it, logs it to MCAP and publishes it calibrated on Zenoh (a peer on "
+             "127.0.0.1), the demo's own Zenoh session times the calibrated batches, and a "
+             "summary compares the estimate with the truth. Stops by itself; the MCAP and "
+             "summary.json stay in --out-dir.",
+             ("recal demo", "recal demo --seconds 20 --out-dir /tmp/demo")),
+    "run": ("The daemon: reads every serial port, publishes raw and calibrated samples on "
+            "Zenoh (recal/<sensor>/...), logs everything to MCAP (default: an auto-named file "
+            "in recordings/; an existing file is never overwritten) and checkpoints each "
+            "sensor's calibration to checkpoints/. Runs until Ctrl-C or SIGTERM; after a crash, "
+            "`recal repair` recovers the log and the checkpoint resumes the calibration.",
+            ("recal run --port /dev/ttyACM0 --sensor-id wrist",
+             "recal run --config configs/gateway.toml",
+             "recal run --port /dev/ttyACM0 --port /dev/ttyACM1 --sensor-id l --sensor-id r")),
+    "node": ("A calibration node without serial ports: takes recal/*/raw from gateways that run "
+             "with run_nodes = false (through a `recal router` or as peers), and publishes "
+             "calibrated, body, calibration and events for each sensor. Runs until Ctrl-C or "
+             "SIGTERM.",
+             ("recal node --config configs/gateway.toml --mcap node.mcap",)),
+    "replay": ("Runs the raw topic of a recording through the same calibration node as the "
+               "daemon (detector, windows, estimator, correction) and writes raw, calibrated, "
+               "body, plot, calibration states and events to a new MCAP. No Zenoh, no clocks: "
+               "the same input gives the same output.",
+               ("recal replay recordings/wearer-10min.mcap --out replayed.mcap",
+                "recal replay in.mcap --out out.mcap --model model.json")),
+    "simulate": ("A wearer-like recording (still postures and movement) sensed by a sensor "
+                 "with random offsets and gains and the effects asked for, with the ground truth "
+                 "beside it (FILE.truth.npz). The same seed gives the same recording.",
+                 ("recal simulate --out wearer.mcap --hours 2",
+                  "recal simulate --out temp.mcap --hours 1 --offset-tc-mg-per-c 1.5 --aux")),
+    "static": ("Lab calibration from still positions, one row per position: a full sensitivity "
+               "matrix and offsets (Bragge; Georgieva's non-orthogonal axes) fitted so that "
+               "every row's norm is 1 g, with the worst row's relative norm error over all rows "
+               "and over the fitted rows.",
+               ("recal static ../shared/data/static_positions/phone1.csv --fit-rows 1-20",)),
+    "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
+                 "effects (offsets, gains or ratiometric scaling that follow an auxiliary "
+                 "channel such as temperature or supply; cross-axis terms; non-linearity; "
+                 "offset drift in time) on held-out time blocks, adds what helps and reports "
+                 "the held-out error before -> after. "
+                 "--write-model saves the extended model for run/replay --model.",
+                 ("recal discover recordings/wearer-temp-30min.mcap --json report.json",
+                  "recal discover table.csv --write-model model.json")),
+    "import": ("A CSV time series (t_us or t_s, x, y, z or x_<unit>, y_<unit>, z_<unit>, any "
+               "auxiliary columns by name) to an MCAP raw topic that replay and discover read. "
+               "Bad rows are counted and skipped.",
+               ("recal import log.csv --out log.mcap --units g",
+                "recal import log.csv --out log.mcap --rate 100")),
+    "export": ("The calibrated (default) or raw samples of one sensor of a recording (default: "
+               "the first) to CSV.",
+               ("recal export replayed.mcap --csv calibrated.csv",
+                "recal export in.mcap --csv raw.csv --topic raw --sensor-id wrist")),
+    "repair": ("Copies every complete message of a truncated or unfinished MCAP (a killed "
+               "daemon, a full disk) to a new, finished file; the input is never changed.",
+               ("recal repair recordings/recal-20261122T030000Z.mcap --out fixed.mcap",)),
+    "router": ("A Zenoh router for several gateways and calibration nodes on different "
+               "machines (loopback only unless --listen says otherwise). Runs until Ctrl-C or "
+               "SIGTERM.",
+               ("recal router", "recal router --listen tcp/127.0.0.1:7447")),
+}
+
+
+def _add_command(sub: argparse._SubParsersAction, name: str, help_: str
+                 ) -> argparse.ArgumentParser:
+    """A subcommand with its one-line help in `recal --help`, and the longer description and
+    examples of _ABOUT in `recal <name> --help`."""
+    text, examples = _ABOUT[name]
+    return sub.add_parser(name, help=help_, description=textwrap.fill(text, 79),
+                          epilog="examples:\n" + "\n".join(f"  {e}" for e in examples),
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="recal",
@@ -288,17 +364,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"recal {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    s = sub.add_parser("demo", help="the main job on an embedded default: a simulated sensor "
+    s = _add_command(sub, "demo", "the main job on an embedded default: a simulated sensor "
                        "on a pseudo-terminal, the daemon, Zenoh on loopback, a summary")
     s.add_argument("--seconds", type=float, default=45.0, help="how long to run (default 45)")
     s.add_argument("--out-dir", default="recal-demo", help="where the MCAP and summary go")
     s.set_defaults(func=_cmd_demo)
 
-    s = sub.add_parser("run", help="the daemon: serial ports -> Zenoh -> calibration -> MCAP")
+    s = _add_command(sub, "run", "the daemon: serial ports -> Zenoh -> calibration -> MCAP")
     add_run_arguments(s)
     s.set_defaults(func=run_from_args)
 
-    s = sub.add_parser("node", help="a calibration node on its own: subscribes to recal/*/raw "
+    s = _add_command(sub, "node", "a calibration node on its own: subscribes to recal/*/raw "
                        "(gateways elsewhere run with run_nodes = false)")
     s.add_argument("--config", help="service config (TOML): [zenoh], [[sensors]] priors, "
                    "[pipeline]")
@@ -308,7 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", help="model file for every sensor (recal discover --write-model)")
     s.set_defaults(func=_cmd_node)
 
-    s = sub.add_parser("replay", help="re-run the raw topic of a recording through the "
+    s = _add_command(sub, "replay", "re-run the raw topic of a recording through the "
                        "calibration node (same code as the daemon, no Zenoh)")
     s.add_argument("input", help="recording (.mcap)")
     s.add_argument("--out", required=True, help="output recording (.mcap)")
@@ -317,24 +393,30 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_replay)
 
-    s = sub.add_parser("simulate", help="make a wearer-like recording with ground truth")
+    s = _add_command(sub, "simulate", "make a wearer-like recording with ground truth")
     s.add_argument("--out", required=True, help="FILE.mcap or FILE.csv (truth: FILE.truth.npz)")
-    s.add_argument("--hours", type=float, default=2.0)
-    s.add_argument("--rate", type=float, default=50.0, help="sample rate in Hz")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--sensor-id", default="sim0")
-    s.add_argument("--offset-mg", type=float, default=50.0, help="offsets drawn in +-this")
-    s.add_argument("--gain-pct", type=float, default=3.0, help="gain errors drawn in +-this")
-    s.add_argument("--cross-axis-deg", type=float, default=0.0, help="misalignment +-this")
-    s.add_argument("--noise-mg", type=float, default=4.0, help="white noise per axis")
-    s.add_argument("--counts-per-g", type=float, default=1024.0, help="ADC scale; 0: no ADC")
+    s.add_argument("--hours", type=float, default=2.0, help="length (default 2)")
+    s.add_argument("--rate", type=float, default=50.0, help="sample rate in Hz (default 50)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--sensor-id", default="sim0", help="sensor id in the MCAP (default sim0)")
+    s.add_argument("--offset-mg", type=float, default=50.0,
+                   help="offsets drawn in +-this (default 50)")
+    s.add_argument("--gain-pct", type=float, default=3.0,
+                   help="gain errors drawn in +-this (default 3)")
+    s.add_argument("--cross-axis-deg", type=float, default=0.0,
+                   help="misalignment +-this (default 0)")
+    s.add_argument("--noise-mg", type=float, default=4.0,
+                   help="white noise per axis (default 4)")
+    s.add_argument("--counts-per-g", type=float, default=1024.0,
+                   help="ADC scale (default 1024); 0: no ADC, readings in g")
     s.add_argument("--offset-tc-mg-per-c", type=float, default=0.0,
                    help="offset temperature coefficient (random sign per axis)")
-    s.add_argument("--gain-tc-pct-per-c", type=float, default=0.0)
+    s.add_argument("--gain-tc-pct-per-c", type=float, default=0.0,
+                   help="gain temperature coefficient (random sign per axis)")
     s.add_argument("--ratiometric-pct-per-v", type=float, default=0.0,
                    help="whole output scaled by the supply (ratiometric parts)")
     s.add_argument("--drift-mg-per-h", type=float, default=0.0, help="offset drift in time")
-    s.add_argument("--nonlinearity-pct", type=float, default=0.0, help="quadratic, % per g")
+    s.add_argument("--nonlinearity-pct", type=float, default=0.0, help="quadratic, %% per g")
     s.add_argument("--temp-name", default="temp_c", help="name of the temperature channel")
     s.add_argument("--supply-name", default="vdd_v", help="name of the supply channel")
     s.add_argument("--aux", action="store_true", help="always write temperature and supply")
@@ -345,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="correlation time of that wander, minutes (default: the simulator's)")
     s.set_defaults(func=_cmd_simulate)
 
-    s = sub.add_parser("static", help="lab calibration from a table of still positions")
+    s = _add_command(sub, "static", "lab calibration from a table of still positions")
     s.add_argument("input", help="CSV with columns x,y,z (any unit) one row per position")
     s.add_argument("--fit-rows", help="rows to fit, e.g. 1-20 or 1-6,9 (default all)")
     s.add_argument("--known-orientations", action="store_true",
@@ -357,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", help="write the report as JSON here")
     s.set_defaults(func=_cmd_static)
 
-    s = sub.add_parser("discover", help="find the effects the model lacks: fit, residual, "
+    s = _add_command(sub, "discover", "find the effects the model lacks: fit, residual, "
                        "candidate effects scored on held-out time blocks, before -> after")
     s.add_argument("input", help="recording (.mcap), CSV time series (t_us/t_s, x, y, z, "
                    "channels), or a static table (x, y, z, one still row per pose)")
@@ -375,27 +457,30 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
     s.set_defaults(func=_cmd_discover)
 
-    s = sub.add_parser("import", help="CSV (t_us or t_s, x, y, z, aux...) -> MCAP raw topic")
-    s.add_argument("input")
-    s.add_argument("--out", required=True)
-    s.add_argument("--units", choices=("counts", "g", "ms2"))
+    s = _add_command(sub, "import", "CSV (t_us or t_s, x, y, z, aux...) -> MCAP raw topic")
+    s.add_argument("input", help="CSV file")
+    s.add_argument("--out", required=True, help="MCAP file to write")
+    s.add_argument("--units", choices=("counts", "g", "ms2"),
+                   help="unit of x, y, z (default: the header's x_<unit> names, else "
+                   "counts; must agree with them)")
     s.add_argument("--rate", type=float, help="sample rate when the CSV has no time column")
-    s.add_argument("--sensor-id", default="imported")
+    s.add_argument("--sensor-id", default="imported", help="sensor id (default imported)")
     s.set_defaults(func=_cmd_import)
 
-    s = sub.add_parser("export", help="MCAP -> CSV of calibrated (default) or raw samples")
-    s.add_argument("input")
-    s.add_argument("--csv", required=True)
-    s.add_argument("--topic", choices=("calibrated", "raw"), default="calibrated")
-    s.add_argument("--sensor-id")
+    s = _add_command(sub, "export", "MCAP -> CSV of calibrated (default) or raw samples")
+    s.add_argument("input", help="recording (.mcap)")
+    s.add_argument("--csv", required=True, help="CSV file to write")
+    s.add_argument("--topic", choices=("calibrated", "raw"), default="calibrated",
+                   help="which samples (default calibrated)")
+    s.add_argument("--sensor-id", help="which sensor (default: the first)")
     s.set_defaults(func=_cmd_export)
 
-    s = sub.add_parser("repair", help="recover every complete message of a truncated MCAP")
-    s.add_argument("input")
-    s.add_argument("--out", required=True)
+    s = _add_command(sub, "repair", "recover every complete message of a truncated MCAP")
+    s.add_argument("input", help="the damaged recording (.mcap), read only")
+    s.add_argument("--out", required=True, help="the repaired recording to write")
     s.set_defaults(func=_cmd_repair)
 
-    s = sub.add_parser("router", help="a Zenoh router for multi-gateway deployments")
+    s = _add_command(sub, "router", "a Zenoh router for multi-gateway deployments")
     s.add_argument("--listen", action="append", default=[],
                    help="endpoint (default tcp/127.0.0.1:7447; repeatable)")
     s.add_argument("--config", help="Zenoh JSON5 config, e.g. configs/zenoh-router.json5")
