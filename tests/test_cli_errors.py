@@ -71,6 +71,8 @@ CASES = [
                            "--mcap", "/proc/recal.mcap"], 1, "/proc/recal.mcap"),
     ("replay out under a file", ["replay", "{mcap}", "--out", "a_file/o.mcap", "--quiet"], 2,
      "a_file"),
+    ("replay out exists", ["replay", "{mcap}", "--out", "ok.mcap", "--quiet"], 2,
+     "ok.mcap exists; pass --overwrite to replace it"),
     ("simulate out under a file", ["simulate", "--out", "a_file/s.mcap", "--hours", "0.001"], 2,
      "a_file"),
     ("export csv under a file", ["export", "{mcap}", "--csv", "a_file/o.csv", "--topic", "raw"],

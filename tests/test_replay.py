@@ -110,6 +110,32 @@ def test_replay_without_prior_bootstraps_and_infers_the_rate(tmp_path: Path) -> 
     assert len(rec.read_all_raw(tmp_path / "out.mcap", SID)) == len(s.raw)
 
 
+def test_cli_replay_summary_json_and_overwrite(tmp_path: Path, capsys: Any) -> None:
+    """`recal replay`: a short summary per sensor on stdout, the whole one with --json, and an
+    existing --out replaced only with --overwrite (the first run's file is kept otherwise)."""
+    from recal import cli
+
+    s = sim(10.0, seed=4, p_upright=0.2, p_lying=0.3, p_any=0.5)
+    _raw_only(tmp_path / "raw.mcap", s.raw)
+    out, report = tmp_path / "out.mcap", tmp_path / "r.json"
+    assert cli.main(["replay", str(tmp_path / "raw.mcap"), "--out", str(out), "--quiet",
+                     "--json", str(report)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    doc = json.loads(report.read_text())
+    info = doc["sensors"][SID]
+    assert lines[0].startswith(f"replayed {len(s.raw)} samples of 1 sensor(s)")
+    assert lines[1].startswith(f"  {SID}: started from bootstrap, model diagonal;")
+    assert f"{info['counts']['updates']} updates" in lines[1] and info["counts"]["updates"] > 0
+    x_mg = info["described"]["offset"]["x_mg"]
+    assert any(line.startswith(f"    offset: x_mg {x_mg:.4g},") for line in lines), lines
+    size = out.stat().st_size
+    assert cli.main(["replay", str(tmp_path / "raw.mcap"), "--out", str(out), "--quiet"]) == 2
+    assert "pass --overwrite" in capsys.readouterr().err and out.stat().st_size == size
+    assert cli.main(["replay", str(tmp_path / "raw.mcap"), "--out", str(out), "--quiet",
+                     "--overwrite"]) == 0
+    assert len(rec.read_all_calibrated(out, SID)) == len(s.raw)
+
+
 def test_replay_with_config_prior_model_file_and_rotated_parts(tmp_path: Path,
                                                              capsys: Any) -> None:
     s = sim(3.0, seed=8)

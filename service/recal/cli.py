@@ -217,9 +217,41 @@ def _cmd_discover(a: argparse.Namespace) -> int:
 def _cmd_replay(a: argparse.Namespace) -> int:
     from recal.replay import replay
 
-    summary = replay(a.input, a.out, model=a.model, config=a.config, progress=not a.quiet)
-    print(json.dumps(summary, indent=2, default=str))
+    if Path(a.out).exists() and not a.overwrite:
+        raise UsageError(f"{a.out} exists; pass --overwrite to replace it")
+    summary = replay(a.input, a.out, model=a.model, config=a.config, progress=not a.quiet,
+                     overwrite=a.overwrite)
+    if a.json:
+        Path(a.json).write_text(json.dumps(summary, indent=2, default=str))
+    print("\n".join(replay_lines(summary)))
     return 0
+
+
+def replay_lines(summary: dict) -> list[str]:
+    """`recal replay`'s summary for a person: one block per sensor (--json has it all)."""
+    sensors = summary["sensors"]
+    lines = [f"replayed {summary['samples']} samples of {len(sensors)} sensor(s) in "
+             f"{summary['seconds']:.2f} s ({summary['samples_per_s'] / 1e6:.2f} M samples/s) "
+             f"into {summary['out']}"]
+    for sid, info in sensors.items():
+        c = info["counts"]
+        rms = info.get("residual_rms_mg")
+        lines.append(f"  {sid}: started from {info['start']}, model {info['model']}; "
+                     f"{c['quasi_static']} quasi-static samples, {c['windows']} windows, "
+                     f"{c['updates']} updates ({c['updates_rejected']} rejected)"
+                     + (f"; residual {rms:.2f} mg" if rms is not None else ""))
+        if not info["bootstrapped"]:
+            lines.append("    not calibrated: without a prior the recording must first cover "
+                         "enough orientations (5 half-axes); give one with --config or --model")
+            continue
+        for effect, values in info["described"].items():
+            lines.append(f"    {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in
+                                                        values.items()))
+        al = info.get("alignment")
+        if al:
+            lines.append(f"    mounting tilt {al['tilt_deg']:.1f} deg (Zheng's alarm above "
+                         f"{al['limit_deg']:g} deg" + (": raised)" if al["alarm"] else ")"))
+    return lines
 
 
 def _cmd_repair(a: argparse.Namespace) -> int:
@@ -305,7 +337,7 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                "daemon (detector, windows, estimator, correction) and writes raw, calibrated, "
                "body, plot, calibration states and events to a new MCAP. No Zenoh, no clocks: "
                "the same input gives the same output.",
-               ("recal replay recordings/wearer-10min.mcap --out replayed.mcap",
+               ("recal replay recordings/wearer-10min.mcap --out replayed.mcap --json r.json",
                 "recal replay in.mcap --out out.mcap --model model.json")),
     "simulate": ("A wearer-like recording (still postures and movement) sensed by a sensor "
                  "with random offsets and gains and the effects asked for, with the ground truth "
@@ -391,6 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", help="model file (effects and starting values)")
     s.add_argument("--config", help="service config (TOML) for priors and settings")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    s.add_argument("--json", help="write the whole summary (parameters, counts, alignment per "
+                   "sensor) as JSON here")
     s.set_defaults(func=_cmd_replay)
 
     s = _add_command(sub, "simulate", "make a wearer-like recording with ground truth")
