@@ -179,3 +179,29 @@ def test_a_large_table_round_trips(tmp_path: Path) -> None:
     table = read_csv(path)
     assert np.array_equal(table.batch.v, batch.v) and np.array_equal(table.batch.aux, batch.aux)
     assert np.array_equal(table.batch.t_us, batch.t_us)
+
+
+def test_cli_import_then_raw_export_keeps_the_unit(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """`recal import` of a table in g, `recal export --topic raw` of it: the axes come back as
+    x_g, y_g, z_g (from the recording's metadata), so importing the export again still reads g,
+    not counts; a recording without a unit (a live log) exports plain x, y, z."""
+    from recal import cli
+    from recal.io import recording
+
+    src = tmp_path / "in.csv"
+    src.write_text("t_us,x_g,y_g,z_g\n0,0.5,0.25,1.0\n10000,0.5,0.25,1.0\n")
+    assert cli.main(["import", str(src), "--out", str(tmp_path / "a.mcap")]) == 0
+    assert recording.metadata(tmp_path / "a.mcap")["units"] == "g"
+    assert cli.main(["export", str(tmp_path / "a.mcap"), "--csv", str(tmp_path / "a.csv"),
+                     "--topic", "raw"]) == 0
+    assert (tmp_path / "a.csv").read_text().splitlines()[0] == "t_us,x_g,y_g,z_g"
+    back = read_csv(tmp_path / "a.csv")
+    assert back.units == "g" and np.array_equal(back.batch.v, [[0.5, 0.25, 1.0]] * 2)
+    with recording.RecordingWriter(tmp_path / "live.mcap", fsync=False) as w:
+        w.write_raw("s1", back.batch, 1)
+    assert recording.metadata(tmp_path / "live.mcap").get("units") is None
+    assert cli.main(["export", str(tmp_path / "live.mcap"), "--csv", str(tmp_path / "b.csv"),
+                     "--topic", "raw"]) == 0
+    assert (tmp_path / "b.csv").read_text().splitlines()[0] == "t_us,x,y,z"
+    capsys.readouterr()

@@ -102,7 +102,8 @@ def _cmd_export(a: argparse.Namespace) -> int:
     sid = a.sensor_id or sensors[0]
     if a.topic == "raw":
         batch = recording.read_all_raw(a.input, sid)
-        csv_table.write_raw_csv(a.csv, batch)
+        units = recording.metadata(a.input).get("units")  # set by `recal import`
+        csv_table.write_raw_csv(a.csv, batch, units if units in csv_table.UNITS else None)
     else:
         batch = recording.read_all_calibrated(a.input, sid)
         if len(batch) == 0:

@@ -98,6 +98,7 @@ __all__ = [
     "iter_plot",
     "iter_raw",
     "iter_raw_logged",
+    "metadata",
     "read_all_calibrated",
     "read_all_raw",
     "recording_parts",
@@ -1098,6 +1099,17 @@ def read_all_calibrated(path: Paths, sensor_id: str,
     """Every calibrated sample of one sensor, concatenated in file order."""
     return CalibratedBatch.concat([b for _, b, _ in iter_calibrated(path, sensor_id,
                                                                     topic_suffix)])
+
+
+def metadata(path: PathLike) -> dict[str, str]:
+    """The ``recal`` metadata record of a recording's first part (version, part, and what the
+    writer was given, e.g. ``units`` from `recal import`); empty if it has none."""
+    with open(path, "rb") as f:
+        reader, _ = _open_summary(f, Path(path))
+        for record in reader.iter_metadata():
+            if record.name == "recal":
+                return dict(record.metadata)
+    return {}
 
 
 def _channels(path: Path) -> list[Channel]:
