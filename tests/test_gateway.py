@@ -20,7 +20,7 @@ from polling import wait_for
 from recal.config import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
 from recal.demo import free_port
-from recal.gateway import Gateway, run_gateway
+from recal.gateway import NOTE_PREFIX, Gateway, run_gateway
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
@@ -189,6 +189,9 @@ def test_end_to_end_exactly_once_matches_pipeline_and_replay(tmp_path: Path) -> 
     assert "port_opened" in kinds and "node_started" in kinds
     perr = [e for e in events if e["kind"] == "parse_errors"]
     assert perr and sum(perr[-1]["detail"]["total"].values()) == bad
+    # ... and the operator got one line for them, not one a second (PARSE_NOTE_S)
+    noted = [ln for ln in live.lines if ln.startswith(f"{NOTE_PREFIX} {SID}: skipped bad input")]
+    assert len(noted) == 1 and noted[0].endswith("; valid samples kept"), live.lines
     gw_events = [obj["kind"] for _, obj, _ in rec.iter_json(mcap, "/gateway/events")]
     assert gw_events[0] == "start" and gw_events[-1] == "stop"
     states = [obj for _, obj, _ in rec.iter_json(mcap, f"/{SID}/calibration")]
@@ -232,6 +235,12 @@ def test_unplug_and_replug_reconnects(tmp_path: Path) -> None:
     assert len(rec.read_all_calibrated(mcap, SID)) == len(raw)  # and calibrated
     kinds = [obj["kind"] for _, obj, _ in rec.iter_json(mcap, f"/{SID}/events")]
     assert kinds.index("port_lost") < kinds.index("port_found")
+    assert kinds.count("port_lost") == 1  # the stop's last read is no hang-up
+    # the operator sees the outage on stdout (the journal under systemd), in order
+    head = f"{NOTE_PREFIX} {SID}: port "
+    noted = [ln[len(head):].split()[0] for ln in live.lines if ln.startswith(head)]
+    # (a retry while the device was away adds "missing" between lost and found)
+    assert [k for k in noted if k != "missing"] == ["opened", "lost", "found"], live.lines
 
 
 def test_kill9_repair_then_restart_resumes_from_checkpoint(tmp_path: Path,

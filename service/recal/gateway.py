@@ -108,6 +108,11 @@ IO_RETRY_S = 0.1  # pause after a failed I/O round
 LISTEN_CHECK_S = 0.5  # how often the loop asks whether anyone subscribes to live data
 LIVE_TOPICS = ("raw", "calibrated", "body")  # a subscriber to any of these wants low latency
 REPORT_INTERVAL_S = 1.0  # aggregated events (parse errors, dropped publishes) at most this often
+NOTE_PREFIX = "recal gateway:"  # a line for the operator (stdout: the journal under systemd)
+NOTE_KINDS = ("port_opened", "port_found", "port_lost", "port_missing")  # one line each
+PARSE_NOTE_S = 60.0  # bad input is summed up for the operator at most this often per sensor
+# a partial line cut at a (re)connect is expected: an event in the log, no line for the operator
+PARSE_NOT_NOTED = frozenset({"resync_dropped", "truncated"})
 STOP_JOIN_S = 10.0
 
 
@@ -198,6 +203,8 @@ class _Port:
     open_failures: int = 0
     parse_errors: dict[str, int] = field(default_factory=dict)
     parse_reported: dict[str, int] = field(default_factory=dict)
+    parse_noted: dict[str, int] = field(default_factory=dict)  # as of the last operator line
+    parse_noted_s: float = float("-inf")
     node_errors: int = 0
 
     @property
@@ -339,7 +346,9 @@ class Gateway:
                     ready = sel.select(READ_WAIT_S)
                     next_tick = time.monotonic()
                 self._guarded_round(sel, [k.data for k, _ in ready])
-            self._guarded_round(sel, list(self.ports.values()), final=True)
+            # a last read of every port, not as "readable": an empty read then means nothing
+            # was left, not that the device hung up (a port_lost at every stop, before)
+            self._guarded_round(sel, [], final=True)
         finally:
             sel.close()
 
@@ -480,6 +489,7 @@ class Gateway:
                 p.parse_reported = snapshot
                 self._sensor_event(p.sensor_id, "parse_errors", now,
                                    {"new": delta, "total": snapshot})
+            self._note_parse_errors(p, snapshot)
         dropped = self._publish_dropped()
         if dropped > self._publish_reported:
             new = dropped - self._publish_reported
@@ -488,6 +498,18 @@ class Gateway:
                 self._sensor_event(sid, "publish_dropped", now, {"new": new, "total": dropped},
                                    publish=False)
 
+    def _note_parse_errors(self, p: _Port, snapshot: dict[str, int]) -> None:
+        """Bad input skipped since the last such line, for the operator, at most every
+        PARSE_NOTE_S per sensor (a device that sends garbage for weeks fills no journal)."""
+        now_s = time.monotonic()
+        new = {k: v - p.parse_noted.get(k, 0) for k, v in snapshot.items()
+               if k not in PARSE_NOT_NOTED and v != p.parse_noted.get(k, 0)}
+        if not new or now_s < p.parse_noted_s + PARSE_NOTE_S:
+            return
+        p.parse_noted, p.parse_noted_s = snapshot, now_s
+        what = ", ".join(f"{k} {v}" for k, v in sorted(new.items()))
+        self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples kept")
+
     def _publish_dropped(self) -> int:
         if self.bus is None:
             return 0
@@ -495,6 +517,10 @@ class Gateway:
 
     def _sensor_event(self, sid: str, kind: str, now: int, detail: Any,
                       publish: bool = True) -> None:
+        if kind in NOTE_KINDS:
+            why = f": {detail['error']}" if isinstance(detail, dict) and "error" in detail else ""
+            port = detail.get("port", "") if isinstance(detail, dict) else ""
+            self.out(f"{NOTE_PREFIX} {sid}: {kind.replace('_', ' ')} {port}{why}".rstrip())
         data = self.writer.write_event(kind, now, sensor_id=sid, detail=detail)
         if publish:
             self._publish(sid, "events", data)
