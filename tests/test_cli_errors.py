@@ -38,6 +38,8 @@ FILES: dict[str, bytes] = {
     "no_time.csv": b"x,y,z\n1,2,3\n",
     "negative_time.csv": b"t_us,x,y,z\n-5,1,2,3\n",
     "static_bad.csv": b"x,y,z\n1,2\n",
+    "static_ok.csv": b"x,y,z\n" + b"".join(f"{x},{y},{z}\n".encode() for x, y, z in (
+        (1, 0, 0), (0, 1, 0), (0, 0, 1), (-1, 0, 0), (0, -1, 0), (0, 0, -1))),
     "a_file": b"not a directory\n",
 }
 
@@ -102,6 +104,8 @@ CASES = [
     ("csv units clash", ["import", "no_time.csv", "--out", "o.mcap", "--units", "parsecs"], 2,
      "--units"),
     ("static bad rows", ["static", "static_bad.csv"], 2, "static_bad.csv"),
+    ("static too few rows", ["static", "static_ok.csv", "--fit-rows", "1-3"], 2,
+     "3 fitted rows cannot determine the 9 parameters of the full model"),
     ("static not utf-8", ["static", "not_utf8.csv"], 2, "not_utf8.csv: not UTF-8"),
     # the command line itself
     ("unknown command", ["frobnicate"], 2, "invalid choice"),

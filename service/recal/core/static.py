@@ -79,6 +79,11 @@ def fit_unknown_orientations(v: np.ndarray, fit_rows: np.ndarray, g: float | Non
     v = np.asarray(v, np.float64)
     g = float(np.median(np.linalg.norm(v, axis=1))) if g is None else float(g)
     base = SensorModel.full(g) if full else SensorModel.diagonal(g)
+    n_fit = int(np.count_nonzero(fit_rows))
+    if n_fit < base.size:  # fewer rows than unknowns: any table "fits" them exactly
+        raise ValueError(f"{n_fit} fitted rows cannot determine the {base.size} parameters of "
+                         f"the {'full' if full else 'diagonal'} model; fit at least "
+                         f"{base.size} rows" + (" (or 6 with --diagonal)" if full else ""))
     start = initial_params(base, v[fit_rows])
     model, p0 = start if start is not None else (base, base.nominal())
     model = SensorModel(model.effects, g, model.spreads)
