@@ -336,6 +336,7 @@ def test_cli_discover_reads_a_static_table_and_a_csv_time_series(tmp_path: Path)
     doc = json.loads(report.read_text())
     assert doc["input"]["kind"] == "table" and doc["input"]["windows"] == 24
     assert doc["effects_selected"] == []  # offsets and gains explain the table
+    assert doc["held_at_start"] == []  # 24 directions all round: every parameter determined
     assert doc["heldout_error_mg"]["final"] < 1.0
     assert not dr.csv_has_time(table)
 

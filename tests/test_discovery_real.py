@@ -61,6 +61,7 @@ def test_xsens_multiposition_cross_axis_found_and_held_out_error_falls() -> None
     angles = result.selected[0].extra
     assert 0.5 < 90.0 - angles["theta_yz_deg"] < 2.0  # y and z sensing axes ~1.2° off square
     assert result.data.dropped >= 1  # windows straddling a rotation were screened out
+    assert result.held_at_start() == ()  # ~13 orientations determine every parameter
 
 
 def test_geneactiv_cooling_temperature_offset_on_the_axis_along_gravity() -> None:
@@ -78,6 +79,10 @@ def test_geneactiv_cooling_temperature_offset_on_the_axis_along_gravity() -> Non
     assert temp_offset.observable == {"o_temp_x": False, "o_temp_y": True, "o_temp_z": False}
     assert temp_offset.params["x_mg_per_temp"] == 0.0 == temp_offset.params["z_mg_per_temp"]
     assert abs(temp_offset.params["y_mg_per_temp"]) > 0.1
+    # one pose: no gain, and no offset across gravity, is determined; the report says so
+    held = set(result.held_at_start())
+    assert {"s_x", "s_y", "s_z", "o_x", "o_z", "o_temp_x", "o_temp_z"} <= held, held
+    assert not {"o_y", "o_temp_y"} & held, held
     assert result.heldout_final_mg < 0.8 * result.heldout_base_mg
     # drift of the still signal against temperature, on held-out windows, before and after
     temp = result.data.cov.get("temp")

@@ -9,7 +9,8 @@ JSON report (``--json``), at least::
     {"effects_selected": [{"kind", "covariate", "params": {...}, ...}],
      "heldout_error_mg": {"base", "final"}, "steps": [...]}
 
-plus ``reference``, ``values``/``sd`` (raw units) and ``observable`` per selected effect,
+plus ``held_at_start`` (parameters the poses cannot determine, left at their start),
+``reference``, ``values``/``sd`` (raw units) and ``observable`` per selected effect,
 ``axis_angles_deg`` for cross-axis, every candidate's score per step (``candidates``) and in
 the round that stopped the search (``last_round``), the in-sample errors, the residual
 analysis before and after, the criterion and the input. NaN (a correlation with a constant)
@@ -174,6 +175,7 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
              for i, s in enumerate(result.steps)]
     report = {
         "source": source,
+        "held_at_start": list(result.held_at_start()),
         "input": {"kind": data.source, "windows": len(data), "dropped_moving": data.dropped,
                   "aux_names": list(data.aux_names), "s0": data.s0,
                   "span_h": float(np.ptp(t_h)) if data.has_time and len(t_h) else None,
@@ -238,6 +240,9 @@ def format_table(result: dc.DiscoveryResult) -> str:
     rows.append(f"held-out error: {result.heldout_base_mg:.3f} mg -> "
                 f"{result.heldout_final_mg:.3f} mg; in-sample {result.fit_base_mg:.3f} -> "
                 f"{result.fit_final_mg:.3f} mg")
+    held = result.held_at_start()
+    if held:
+        rows.append(f"held at their start, the poses cannot determine them: {', '.join(held)}")
     for e in result.selected:
         unseen = [k for k, v in e.observable.items() if not v]
         rows.append(f"  {e.label}: {_short(e.params, 6)}"

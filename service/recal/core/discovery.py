@@ -643,6 +643,13 @@ class DiscoveryResult:
     def fit_final_mg(self) -> float:
         return self.analysis_final.rms_mg
 
+    def held_at_start(self) -> tuple[str, ...]:
+        """Parameters of the final model the poses cannot determine (`_free`: a gain needs its
+        axis seen from both sides, an offset from one at least), so they kept their start
+        value: e.g. every gain, and the offsets across gravity, of a recording in one pose."""
+        free = _free(self.model, self.p, self.data)
+        return tuple(n for n, f in zip(self.model.names, free, strict=True) if not f)
+
     def corrected(self, final: bool = True) -> np.ndarray:
         """The windows corrected by the final (or base) fit on all windows, g (M,3)."""
         model, p = (self.model, self.p) if final else (self.base_model, self.base_p)
