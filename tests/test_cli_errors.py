@@ -57,6 +57,8 @@ CASES = [
     ("replay bad config", ["replay", "{mcap}", "--out", "o.mcap", "--config", "syntax.toml"],
      2, "syntax.toml: not valid TOML"),
     ("node bad config", ["node", "--config", "wrong_type.toml"], 2, "threshold_g"),
+    ("node without zenoh", ["node", "--config", "no_zenoh.toml"], 2,
+     "a calibration node takes its samples from Zenoh, but the config's [zenoh] enabled = false"),
     ("missing model", ["replay", "{mcap}", "--out", "o.mcap", "--model", "nowhere.json"], 2,
      "nowhere.json"),
     # a missing port

@@ -920,6 +920,10 @@ def run_node(config: ServiceConfig | str | Path | None = None,
         fail(f"{ERROR_PREFIX} {exc}")
         return 2
     own_bus = bus is None
+    if own_bus and not cfg.zenoh.enabled:
+        fail(f"{ERROR_PREFIX} a calibration node takes its samples from Zenoh, but the "
+             f"config's [zenoh] enabled = false")
+        return 2
     try:
         bus = open_bus(cfg) if own_bus else bus
     except Exception as exc:  # zenoh.ZError: bad endpoint, port in use, router down
