@@ -113,6 +113,8 @@ CASES = [
     ("unknown command", ["frobnicate"], 2, "invalid choice"),
     ("missing argument", ["import", "no_time.csv"], 2, "required: --out"),
     ("not a number", ["simulate", "--out", "s.mcap", "--hours", "two"], 2, "--hours"),
+    ("demo not positive", ["demo", "--seconds", "0"], 2,
+     "argument --seconds: must be a positive number, not 0"),
     ("router bad endpoint", ["router", "--listen", "tcp/999.1.1.1:1"], 2,
      "cannot start the router"),
     ("router missing config", ["router", "--config", "nowhere.json5"], 2,

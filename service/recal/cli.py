@@ -31,6 +31,17 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"recal: error: {message} (see {self.prog} --help)\n")
 
 
+def _positive(text: str) -> float:
+    """argparse type: a finite number above 0."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (x > 0 and np.isfinite(x)):
+        raise argparse.ArgumentTypeError(f"must be a positive number, not {text}")
+    return x
+
+
 # --- simulate --------------------------------------------------------------------------------
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from recal import sim
@@ -399,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = _add_command(sub, "demo", "the main job on an embedded default: a simulated sensor "
                        "on a pseudo-terminal, the daemon, Zenoh on loopback, a summary")
-    s.add_argument("--seconds", type=float, default=45.0, help="how long to run (default 45)")
+    s.add_argument("--seconds", type=_positive, default=45.0, help="how long to run (default 45)")
     s.add_argument("--out-dir", default="recal-demo", help="where the MCAP and summary go")
     s.set_defaults(func=_cmd_demo)
 
