@@ -40,6 +40,10 @@ class BufferConfig:
     merge_max: int = 15
     merge_deg: float = 1.0
 
+    def __post_init__(self) -> None:
+        if min(self.grid, self.per_cell, self.merge_max) < 1 or not self.merge_deg >= 0:
+            raise ValueError("grid, per_cell and merge_max must be at least 1, merge_deg >= 0")
+
     @property
     def cells(self) -> int:
         return 6 * self.grid * self.grid

@@ -143,6 +143,10 @@ class EstimatorConfig:
             raise ValueError(f"estimator mode must be 'all' or 'offsets', not {self.mode!r}")
         if self.offset_rate_sd_g_per_h < 0 or self.process_scale < 0:
             raise ValueError("offset_rate_sd_g_per_h and process_scale must be >= 0")
+        if not (self.sigma_floor_g > 0 and self.tol > 0 and 0 < self.observable_ratio <= 1):
+            raise ValueError("sigma_floor_g and tol must be positive, observable_ratio in (0, 1]")
+        if self.max_iter < 1 or self.min_windows < 1:
+            raise ValueError("max_iter and min_windows must be at least 1")
 
 
 @dataclass(frozen=True, eq=False)

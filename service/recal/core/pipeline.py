@@ -87,6 +87,21 @@ class PipelineConfig:
             raise ValueError("guard_s must be positive and shorter than window_s")
         if self.rate_hz <= 0:
             raise ValueError("rate_hz must be positive")
+        positive = {"threshold_g": self.threshold_g, "flat_s": self.flat_s,
+                    "norm_tol_g": self.norm_tol_g, "full_scale_g": self.full_scale_g or 1.0}
+        bad = [k for k, v in positive.items() if not v > 0]  # inf: no limit (window_means)
+        if bad:
+            raise ValueError(f"{', '.join(bad)} must be positive")
+        nyquist = self.rate_hz / 2
+        if not (0 < self.hp_hz < nyquist and 0 < self.lp_hz < nyquist):
+            raise ValueError(f"hp_hz and lp_hz must lie between 0 and half the sample rate "
+                             f"({nyquist:g} Hz)")
+        if not 0 < self.min_fill <= 1:
+            raise ValueError("min_fill must be in (0, 1]")
+        if self.update_every < 1 or self.bootstrap_min_cells < 1:
+            raise ValueError("update_every and bootstrap_min_cells must be at least 1")
+        if self.max_update_interval_s < 0:
+            raise ValueError("max_update_interval_s must be >= 0 (0: every try updates)")
 
     def to_dict(self) -> dict:
         return asdict(self)
