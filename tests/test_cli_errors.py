@@ -84,13 +84,22 @@ CASES = [
                            "--mcap", "/proc/recal.mcap"], 1, "/proc/recal.mcap"),
     ("replay out under a file", ["replay", "{mcap}", "--out", "a_file/o.mcap", "--quiet"], 2,
      "a_file"),
-    ("replay out exists", ["replay", "{mcap}", "--out", "ok.mcap", "--quiet"], 2,
-     "ok.mcap exists; pass --overwrite to replace it"),
+    ("replay out exists", ["replay", "{mcap}", "--out", "no_time.csv", "--quiet"], 2,
+     "no_time.csv exists; pass --overwrite to replace it"),
     ("simulate out under a file", ["simulate", "--out", "a_file/s.mcap", "--hours", "0.001"], 2,
      "a_file"),
     ("export csv under a file", ["export", "{mcap}", "--csv", "a_file/o.csv", "--topic", "raw"],
      2, "a_file"),
     ("repair out under a file", ["repair", "{mcap}", "--out", "a_file/o.mcap"], 2, "a_file"),
+    # an output that is the input
+    ("repair onto its input", ["repair", "{mcap}", "--out", "{mcap}"], 2,
+     "ok.mcap is the input ok.mcap; write the output elsewhere"),
+    ("replay onto its input", ["replay", "{mcap}", "--out", "{mcap}", "--overwrite"], 2,
+     "ok.mcap is the input ok.mcap"),
+    ("export onto its input", ["export", "{mcap}", "--csv", "{mcap}", "--topic", "raw"], 2,
+     "ok.mcap is the input ok.mcap"),
+    ("import onto its input", ["import", "no_time.csv", "--out", "no_time.csv", "--rate", "50"],
+     2, "no_time.csv is the input no_time.csv"),
     # a missing input file
     ("replay missing input", ["replay", "nowhere.mcap", "--out", "o.mcap"], 2, "nowhere.mcap"),
     ("import missing input", ["import", "nowhere.csv", "--out", "o.mcap"], 2, "nowhere.csv"),
@@ -239,3 +248,19 @@ def test_every_command_explains_itself(command: str,
     assert examples and all(e.startswith(f"  recal {command}") for e in examples), examples
     unexplained = [a.dest for a in _subcommands()[command]._actions if not a.help]
     assert unexplained == [], unexplained
+
+
+def test_an_input_named_as_output_is_left_intact(tmp_path: Path,
+                                                 capfd: pytest.CaptureFixture[str],
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """`recal repair x.mcap --out x.mcap` once left 405 bytes of a 942 kB recording: every
+    command that reads a file and writes another refuses to write onto its input."""
+    with _workdir_in(tmp_path) as root:
+        monkeypatch.chdir(root)
+        before = {name: (root / name).read_bytes() for name in ("ok.mcap", "no_time.csv")}
+        for case in ("repair onto its input", "replay onto its input", "export onto its input",
+                     "import onto its input"):
+            args = next(c[1] for c in CASES if c[0] == case)
+            status, _, _ = _main(_args(args, root), capfd)
+            assert status == 2
+        assert {name: (root / name).read_bytes() for name in before} == before

@@ -84,6 +84,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 def _cmd_import(a: argparse.Namespace) -> int:
     from recal.io import csv_table, recording
 
+    recording.refuse_input_as_output(a.out, a.input)
     table = csv_table.read_csv(a.input, units=a.units, rate_hz=a.rate)
     t_us = table.batch.t_us
     if len(t_us) == 0:
@@ -107,6 +108,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
 def _cmd_export(a: argparse.Namespace) -> int:
     from recal.io import csv_table, recording
 
+    recording.refuse_input_as_output(a.csv, a.input)
     sensors = recording.sensors(a.input)
     if not sensors:
         raise UsageError(f"{a.input} holds no sensor topics")
@@ -227,8 +229,10 @@ def _cmd_discover(a: argparse.Namespace) -> int:
 
 # --- replay / repair / run / demo / router ---------------------------------------------------
 def _cmd_replay(a: argparse.Namespace) -> int:
+    from recal.io import recording
     from recal.replay import replay
 
+    recording.refuse_input_as_output(a.out, a.input)
     if Path(a.out).exists() and not a.overwrite:
         raise UsageError(f"{a.out} exists; pass --overwrite to replace it")
     summary = replay(a.input, a.out, model=a.model, config=a.config, progress=not a.quiet,

@@ -146,6 +146,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     cfg = config if isinstance(config, ServiceConfig) else load_config(config)
     if model is not None:
         load_model_file(model)  # a bad model file fails now, before any output exists
+    rec.refuse_input_as_output(out_mcap, in_mcap)
     paths = rec.recording_parts(in_mcap)
     setups = _setups(paths)
     t0 = time.perf_counter()

@@ -102,6 +102,7 @@ __all__ = [
     "read_all_calibrated",
     "read_all_raw",
     "recording_parts",
+    "refuse_input_as_output",
     "repair",
     "sensor_topic",
     "sensors",
@@ -1101,6 +1102,19 @@ def read_all_calibrated(path: Paths, sensor_id: str,
                                                                     topic_suffix)])
 
 
+def refuse_input_as_output(out: PathLike, *inputs: PathLike) -> None:
+    """Raise if ``out`` names one of ``inputs`` (or a rotated part of one): writing there would
+    destroy what is being read (``recal repair x.mcap --out x.mcap`` did)."""
+    target = Path(out)
+    if not target.exists():
+        return
+    for given in inputs:
+        for part in recording_parts(given) if str(given).endswith(".mcap") else [Path(given)]:
+            if part.exists() and os.path.samefile(part, target):
+                raise ValueError(f"{out} is the input {part}; write the output elsewhere "
+                                 "(an input is never overwritten)")
+
+
 def metadata(path: PathLike) -> dict[str, str]:
     """The ``recal`` metadata record of a recording's first part (version, part, and what the
     writer was given, e.g. ``units`` from `recal import`); empty if it has none."""
@@ -1310,6 +1324,7 @@ def repair(broken_path: PathLike, fixed_path: PathLike, *,
     """
     src_path, dst_path = Path(broken_path), Path(fixed_path)
     size = src_path.stat().st_size
+    refuse_input_as_output(dst_path, src_path)
     report = RepairReport(src_path, dst_path, size)
     with open(src_path, "rb") as src:
         head = src.read(8)
