@@ -100,6 +100,15 @@ CASES = [
      "ok.mcap is the input ok.mcap"),
     ("import onto its input", ["import", "no_time.csv", "--out", "no_time.csv", "--rate", "50"],
      2, "no_time.csv is the input no_time.csv"),
+    # an output that exists (replaced only with --overwrite)
+    ("simulate out exists", ["simulate", "--out", "{mcap}", "--hours", "0.001"], 2,
+     "ok.mcap exists; pass --overwrite to replace it"),
+    ("import out exists", ["import", "no_time.csv", "--out", "{mcap}", "--rate", "50"], 2,
+     "ok.mcap exists; pass --overwrite"),
+    ("export out exists", ["export", "{mcap}", "--csv", "no_time.csv", "--topic", "raw"], 2,
+     "no_time.csv exists; pass --overwrite"),
+    ("repair out exists", ["repair", "{mcap}", "--out", "no_time.csv"], 2,
+     "no_time.csv exists; pass --overwrite"),
     # a missing input file
     ("replay missing input", ["replay", "nowhere.mcap", "--out", "o.mcap"], 2, "nowhere.mcap"),
     ("import missing input", ["import", "nowhere.csv", "--out", "o.mcap"], 2, "nowhere.csv"),
@@ -254,12 +263,14 @@ def test_an_input_named_as_output_is_left_intact(tmp_path: Path,
                                                  capfd: pytest.CaptureFixture[str],
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """`recal repair x.mcap --out x.mcap` once left 405 bytes of a 942 kB recording: every
-    command that reads a file and writes another refuses to write onto its input."""
+    command that reads a file and writes another refuses to write onto its input, and one
+    that would replace an existing file does so only with --overwrite."""
     with _workdir_in(tmp_path) as root:
         monkeypatch.chdir(root)
         before = {name: (root / name).read_bytes() for name in ("ok.mcap", "no_time.csv")}
         for case in ("repair onto its input", "replay onto its input", "export onto its input",
-                     "import onto its input"):
+                     "import onto its input", "simulate out exists", "import out exists",
+                     "export out exists", "repair out exists"):
             args = next(c[1] for c in CASES if c[0] == case)
             status, _, _ = _main(_args(args, root), capfd)
             assert status == 2

@@ -193,6 +193,8 @@ def test_cli_import_then_raw_export_keeps_the_unit(tmp_path: Path,
     src.write_text("t_us,x_g,y_g,z_g\n0,0.5,0.25,1.0\n10000,0.5,0.25,1.0\n")
     assert cli.main(["import", str(src), "--out", str(tmp_path / "a.mcap")]) == 0
     assert recording.metadata(tmp_path / "a.mcap")["units"] == "g"
+    again = ["import", str(src), "--out", str(tmp_path / "a.mcap")]
+    assert cli.main(again) == 2 and cli.main([*again, "--overwrite"]) == 0  # only when asked
     assert cli.main(["export", str(tmp_path / "a.mcap"), "--csv", str(tmp_path / "a.csv"),
                      "--topic", "raw"]) == 0
     assert (tmp_path / "a.csv").read_text().splitlines()[0] == "t_us,x_g,y_g,z_g"

@@ -31,6 +31,12 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"recal: error: {message} (see {self.prog} --help)\n")
 
 
+def _new_output(path: str, overwrite: bool) -> None:
+    """An existing file is replaced only when asked (a recording may hold days of data)."""
+    if Path(path).exists() and not overwrite:
+        raise UsageError(f"{path} exists; pass --overwrite to replace it")
+
+
 def _positive(text: str) -> float:
     """argparse type: a finite number above 0."""
     try:
@@ -62,17 +68,18 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     temp = {k: v for k, v in (("temp_wander_c", a.temp_wander_c),
                               ("temp_wander_tau_min", a.temp_tau_min)) if v is not None}
     wearer = sim.WearerSpec(upright_only=a.upright_only, always_aux=a.aux, **temp)
-    res = sim.simulate(a.hours, a.rate, a.seed, sensor, wearer)
     out = Path(a.out)
+    if out.suffix.lower() not in (".csv", ".mcap"):
+        raise UsageError(f"--out must end in .mcap or .csv, not {out.name!r}")
+    _new_output(a.out, a.overwrite)
+    res = sim.simulate(a.hours, a.rate, a.seed, sensor, wearer)
     if out.suffix.lower() == ".csv":
         csv_table.write_raw_csv(out, res.raw)
-    elif out.suffix.lower() == ".mcap":
+    else:
         with recording.RecordingWriter(out, overwrite=True) as w:
             for i in range(0, len(res.raw), 1000):
                 b = res.raw[i:i + 1000]
                 w.write_raw(a.sensor_id, b, int(b.t_us[0]) * 1000)
-    else:
-        raise UsageError(f"--out must end in .mcap or .csv, not {out.name!r}")
     truth = out.with_suffix(".truth.npz")
     sim.save_truth(truth, res)
     print(f"wrote {out} ({len(res.raw)} samples, {a.hours:g} h at {a.rate:g} Hz, channels "
@@ -85,6 +92,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
     from recal.io import csv_table, recording
 
     recording.refuse_input_as_output(a.out, a.input)
+    _new_output(a.out, a.overwrite)
     table = csv_table.read_csv(a.input, units=a.units, rate_hz=a.rate)
     t_us = table.batch.t_us
     if len(t_us) == 0:
@@ -109,6 +117,7 @@ def _cmd_export(a: argparse.Namespace) -> int:
     from recal.io import csv_table, recording
 
     recording.refuse_input_as_output(a.csv, a.input)
+    _new_output(a.csv, a.overwrite)
     sensors = recording.sensors(a.input)
     if not sensors:
         raise UsageError(f"{a.input} holds no sensor topics")
@@ -233,8 +242,7 @@ def _cmd_replay(a: argparse.Namespace) -> int:
     from recal.replay import replay
 
     recording.refuse_input_as_output(a.out, a.input)
-    if Path(a.out).exists() and not a.overwrite:
-        raise UsageError(f"{a.out} exists; pass --overwrite to replace it")
+    _new_output(a.out, a.overwrite)
     summary = replay(a.input, a.out, model=a.model, config=a.config, progress=not a.quiet,
                      overwrite=a.overwrite)
     if a.json:
@@ -273,6 +281,8 @@ def replay_lines(summary: dict) -> list[str]:
 def _cmd_repair(a: argparse.Namespace) -> int:
     from recal.io import recording
 
+    recording.refuse_input_as_output(a.out, a.input)
+    _new_output(a.out, a.overwrite)
     rep = recording.repair(a.input, a.out)
     print(f"recovered {rep.messages_recovered} messages into {a.out}"
           f" ({'input was truncated' if rep.truncated else 'input was complete'})")
@@ -476,6 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sd of the slow temperature wander, deg C (default: the simulator's)")
     s.add_argument("--temp-tau-min", type=float,
                    help="correlation time of that wander, minutes (default: the simulator's)")
+    s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_simulate)
 
     s = _add_command(sub, "static", "lab calibration from a table of still positions")
@@ -516,6 +527,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "counts; must agree with them)")
     s.add_argument("--rate", type=float, help="sample rate when the CSV has no time column")
     s.add_argument("--sensor-id", default="imported", help="sensor id (default imported)")
+    s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_import)
 
     s = _add_command(sub, "export", "MCAP -> CSV of calibrated (default) or raw samples")
@@ -524,11 +536,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topic", choices=("calibrated", "raw"), default="calibrated",
                    help="which samples (default calibrated)")
     s.add_argument("--sensor-id", help="which sensor (default: the first)")
+    s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_export)
 
     s = _add_command(sub, "repair", "recover every complete message of a truncated MCAP")
     s.add_argument("input", help="the damaged recording (.mcap), read only")
     s.add_argument("--out", required=True, help="the repaired recording to write")
+    s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_repair)
 
     s = _add_command(sub, "router", "a Zenoh router for multi-gateway deployments")
