@@ -77,6 +77,10 @@ CASES = [
     ("sensor without port", ["run", "--config", "portless.toml"], 2, "'wrist' has no port"),
     ("ports and ids differ", ["run", "--config", "no_zenoh.toml", "--port", "{tty}",
                               "--sensor-id", "a", "--sensor-id", "b"], 2, "1 ports but 2"),
+    ("one port twice", ["run", "--config", "no_zenoh.toml", "--port", "{tty}", "--port",
+                        "{tty}"], 2, "is given to two sensors ('sensor0' and 'sensor1')"),
+    ("one id twice", ["run", "--config", "no_zenoh.toml", "--port", "{tty}", "--port", "{mcap}",
+                      "--sensor-id", "a", "--sensor-id", "a"], 2, "sensor id 'a' is given twice"),
     # an MCAP path that cannot be written (root may write anywhere, but not under a file)
     ("run mcap under a file", ["run", "--config", "no_zenoh.toml", "--port", "{tty}",
                                "--mcap", "a_file/x.mcap"], 1, "cannot open the recording"),

@@ -618,7 +618,7 @@ def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
             else:
                 base = SensorConfig(id=f"sensor{i}")
             chosen.append(replace(base, port=port))
-        return chosen
+        return _distinct(chosen)
     chosen = [s for s in cfg.sensors if not sensor_ids or s.id in sensor_ids]
     missing = sorted(set(sensor_ids) - {s.id for s in chosen})
     if missing:
@@ -626,7 +626,25 @@ def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
     without = [s.id for s in chosen if s.port is None]
     if without:
         raise ConfigError(f"sensor {without[0]!r} has no port")
-    return chosen
+    return _distinct(chosen)
+
+
+def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
+    """Each sensor its own id and its own device: two readers of one tty split its bytes
+    between them and each sees the other's reads as a hang-up."""
+    seen_ids: set[str] = set()
+    seen_ports: dict[str, str] = {}
+    for s in sensors:
+        if s.id in seen_ids:
+            raise ConfigError(f"sensor id {s.id!r} is given twice")
+        seen_ids.add(s.id)
+        assert s.port is not None
+        device = s.port if "://" in s.port else os.path.realpath(s.port)
+        if device in seen_ports:
+            raise ConfigError(f"port {s.port} is given to two sensors "
+                              f"({seen_ports[device]!r} and {s.id!r})")
+        seen_ports[device] = s.id
+    return sensors
 
 
 def _nodes(cfg: ServiceConfig, sink: Sink, model_path: str | Path | None,
