@@ -79,6 +79,10 @@ CASES = [
                               "--sensor-id", "a", "--sensor-id", "b"], 2, "1 ports but 2"),
     ("one port twice", ["run", "--config", "no_zenoh.toml", "--port", "{tty}", "--port",
                         "{tty}"], 2, "is given to two sensors ('sensor0' and 'sensor1')"),
+    ("invalid id on the command line", ["run", "--config", "no_zenoh.toml", "--port", "{tty}",
+                                        "--sensor-id", "a b"], 2, "invalid sensor id 'a b'"),
+    ("reserved id", ["run", "--config", "no_zenoh.toml", "--port", "{tty}", "--sensor-id",
+                     "gateway"], 2, "invalid sensor id 'gateway'"),
     ("one id twice", ["run", "--config", "no_zenoh.toml", "--port", "{tty}", "--port", "{mcap}",
                       "--sensor-id", "a", "--sensor-id", "a"], 2, "sensor id 'a' is given twice"),
     # an MCAP path that cannot be written (root may write anywhere, but not under a file)

@@ -70,7 +70,7 @@ from recal.cli import add_run_arguments, run_from_args
 from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
 from recal.io import messages
 from recal.io.frames import make_parser
-from recal.io.recording import RecordingWriter
+from recal.io.recording import RecordingWriter, sensor_topic
 from recal.io.serial_source import SerialSource, SourceEvent
 from recal.node import (
     CalibrationNode,
@@ -630,11 +630,15 @@ def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
 
 
 def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
-    """Each sensor its own id and its own device: two readers of one tty split its bytes
-    between them and each sees the other's reads as a hang-up."""
+    """Each sensor a valid id of its own and a device of its own: two readers of one tty split
+    its bytes between them and each sees the other's reads as a hang-up."""
     seen_ids: set[str] = set()
     seen_ports: dict[str, str] = {}
     for s in sensors:
+        try:  # the config's ids are checked when it is read; --sensor-id ones only here
+            sensor_topic(s.id, "raw")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         if s.id in seen_ids:
             raise ConfigError(f"sensor id {s.id!r} is given twice")
         seen_ids.add(s.id)
