@@ -121,6 +121,9 @@ def _cmd_export(a: argparse.Namespace) -> int:
     sensors = recording.sensors(a.input)
     if not sensors:
         raise UsageError(f"{a.input} holds no sensor topics")
+    if a.sensor_id is not None and a.sensor_id not in sensors:
+        raise UsageError(f"{a.input} has no sensor {a.sensor_id!r} (it has: "
+                         f"{', '.join(sensors)})")
     sid = a.sensor_id or sensors[0]
     if a.topic == "raw":
         batch = recording.read_all_raw(a.input, sid)

@@ -78,7 +78,8 @@ def data_from_recording(path: str | Path, sensor_id: str | None = None,
         sensor_id = found[0]
     batch = recording.read_all_raw(parts, sensor_id)
     if len(batch) == 0:
-        raise ValueError(f"{path}: no raw samples for sensor {sensor_id!r}")
+        raise ValueError(f"{path}: no raw samples for sensor {sensor_id!r} (sensors: "
+                         f"{', '.join(found) or 'none'})")
     return dc.data_from_batch(batch, _pipeline_config(batch, window_s)), sensor_id
 
 
