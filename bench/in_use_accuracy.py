@@ -47,10 +47,14 @@ def err_1s_mg(cal: np.ndarray, truth: np.ndarray, t_us: np.ndarray, align: bool)
     return error_1s_mg(cal[m], truth[m], 50.0, align)
 
 
-def run_case(seed: int, cross: float, full: bool, upright: bool, drift: float) -> dict:
+def run_case(seed: int, cross: float, full: bool, upright: bool, drift: float,
+             **settings: float) -> dict:
+    """One wearer through the core; settings: PipelineConfig fields other than the defaults
+    (bench/core_settings.py tries some)."""
     r = wearer(seed, cross, upright, drift)
     model = SensorModel.full(1024.0) if full else SensorModel.diagonal(1024.0)
-    pipe = Pipeline(PipelineConfig(rate_hz=50.0), model, Prior.default(model), r.raw.aux_names)
+    pipe = Pipeline(PipelineConfig(rate_hz=50.0, **settings), model, Prior.default(model),
+                    r.raw.aux_names)
     t0 = time.process_time()
     cal = np.concatenate([pipe.step(r.raw[i:i + 1000]).calibrated.a_g
                           for i in range(0, len(r.raw), 1000)])
