@@ -7,6 +7,7 @@ status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import textwrap
@@ -93,23 +94,40 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
     recording.refuse_input_as_output(a.out, a.input)
     _new_output(a.out, a.overwrite)
-    table = csv_table.read_csv(a.input, units=a.units, rate_hz=a.rate)
-    t_us = table.batch.t_us
-    if len(t_us) == 0:
-        lines = ", ".join(map(str, table.skipped_lines[:5]))
-        raise UsageError(f"{a.input}: no valid rows ({table.skipped_rows} bad"
+    writer: recording.RecordingWriter | None = None
+    samples, skipped, bad_lines = 0, 0, []
+    units, aux_names = "", ()
+    try:  # a chunk at a time: a week-long CSV must not have to fit in memory
+        for table in csv_table.iter_csv(a.input, units=a.units, rate_hz=a.rate):
+            skipped += table.skipped_rows
+            bad_lines += table.skipped_lines
+            batch = table.batch
+            if not len(batch):
+                continue
+            t_us = batch.t_us
+            if t_us.min() < 0 or t_us.max() >= 2**64 // 1000:  # MCAP log time = t_us * 1000 ns
+                raise UsageError(f"{a.input}: times must be from 0 to 584 years in "
+                                 f"microseconds (found {t_us.min()} to {t_us.max()})")
+            if writer is None:
+                units, aux_names = table.units, batch.aux_names
+                writer = recording.RecordingWriter(a.out, overwrite=True,
+                                                   metadata={"units": table.units})
+            for i in range(0, len(batch), 1000):
+                b = batch[i:i + 1000]
+                writer.write_raw(a.sensor_id, b, int(b.t_us[0]) * 1000)
+            samples += len(batch)
+    except BaseException:
+        if writer is not None:  # nothing half-imported is left behind
+            writer.close()
+            Path(a.out).unlink(missing_ok=True)
+        raise
+    if writer is None:
+        lines = ", ".join(map(str, bad_lines[:5]))
+        raise UsageError(f"{a.input}: no valid rows ({skipped} bad"
                          + (f", first at lines {lines})" if lines else ")"))
-    if t_us.min() < 0 or t_us.max() >= 2**64 // 1000:  # MCAP log time = t_us * 1000 ns
-        raise UsageError(f"{a.input}: times must be from 0 to 584 years in microseconds "
-                         f"(found {t_us.min()} to {t_us.max()})")
-    with recording.RecordingWriter(a.out, overwrite=True,
-                                   metadata={"units": table.units}) as w:
-        for i in range(0, len(table.batch), 1000):
-            b = table.batch[i:i + 1000]
-            w.write_raw(a.sensor_id, b, int(b.t_us[0]) * 1000)
-    print(f"imported {len(table.batch)} samples ({table.units}, channels "
-          f"{list(table.batch.aux_names) or 'none'}) into {a.out}; "
-          f"{table.skipped_rows} bad rows skipped")
+    writer.close()
+    print(f"imported {samples} samples ({units}, channels {list(aux_names) or 'none'}) into "
+          f"{a.out}; {skipped} bad rows skipped")
     return 0
 
 
@@ -125,16 +143,18 @@ def _cmd_export(a: argparse.Namespace) -> int:
         raise UsageError(f"{a.input} has no sensor {a.sensor_id!r} (it has: "
                          f"{', '.join(sensors)})")
     sid = a.sensor_id or sensors[0]
+    # message by message: a week-long recording must not have to fit in memory
     if a.topic == "raw":
-        batch = recording.read_all_raw(a.input, sid)
         units = recording.metadata(a.input).get("units")  # set by `recal import`
-        csv_table.write_raw_csv(a.csv, batch, units if units in csv_table.UNITS else None)
+        rows = csv_table.write_raw_csv(a.csv, (b for _, b, _ in recording.iter_raw(a.input, sid)),
+                                       units if units in csv_table.UNITS else None)
     else:
-        batch = recording.read_all_calibrated(a.input, sid)
-        if len(batch) == 0:
+        batches = (b for _, b, _ in recording.iter_calibrated(a.input, sid))
+        first = next(batches, None)
+        if first is None:
             raise UsageError(f"{a.input} has no calibrated data for {sid!r}; run recal replay")
-        csv_table.write_calibrated_csv(a.csv, batch)
-    print(f"wrote {len(batch)} rows of {sid}/{a.topic} to {a.csv}")
+        rows = csv_table.write_calibrated_csv(a.csv, itertools.chain([first], batches))
+    print(f"wrote {rows} rows of {sid}/{a.topic} to {a.csv}")
     return 0
 
 

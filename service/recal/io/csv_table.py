@@ -19,27 +19,29 @@ What ``read_csv`` accepts:
   field is NaN), or a time that is not finite or beyond an int64 of microseconds is skipped
   and counted; a missing header or axis column, or duplicate column names, are errors.
 
-``write_raw_csv`` writes ``t_us,x,y,z,<aux...>`` and ``write_calibrated_csv`` writes
+``iter_csv`` reads the same a chunk of lines at a time, in bounded memory; ``read_csv`` joins
+its chunks. ``write_raw_csv`` writes ``t_us,x,y,z,<aux...>`` and ``write_calibrated_csv`` writes
 ``t_us,x_g,y_g,z_g`` (optionally ``quasi_static,detector_g``), with Python's shortest
 round-trip float text, so reading a written file gives back exactly the same numbers.
 """
 
 from __future__ import annotations
 
+import codecs
 import csv
 import io
+import itertools
 import math
 import os
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Literal
+from typing import IO, Any, Literal
 
 import numpy as np
 
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["CsvTable", "read_csv", "write_calibrated_csv", "write_raw_csv"]
+__all__ = ["CsvTable", "iter_csv", "read_csv", "write_calibrated_csv", "write_raw_csv"]
 
 Units = Literal["counts", "g", "ms2"]
 UNITS: tuple[str, ...] = ("counts", "g", "ms2")
@@ -47,6 +49,7 @@ TIME_COLUMNS: dict[str, float] = {"t_us": 1.0, "t_ms": 1e3, "t_s": 1e6}  # name 
 _AXES = ("x", "y", "z")
 _MAX_REPORTED_BAD_LINES = 20
 _WRITE_CHUNK_ROWS = 65536
+_READ_CHUNK_LINES = 200_000  # ~ 10 MB of text, ~ 40 MB while parsed
 _FORBIDDEN_IN_NAMES = (",", "\n", "\r", '"')
 
 
@@ -189,13 +192,92 @@ def _times_ok(t: np.ndarray, time_name: str) -> np.ndarray:
         return np.abs(t * TIME_COLUMNS[time_name]) < 2.0**63
 
 
-def _times_us(table: np.ndarray, layout: _Layout, rate_hz: float | None, t0_us: int
-              ) -> np.ndarray:
+def _times_us(table: np.ndarray, layout: _Layout, rate_hz: float | None, t0_us: int,
+              first: int = 0) -> np.ndarray:
+    """Each row's time: its column, else synthesized (rows ``first`` on, at ``rate_hz``)."""
     if layout.time is None:
         if rate_hz is None or not rate_hz > 0:
             raise ValueError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
-        return t0_us + np.round(np.arange(len(table)) * (1e6 / rate_hz)).astype(np.int64)
+        i = np.arange(first, first + len(table))
+        return t0_us + np.round(i * (1e6 / rate_hz)).astype(np.int64)
     return np.round(table[:, layout.time] * TIME_COLUMNS[layout.time_name]).astype(np.int64)
+
+
+def _text_lines(f: IO[bytes], path: str | os.PathLike[str], chunk_lines: int
+                ) -> Iterator[list[str]]:
+    """The file's lines (str.splitlines, ends kept) in lists of about ``chunk_lines``, decoded
+    a chunk at a time; a byte-order mark is dropped. Chunks end after a newline byte, so a line
+    never straddles two."""
+    start = 0
+    first = True
+    while True:
+        raw = b"".join(itertools.islice(f, chunk_lines))
+        if not raw:
+            return
+        if first and raw.startswith(codecs.BOM_UTF8):
+            raw, start = raw[len(codecs.BOM_UTF8):], len(codecs.BOM_UTF8)
+        first = False
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"{path}: not UTF-8 text (byte {start + exc.start})") from None
+        start += len(raw)
+        yield text.splitlines(keepends=True)
+
+
+def iter_csv(path: str | os.PathLike[str], units: Units | None = None,
+             rate_hz: float | None = None, *, t0_us: int = 0,
+             chunk_lines: int | None = None) -> Iterator[CsvTable]:
+    """`read_csv` a chunk of about ``chunk_lines`` lines at a time, in bounded memory (a week
+    at 100 Hz is 60 M rows): one CsvTable per chunk, with that chunk's samples and skipped rows
+    (line numbers are the file's; at most 20 reported over the whole file). Header errors are
+    raised at the first chunk."""
+    with open(path, "rb") as f:
+        chunks = _text_lines(f, path, chunk_lines or _READ_CHUNK_LINES)
+        number = 0  # lines before the current chunk
+        header: tuple[int, str] | None = None
+        rows: list[str] = []
+        for lines in chunks:
+            found = next(_data_lines(lines, number + 1), None)
+            if found is not None:
+                header, rows = found, lines[found[0] - number:]
+                number += len(lines)
+                break
+            number += len(lines)
+        if header is None:
+            raise ValueError(f"{path}: no header row")
+        try:  # name the file in the one-line error
+            layout = _layout(_split_header(header[1]))
+            resolved_units = _resolve_units(units, layout.header_units)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+        if layout.time is None and (rate_hz is None or not rate_hz > 0):
+            raise ValueError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
+        done, reported = 0, 0  # rows kept, bad lines reported
+        first_number = header[0] + 1
+        for body in itertools.chain([rows], chunks):
+            table, bad_lines, bad = _parse_chunk(body, first_number, layout)
+            first_number += len(body)
+            bad_lines = bad_lines[:max(_MAX_REPORTED_BAD_LINES - reported, 0)]
+            reported += len(bad_lines)
+            t_us = _times_us(table, layout, rate_hz, t0_us, done)
+            done += len(table)
+            batch = RawBatch(t_us, table[:, list(layout.axes)], table[:, list(layout.aux)],
+                             tuple(layout.names[i] for i in layout.aux))
+            yield CsvTable(batch, resolved_units, layout.time_name, bad, tuple(bad_lines))
+
+
+def _parse_chunk(body: list[str], first_number: int, layout: _Layout
+                 ) -> tuple[np.ndarray, list[int], int]:
+    """Rows of lines (numbered from first_number): numpy's parser when they are clean, else
+    row by row, skipping bad ones. Returns (table, first bad line numbers, bad count)."""
+    table: np.ndarray | None = np.zeros((0, len(layout.names)))
+    if any(True for _ in _data_lines(body, 0)):  # loadtxt warns on empty input
+        table = _parse_fast("".join(body), len(layout.names))
+    if table is None or (layout.time is not None
+                         and not _times_ok(table[:, layout.time], layout.time_name).all()):
+        return _parse_slow(_data_lines(body, first_number), layout)
+    return table, [], 0
 
 
 def read_csv(path: str | os.PathLike[str], units: Units | None = None,
@@ -208,31 +290,10 @@ def read_csv(path: str | os.PathLike[str], units: Units | None = None,
         rate_hz: sample rate, required (only) when there is no time column.
         t0_us: time of the first sample when times are synthesized.
     """
-    try:
-        all_lines = Path(path).read_text(encoding="utf-8-sig").splitlines(keepends=True)
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not UTF-8 text (byte {exc.start})") from None
-    header = next(_data_lines(all_lines, 1), None)
-    if header is None:
-        raise ValueError(f"{path}: no header row")
-    try:  # name the file in the one-line error
-        layout = _layout(_split_header(header[1]))
-        resolved_units = _resolve_units(units, layout.header_units)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
-    rows = all_lines[header[0]:]  # header[0] is 1-based, so this starts after the header
-    table: np.ndarray | None = np.zeros((0, len(layout.names)))
-    if any(True for _ in _data_lines(rows, 0)):  # loadtxt warns on empty input
-        table = _parse_fast("".join(rows), len(layout.names))
-    bad_lines: list[int] = []
-    bad = 0
-    if table is None or (layout.time is not None
-                         and not _times_ok(table[:, layout.time], layout.time_name).all()):
-        table, bad_lines, bad = _parse_slow(_data_lines(rows, header[0] + 1), layout)
-    t_us = _times_us(table, layout, rate_hz, t0_us)
-    batch = RawBatch(t_us, table[:, list(layout.axes)], table[:, list(layout.aux)],
-                     tuple(layout.names[i] for i in layout.aux))
-    return CsvTable(batch, resolved_units, layout.time_name, bad, tuple(bad_lines))
+    parts = list(iter_csv(path, units, rate_hz, t0_us=t0_us))
+    return CsvTable(RawBatch.concat([c.batch for c in parts]), parts[0].units,
+                    parts[0].time_column, sum(c.skipped_rows for c in parts),
+                    tuple(n for c in parts for n in c.skipped_lines))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -255,45 +316,94 @@ def _float_texts(values: np.ndarray) -> list[str]:
     return list(map(float.__repr__, values.tolist()))
 
 
-def _write_table(path: str | os.PathLike[str], header: Sequence[str],
-                 columns: Sequence[np.ndarray], integer_columns: Sequence[bool]) -> None:
-    """Write columns in chunks of rows, each chunk formatted column-wise in bulk."""
-    n = len(columns[0]) if columns else 0
-    with open(path, "w", encoding="utf-8", newline="\n") as f:
-        f.write(",".join(header) + "\n")
+class _TableWriter:
+    """A CSV open for appending rows: columns in chunks of rows, each formatted column-wise in
+    bulk."""
+
+    def __init__(self, path: str | os.PathLike[str], header: Sequence[str],
+                 integer_columns: Sequence[bool]) -> None:
+        self._f = open(path, "w", encoding="utf-8", newline="\n")
+        self._ints = list(integer_columns)
+        self._f.write(",".join(header) + "\n")
+
+    def write(self, columns: Sequence[np.ndarray]) -> None:
+        n = len(columns[0]) if columns else 0
         for start in range(0, n, _WRITE_CHUNK_ROWS):
             stop = min(start + _WRITE_CHUNK_ROWS, n)
             texts = [list(map(str, col[start:stop].tolist())) if is_int
                      else _float_texts(col[start:stop])
-                     for col, is_int in zip(columns, integer_columns, strict=True)]
-            f.write("\n".join(map(",".join, zip(*texts, strict=True))))
-            f.write("\n")
+                     for col, is_int in zip(columns, self._ints, strict=True)]
+            self._f.write("\n".join(map(",".join, zip(*texts, strict=True))))
+            self._f.write("\n")
+
+    def close(self) -> None:
+        self._f.close()
 
 
-def write_raw_csv(path: str | os.PathLike[str], batch: RawBatch,
-                  units: Units | None = None) -> None:
-    """Write ``t_us,x,y,z,<aux...>`` (axes named ``x_<units>`` ... when units are given)."""
+def _write_table(path: str | os.PathLike[str], header: Sequence[str],
+                 batches: Iterable[Sequence[np.ndarray]], integer_columns: Sequence[bool]
+                 ) -> int:
+    """Write every batch's columns under one header; returns the rows written."""
+    writer = _TableWriter(path, header, integer_columns)
+    rows = 0
+    try:
+        for columns in batches:
+            writer.write(columns)
+            rows += len(columns[0]) if columns else 0
+    finally:
+        writer.close()
+    return rows
+
+
+def _batches(data: RawBatch | CalibratedBatch | Iterable) -> tuple[Any, Iterator]:
+    """(first batch or None, every batch): one batch or an iterable of them, read lazily."""
+    if isinstance(data, RawBatch | CalibratedBatch):
+        return data, iter([data])
+    it = iter(data)
+    first = next(it, None)
+    return first, itertools.chain([] if first is None else [first], it)
+
+
+def write_raw_csv(path: str | os.PathLike[str], batch: RawBatch | Iterable[RawBatch],
+                  units: Units | None = None) -> int:
+    """Write ``t_us,x,y,z,<aux...>`` (axes named ``x_<units>`` ... when units are given) of one
+    batch or of several with the same channels, read one at a time; returns the rows."""
     axes = list(_AXES) if units is None else [f"{a}_{units}" for a in _AXES]
     if units is not None and units not in UNITS:
         raise ValueError(f"units must be one of {list(UNITS)}, got {units!r}")
-    _check_names(batch.aux_names, ["t_us", *TIME_COLUMNS, *axes])
-    columns = [batch.t_us, *batch.v.T, *batch.aux.T]
-    _write_table(path, ["t_us", *axes, *batch.aux_names], columns,
-                 [True] + [False] * (len(columns) - 1))
+    first, batches = _batches(batch)
+    aux_names = first.aux_names if first is not None else ()
+    _check_names(aux_names, ["t_us", *TIME_COLUMNS, *axes])
+
+    def columns(b: RawBatch) -> list[np.ndarray]:
+        if b.aux_names != aux_names:
+            raise ValueError(f"channels change from {list(aux_names)} to {list(b.aux_names)}: "
+                             "one CSV has one set of columns")
+        return [b.t_us, *b.v.T, *b.aux.T]
+
+    return _write_table(path, ["t_us", *axes, *aux_names], map(columns, batches),
+                        [True] + [False] * (3 + len(aux_names)))
 
 
-def write_calibrated_csv(path: str | os.PathLike[str], batch: CalibratedBatch,
-                         with_detector: bool = False) -> None:
-    """Write ``t_us,x_g,y_g,z_g`` (plus ``quasi_static,detector_g`` if asked).
+def write_calibrated_csv(path: str | os.PathLike[str],
+                         batch: CalibratedBatch | Iterable[CalibratedBatch],
+                         with_detector: bool = False) -> int:
+    """Write ``t_us,x_g,y_g,z_g`` (plus ``quasi_static,detector_g`` if asked) of one batch or
+    of several, read one at a time; returns the rows.
 
     ``read_csv`` reads the file back as a batch in units "g" (detector columns as auxiliary
     channels, ``quasi_static`` as 0/1).
     """
     header = ["t_us", "x_g", "y_g", "z_g"]
-    columns = [batch.t_us, *batch.a_g.T]
     is_int = [True, False, False, False]
     if with_detector:
         header += ["quasi_static", "detector_g"]
-        columns += [batch.quasi_static.astype(np.int64), batch.detector_g]
         is_int += [True, False]
-    _write_table(path, header, columns, is_int)
+
+    def columns(b: CalibratedBatch) -> list[np.ndarray]:
+        cols = [b.t_us, *b.a_g.T]
+        if with_detector:
+            cols += [b.quasi_static.astype(np.int64), b.detector_g]
+        return cols
+
+    return _write_table(path, header, map(columns, _batches(batch)[1]), is_int)
