@@ -9,6 +9,7 @@ the true parameters give on the same scored windows (the exact inverse of the si
 from __future__ import annotations
 
 import json
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -350,3 +351,33 @@ def test_cli_discover_reads_a_static_table_and_a_csv_time_series(tmp_path: Path)
                                                                                "vbat"]
     assert [(e["kind"], e["covariate"]) for e in doc["effects_selected"]] == [
         ("offset", "board_temp")]
+
+
+def test_windows_read_batch_by_batch_are_those_of_the_whole_recording() -> None:
+    """data_from_batches (bounded memory: `recal discover` of a long recording) gives
+    data_from_batch of the batches joined: s0, the same windows at the same times, their means
+    equal but for the order of the sums (a window cut by a batch end adds two partial sums)."""
+    raw = sim.simulate(0.3, RATE_HZ, 3, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
+    whole = dc.data_from_batch(raw)
+    cuts = [0, 1, 997, 5000, 5001, 20_000, len(raw)]
+    parts = [raw[a:b] for a, b in pairwise(cuts)]
+    split = dc.data_from_batches(lambda: iter(parts))
+    assert split.s0 == whole.s0 and len(split) == len(whole) > 50
+    for name in ("t_us", "n"):
+        np.testing.assert_array_equal(getattr(split.windows, name), getattr(whole.windows, name))
+    for name in ("v", "aux", "var"):
+        np.testing.assert_allclose(getattr(split.windows, name), getattr(whole.windows, name),
+                                   rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(split.cov.t_h, whole.cov.t_h)
+
+
+def test_the_rate_comes_from_a_median_of_counted_time_steps() -> None:
+    """The sample rate's median time step, from counts of each step (memory by distinct steps,
+    not by samples), is np.median of the steps, odd and even counts alike."""
+    import collections
+
+    rng = np.random.default_rng(0)
+    for n in range(1, 60):
+        steps = rng.integers(9_990, 10_010, n)
+        counts = collections.Counter(steps.tolist())
+        assert dc._median_of_counts(counts) == float(np.median(steps))

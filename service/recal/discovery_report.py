@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,6 @@ import numpy as np
 from recal.core import discovery as dc
 from recal.core.effects import TIME
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig
 from recal.samples import RawBatch
 
 __all__ = [
@@ -53,20 +52,10 @@ __all__ = [
 # Input
 # ---------------------------------------------------------------------------------------------
 
-def _pipeline_config(batch: RawBatch, window_s: float | None) -> PipelineConfig | None:
-    if window_s is None:
-        return None  # data_from_batch measures the rate and uses the defaults
-    dt = np.diff(batch.t_us)
-    dt = dt[dt > 0]
-    if len(dt) == 0:
-        raise ValueError("time stamps never advance: cannot measure the sample rate")
-    return PipelineConfig(rate_hz=1e6 / float(np.median(dt)), window_s=float(window_s),
-                          guard_s=float(window_s) / 2)
-
-
 def data_from_recording(path: str | Path, sensor_id: str | None = None,
                         window_s: float | None = None) -> tuple[dc.DiscoveryData, str]:
-    """Quasi-static windows of one sensor's raw topic in an MCAP recording (all its parts)."""
+    """Quasi-static windows of one sensor's raw topic in an MCAP recording (all its parts),
+    read message by message (`core.discovery.data_from_batches`: bounded memory)."""
     from recal.io import recording
 
     parts = recording.recording_parts(path)
@@ -76,11 +65,12 @@ def data_from_recording(path: str | Path, sensor_id: str | None = None,
             raise ValueError(f"{path}: {'no sensors' if not found else 'several sensors'} "
                              f"({', '.join(found) or 'none'}); pick one with --sensor-id")
         sensor_id = found[0]
-    batch = recording.read_all_raw(parts, sensor_id)
-    if len(batch) == 0:
+    if not any(len(b) for _, b, _ in recording.iter_raw(parts, sensor_id)):
         raise ValueError(f"{path}: no raw samples for sensor {sensor_id!r} (sensors: "
                          f"{', '.join(found) or 'none'})")
-    return dc.data_from_batch(batch, _pipeline_config(batch, window_s)), sensor_id
+    data = dc.data_from_batches(lambda: (b for _, b, _ in recording.iter_raw(parts, sensor_id)),
+                                window_s=window_s)
+    return data, sensor_id
 
 
 def csv_has_time(path: str | Path) -> bool:
@@ -99,10 +89,13 @@ def csv_has_time(path: str | Path) -> bool:
 def data_from_csv(path: str | Path, rate_hz: float | None = None, units: str | None = None,
                   window_s: float | None = None) -> dc.DiscoveryData:
     """Quasi-static windows of a CSV time series (see `recal.io.csv_table.read_csv`)."""
-    from recal.io.csv_table import read_csv
+    from recal.io.csv_table import iter_csv
 
-    batch = read_csv(path, units=units, rate_hz=rate_hz).batch  # type: ignore[arg-type]
-    return dc.data_from_batch(batch, _pipeline_config(batch, window_s))
+    def batches() -> Iterator[RawBatch]:  # a chunk of lines at a time: bounded memory
+        chunks = iter_csv(path, units=units, rate_hz=rate_hz)  # type: ignore[arg-type]
+        return (t.batch for t in chunks)
+
+    return dc.data_from_batches(batches, window_s=window_s)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -44,7 +44,9 @@ the model's default spreads) for the live estimator to start from.
 
 from __future__ import annotations
 
+import collections
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from itertools import combinations, pairwise
 
@@ -69,6 +71,7 @@ __all__ = [
     "Step",
     "candidates",
     "data_from_batch",
+    "data_from_batches",
     "data_from_table",
     "data_from_windows",
     "discover",
@@ -217,15 +220,58 @@ def data_from_batch(batch: RawBatch, cfg: PipelineConfig | None = None,
     """
     if len(batch) < 2:
         raise ValueError("a recording needs samples to discover effects on")
+    return data_from_batches(lambda: [batch], cfg, s0)
+
+
+def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
+                      cfg: PipelineConfig | None = None, s0: float | None = None,
+                      window_s: float | None = None) -> DiscoveryData:
+    """`data_from_batch` of a recording read one batch at a time, in two passes (``batches()``
+    is called once per pass): the rate and s0 from every sample's time step and norm (16 bytes
+    a sample instead of the samples), then the windows, the pipeline being batch-size
+    invariant: the same s0, rate and windows as `data_from_batch` of the batches joined (a
+    window cut by a batch end sums in two parts, so its mean may differ in the last bit).
+
+    window_s: with the measured rate, windows of this length (guard half of it) instead of
+    the default (ignored when cfg is given).
+    """
+    norms: list[np.ndarray] = []
+    steps: collections.Counter[int] = collections.Counter()  # time step (us) -> how often
+    last_t: int | None = None
+    if cfg is None or s0 is None:
+        for b in batches():
+            if not len(b):
+                continue
+            norms.append(np.linalg.norm(np.asarray(b.v, np.float64).reshape(-1, 3), axis=1))
+            t = b.t_us if last_t is None else np.concatenate(([last_t], b.t_us))
+            dt = np.diff(t)  # across batches too: the same as over the whole
+            steps.update(dict(zip(*(x.tolist() for x in np.unique(dt[dt > 0],
+                                                                  return_counts=True)),
+                                  strict=True)))
+            last_t = int(b.t_us[-1])
+        if sum(len(n) for n in norms) < 2:
+            raise ValueError("a recording needs samples to discover effects on")
     if cfg is None:
-        dt = np.diff(batch.t_us)
-        dt = dt[dt > 0]
-        if len(dt) == 0:
+        if not steps:
             raise ValueError("time stamps never advance: cannot measure the sample rate")
-        cfg = PipelineConfig(rate_hz=1e6 / float(np.median(dt)))
-    s0 = _median_norm(batch.v) if s0 is None else float(s0)
-    w = window_means(batch, cfg, s0)
-    return data_from_windows(w, batch.aux_names, int(batch.t_us[0]))
+        rate_hz = 1e6 / _median_of_counts(steps)
+        cfg = (PipelineConfig(rate_hz=rate_hz) if window_s is None else
+               PipelineConfig(rate_hz=rate_hz, window_s=float(window_s),
+                              guard_s=float(window_s) / 2))
+    s0 = float(np.median(np.concatenate(norms))) if s0 is None else float(s0)
+    w, aux_names, t0_us = window_means(batches(), cfg, s0)
+    return data_from_windows(w, aux_names, t0_us)
+
+
+def _median_of_counts(counts: collections.Counter[int]) -> float:
+    """np.median of the values ``counts`` holds, each as often as counted (a sampler has few
+    distinct time steps: memory by values, not by samples)."""
+    values = sorted(counts)
+    cum = np.cumsum([counts[v] for v in values])
+    n = int(cum[-1])
+    lo = values[int(np.searchsorted(cum, (n - 1) // 2, side="right"))]
+    hi = values[int(np.searchsorted(cum, n // 2, side="right"))]
+    return (lo + hi) / 2
 
 
 def data_from_table(v: np.ndarray) -> DiscoveryData:

@@ -20,7 +20,7 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 from __future__ import annotations
 
 import bisect
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from itertools import pairwise
 
@@ -688,15 +688,25 @@ def _settled(before: Estimate, after: Estimate) -> bool:
     return bool(np.all(np.abs(after.p - before.p) <= SETTLED_SD_FRACTION * sd))
 
 
-def window_means(batch: RawBatch, cfg: PipelineConfig, s0: float) -> Windows:
-    """Every quasi-static window mean of a recording, by exactly the live detector (Lötters
-    eq. 1-2, in units of s0 raw per g) and windowing (window_s, guard_s, min_fill), but with no
-    norm gate and no estimator update: the raw material of `core.discovery`."""
+def window_means(batches: Iterable[RawBatch], cfg: PipelineConfig, s0: float
+                 ) -> tuple[Windows, tuple[str, ...], int]:
+    """Every quasi-static window mean of a recording given batch by batch, by exactly the live
+    detector (Lötters eq. 1-2, in units of s0 raw per g) and windowing (window_s, guard_s,
+    min_fill), but with no norm gate and no estimator update: the raw material of
+    `core.discovery`. Returns (windows, the channels, the first sample's time)."""
     collect = replace(cfg, norm_tol_g=float("inf"), update_every=2**62)
     model = SensorModel.diagonal(float(s0))
-    pipe = Pipeline(collect, model, Prior.default(model), batch.aux_names)
-    pipe.step(batch)  # batch-size invariant: one call is the same as streaming it
-    return pipe._fresh_windows()  # never cleared: no update ever runs
+    pipe: Pipeline | None = None
+    for b in batches:  # batch-size invariant: batch by batch is the same as one call
+        if not len(b):
+            continue
+        if pipe is None:
+            pipe = Pipeline(collect, model, Prior.default(model), b.aux_names)
+        pipe.step(b)
+    if pipe is None:
+        raise ValueError("a recording needs samples to discover effects on")
+    assert pipe.t0_us is not None
+    return pipe._fresh_windows(), pipe.aux_names, pipe.t0_us  # never cleared: no update runs
 
 
 def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | None) -> dict | None:
