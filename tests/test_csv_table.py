@@ -276,3 +276,46 @@ def test_cli_import_streams_chunks_and_leaves_nothing_half_written(
     assert cli.main(["import", str(src), "--out", str(tmp_path / "b.mcap")]) == 2
     assert "times must be from 0" in capsys.readouterr().err
     assert not (tmp_path / "b.mcap").exists()
+
+
+def _on_a_terminal(args: list[str], cwd: Path) -> str:
+    """`python -m recal ARGS` with stdout and stderr on a real pseudo-terminal: all it wrote."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import subprocess
+    import sys
+    import termios
+    import time
+
+    master, slave = pty.openpty()
+    # a new pty is 0 x 0 and tqdm draws nothing that narrow: 24 rows, 80 columns
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    proc = subprocess.Popen([sys.executable, "-m", "recal", *args], cwd=cwd, stdin=slave,
+                            stdout=slave, stderr=slave, close_fds=True)
+    os.close(slave)
+    out = b""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            chunk = os.read(master, 65536)
+        except OSError:  # EIO: the child closed its side
+            break
+        if not chunk:
+            break
+        out += chunk
+    os.close(master)
+    assert proc.wait(30) == 0, out
+    return out.decode("utf-8", "replace")
+
+
+def test_cli_import_shows_progress_on_a_terminal_only(tmp_path: Path) -> None:
+    """A bar on a terminal (a long import shows it is alive), none with --quiet; in a pipe or
+    a log there is none either (the CLI error tests see exactly one stderr line)."""
+    src = tmp_path / "in.csv"
+    src.write_text("t_us,x,y,z\n" + "".join(f"{i * 10_000},1,2,3\n" for i in range(2000)))
+    shown = _on_a_terminal(["import", "in.csv", "--out", "a.mcap"], tmp_path)
+    assert "import:" in shown and "imported 2000 samples" in shown, shown
+    quiet = _on_a_terminal(["import", "in.csv", "--out", "b.mcap", "--quiet"], tmp_path)
+    assert "import:" not in quiet and "imported 2000 samples" in quiet, quiet

@@ -94,11 +94,17 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
     recording.refuse_input_as_output(a.out, a.input)
     _new_output(a.out, a.overwrite)
+    from tqdm import tqdm
+
     writer: recording.RecordingWriter | None = None
     samples, skipped, bad_lines = 0, 0, []
     units, aux_names = "", ()
+    # a bar on a terminal only: not in a pipe, a log or a test's captured stderr
+    bar = tqdm(total=Path(a.input).stat().st_size, unit="B", unit_scale=True, desc="import",
+               disable=a.quiet or not sys.stderr.isatty(), leave=False)
     try:  # a chunk at a time: a week-long CSV must not have to fit in memory
-        for table in csv_table.iter_csv(a.input, units=a.units, rate_hz=a.rate):
+        for table in csv_table.iter_csv(a.input, units=a.units, rate_hz=a.rate,
+                                        on_bytes=bar.update):
             skipped += table.skipped_rows
             bad_lines += table.skipped_lines
             batch = table.batch
@@ -121,6 +127,8 @@ def _cmd_import(a: argparse.Namespace) -> int:
             writer.close()
             Path(a.out).unlink(missing_ok=True)
         raise
+    finally:
+        bar.close()
     if writer is None:
         lines = ", ".join(map(str, bad_lines[:5]))
         raise UsageError(f"{a.input}: no valid rows ({skipped} bad"
@@ -550,6 +558,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "counts; must agree with them)")
     s.add_argument("--rate", type=float, help="sample rate when the CSV has no time column")
     s.add_argument("--sensor-id", default="imported", help="sensor id (default imported)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_import)
 

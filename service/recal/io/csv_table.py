@@ -33,7 +33,7 @@ import io
 import itertools
 import math
 import os
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import IO, Any, Literal
 
@@ -203,8 +203,8 @@ def _times_us(table: np.ndarray, layout: _Layout, rate_hz: float | None, t0_us: 
     return np.round(table[:, layout.time] * TIME_COLUMNS[layout.time_name]).astype(np.int64)
 
 
-def _text_lines(f: IO[bytes], path: str | os.PathLike[str], chunk_lines: int
-                ) -> Iterator[list[str]]:
+def _text_lines(f: IO[bytes], path: str | os.PathLike[str], chunk_lines: int,
+                on_bytes: Callable[[int], None] | None = None) -> Iterator[list[str]]:
     """The file's lines (str.splitlines, ends kept) in lists of about ``chunk_lines``, decoded
     a chunk at a time; a byte-order mark is dropped. Chunks end after a newline byte, so a line
     never straddles two."""
@@ -222,18 +222,22 @@ def _text_lines(f: IO[bytes], path: str | os.PathLike[str], chunk_lines: int
         except UnicodeDecodeError as exc:
             raise ValueError(f"{path}: not UTF-8 text (byte {start + exc.start})") from None
         start += len(raw)
+        if on_bytes is not None:
+            on_bytes(len(raw))
         yield text.splitlines(keepends=True)
 
 
 def iter_csv(path: str | os.PathLike[str], units: Units | None = None,
              rate_hz: float | None = None, *, t0_us: int = 0,
-             chunk_lines: int | None = None) -> Iterator[CsvTable]:
+             chunk_lines: int | None = None,
+             on_bytes: Callable[[int], None] | None = None) -> Iterator[CsvTable]:
     """`read_csv` a chunk of about ``chunk_lines`` lines at a time, in bounded memory (a week
     at 100 Hz is 60 M rows): one CsvTable per chunk, with that chunk's samples and skipped rows
     (line numbers are the file's; at most 20 reported over the whole file). Header errors are
-    raised at the first chunk."""
+    raised at the first chunk. ``on_bytes(n)``: called with each chunk's size in bytes (a
+    progress bar)."""
     with open(path, "rb") as f:
-        chunks = _text_lines(f, path, chunk_lines or _READ_CHUNK_LINES)
+        chunks = _text_lines(f, path, chunk_lines or _READ_CHUNK_LINES, on_bytes)
         number = 0  # lines before the current chunk
         header: tuple[int, str] | None = None
         rows: list[str] = []
