@@ -44,6 +44,7 @@ FILES: dict[str, bytes] = {
     "static_ok.csv": b"x,y,z\n" + b"".join(f"{x},{y},{z}\n".encode() for x, y, z in (
         (1, 0, 0), (0, 1, 0), (0, 0, 1), (-1, 0, 0), (0, -1, 0), (0, 0, -1))),
     "a_file": b"not a directory\n",
+    "no_effects.json": b'{"model": {"effects": []}}',
 }
 
 # (case id, arguments, expected exit status, fragment the one line must contain)
@@ -70,6 +71,8 @@ CASES = [
      "a calibration node takes its samples from Zenoh, but the config's [zenoh] enabled = false"),
     ("missing model", ["replay", "{mcap}", "--out", "o.mcap", "--model", "nowhere.json"], 2,
      "nowhere.json"),
+    ("model without effects", ["replay", "{mcap}", "--out", "o.mcap", "--model",
+                               "no_effects.json"], 2, "a model needs at least one effect"),
     # a missing port
     ("no port at all", ["run", "--config", "no_zenoh.toml"], 2, "no sensors"),
     ("port does not exist", ["run", "--config", "no_zenoh.toml", "--port", "ttyNOPE"], 2,
@@ -145,6 +148,10 @@ CASES = [
     ("csv units clash", ["import", "no_time.csv", "--out", "o.mcap", "--units", "parsecs"], 2,
      "--units"),
     ("static bad rows", ["static", "static_bad.csv"], 2, "static_bad.csv"),
+    ("report in no directory", ["discover", "{mcap}", "--write-model", "nodir/m.json"], 2,
+     "nodir/m.json: no directory nodir to write it in"),
+    ("static report in no directory", ["static", "static_ok.csv", "--json", "nodir/s.json"], 2,
+     "no directory nodir"),
     ("static too few rows", ["static", "static_ok.csv", "--fit-rows", "1-3"], 2,
      "3 fitted rows cannot determine the 9 parameters of the full model"),
     ("static not utf-8", ["static", "not_utf8.csv"], 2, "not_utf8.csv: not UTF-8"),

@@ -38,6 +38,14 @@ def _new_output(path: str, overwrite: bool) -> None:
         raise UsageError(f"{path} exists; pass --overwrite to replace it")
 
 
+def _report_paths(*paths: str | None) -> None:
+    """Where reports and figures go must be a directory that exists: said before the work,
+    not after minutes of it."""
+    for path in paths:
+        if path is not None and not Path(path).resolve().parent.is_dir():
+            raise UsageError(f"{path}: no directory {Path(path).parent} to write it in")
+
+
 def _positive(text: str) -> float:
     """argparse type: a finite number above 0."""
     try:
@@ -213,6 +221,7 @@ def _read_static_table(path: str) -> np.ndarray:
 def _cmd_static(a: argparse.Namespace) -> int:
     from recal.core import static
 
+    _report_paths(a.json)
     v = _read_static_table(a.input)
     fit_rows = _parse_rows(a.fit_rows, len(v))
     if a.known_orientations:
@@ -247,6 +256,7 @@ def _cmd_discover(a: argparse.Namespace) -> int:
     from recal.config import load_model_file
     from recal.core.discovery import DiscoveryConfig, data_from_table
 
+    _report_paths(a.json, a.write_model, a.plots)
     path = Path(a.input)
     if path.suffix.lower() == ".csv" and a.rate is None and not dr.csv_has_time(path):
         data = data_from_table(_read_static_table(a.input))  # one still row per pose
@@ -274,6 +284,7 @@ def _cmd_replay(a: argparse.Namespace) -> int:
 
     recording.refuse_input_as_output(a.out, a.input)
     _new_output(a.out, a.overwrite)
+    _report_paths(a.json)
     summary = replay(a.input, a.out, model=a.model, config=a.config, progress=not a.quiet,
                      overwrite=a.overwrite)
     if a.json:

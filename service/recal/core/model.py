@@ -39,6 +39,10 @@ class SensorModel:
     spreads: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
+        if not self.effects:
+            raise ValueError("a model needs at least one effect (offsets, scale, ...)")
+        if not self.s0 > 0:
+            raise ValueError(f"s0 (raw units per g) must be positive, not {self.s0}")
         spreads = tuple(self.spreads) or (1.0,) * len(self.effects)
         if len(spreads) != len(self.effects):
             raise ValueError("one spread per effect")
