@@ -242,10 +242,9 @@ def iter_csv(path: str | os.PathLike[str], units: Units | None = None,
         header: tuple[int, str] | None = None
         rows: list[str] = []
         for lines in chunks:
-            found = next(_data_lines(lines, number + 1), None)
-            if found is not None:
-                header, rows = found, lines[found[0] - number:]
-                number += len(lines)
+            header = next(_data_lines(lines, number + 1), None)
+            if header is not None:
+                rows = lines[header[0] - number:]  # the lines after the header
                 break
             number += len(lines)
         if header is None:
@@ -320,42 +319,24 @@ def _float_texts(values: np.ndarray) -> list[str]:
     return list(map(float.__repr__, values.tolist()))
 
 
-class _TableWriter:
-    """A CSV open for appending rows: columns in chunks of rows, each formatted column-wise in
-    bulk."""
-
-    def __init__(self, path: str | os.PathLike[str], header: Sequence[str],
-                 integer_columns: Sequence[bool]) -> None:
-        self._f = open(path, "w", encoding="utf-8", newline="\n")
-        self._ints = list(integer_columns)
-        self._f.write(",".join(header) + "\n")
-
-    def write(self, columns: Sequence[np.ndarray]) -> None:
-        n = len(columns[0]) if columns else 0
-        for start in range(0, n, _WRITE_CHUNK_ROWS):
-            stop = min(start + _WRITE_CHUNK_ROWS, n)
-            texts = [list(map(str, col[start:stop].tolist())) if is_int
-                     else _float_texts(col[start:stop])
-                     for col, is_int in zip(columns, self._ints, strict=True)]
-            self._f.write("\n".join(map(",".join, zip(*texts, strict=True))))
-            self._f.write("\n")
-
-    def close(self) -> None:
-        self._f.close()
-
-
 def _write_table(path: str | os.PathLike[str], header: Sequence[str],
                  batches: Iterable[Sequence[np.ndarray]], integer_columns: Sequence[bool]
                  ) -> int:
-    """Write every batch's columns under one header; returns the rows written."""
-    writer = _TableWriter(path, header, integer_columns)
+    """Write every batch's columns under one header, in chunks of rows, each chunk formatted
+    column-wise in bulk; returns the rows written."""
     rows = 0
-    try:
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(",".join(header) + "\n")
         for columns in batches:
-            writer.write(columns)
-            rows += len(columns[0]) if columns else 0
-    finally:
-        writer.close()
+            n = len(columns[0]) if columns else 0
+            for start in range(0, n, _WRITE_CHUNK_ROWS):
+                stop = min(start + _WRITE_CHUNK_ROWS, n)
+                texts = [list(map(str, col[start:stop].tolist())) if is_int
+                         else _float_texts(col[start:stop])
+                         for col, is_int in zip(columns, integer_columns, strict=True)]
+                f.write("\n".join(map(",".join, zip(*texts, strict=True))))
+                f.write("\n")
+            rows += n
     return rows
 
 
