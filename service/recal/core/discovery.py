@@ -184,8 +184,12 @@ class DiscoveryData:
         return replace(self, windows=win, cov=self.cov[mask])
 
 
+def _norms(v: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(np.asarray(v, np.float64).reshape(-1, 3), axis=1)
+
+
 def _median_norm(v: np.ndarray) -> float:
-    return float(np.median(np.linalg.norm(np.asarray(v, np.float64).reshape(-1, 3), axis=1)))
+    return float(np.median(_norms(v)))
 
 
 def data_from_windows(windows: Windows, aux_names: tuple[str, ...], t0_us: int,
@@ -242,12 +246,11 @@ def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
         for b in batches():
             if not len(b):
                 continue
-            norms.append(np.linalg.norm(np.asarray(b.v, np.float64).reshape(-1, 3), axis=1))
+            norms.append(_norms(b.v))
             t = b.t_us if last_t is None else np.concatenate(([last_t], b.t_us))
             dt = np.diff(t)  # across batches too: the same as over the whole
-            steps.update(dict(zip(*(x.tolist() for x in np.unique(dt[dt > 0],
-                                                                  return_counts=True)),
-                                  strict=True)))
+            values, counts = np.unique(dt[dt > 0], return_counts=True)
+            steps.update(dict(zip(values.tolist(), counts.tolist(), strict=True)))
             last_t = int(b.t_us[-1])
         if sum(len(n) for n in norms) < 2:
             raise ValueError("a recording needs samples to discover effects on")
