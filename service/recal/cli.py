@@ -14,9 +14,13 @@ import textwrap
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import numpy as np
+
+if TYPE_CHECKING:  # the commands import what they need when they run: a fast --help
+    from recal.io.recording import RecordingWriter
+    from recal.samples import RawBatch
 
 __all__ = ["main"]
 
@@ -32,10 +36,23 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"recal: error: {message} (see {self.prog} --help)\n")
 
 
-def _new_output(path: str, overwrite: bool) -> None:
-    """An existing file is replaced only when asked (a recording may hold days of data)."""
+def _new_output(path: str, overwrite: bool, source: str | None = None) -> None:
+    """Never write onto the input ``source``; replace an existing file only when asked (a
+    recording may hold days of data)."""
+    if source is not None:
+        from recal.io.recording import refuse_input_as_output
+
+        refuse_input_as_output(path, source)
     if Path(path).exists() and not overwrite:
         raise UsageError(f"{path} exists; pass --overwrite to replace it")
+
+
+def _write_raw_messages(writer: RecordingWriter, sensor_id: str, batch: RawBatch) -> None:
+    """A batch as raw messages of 1000 samples (`recal simulate`, `recal import`), each logged
+    at its first sample's device time."""
+    for i in range(0, len(batch), 1000):
+        b = batch[i:i + 1000]
+        writer.write_raw(sensor_id, b, int(b.t_us[0]) * 1000)
 
 
 def _report_paths(*paths: str | None) -> None:
@@ -86,9 +103,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         csv_table.write_raw_csv(out, res.raw)
     else:
         with recording.RecordingWriter(out, overwrite=True) as w:
-            for i in range(0, len(res.raw), 1000):
-                b = res.raw[i:i + 1000]
-                w.write_raw(a.sensor_id, b, int(b.t_us[0]) * 1000)
+            _write_raw_messages(w, a.sensor_id, res.raw)
     truth = out.with_suffix(".truth.npz")
     sim.save_truth(truth, res)
     print(f"wrote {out} ({len(res.raw)} samples, {a.hours:g} h at {a.rate:g} Hz, channels "
@@ -98,12 +113,11 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 
 # --- import / export -------------------------------------------------------------------------
 def _cmd_import(a: argparse.Namespace) -> int:
-    from recal.io import csv_table, recording
-
-    recording.refuse_input_as_output(a.out, a.input)
-    _new_output(a.out, a.overwrite)
     from tqdm import tqdm
 
+    from recal.io import csv_table, recording
+
+    _new_output(a.out, a.overwrite, a.input)
     writer: recording.RecordingWriter | None = None
     samples, skipped, bad_lines = 0, 0, []
     units, aux_names = "", ()
@@ -126,9 +140,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
                 units, aux_names = table.units, batch.aux_names
                 writer = recording.RecordingWriter(a.out, overwrite=True,
                                                    metadata={"units": table.units})
-            for i in range(0, len(batch), 1000):
-                b = batch[i:i + 1000]
-                writer.write_raw(a.sensor_id, b, int(b.t_us[0]) * 1000)
+            _write_raw_messages(writer, a.sensor_id, batch)
             samples += len(batch)
     except BaseException:
         if writer is not None:  # nothing half-imported is left behind
@@ -150,8 +162,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
 def _cmd_export(a: argparse.Namespace) -> int:
     from recal.io import csv_table, recording
 
-    recording.refuse_input_as_output(a.csv, a.input)
-    _new_output(a.csv, a.overwrite)
+    _new_output(a.csv, a.overwrite, a.input)
     sensors = recording.sensors(a.input)
     if not sensors:
         raise UsageError(f"{a.input} holds no sensor topics")
@@ -279,11 +290,9 @@ def _cmd_discover(a: argparse.Namespace) -> int:
 
 # --- replay / repair / run / demo / router ---------------------------------------------------
 def _cmd_replay(a: argparse.Namespace) -> int:
-    from recal.io import recording
     from recal.replay import replay
 
-    recording.refuse_input_as_output(a.out, a.input)
-    _new_output(a.out, a.overwrite)
+    _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json)
     summary = replay(a.input, a.out, model=a.model, config=a.config, progress=not a.quiet,
                      overwrite=a.overwrite)
@@ -323,8 +332,7 @@ def replay_lines(summary: dict) -> list[str]:
 def _cmd_repair(a: argparse.Namespace) -> int:
     from recal.io import recording
 
-    recording.refuse_input_as_output(a.out, a.input)
-    _new_output(a.out, a.overwrite)
+    _new_output(a.out, a.overwrite, a.input)
     rep = recording.repair(a.input, a.out)
     print(f"recovered {rep.messages_recovered} messages into {a.out}"
           f" ({'input was truncated' if rep.truncated else 'input was complete'})")
