@@ -234,12 +234,13 @@ def run_tool(tool: str, case_dir: Path, out: Path | None) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
-def run_recal(raw_g: RawBatch, model: SensorModel,
-              batch: int) -> tuple[np.ndarray, float, Pipeline]:
-    """The core alone: Pipeline.step over big batches, from a nominal prior (datasheet)."""
+def run_recal(raw_g: RawBatch, model: SensorModel, batch: int,
+              **settings: float) -> tuple[np.ndarray, float, Pipeline]:
+    """The core alone: Pipeline.step over big batches, from a nominal prior (datasheet);
+    settings: PipelineConfig fields other than the defaults (bench/core_settings.py)."""
     batches = [raw_g[i:i + batch] for i in range(0, len(raw_g), batch)]
     t0 = time.perf_counter()
-    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model),
+    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ, **settings), model, Prior.default(model),
                     raw_g.aux_names)
     out = np.concatenate([pipe.step(b).calibrated.a_g for b in batches])
     return out, time.perf_counter() - t0, pipe

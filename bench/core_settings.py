@@ -17,31 +17,19 @@ For each setting, against the defaults (2 s, 300 s):
 from __future__ import annotations
 
 import argparse
-import time
 from dataclasses import replace
 
 import numpy as np
 
 import compare_tools as ct
 import in_use_accuracy as ia
-from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
 
 DRIFT_SEEDS = (4, 13)
 DRIFT_G_PER_H = 0.0025
 DRIFT_HOURS = 12.0
-
-
-def _core(raw: RawBatch, model: SensorModel, settings: dict) -> tuple[np.ndarray, float, int]:
-    pipe = Pipeline(PipelineConfig(rate_hz=ct.RATE_HZ, **settings), model, Prior.default(model),
-                    raw.aux_names)
-    t0 = time.perf_counter()
-    cal = np.concatenate([pipe.step(raw[i:i + 100_000]).calibrated.a_g
-                          for i in range(0, len(raw), 100_000)])
-    return cal, time.perf_counter() - t0, pipe.counts["updates"]
 
 
 def speed_rows(settings: dict, runs: int, hours: float) -> list[str]:
@@ -51,8 +39,9 @@ def speed_rows(settings: dict, runs: int, hours: float) -> list[str]:
         raw = RawBatch(sim.raw.t_us, sim.raw.v / ct.COUNTS_PER_G, sim.raw.aux,
                        sim.raw.aux_names)
         model = case.models[0][1]()
-        results = [_core(raw, model, settings) for _ in range(runs)]
-        cal, _, updates = results[0]
+        results = [ct.run_recal(raw, model, 100_000, **settings) for _ in range(runs)]
+        cal, _, pipe = results[0]
+        updates = pipe.counts["updates"]
         best = min(sec for _, sec, _ in results)
         row = ct.Row(case.name, "recal", "streaming")
         ct.score(row, cal, sim, int(1800 * ct.RATE_HZ))
@@ -79,11 +68,7 @@ def drift_rows(settings: dict) -> list[str]:
         sensor = replace(sensor, offset_drift_g_per_h=tuple(rng.choice([-1, 1], 3)
                                                             * DRIFT_G_PER_H))
         r = simulate(DRIFT_HOURS, 50.0, seed, sensor, WearerSpec())
-        model = SensorModel.diagonal(1024.0)
-        pipe = Pipeline(PipelineConfig(rate_hz=50.0, **settings), model, Prior.default(model),
-                        r.raw.aux_names)
-        cal = np.concatenate([pipe.step(r.raw[i:i + 100_000]).calibrated.a_g
-                              for i in range(0, len(r.raw), 100_000)])
+        cal, _, pipe = ct.run_recal(r.raw, SensorModel.diagonal(1024.0), 100_000, **settings)
         m = r.raw.t_us >= 1800e6
         err = error_1s_mg(cal[m], r.truth.a_true_g[m], 50.0, False)
         rows.append(f"drift {1e3 * DRIFT_G_PER_H:g} mg/h, {DRIFT_HOURS:g} h, seed {seed}: "
