@@ -131,13 +131,21 @@ def _start(cfg: DetectorConfig, state: DetectorState, x0_g: float) -> DetectorSt
 
 
 def _flat_runs(v: np.ndarray, last_v: np.ndarray, run0: int) -> np.ndarray:
-    """For each sample, how many samples before it were bit-identical in a row (carried)."""
+    """For each sample, how many samples before it were bit-identical in a row (carried).
+
+    Worked out only where a sample repeats its predecessor (rare in a noisy sensor, so this
+    costs little beyond the comparison itself)."""
     same = np.empty(len(v), bool)
     same[0] = bool(np.all(v[0] == last_v))
     same[1:] = all3(v[1:] == v[:-1])
-    idx = np.arange(len(v))
-    last_reset = np.maximum.accumulate(np.where(same, -1, idx))
-    return np.where(last_reset >= 0, idx - last_reset, run0 + 1 + idx)
+    runs = np.zeros(len(v), np.int64)
+    pos = np.flatnonzero(same)
+    if len(pos):
+        new = np.ones(len(pos), bool)  # first repeat of each run of repeats
+        new[1:] = pos[1:] - pos[:-1] != 1
+        first = pos[new][np.cumsum(new) - 1]
+        runs[pos] = pos - first + 1 + np.where(first == 0, run0, 0)
+    return runs
 
 
 def detect(cfg: DetectorConfig, state: DetectorState,

@@ -421,6 +421,21 @@ def _take(windows: Windows, cov: Covariates, m: np.ndarray) -> tuple[Windows, Co
             Covariates(cov.t_h[m], cov.aux[m], cov.aux_names))
 
 
+def _z2_bound(model: SensorModel, estimate: Estimate, w: Windows, cov: Covariates,
+              offsets: _Offsets, now_us: int, cfg: EstimatorConfig) -> float:
+    """An upper bound of the largest normalized innovation squared `_jump` finds among the
+    windows w, cheap for one window: its C_mu without the raised floor and the ageing terms
+    of `_window_variance`, which only add to it (the same xi and B, row by row). A relative
+    margin covers rounding."""
+    lag, u, _ = offsets.design(model, w, now_us, cfg)
+    pb = _Problem(model, w, cov, np.ones(len(w)), np.zeros(0), np.zeros((0, 0)), lag)
+    xi, B = pb.residual(np.r_[estimate.p, u], jacobian=True)
+    B = B[:, :model.size]
+    c_min = w.var / np.maximum(w.n, 1) / model.s0**2 + cfg.sigma_floor_g**2 / w.merged
+    z2 = xi**2 / (c_min + np.einsum("np,pq,nq->n", B, estimate.cov, B))
+    return float(np.max(z2)) * (1.0 + 1e-9) if len(z2) else 0.0
+
+
 def _jump(model: SensorModel, estimate: Estimate, windows: Windows, cov: Covariates,
           now_us: int, cfg: EstimatorConfig) -> int | None:
     """The time of an offset jump (a knock), if the latest windows contradict the estimate:
@@ -436,8 +451,11 @@ def _jump(model: SensorModel, estimate: Estimate, windows: Windows, cov: Covaria
         return None
     w, c = _take(windows, cov, recent)
     order = np.argsort(w.t_us, kind="stable")
+    offsets = _Offsets(estimate.rate, estimate.step, estimate.step_us)
+    if _z2_bound(model, estimate, *_take(w, c, order[-1:]), offsets, now_us, cfg) <= JUMP_NIS:
+        return None  # the newest window agrees: no run of windows off the estimate ends now
     pb, _, xi, B = _problem(model, Prior(estimate.p, np.eye(model.size)), estimate.p, w, c,
-                            now_us, cfg, _Offsets(estimate.rate, estimate.step, estimate.step_us))
+                            now_us, cfg, offsets)
     B = B[:, :model.size]
     z = (xi / np.sqrt(pb.c_mu + np.einsum("np,pq,nq->n", B, estimate.cov, B)))[order]
     # far off window after window: a shift of the offsets does that, shaking that passed the
