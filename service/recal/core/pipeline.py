@@ -231,62 +231,47 @@ def _means(accs: list[_Acc], n_aux: int) -> tuple[Windows, np.ndarray]:
 
 
 @dataclass(eq=False)
-class _Stretch:
-    """Windows first.. of a batch under one set of parameters: their norm gate, gravity
-    directions and cells, and (when first asked) their normalized innovations.
+class _Chunk:
+    """Windows lo..lo+len of a batch's windows (`_means`) under the parameters in force: their
+    norm gate, gravity directions and cells, worked out at once. Most end early, at an update
+    that changes the parameters, so `Pipeline._commit_all` takes them in chunks that double
+    (64, 128, ...) while the parameters hold. `rows` are Python numbers for the buffer, which
+    takes windows one at a time; the innovations of the windows that pass the gate are
+    computed when a consistency test first asks (`Pipeline._scan`)."""
 
-    Most stretches end after a few windows (at an update), so `row` works the windows out in
-    chunks that double, as they are reached, rather than all remaining ones at every update;
-    each row is a tuple of Python numbers, since indexing numpy arrays one element at a time
-    cost more than the commit's own arithmetic."""
-
-    pipe: Pipeline
+    lo: int
     w: Windows
-    runs: np.ndarray
-    first: int
-    fresh0: int  # len(pipe.fresh) when the stretch began
-    rows: list[tuple] = field(default_factory=list)  # (ok, v, aux, t_us, n, var, dir, run, cell)
-    taken: list[int] = field(default_factory=list)  # stretch index of each window added since
+    ok: np.ndarray
+    rows: list[tuple]  # (ok, v, aux, t_us, n, var, dir, run, cell)
+    cells: np.ndarray
     z: np.ndarray | None = None
 
     @classmethod
-    def of(cls, pipe: Pipeline, w: Windows, runs: np.ndarray, first: int) -> _Stretch:
-        mine = Windows(w.v[first:], w.aux[first:], w.t_us[first:], w.n[first:], w.var[first:])
-        return cls(pipe, mine, runs[first:], first, len(pipe.fresh))
-
-    def row(self, i: int) -> tuple:
-        """(ok, v, aux, t_us, n, var, dir, run, cell) of window i of the stretch."""
-        if i >= len(self.rows):
-            self._extend(min(len(self.w), max(2 * len(self.rows), i + 1, 64)))
-        return self.rows[i]
-
-    def _extend(self, stop: int) -> None:
-        pipe, s = self.pipe, slice(len(self.rows), stop)
-        v, aux, t = self.w.v[s], self.w.aux[s], self.w.t_us[s]
-        a = pipe.model.correct(pipe.params, v, pipe.covariates(t, aux))
+    def of(cls, pipe: Pipeline, w: Windows, runs: np.ndarray, lo: int, hi: int) -> _Chunk:
+        s = slice(lo, hi)
+        mine = Windows(w.v[s], w.aux[s], w.t_us[s], w.n[s], w.var[s])
+        a = pipe.model.correct(pipe.params, mine.v, pipe.covariates(mine.t_us, mine.aux))
         norm = norm3(a)
         ok = (np.abs(norm - 1.0) <= pipe.cfg.norm_tol_g if pipe.bootstrapped
               else np.ones(len(a), bool))
         with np.errstate(invalid="ignore", divide="ignore"):
             dirs = np.where((norm > 0)[:, None], a / norm[:, None], [0.0, 0.0, 1.0])
-        self.rows.extend(zip(ok.tolist(), v.tolist(), aux.tolist(), t.tolist(),
-                             self.w.n[s].tolist(), self.w.var[s].tolist(), dirs.tolist(),
-                             self.runs[s].tolist(), cell_of(dirs, pipe.cfg.buffer.grid).tolist(),
-                             strict=True))
+        cells = cell_of(dirs, pipe.cfg.buffer.grid)
+        rows = list(zip(ok.tolist(), mine.v.tolist(), mine.aux.tolist(), mine.t_us.tolist(),
+                        mine.n.tolist(), mine.var.tolist(), dirs.tolist(), runs[s].tolist(),
+                        cells.tolist(), strict=True))
+        return cls(lo, mine, ok, rows, cells)
 
-    def innovations(self, pipe: Pipeline, m: int) -> np.ndarray:
-        """`estimator.innovations` of pipe.fresh[m:] (the estimate has not changed since the
-        stretch began): the ones from before it computed now, its own once for all."""
-        z = []
-        if m < self.fresh0:
-            w = pipe._fresh_windows(m, self.fresh0)
-            z.append(innovations(pipe.model, pipe.estimate, w, pipe.covariates(w.t_us, w.aux),
-                                 pipe.cfg.estimator))
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def innovations(self, pipe: Pipeline) -> np.ndarray:
+        """`estimator.innovations` of the chunk's windows that pass the gate, in order."""
         if self.z is None:
-            self.z = innovations(pipe.model, pipe.estimate, self.w,
-                                 pipe.covariates(self.w.t_us, self.w.aux), pipe.cfg.estimator)
-        z.append(self.z[self.taken[max(m - self.fresh0, 0):]])
-        return np.concatenate(z)
+            w = self.w
+            self.z = innovations(pipe.model, pipe.estimate, w, pipe.covariates(w.t_us, w.aux),
+                                 pipe.cfg.estimator)[self.ok]
+        return self.z
 
 
 class Pipeline:
@@ -328,7 +313,7 @@ class Pipeline:
         self.counts = {"samples": 0, "quasi_static": 0, "windows": 0, "windows_rejected": 0,
                        "updates": 0, "updates_rejected": 0}
         self.last_report: UpdateReport | None = None
-        # what the last update saw, to skip re-fits that would not move it (`_needs_update`)
+        # what the last update saw, to skip re-fits that would not move it (`_scan`)
         self.settled = False
         self.coverage_at_update: int | None = None
         # fresh windows tested so far, and the sums of their normalized innovations
@@ -535,66 +520,132 @@ class Pipeline:
         self.pending = (acc, end_us + round(self.cfg.guard_s * 1e6))
 
     def _commit_all(self, b: RawBatch, due: list[tuple[int, _Acc | None]]) -> list[_Event]:
-        """Commit the scheduled windows in order, vectorized over each stretch with the same
-        parameters: the norm gate, the gravity directions, their cells and the innovations
-        are computed once per stretch, which ends where an update changes the parameters."""
+        """Commit the scheduled windows in order. Between updates the parameters hold, so the
+        norm gate, directions and cells of the windows are worked out a chunk at a time
+        (`_Chunk`), and `_scan` finds the next window after which an update runs from the
+        chunk's arrays; the windows before it only enter the buffer (`_enter`)."""
         events: list[_Event] = []
         accs = [acc for _, acc in due if acc is not None]
-        w, runs = _means(accs, len(self.aux_names)) if accs else (None, None)
-        seg: _Stretch | None = None
-        c = 0  # next window of `w`
-        for idx, acc in due:
-            self._reach(idx)
-            if acc is None:
-                self.counts["windows_rejected"] += 1
-                continue
-            if seg is None:
-                seg = _Stretch.of(self, w, runs, c)
-            ev = self._commit(seg, c, idx, int(b.t_us[idx]))
-            c += 1
-            if ev is not None:
-                events.append(_Event(ev, idx, self.model, self.params.copy()))
-                if self._marks is not None:
-                    self._marks.dirty = True
-                seg = None  # the parameters changed: the next window starts a new stretch
+        at = [idx for idx, acc in due if acc is not None]  # commit sample of each window
+        slot = [k for k, (_, acc) in enumerate(due) if acc is not None]  # its place in due
+        done = 0  # due entries handled
+        if accs:
+            w, runs = _means(accs, len(self.aux_names))
+            c, size, chunk = 0, 0, None
+            while c < len(accs):
+                if chunk is None or c >= chunk.lo + len(chunk):
+                    size = min(len(accs) - c, max(64, 2 * size))
+                    chunk = _Chunk.of(self, w, runs, c, c + size)
+                e = self._scan(chunk, c, b.t_us, at)
+                stop = chunk.lo + len(chunk) if e is None else e + 1
+                done, opened = self._enter(chunk, c, stop, due, slot, done)
+                e = opened if opened is not None else e
+                c = stop if e is None else e + 1
+                if e is None:
+                    continue
+                idx = at[e]
+                ev = (self._try_bootstrap(idx, int(b.t_us[idx])) if not self.bootstrapped
+                      else self._update(idx, int(b.t_us[idx])))
+                if ev is not None:
+                    events.append(_Event(ev, idx, self.model, self.params.copy()))
+                    if self._marks is not None:
+                        self._marks.dirty = True
+                    chunk, size = None, 0  # the parameters changed: a new first chunk
+        self._reject_short(due, done, len(due))
         return events
 
-    def _commit(self, seg: _Stretch, c: int, idx: int, t_us: int) -> UpdateEvent | None:
-        """Window c of the stretch enters the buffer (unless its norm is off), and an update
-        may follow (every update_every windows, if `_needs_update`)."""
-        i = c - seg.first
-        ok, v, aux, t_mid, n, var, direction, run, cell = seg.row(i)
-        if not ok:
-            self.counts["windows_rejected"] += 1
-            return None
-        self.buffer.add(v, aux, t_mid, n, var, direction, run=run, cell=cell)
-        self.fresh.append((v, aux, t_mid, n, var))
-        seg.taken.append(i)
-        self.counts["windows"] += 1
+    def _enter(self, chunk: _Chunk, c0: int, c1: int, due: list[tuple[int, _Acc | None]],
+               slot: list[int], done: int) -> tuple[int, int | None]:
+        """Windows c0..c1 of the batch enter the buffer (or count as rejected by their norm),
+        each after the short windows scheduled before it. Returns the due entries handled,
+        and the window at which an update must run because the buffer covers a cell it did
+        not at the last update (`_scan`'s other reason; whether a window opens a cell or
+        merges into the latest slot is the buffer's call, one window at a time)."""
+        marks, ue, watch = self._marks, self.cfg.update_every, self.bootstrapped
+        counts, add, fresh, buf = self.counts, self.buffer.add, self.fresh, self.buffer
+        for c in range(c0, c1):
+            done = self._reject_short(due, done, slot[c])
+            if marks is not None:
+                self._reach(due[slot[c]][0])
+            ok, v, aux, t_mid, n, var, direction, run, cell = chunk.rows[c - chunk.lo]
+            done = slot[c] + 1
+            if not ok:
+                counts["windows_rejected"] += 1
+                continue
+            add(v, aux, t_mid, n, var, direction, run=run, cell=cell)
+            fresh.append((v, aux, t_mid, n, var))
+            counts["windows"] += 1
+            if (watch and counts["windows"] % ue == 0
+                    and buf.cells_opened != self.coverage_at_update):
+                return done, c
+        return done, None
+
+    def _reject_short(self, due: list[tuple[int, _Acc | None]], done: int, stop: int) -> int:
+        """Due entries done..stop are windows too short to keep (`_finish`): counted."""
+        if self._marks is not None:
+            for idx, _ in due[done:stop]:
+                self._reach(idx)
+                self.counts["windows_rejected"] += 1
+        else:
+            self.counts["windows_rejected"] += max(stop - done, 0)
+        return max(done, stop)
+
+    def _scan(self, chunk: _Chunk, c0: int, t_us: np.ndarray, at: list[int]) -> int | None:
+        """The first window from c0 in the chunk after which an update runs. None: none in it.
+
+        Before the bootstrap, every window that passes the norm gate (`_try_bootstrap`
+        decides). After it, every update_every-th one, but only if a re-fit can tell
+        anything new: most of a day's windows repeat what the buffer already says, and a
+        re-fit is the core's main cost. It runs when the estimate has not settled (the last
+        update moved it), max_update_interval_s of device time passed since the last accepted
+        update, the windows since then disagree with the estimate (a knock, a drift:
+        `consistent`; each test on the way is recorded in `self.tested`, as the windows come),
+        or the buffer covers a new cell or half-axis (`_enter` sees that, as the buffer
+        places each window)."""
+        i0 = c0 - chunk.lo
+        ok = chunk.ok[i0:]
         if not self.bootstrapped:
-            return self._try_bootstrap(idx, t_us)
-        if (self.counts["windows"] % self.cfg.update_every == 0
-                and self._needs_update(t_us, seg)):
-            return self._update(idx, t_us)
+            hits = np.flatnonzero(ok)
+            return int(hits[0]) + c0 if len(hits) else None
+        ue = self.cfg.update_every
+        cum = np.cumsum(ok)  # windows of the chunk from c0 that pass, up to each
+        checks = np.flatnonzero(ok & ((self.counts["windows"] + cum) % ue == 0))
+        if not len(checks):
+            return None
+        if self._must_update():
+            return int(checks[0]) + c0
+        interval_us = self.cfg.max_update_interval_s * 1e6
+        n_before = int(np.count_nonzero(chunk.ok[:i0]))  # the chunk's windows already entered
+        in_fresh = len(self.fresh) - n_before  # fresh windows from before the chunk
+        for j in checks.tolist():
+            if int(t_us[at[c0 + j]]) - self.estimate.t_us >= interval_us:
+                return j + c0
+            if not self._consistent_until(chunk, in_fresh, n_before + int(cum[j])):
+                return j + c0
         return None
 
-    # --- estimation --------------------------------------------------------------------------
-    def _needs_update(self, now_us: int, seg: _Stretch) -> bool:
-        """Whether a re-fit can tell anything new: most of a day's windows repeat what the
-        buffer already says, and a re-fit is the core's main cost. It runs when the estimate
-        has not settled (the last update moved it), the buffer covers a new cell or half-axis,
-        max_update_interval_s of device time passed since the last accepted update, or the
-        windows since then disagree with the estimate (a knock, a drift: `consistent`)."""
+    def _must_update(self) -> bool:
+        """An update runs at the next try, whatever the windows say (`_scan`)."""
         est = self.estimate
-        if (self.cfg.max_update_interval_s <= 0 or est is None or est.t_us is None
-                or not self.settled or self.buffer.cells_opened != self.coverage_at_update
-                or now_us - est.t_us >= self.cfg.max_update_interval_s * 1e6):
-            return True
-        m, s2, s1 = self.tested
-        z = seg.innovations(self, m)  # only the untested ones: the estimate did not change
-        self.tested = (m + len(z), s2 + float(z @ z), s1 + float(z.sum()))
-        return not consistent(*self.tested)
+        return (self.cfg.max_update_interval_s <= 0 or est is None or est.t_us is None
+                or not self.settled)
 
+    def _consistent_until(self, chunk: _Chunk, in_fresh: int, upto: int) -> bool:
+        """Test the fresh windows not yet tested, through the chunk's upto-th window that
+        passes the gate (in_fresh came before the chunk), against the estimate (`consistent`:
+        a re-fit would not move it), and record the test in `self.tested`."""
+        m, s2, s1 = self.tested
+        z = []
+        if m < in_fresh:  # windows committed before the chunk: tested with its own
+            w = self._fresh_windows(m, in_fresh)
+            z.append(innovations(self.model, self.estimate, w, self.covariates(w.t_us, w.aux),
+                                 self.cfg.estimator))
+        z.append(chunk.innovations(self)[max(m - in_fresh, 0):upto])
+        zz = np.concatenate(z)
+        self.tested = (m + len(zz), s2 + float(zz @ zz), s1 + float(zz.sum()))
+        return consistent(*self.tested)
+
+    # --- estimation --------------------------------------------------------------------------
     def _update(self, idx: int, now_us: int, windows: Windows | None = None) -> UpdateEvent:
         # every window the buffer holds, re-fitted from the current estimate (estimator doc)
         w = windows if windows is not None else self.buffer.windows()
