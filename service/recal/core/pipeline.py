@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from itertools import pairwise
 
 import numpy as np
@@ -169,24 +169,6 @@ class _Acc:
         return cls(run_start_us, k, len(v), v.sum(0), (v * v).sum(0), aux.sum(0),
                    float((t_us - run_start_us).sum()))
 
-    @classmethod
-    def each(cls, run_start_us: int, k: np.ndarray, starts: list[int], v: np.ndarray,
-             aux: np.ndarray, t_us: np.ndarray) -> list[_Acc]:
-        """`of` for every window of one run at once (starts: each window's first sample):
-        one reduction per quantity instead of four per window."""
-        if len(starts) == 1:  # one window (a live sensor's few samples): plain sums
-            return [cls.of(run_start_us, int(k[0]), v, aux, t_us)]
-        idx = np.asarray(starts, np.intp)
-        n = np.diff(np.append(idx, len(v))).tolist()
-        sv = np.add.reduceat(v, idx, axis=0)
-        sv2 = np.add.reduceat(v * v, idx, axis=0)
-        saux = (np.add.reduceat(aux, idx, axis=0) if aux.shape[1]
-                else np.zeros((len(idx), 0)))
-        st = np.add.reduceat(t_us - run_start_us, idx).tolist()  # int64: exact
-        ks = k[idx].tolist()
-        return [cls(run_start_us, kj, nj, a, b, c, float(sj))
-                for kj, nj, a, b, c, sj in zip(ks, n, sv, sv2, saux, st, strict=True)]
-
     def merge(self, other: _Acc) -> _Acc:
         return _Acc(self.run_start_us, self.k, self.n + other.n, self.sum_v + other.sum_v,
                     self.sum_v2 + other.sum_v2, self.sum_aux + other.sum_aux,
@@ -216,23 +198,84 @@ class _Event:
     p: np.ndarray
 
 
-def _means(accs: list[_Acc], n_aux: int) -> tuple[Windows, np.ndarray]:
-    """Window means of finished windows (and the run each belongs to), all at once."""
-    n = np.array([a.n for a in accs], np.int64)
-    nf = n[:, None]
-    v = np.array([a.sum_v for a in accs]).reshape(-1, 3) / nf
-    s2 = np.maximum(np.array([a.sum_v2 for a in accs]).reshape(-1, 3) / nf - v * v, 0.0)
-    # the mean per-axis variance, unbiased
-    var = (s2[:, 0] + s2[:, 1] + s2[:, 2]) / 3 * n / np.maximum(n - 1, 1)
-    aux = np.array([a.sum_aux for a in accs]).reshape(len(accs), n_aux) / nf
-    runs = np.array([a.run_start_us for a in accs], np.int64)
-    t_mid = runs + np.rint(np.array([a.sum_t for a in accs]) / n).astype(np.int64)
-    return Windows(v, aux, t_mid, n, var), runs
+@dataclass(frozen=True, eq=False)
+class _Sums:
+    """The running sums of many windows, one row each (what an `_Acc` holds for one): a long
+    run's windows are summed, scheduled and committed as arrays, not one object each."""
+
+    run_start_us: np.ndarray
+    k: np.ndarray
+    n: np.ndarray
+    sum_v: np.ndarray
+    sum_v2: np.ndarray
+    sum_aux: np.ndarray
+    sum_t: np.ndarray
+
+    @classmethod
+    def of_run(cls, run_start_us: int, k: np.ndarray, starts: list[int], v: np.ndarray,
+               aux: np.ndarray, t_us: np.ndarray) -> _Sums:
+        """Every window of one run (starts: each window's first sample): one reduction per
+        quantity."""
+        idx = np.asarray(starts, np.intp)
+        saux = (np.add.reduceat(aux, idx, axis=0) if aux.shape[1]
+                else np.zeros((len(idx), 0)))
+        return cls(np.full(len(idx), run_start_us, np.int64), k[idx],
+                   np.diff(np.append(idx, len(v))), np.add.reduceat(v, idx, axis=0),
+                   np.add.reduceat(v * v, idx, axis=0), saux,
+                   np.add.reduceat(t_us - run_start_us, idx).astype(np.float64))  # exact
+
+    @classmethod
+    def of_accs(cls, accs: list[_Acc], n_aux: int) -> _Sums:
+        return cls(np.array([a.run_start_us for a in accs], np.int64),
+                   np.array([a.k for a in accs], np.int64),
+                   np.array([a.n for a in accs], np.int64),
+                   np.array([a.sum_v for a in accs]).reshape(-1, 3),
+                   np.array([a.sum_v2 for a in accs]).reshape(-1, 3),
+                   np.array([a.sum_aux for a in accs]).reshape(len(accs), n_aux),
+                   np.array([a.sum_t for a in accs], np.float64))
+
+    @classmethod
+    def gather(cls, parts: list[_Acc | _Sums], n_aux: int) -> _Sums:
+        """One table of windows given one by one (`_Acc`) and in blocks, in that order."""
+        blocks: list[_Sums] = []
+        for part in parts:
+            if isinstance(part, _Sums):
+                blocks.append(part)
+            elif blocks and isinstance(blocks[-1], list):
+                blocks[-1].append(part)
+            else:
+                blocks.append([part])
+        tables = [b if isinstance(b, _Sums) else cls.of_accs(b, n_aux) for b in blocks]
+        if len(tables) == 1:
+            return tables[0]
+        return cls(*(np.concatenate([getattr(t, f.name) for t in tables])
+                     for f in fields(cls)))
+
+    def __len__(self) -> int:
+        return len(self.n)
+
+    def acc(self, j: int) -> _Acc:
+        return _Acc(int(self.run_start_us[j]), int(self.k[j]), int(self.n[j]), self.sum_v[j],
+                    self.sum_v2[j], self.sum_aux[j], float(self.sum_t[j]))
+
+    def take(self, rows: np.ndarray) -> _Sums:
+        return _Sums(*(getattr(self, f.name)[rows] for f in fields(self)))
+
+    def means(self) -> tuple[Windows, np.ndarray]:
+        """Window means (and the run each belongs to), all at once."""
+        n = self.n
+        nf = n[:, None]
+        v = self.sum_v / nf
+        s2 = np.maximum(self.sum_v2 / nf - v * v, 0.0)
+        # the mean per-axis variance, unbiased
+        var = (s2[:, 0] + s2[:, 1] + s2[:, 2]) / 3 * n / np.maximum(n - 1, 1)
+        t_mid = self.run_start_us + np.rint(self.sum_t / n).astype(np.int64)
+        return Windows(v, self.sum_aux / nf, t_mid, n, var), self.run_start_us
 
 
 @dataclass(eq=False)
 class _Chunk:
-    """Windows lo..lo+len of a batch's windows (`_means`) under the parameters in force: their
+    """Windows lo..lo+len of a batch's windows (`_Sums.means`) under the parameters in force: their
     norm gate, gravity directions and cells, worked out at once. Most end early, at an update
     that changes the parameters, so `Pipeline._commit_all` takes them in chunks that double
     (64, 128, ...) while the parameters hold. `rows` are Python numbers for the buffer, which
@@ -469,14 +512,18 @@ class Pipeline:
         Which windows finish and when they commit depends on the gates and times alone, so it
         is worked out first for the whole batch (`_schedule`); committing them then depends on
         the parameters, which change only at updates (`_commit_all`)."""
-        due = self._schedule(b, gate)
-        return self._commit_all(b, due), sum(acc is not None for _, acc in due)
+        due, table = self._schedule(b, gate)
+        return self._commit_all(b, due, table), len(table) if table is not None else 0
 
-    def _schedule(self, b: RawBatch, gate: np.ndarray) -> list[tuple[int, _Acc | None]]:
-        """The batch's window events in sample order: (index, window) for a window that
-        commits at sample index, (index, None) for one too short to keep (`_finish`)."""
-        due: list[tuple[int, _Acc | None]] = []
+    def _schedule(self, b: RawBatch, gate: np.ndarray) -> tuple[list[tuple[int, bool]],
+                                                                 _Sums | None]:
+        """The batch's window events in sample order: (index, True) for a window that
+        commits at sample index, (index, False) for one too short to keep (`_finish`); and
+        the committing windows' sums, in the same order."""
+        due: list[tuple[int, bool]] = []
+        table: list[_Acc | _Sums] = []
         W = round(self.cfg.window_s * 1e6)
+        need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
         runs, continues = self._runs(b.t_us, gate)
         for r, (i0, i1) in enumerate(runs):
             if not (r == 0 and continues):
@@ -486,8 +533,18 @@ class Pipeline:
             t = b.t_us[i0:i1]
             k = (t - run_start) // W
             cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
-            accs = _Acc.each(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
-            for g0, g1, acc in zip([0, *cuts], [*cuts, len(t)], accs, strict=True):
+            if cuts:
+                sums = _Sums.of_run(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
+                acc_of = sums.acc
+            else:  # one window (a live sensor's few samples): plain sums
+                one = _Acc.of(run_start, int(k[0]), b.v[i0:i1], b.aux[i0:i1], t)
+                acc_of = [one].__getitem__
+            # windows 1.. of a long run at once when none but the last is short (`_tail`)
+            fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= need))
+            starts, ends = [0, *cuts], [*cuts, len(t)]
+            for j in range(1 if fast else len(starts)):
+                g0, g1 = starts[j], ends[j]
+                acc = acc_of(j)
                 if self.open is not None and self.open.k == acc.k:
                     acc = self.open.merge(acc)
                 elif self.open is not None:  # the open window ended where this one begins
@@ -497,44 +554,74 @@ class Pipeline:
                     # t rises within a run: the first sample at or past the commit time
                     at = bisect.bisect_left(t, self.pending[1], g0, g1) - g0
                     if at < g1 - g0:
-                        due.append((i0 + g0 + at, self.pending[0]))
+                        due.append((i0 + g0 + at, True))
+                        table.append(self.pending[0])
                         self.pending = None
                 if g1 < len(t):  # a later window follows in this run: this one is complete
                     self._finish(self.open, W, i0 + g1, due)
                     self.open = None
+            if fast:
+                self._tail(sums, cuts, t, i0, W, due, table)
         if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
             self.open, self.pending = None, None
         if not runs:
             self.open, self.pending = None, None
-        return due
+        return due, _Sums.gather(table, len(self.aux_names)) if table else None
 
-    def _finish(self, acc: _Acc, W: int, idx: int,
-                due: list[tuple[int, _Acc | None]]) -> None:
+    def _tail(self, sums: _Sums, cuts: list[int], t: np.ndarray, i0: int, W: int,
+              due: list[tuple[int, bool]], table: list[_Acc | _Sums]) -> None:
+        """`_schedule`'s loop over windows 1.. of a run (samples i0.., times t, window j
+        from cuts[j-1]), all at once, when every one but the last is long enough to keep:
+        window j is then pending from the start of window j + 1 and commits at its first
+        sample guard_s past its end, or stays pending if window j + 1 is the run's last and
+        ends before that; the last window stays open."""
+        G = round(self.cfg.guard_s * 1e6)
+        g0 = np.asarray(cuts)
+        g1 = np.append(g0[1:], len(t))
+        # the window pending in each window 1..: the one before it (the first: as it is)
+        commit = np.empty(len(g0), np.int64)
+        commit[1:] = sums.run_start_us[1:-1] + (sums.k[1:-1] + 1) * W + G
+        commit[0] = self.pending[1] if self.pending is not None else 0
+        at = np.maximum(np.searchsorted(t, commit), g0)
+        if self.pending is None:
+            at[0] = len(t)  # nothing pending: never found
+        found = at < g1
+        due.extend((i0 + a, True) for a in at[found].tolist())
+        if found[0]:
+            table.append(self.pending[0])
+        rows = np.flatnonzero(found[1:]) + 1
+        if len(rows):
+            table.append(sums.take(rows))
+        last = len(g0) - 1
+        self.pending = None if found[last] else (sums.acc(last), int(commit[last]))
+        self.open = sums.acc(len(sums) - 1)
+
+    def _finish(self, acc: _Acc, W: int, idx: int, due: list[tuple[int, bool]]) -> None:
         """A window is complete (seen at sample idx, the next window's first); keep it
         pending until the guard time has passed."""
         need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
         if acc.n < need:
-            due.append((idx, None))
+            due.append((idx, False))
             return
         end_us = acc.run_start_us + (acc.k + 1) * W
         self.pending = (acc, end_us + round(self.cfg.guard_s * 1e6))
 
-    def _commit_all(self, b: RawBatch, due: list[tuple[int, _Acc | None]]) -> list[_Event]:
+    def _commit_all(self, b: RawBatch, due: list[tuple[int, bool]],
+                    table: _Sums | None) -> list[_Event]:
         """Commit the scheduled windows in order. Between updates the parameters hold, so the
         norm gate, directions and cells of the windows are worked out a chunk at a time
         (`_Chunk`), and `_scan` finds the next window after which an update runs from the
         chunk's arrays; the windows before it only enter the buffer (`_enter`)."""
         events: list[_Event] = []
-        accs = [acc for _, acc in due if acc is not None]
-        at = [idx for idx, acc in due if acc is not None]  # commit sample of each window
-        slot = [k for k, (_, acc) in enumerate(due) if acc is not None]  # its place in due
+        at = [idx for idx, window in due if window]  # commit sample of each window
+        slot = [k for k, (_, window) in enumerate(due) if window]  # its place in due
         done = 0  # due entries handled
-        if accs:
-            w, runs = _means(accs, len(self.aux_names))
+        if table is not None:
+            w, runs = table.means()
             c, size, chunk = 0, 0, None
-            while c < len(accs):
+            while c < len(table):
                 if chunk is None or c >= chunk.lo + len(chunk):
-                    size = min(len(accs) - c, max(64, 2 * size))
+                    size = min(len(table) - c, max(64, 2 * size))
                     chunk = _Chunk.of(self, w, runs, c, c + size)
                 e = self._scan(chunk, c, b.t_us, at)
                 stop = chunk.lo + len(chunk) if e is None else e + 1
@@ -554,7 +641,7 @@ class Pipeline:
         self._reject_short(due, done, len(due))
         return events
 
-    def _enter(self, chunk: _Chunk, c0: int, c1: int, due: list[tuple[int, _Acc | None]],
+    def _enter(self, chunk: _Chunk, c0: int, c1: int, due: list[tuple[int, bool]],
                slot: list[int], done: int) -> tuple[int, int | None]:
         """Windows c0..c1 of the batch enter the buffer (or count as rejected by their norm),
         each after the short windows scheduled before it. Returns the due entries handled,
@@ -580,7 +667,7 @@ class Pipeline:
                 return done, c
         return done, None
 
-    def _reject_short(self, due: list[tuple[int, _Acc | None]], done: int, stop: int) -> int:
+    def _reject_short(self, due: list[tuple[int, bool]], done: int, stop: int) -> int:
         """Due entries done..stop are windows too short to keep (`_finish`): counted."""
         if self._marks is not None:
             for idx, _ in due[done:stop]:
