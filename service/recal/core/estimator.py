@@ -53,7 +53,6 @@ re-fitting windows that agree with the estimate would not move it (core/pipeline
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -62,8 +61,8 @@ from recal.core.buffer import Windows
 from recal.core.effects import Covariates, Offset
 from recal.core.model import SensorModel
 
-__all__ = ["Estimate", "EstimatorConfig", "Prior", "UpdateReport", "consistent", "innovations",
-           "solve", "update"]
+__all__ = ["Estimate", "EstimatorConfig", "Prior", "UpdateReport", "consistent",
+           "consistent_many", "innovations", "solve", "update"]
 
 
 #: An update whose weighted residual (data + prior) ends above this factor times its start is
@@ -539,9 +538,15 @@ def consistent(m: int, sum_z2: float, sum_z: float) -> bool:
     below the chi-square quantile with m degrees of freedom (scatter beyond the noise: a knock,
     a new effect) and |sum z| / sqrt(m) below the normal quantile (a common shift: the offsets
     drifting while the wearer holds one posture)."""
-    if m == 0:
-        return True
-    return bool(sum_z2 <= _chi2_quantile(m) and abs(sum_z) <= _Z_ALPHA * math.sqrt(m))
+    return bool(consistent_many(np.array([m]), np.array([sum_z2]), np.array([sum_z]))[0])
+
+
+def consistent_many(m: np.ndarray, sum_z2: np.ndarray, sum_z: np.ndarray) -> np.ndarray:
+    """`consistent` for many (m, sums) at once (m = 0: nothing to contradict)."""
+    m = np.asarray(m, np.float64)
+    mm = np.maximum(m, 1.0)
+    ok = (sum_z2 <= _chi2_quantile(mm)) & (np.abs(sum_z) <= _Z_ALPHA * np.sqrt(mm))
+    return ok | (m == 0)
 
 
 #: normal quantiles at CONSISTENT_ALPHA: two-sided (the mean test), one-sided (Wilson-Hilferty)
@@ -549,11 +554,11 @@ _Z_ALPHA = 3.2905
 _Z_ONE_SIDED = 3.0902
 
 
-def _chi2_quantile(m: int) -> float:
+def _chi2_quantile(m: np.ndarray) -> np.ndarray:
     """Chi-square 1 - CONSISTENT_ALPHA quantile, m degrees of freedom (Wilson-Hilferty: within
     1 % of the exact one from m = 3 on, without a scipy call per test)."""
     h = 2.0 / (9.0 * m)
-    return m * (1.0 - h + _Z_ONE_SIDED * math.sqrt(h)) ** 3
+    return m * (1.0 - h + _Z_ONE_SIDED * np.sqrt(h)) ** 3
 
 
 def _gate(model: SensorModel, sol: _Solution) -> str | None:

@@ -35,7 +35,7 @@ from recal.core.estimator import (
     EstimatorConfig,
     Prior,
     UpdateReport,
-    consistent,
+    consistent_many,
     innovations,
     update,
 )
@@ -701,15 +701,15 @@ class Pipeline:
             return None
         if self._must_update():
             return int(checks[0]) + c0
-        interval_us = self.cfg.max_update_interval_s * 1e6
         n_before = int(np.count_nonzero(chunk.ok[:i0]))  # the chunk's windows already entered
         in_fresh = len(self.fresh) - n_before  # fresh windows from before the chunk
-        for j in checks.tolist():
-            if int(t_us[at[c0 + j]]) - self.estimate.t_us >= interval_us:
-                return j + c0
-            if not self._consistent_until(chunk, in_fresh, n_before + int(cum[j])):
-                return j + c0
-        return None
+        late = (t_us[np.asarray(at[c0:c0 + len(ok)])[checks]] - self.estimate.t_us
+                >= self.cfg.max_update_interval_s * 1e6)
+        upto = n_before + cum[checks]  # the chunk's windows that passed, up to each check
+        fail = self._test_until(chunk, in_fresh, upto, stop=int(np.argmax(late)) if late.any()
+                                else len(checks))
+        first = min(fail, int(np.argmax(late)) if late.any() else len(checks))
+        return int(checks[first]) + c0 if first < len(checks) else None
 
     def _must_update(self) -> bool:
         """An update runs at the next try, whatever the windows say (`_scan`)."""
@@ -717,20 +717,32 @@ class Pipeline:
         return (self.cfg.max_update_interval_s <= 0 or est is None or est.t_us is None
                 or not self.settled)
 
-    def _consistent_until(self, chunk: _Chunk, in_fresh: int, upto: int) -> bool:
-        """Test the fresh windows not yet tested, through the chunk's upto-th window that
-        passes the gate (in_fresh came before the chunk), against the estimate (`consistent`:
-        a re-fit would not move it), and record the test in `self.tested`."""
+    def _test_until(self, chunk: _Chunk, in_fresh: int, upto: np.ndarray, stop: int) -> int:
+        """The consistency tests (`consistent`: a re-fit would not move the estimate) at the
+        first `stop` checks, check j testing the fresh windows through the chunk's upto[j]-th
+        window that passed the gate (in_fresh came before the chunk): the first that fails
+        (or stop). The tests up to it are recorded in `self.tested`, as if run one by one:
+        each check's sums are added to the running ones in order."""
+        if stop == 0:
+            return 0
         m, s2, s1 = self.tested
         z = []
         if m < in_fresh:  # windows committed before the chunk: tested with its own
             w = self._fresh_windows(m, in_fresh)
             z.append(innovations(self.model, self.estimate, w, self.covariates(w.t_us, w.aux),
                                  self.cfg.estimator))
-        z.append(chunk.innovations(self)[max(m - in_fresh, 0):upto])
+        z.append(chunk.innovations(self)[max(m - in_fresh, 0):int(upto[stop - 1])])
         zz = np.concatenate(z)
-        self.tested = (m + len(zz), s2 + float(zz @ zz), s1 + float(zz.sum()))
-        return consistent(*self.tested)
+        ends = upto[:stop] - (max(m, in_fresh) - in_fresh) + (in_fresh - min(m, in_fresh))
+        starts = np.concatenate(([0], ends[:-1]))
+        # each check's windows summed in order, then the checks one after another
+        ms = m + ends
+        s2s = np.cumsum(np.concatenate(([s2], np.add.reduceat(zz * zz, starts))))[1:]
+        s1s = np.cumsum(np.concatenate(([s1], np.add.reduceat(zz, starts))))[1:]
+        ok = consistent_many(ms, s2s, s1s)
+        j = int(np.argmin(ok)) if not ok.all() else stop - 1
+        self.tested = (int(ms[j]), float(s2s[j]), float(s1s[j]))
+        return j if not ok[j] else stop
 
     # --- estimation --------------------------------------------------------------------------
     def _update(self, idx: int, now_us: int, windows: Windows | None = None) -> UpdateEvent:
