@@ -649,23 +649,30 @@ class Pipeline:
         not at the last update (`_scan`'s other reason; whether a window opens a cell or
         merges into the latest slot is the buffer's call, one window at a time)."""
         marks, ue, watch = self._marks, self.cfg.update_every, self.bootstrapped
-        counts, add, fresh, buf = self.counts, self.buffer.add, self.fresh, self.buffer
+        add, fresh, buf, rows = self.buffer.add, self.fresh, self.buffer, chunk.rows
+        counts = self.counts
+        kept, rejected = counts["windows"], counts["windows_rejected"]
+        hit = None
         for c in range(c0, c1):
-            done = self._reject_short(due, done, slot[c])
-            if marks is not None:
-                self._reach(due[slot[c]][0])
-            ok, v, aux, t_mid, n, var, direction, run, cell = chunk.rows[c - chunk.lo]
+            if slot[c] > done or marks is not None:
+                counts["windows"], counts["windows_rejected"] = kept, rejected
+                done = self._reject_short(due, done, slot[c])
+                if marks is not None:
+                    self._reach(due[slot[c]][0])
+                kept, rejected = counts["windows"], counts["windows_rejected"]
+            ok, v, aux, t_mid, n, var, direction, run, cell = rows[c - chunk.lo]
             done = slot[c] + 1
             if not ok:
-                counts["windows_rejected"] += 1
+                rejected += 1
                 continue
-            add(v, aux, t_mid, n, var, direction, run=run, cell=cell)
+            add(v, aux, t_mid, n, var, direction, run, cell)
             fresh.append((v, aux, t_mid, n, var))
-            counts["windows"] += 1
-            if (watch and counts["windows"] % ue == 0
-                    and buf.cells_opened != self.coverage_at_update):
-                return done, c
-        return done, None
+            kept += 1
+            if watch and kept % ue == 0 and buf.cells_opened != self.coverage_at_update:
+                hit = c
+                break
+        counts["windows"], counts["windows_rejected"] = kept, rejected
+        return done, hit
 
     def _reject_short(self, due: list[tuple[int, bool]], done: int, stop: int) -> int:
         """Due entries done..stop are windows too short to keep (`_finish`): counted."""
