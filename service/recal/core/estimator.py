@@ -420,30 +420,30 @@ def _take(windows: Windows, cov: Covariates, m: np.ndarray) -> tuple[Windows, Co
             Covariates(cov.t_h[m], cov.aux[m], cov.aux_names))
 
 
-def _z2_bound(model: SensorModel, estimate: Estimate, w: Windows, cov: Covariates,
-              offsets: _Offsets, now_us: int, cfg: EstimatorConfig) -> float:
-    """An upper bound of the largest normalized innovation squared `_jump` finds among the
-    windows w, cheap for one window: its C_mu without the raised floor and the ageing terms
-    of `_window_variance`, which only add to it (the same xi and B, row by row). A relative
+def _z2_newest(model: SensorModel, estimate: Estimate, w: Windows, xi: np.ndarray,
+               B: np.ndarray, cfg: EstimatorConfig) -> float:
+    """An upper bound of the normalized innovation squared `_jump` finds for the newest of the
+    windows w, from their xi and B (with the nuisances) at the estimate: its C_mu without the
+    raised floor and the ageing terms of `_window_variance`, which only add to it. A relative
     margin covers rounding."""
-    lag, u, _ = offsets.design(model, w, now_us, cfg)
-    pb = _Problem(model, w, cov, np.ones(len(w)), np.zeros(0), np.zeros((0, 0)), lag)
-    xi, B = pb.residual(np.r_[estimate.p, u], jacobian=True)
-    B = B[:, :model.size]
-    c_min = w.var / np.maximum(w.n, 1) / model.s0**2 + cfg.sigma_floor_g**2 / w.merged
-    z2 = xi**2 / (c_min + np.einsum("np,pq,nq->n", B, estimate.cov, B))
-    return float(np.max(z2)) * (1.0 + 1e-9) if len(z2) else 0.0
+    if not len(w):
+        return 0.0
+    i = int(np.argsort(w.t_us, kind="stable")[-1])
+    Bi = B[i, :model.size]
+    c_min = w.var[i] / max(w.n[i], 1) / model.s0**2 + cfg.sigma_floor_g**2 / w.merged[i]
+    return float(xi[i] ** 2 / (c_min + Bi @ estimate.cov @ Bi)) * (1.0 + 1e-9)
 
 
 def _jump(model: SensorModel, estimate: Estimate, windows: Windows, cov: Covariates,
-          now_us: int, cfg: EstimatorConfig) -> int | None:
+          now_us: int, cfg: EstimatorConfig, newest_z2: float) -> int | None:
     """The time of an offset jump (a knock), if the latest windows contradict the estimate:
     the newest ones (at least JUMP_MIN_WINDOWS, some since the last update) each with a
     normalized innovation xi^2 / (C_mu + B C_e B^T) above JUMP_NIS, all of the same sign. The
     jump is dated at the first of that run of windows, looking back up to JUMP_LOOKBACK_S
     before the last update (a jump in the middle of the previous update's windows). None: no
-    jump, or too little fresh data to say."""
-    if estimate.t_us is None or not model.has("offset"):
+    jump, or too little fresh data to say. newest_z2: `_z2_newest` (the newest window must be
+    one of that run, and this bound is cheap)."""
+    if estimate.t_us is None or not model.has("offset") or newest_z2 <= JUMP_NIS:
         return None
     recent = windows.t_us > estimate.t_us - round(JUMP_LOOKBACK_S * 1e6)
     if windows.merged[windows.t_us > estimate.t_us].sum() < JUMP_MIN_WINDOWS:
@@ -451,8 +451,6 @@ def _jump(model: SensorModel, estimate: Estimate, windows: Windows, cov: Covaria
     w, c = _take(windows, cov, recent)
     order = np.argsort(w.t_us, kind="stable")
     offsets = _Offsets(estimate.rate, estimate.step, estimate.step_us)
-    if _z2_bound(model, estimate, *_take(w, c, order[-1:]), offsets, now_us, cfg) <= JUMP_NIS:
-        return None  # the newest window agrees: no run of windows off the estimate ends now
     pb, _, xi, B = _problem(model, Prior(estimate.p, np.eye(model.size)), estimate.p, w, c,
                             now_us, cfg, offsets)
     B = B[:, :model.size]
@@ -466,6 +464,18 @@ def _jump(model: SensorModel, estimate: Estimate, windows: Windows, cov: Covaria
             or not np.any(w.t_us[run] > estimate.t_us)):
         return None
     return int(w.t_us[run].min())
+
+
+def _start(model: SensorModel, prior: Prior, start: Estimate, windows: Windows,
+           cov: Covariates, now_us: int, cfg: EstimatorConfig
+           ) -> tuple[_Offsets, _Problem, np.ndarray, np.ndarray, np.ndarray]:
+    """The update's problem from `start` (`_problem`): without the windows between two jumps,
+    whose offsets were neither the old nor the new ones."""
+    if start.drop_us is not None:
+        windows, cov = _take(windows, cov, (windows.t_us < start.drop_us)
+                             | (windows.t_us >= start.step_us))
+    offsets = _Offsets(start.rate, start.step, start.step_us)
+    return offsets, *_problem(model, prior, start.p, windows, cov, now_us, cfg, offsets)
 
 
 def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Windows,
@@ -488,16 +498,14 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
     if n < cfg.min_windows:
         return estimate, UpdateReport(False, "too few windows", n)
     start, reason_ok = estimate, "ok"
-    t_jump = _jump(model, estimate, windows, cov, now_us, cfg)
+    offsets, pb, x, xi, B = _start(model, prior, start, windows, cov, now_us, cfg)
+    newest = _z2_newest(model, estimate, pb.windows, xi, B, cfg)  # the newest is never dropped
+    t_jump = _jump(model, estimate, windows, cov, now_us, cfg, newest)
     if t_jump is not None:  # the older windows saw offsets a step away; an older step: dropped
         first = estimate.drop_us if estimate.drop_us is not None else estimate.step_us
         start = replace(estimate, step=np.zeros(3), step_us=t_jump, drop_us=first)
         reason_ok = "ok; the offsets jumped"
-    if start.drop_us is not None:  # between jumps: offsets neither the old nor the new ones
-        windows, cov = _take(windows, cov, (windows.t_us < start.drop_us)
-                             | (windows.t_us >= start.step_us))
-    offsets = _Offsets(start.rate, start.step, start.step_us)
-    pb, x, xi, B = _problem(model, prior, start.p, windows, cov, now_us, cfg, offsets)
+        offsets, pb, x, xi, B = _start(model, prior, start, windows, cov, now_us, cfg)
     informed = _informed(pb, B, cfg.observable_ratio)
     if start.step_us is not None:
         # after a jump the offsets are the old ones plus the step, whose prior keeps the
