@@ -150,6 +150,7 @@ class _Hot:
     the arrays (`WindowBuffer._flush`) before anything reads them."""
 
     slot: int
+    cell: int
     v: list[float]
     aux: list[float]
     t_us: int
@@ -211,7 +212,7 @@ class WindowBuffer:
         h.dirty = False
 
     def _load(self, slot: int) -> _Hot:
-        return _Hot(slot, self._v[slot].tolist(), self._aux[slot].tolist(),
+        return _Hot(slot, int(self._cell[slot]), self._v[slot].tolist(), self._aux[slot].tolist(),
                     int(self._t_us[slot]), float(self._var[slot]), self._dir[slot].tolist(),
                     int(self._n[slot]), int(self._k[slot]), float(self._nmean[slot]),
                     float(self._nm2[slot]))
@@ -246,41 +247,47 @@ class WindowBuffer:
     def _merge(self, v: Sequence[float], aux: Sequence[float], t_us: int, n: int, var: float,
                direction: Sequence[float], run: int, cell: int) -> bool:
         """Fold the window into the latest slot if it continues that slot's run, in the same
-        cell, within merge_deg of its direction and below merge_max windows."""
-        if self.last is None or self.last[1] != run:
+        cell, within merge_deg of its direction and below merge_max windows. (Written out in
+        Python floats: it runs for nearly every window.)"""
+        last = self.last
+        if last is None or last[1] != run:
             return False
-        slot = self.last[0]
-        if not self.filled[slot] or self._cell[slot] != cell:
-            return False
+        slot = last[0]
         h = self._hot
         if h is None or h.slot != slot:
+            if not self.filled[slot] or self._cell[slot] != cell:
+                return False
             h = self._hot = self._load(slot)
+        elif h.cell != cell:
+            return False
         if h.k >= self.cfg.merge_max:
             return False
-        d_old, d_new = h.dir, _floats(direction)
-        if d_old[0] * d_new[0] + d_old[1] * d_new[1] + d_old[2] * d_new[2] < self._cos_merge:
+        ox, oy, oz = h.dir
+        ex, ey, ez = _floats(direction)
+        if ox * ex + oy * ey + oz * ez < self._cos_merge:
             return False
         n0, n1 = h.n, int(n)
         w0, w1 = n0 / (n0 + n1), n1 / (n0 + n1)
-        vs, hv = _floats(v), h.v
-        h.v = [w0 * hv[0] + w1 * vs[0], w0 * hv[1] + w1 * vs[1], w0 * hv[2] + w1 * vs[2]]
+        vx, vy, vz = _floats(v)
+        hx, hy, hz = h.v
+        h.v = [w0 * hx + w1 * vx, w0 * hy + w1 * vy, w0 * hz + w1 * vz]
         if h.aux:
             h.aux = [w0 * a + w1 * b for a, b in zip(h.aux, _floats(aux), strict=True)]
         h.t_us = round(w0 * h.t_us + w1 * int(t_us))
         h.var = w0 * h.var + w1 * float(var)  # pooled within-window variance
-        d = [w0 * d_old[0] + w1 * d_new[0], w0 * d_old[1] + w1 * d_new[1],
-             w0 * d_old[2] + w1 * d_new[2]]
-        nd = _norm3(d)
-        h.dir = [d[0] / nd, d[1] / nd, d[2] / nd]
+        dx, dy, dz = w0 * ox + w1 * ex, w0 * oy + w1 * ey, w0 * oz + w1 * ez
+        nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+        h.dir = [dx / nd, dy / nd, dz / nd]
         h.n = n0 + n1
         h.k += 1
-        x = _norm3(vs)  # Welford: how much the windows' norms disagree
+        x = math.sqrt(vx * vx + vy * vy + vz * vz)  # Welford: how much the norms disagree
         mean1 = h.nmean + (x - h.nmean) / h.k
         h.nm2 += (x - h.nmean) * (x - mean1)
         h.nmean = mean1
         h.dirty = True
         self.added += 1
-        self._coverage.clear()
+        if self._coverage:
+            self._coverage.clear()
         return True
 
     def windows(self) -> Windows:

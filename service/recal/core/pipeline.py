@@ -522,51 +522,56 @@ class Pipeline:
         the committing windows' sums, in the same order."""
         due: list[tuple[int, bool]] = []
         table: list[_Acc | _Sums] = []
-        W = round(self.cfg.window_s * 1e6)
-        need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
         runs, continues = self._runs(b.t_us, gate)
         for r, (i0, i1) in enumerate(runs):
             if not (r == 0 and continues):
                 self.open, self.pending = None, None
-            run_start = self.open.run_start_us if self.open is not None else (
-                self.pending[0].run_start_us if self.pending is not None else int(b.t_us[i0]))
-            t = b.t_us[i0:i1]
-            k = (t - run_start) // W
-            cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
-            if cuts:
-                sums = _Sums.of_run(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
-                acc_of = sums.acc
-            else:  # one window (a live sensor's few samples): plain sums
-                one = _Acc.of(run_start, int(k[0]), b.v[i0:i1], b.aux[i0:i1], t)
-                acc_of = [one].__getitem__
-            # windows 1.. of a long run at once when none but the last is short (`_tail`)
-            fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= need))
-            starts, ends = [0, *cuts], [*cuts, len(t)]
-            for j in range(1 if fast else len(starts)):
-                g0, g1 = starts[j], ends[j]
-                acc = acc_of(j)
-                if self.open is not None and self.open.k == acc.k:
-                    acc = self.open.merge(acc)
-                elif self.open is not None:  # the open window ended where this one begins
-                    self._finish(self.open, W, i0 + g0, due)
-                self.open = acc
-                if self.pending is not None:  # commit once the run is guard_s past the window
-                    # t rises within a run: the first sample at or past the commit time
-                    at = bisect.bisect_left(t, self.pending[1], g0, g1) - g0
-                    if at < g1 - g0:
-                        due.append((i0 + g0 + at, True))
-                        table.append(self.pending[0])
-                        self.pending = None
-                if g1 < len(t):  # a later window follows in this run: this one is complete
-                    self._finish(self.open, W, i0 + g1, due)
-                    self.open = None
-            if fast:
-                self._tail(sums, cuts, t, i0, W, due, table)
+            self._schedule_run(b, i0, i1, due, table)
         if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
             self.open, self.pending = None, None
         if not runs:
             self.open, self.pending = None, None
         return due, _Sums.gather(table, len(self.aux_names)) if table else None
+
+    def _schedule_run(self, b: RawBatch, i0: int, i1: int, due: list[tuple[int, bool]],
+                      table: list[_Acc | _Sums]) -> None:
+        """`_schedule` for the run of gated samples i0..i1 (continuing `self.open` and
+        `self.pending` if they are set): windows of window_s from the run's start."""
+        W = round(self.cfg.window_s * 1e6)
+        run_start = self.open.run_start_us if self.open is not None else (
+            self.pending[0].run_start_us if self.pending is not None else int(b.t_us[i0]))
+        t = b.t_us[i0:i1]
+        k = (t - run_start) // W
+        cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
+        if cuts:
+            sums = _Sums.of_run(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
+            first = sums.acc(0)
+        else:  # one window (a live sensor's few samples): plain sums
+            first = _Acc.of(run_start, int(k[0]), b.v[i0:i1], b.aux[i0:i1], t)
+        # windows 1.. of a long run at once when none but the last is short (`_tail`)
+        need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
+        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= need))
+        starts, ends = [0, *cuts], [*cuts, len(t)]
+        for j in range(1 if fast else len(starts)):
+            g0, g1 = starts[j], ends[j]
+            acc = first if j == 0 else sums.acc(j)
+            if self.open is not None and self.open.k == acc.k:
+                acc = self.open.merge(acc)
+            elif self.open is not None:  # the open window ended where this one begins
+                self._finish(self.open, W, i0 + g0, due)
+            self.open = acc
+            if self.pending is not None:  # commit once the run is guard_s past the window
+                # t rises within a run: the first sample at or past the commit time
+                at = bisect.bisect_left(t, self.pending[1], g0, g1) - g0
+                if at < g1 - g0:
+                    due.append((i0 + g0 + at, True))
+                    table.append(self.pending[0])
+                    self.pending = None
+            if g1 < len(t):  # a later window follows in this run: this one is complete
+                self._finish(self.open, W, i0 + g1, due)
+                self.open = None
+        if fast:
+            self._tail(sums, cuts, t, i0, W, due, table)
 
     def _tail(self, sums: _Sums, cuts: list[int], t: np.ndarray, i0: int, W: int,
               due: list[tuple[int, bool]], table: list[_Acc | _Sums]) -> None:
