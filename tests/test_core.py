@@ -77,6 +77,22 @@ def test_detector_is_batch_invariant_bit_for_bit():
     assert np.array_equal(np.concatenate([p[1] for p in parts]), whole.flat)
 
 
+def test_flat_runs_count_the_repeats_before_each_sample_across_batches():
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        n = int(rng.integers(1, 60))
+        v = rng.integers(0, 2, (n, 1)).repeat(3, axis=1).astype(float)  # long runs of repeats
+        v[rng.random(n) < 0.1, 0] = 7.0  # and breaks in one axis only
+        last = v[0].copy() if rng.random() < 0.5 else np.full(3, np.nan)
+        run0 = int(rng.integers(0, 5))
+        expect, prev, count = [], last, run0
+        for row in v:  # the definition, sample by sample
+            count = count + 1 if np.array_equal(row, prev) else 0
+            expect.append(count)
+            prev = row
+        assert det._flat_runs(v, last, run0).tolist() == expect
+
+
 def test_row_reductions_equal_numpys_to_the_bit():
     rng = np.random.default_rng(5)
     v = rng.normal(0, 1e3, (5000, 3)) * rng.choice([1e-300, 1.0, 1e200], (5000, 3))
@@ -155,6 +171,28 @@ def test_buffer_arrays_read_between_merges_are_current_and_copies_stay_apart():
     buf.add(np.array([0.0, 0.0, 900.0]), np.array([0.0]), 4000, 100, 4.0, up, run=7)
     assert snap.k[slot] == 3 and buf.k[slot] == 4  # the copy does not see later merges
     assert np.allclose(snap.windows().v[0], mean)
+
+
+# --- estimator -------------------------------------------------------------------------------
+def test_consistency_tests_at_once_agree_with_one_by_one_and_the_chi_square_quantile():
+    from scipy.stats import chi2, norm
+
+    from recal.core.estimator import CONSISTENT_ALPHA, consistent, consistent_many
+
+    rng = np.random.default_rng(4)
+    m = rng.integers(0, 400, 2000)
+    s2 = rng.chisquare(np.maximum(m, 1)) * rng.choice([0.5, 1.0, 2.0], len(m))
+    s1 = rng.normal(0, 1.5, len(m)) * np.sqrt(np.maximum(m, 1))
+    many = consistent_many(m, s2, s1)
+    assert many.tolist() == [consistent(int(a), float(b), float(c))
+                             for a, b, c in zip(m, s2, s1, strict=True)]
+    assert 0.05 < many.mean() < 0.95 and many[m == 0].all()
+    for k, tol in ((3, 0.02), (10, 0.01), (100, 0.01), (1000, 0.01)):  # quantiles at alpha
+        q, z = chi2.ppf(1 - CONSISTENT_ALPHA, k), norm.ppf(1 - CONSISTENT_ALPHA / 2)
+        assert consistent_many([k], [(1 - tol) * q], [0.0])[0]
+        assert not consistent_many([k], [(1 + tol) * q], [0.0])[0]
+        assert consistent_many([k], [0.0], [0.999 * z * k**0.5])[0]
+        assert not consistent_many([k], [0.0], [1.001 * z * k**0.5])[0]
 
 
 # --- bootstrap and static --------------------------------------------------------------------
@@ -317,6 +355,27 @@ def test_offset_drift_is_tracked_to_2_mg():
     no_rate = PipelineConfig(rate_hz=50, estimator=EstimatorConfig(offset_rate_sd_g_per_h=0))
     cal_rw, _ = _run(r.raw, model, Prior.default(model), cfg=no_rate)
     assert _err_1s_mg(cal_rw, r.truth.a_true_g, r.raw.t_us) > 2.0
+
+
+def test_windows_are_the_same_in_any_batches_with_gaps_jitter_and_short_windows():
+    """Long runs are scheduled at once (`Pipeline._tail`) and short or broken ones window by
+    window: both must give what one sample at a time gives, counts included."""
+    rng = np.random.default_rng(8)
+    r = simulate(0.3, 50, 8, SensorSpec.random(rng, offset_mg=50, gain_pct=3))
+    i = np.arange(len(r.raw))
+    keep = rng.random(len(i)) > 0.02  # lost samples, and stretches missing 1 of every 3:
+    for s0 in rng.integers(0, len(i), 40):  # windows below min_fill inside still runs
+        keep[(i >= s0) & (i < s0 + 150) & (i % 3 == 1)] = False
+    raw = r.raw[keep]
+    raw = replace(raw, t_us=raw.t_us + rng.integers(-1000, 1000, len(raw)))  # 1 ms jitter
+    raw = raw[np.r_[True, np.diff(raw.t_us) > 0]]
+    model = SensorModel.diagonal(1024.0)
+    ref, pipe = _run(raw, model, Prior.default(model), batch=len(raw))
+    assert pipe.counts["windows_rejected"] > 0 and pipe.counts["updates"] > 5
+    for bs in (1, 333, 5000):
+        out, p = _run(raw, model, Prior.default(model), batch=bs)
+        assert p.counts == pipe.counts
+        assert np.array_equal(out, ref)
 
 
 def test_batches_of_1_10_1000_give_the_same_output_and_checkpoints_resume_exactly():

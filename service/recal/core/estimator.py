@@ -563,8 +563,8 @@ _Z_ONE_SIDED = 3.0902
 
 
 def _chi2_quantile(m: np.ndarray) -> np.ndarray:
-    """Chi-square 1 - CONSISTENT_ALPHA quantile, m degrees of freedom (Wilson-Hilferty: within
-    1 % of the exact one from m = 3 on, without a scipy call per test)."""
+    """Chi-square 1 - CONSISTENT_ALPHA quantile, m degrees of freedom (Wilson-Hilferty: 1.7 %
+    above the exact one at m = 3, within 0.6 % from m = 10 on; no scipy call per test)."""
     h = 2.0 / (9.0 * m)
     return m * (1.0 - h + _Z_ONE_SIDED * np.sqrt(h)) ** 3
 
