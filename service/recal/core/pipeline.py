@@ -275,17 +275,18 @@ class _Sums:
 
 @dataclass(eq=False)
 class _Chunk:
-    """Windows lo..lo+len of a batch's windows (`_Sums.means`) under the parameters in force: their
-    norm gate, gravity directions and cells, worked out at once. Most end early, at an update
-    that changes the parameters, so `Pipeline._commit_all` takes them in chunks that double
-    (64, 128, ...) while the parameters hold. `rows` are Python numbers for the buffer, which
-    takes windows one at a time; the innovations of the windows that pass the gate are
-    computed when a consistency test first asks (`Pipeline._scan`)."""
+    """Windows lo..lo+len of a batch's windows (`_Sums.means`) under the parameters in force:
+    their norm gate, gravity directions and cells, worked out at once. Most end early, at an
+    update that changes the parameters, so `Pipeline._commit_all` takes them in chunks that
+    double (64, 128, ...) while the parameters hold; `rows` hands the buffer, which takes
+    windows one at a time, those it reaches as Python numbers. The innovations of the windows
+    that pass the gate are computed when a consistency test first asks (`Pipeline._scan`)."""
 
     lo: int
     w: Windows
     ok: np.ndarray
-    rows: list[tuple]  # (ok, v, aux, t_us, n, var, dir, run, cell)
+    dirs: np.ndarray
+    runs: np.ndarray
     cells: np.ndarray
     z: np.ndarray | None = None
 
@@ -299,14 +300,18 @@ class _Chunk:
               else np.ones(len(a), bool))
         with np.errstate(invalid="ignore", divide="ignore"):
             dirs = np.where((norm > 0)[:, None], a / norm[:, None], [0.0, 0.0, 1.0])
-        cells = cell_of(dirs, pipe.cfg.buffer.grid)
-        rows = list(zip(ok.tolist(), mine.v.tolist(), mine.aux.tolist(), mine.t_us.tolist(),
-                        mine.n.tolist(), mine.var.tolist(), dirs.tolist(), runs[s].tolist(),
-                        cells.tolist(), strict=True))
-        return cls(lo, mine, ok, rows, cells)
+        return cls(lo, mine, ok, dirs, runs[s], cell_of(dirs, pipe.cfg.buffer.grid))
 
     def __len__(self) -> int:
-        return len(self.rows)
+        return len(self.ok)
+
+    def rows(self, c0: int, c1: int) -> list[tuple]:
+        """(ok, v, aux, t_us, n, var, dir, run, cell) of the batch's windows c0..c1."""
+        s, w = slice(c0 - self.lo, c1 - self.lo), self.w
+        return list(zip(self.ok[s].tolist(), w.v[s].tolist(), w.aux[s].tolist(),
+                        w.t_us[s].tolist(), w.n[s].tolist(), w.var[s].tolist(),
+                        self.dirs[s].tolist(), self.runs[s].tolist(), self.cells[s].tolist(),
+                        strict=True))
 
     def innovations(self, pipe: Pipeline) -> np.ndarray:
         """`estimator.innovations` of the chunk's windows that pass the gate, in order."""
@@ -654,18 +659,18 @@ class Pipeline:
         not at the last update (`_scan`'s other reason; whether a window opens a cell or
         merges into the latest slot is the buffer's call, one window at a time)."""
         marks, ue, watch = self._marks, self.cfg.update_every, self.bootstrapped
-        add, fresh, buf, rows = self.buffer.add, self.fresh, self.buffer, chunk.rows
+        add, fresh, buf = self.buffer.add, self.fresh, self.buffer
         counts = self.counts
         kept, rejected = counts["windows"], counts["windows_rejected"]
         hit = None
-        for c in range(c0, c1):
+        for c, row in zip(range(c0, c1), chunk.rows(c0, c1), strict=True):
             if slot[c] > done or marks is not None:
                 counts["windows"], counts["windows_rejected"] = kept, rejected
                 done = self._reject_short(due, done, slot[c])
                 if marks is not None:
                     self._reach(due[slot[c]][0])
                 kept, rejected = counts["windows"], counts["windows_rejected"]
-            ok, v, aux, t_mid, n, var, direction, run, cell = rows[c - chunk.lo]
+            ok, v, aux, t_mid, n, var, direction, run, cell = row
             done = slot[c] + 1
             if not ok:
                 rejected += 1
