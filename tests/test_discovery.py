@@ -381,3 +381,33 @@ def test_the_rate_comes_from_a_median_of_counted_time_steps() -> None:
         steps = rng.integers(9_990, 10_010, n)
         counts = collections.Counter(steps.tolist())
         assert dc._median_of_counts(counts) == float(np.median(steps))
+
+
+def test_the_detector_scale_is_the_median_norm_from_counts_per_bin() -> None:
+    """s0 for the detector comes from counts of each norm's bin (memory by bins, not by
+    samples): within 1.2e-4 of np.median of the norms, in any unit, and the same whatever the
+    batches; non-finite samples (a library caller's batch) are left out instead of making it
+    NaN."""
+    import collections
+
+    rng = np.random.default_rng(2)
+    for scale in (1.0, 9.81, 1024.0, 3.3e-3):
+        v = rng.normal(0, 0.01, (rng.integers(1, 20_000), 3)) + np.array([0.3, -0.2, 0.93])
+        v[rng.random(len(v)) < 0.2] *= rng.uniform(0.1, 3.0)  # movement: norms far from 1
+        v *= scale
+        counts = collections.Counter()
+        for part in np.array_split(v, 7):
+            keys, n = np.unique(dc._norm_bins(part), return_counts=True)
+            counts.update(dict(zip(keys.tolist(), n.tolist(), strict=True)))
+        lo, hi = dc._median_keys(counts)
+        s0 = (dc._bin_middle(lo) + dc._bin_middle(hi)) / 2
+        exact = float(np.median(np.linalg.norm(v, axis=1)))
+        assert abs(s0 / exact - 1) <= 1.23e-4
+        assert len(counts) < 20_000 / 4 or len(v) < 5000  # bins, not samples
+    raw = sim.simulate(0.3, RATE_HZ, 3, _sensor(), WEARER).raw
+    v = raw.v.copy()
+    v[100:103] = np.nan
+    v[500, 1] = np.inf
+    gappy = dc.data_from_batch(RawBatch(raw.t_us, v, raw.aux, raw.aux_names))
+    whole = dc.data_from_batch(raw)
+    assert np.isfinite(gappy.s0) and abs(len(gappy) - len(whole)) <= 2 and len(whole) > 50
