@@ -554,8 +554,7 @@ class Pipeline:
         else:  # one window (a live sensor's few samples): plain sums
             first = _Acc.of(run_start, int(k[0]), b.v[i0:i1], b.aux[i0:i1], t)
         # windows 1.. of a long run at once when none but the last is short (`_tail`)
-        need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
-        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= need))
+        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= self._min_samples))
         starts, ends = [0, *cuts], [*cuts, len(t)]
         for j in range(1 if fast else len(starts)):
             g0, g1 = starts[j], ends[j]
@@ -563,7 +562,7 @@ class Pipeline:
             if self.open is not None and self.open.k == acc.k:
                 acc = self.open.merge(acc)
             elif self.open is not None:  # the open window ended where this one begins
-                self._finish(self.open, W, i0 + g0, due)
+                self._finish(self.open, i0 + g0, due)
             self.open = acc
             if self.pending is not None:  # commit once the run is guard_s past the window
                 # t rises within a run: the first sample at or past the commit time
@@ -573,24 +572,23 @@ class Pipeline:
                     table.append(self.pending[0])
                     self.pending = None
             if g1 < len(t):  # a later window follows in this run: this one is complete
-                self._finish(self.open, W, i0 + g1, due)
+                self._finish(self.open, i0 + g1, due)
                 self.open = None
         if fast:
-            self._tail(sums, cuts, t, i0, W, due, table)
+            self._tail(sums, cuts, t, i0, due, table)
 
-    def _tail(self, sums: _Sums, cuts: list[int], t: np.ndarray, i0: int, W: int,
+    def _tail(self, sums: _Sums, cuts: list[int], t: np.ndarray, i0: int,
               due: list[tuple[int, bool]], table: list[_Acc | _Sums]) -> None:
         """`_schedule`'s loop over windows 1.. of a run (samples i0.., times t, window j
         from cuts[j-1]), all at once, when every one but the last is long enough to keep:
         window j is then pending from the start of window j + 1 and commits at its first
         sample guard_s past its end, or stays pending if window j + 1 is the run's last and
         ends before that; the last window stays open."""
-        G = round(self.cfg.guard_s * 1e6)
         g0 = np.asarray(cuts)
         g1 = np.append(g0[1:], len(t))
         # the window pending in each window 1..: the one before it (the first: as it is)
         commit = np.empty(len(g0), np.int64)
-        commit[1:] = sums.run_start_us[1:-1] + (sums.k[1:-1] + 1) * W + G
+        commit[1:] = self._commit_us(sums.run_start_us[1:-1], sums.k[1:-1])
         commit[0] = self.pending[1] if self.pending is not None else 0
         at = np.maximum(np.searchsorted(t, commit), g0)
         if self.pending is None:
@@ -606,15 +604,23 @@ class Pipeline:
         self.pending = None if found[last] else (sums.acc(last), int(commit[last]))
         self.open = sums.acc(len(sums) - 1)
 
-    def _finish(self, acc: _Acc, W: int, idx: int, due: list[tuple[int, bool]]) -> None:
+    def _finish(self, acc: _Acc, idx: int, due: list[tuple[int, bool]]) -> None:
         """A window is complete (seen at sample idx, the next window's first); keep it
         pending until the guard time has passed."""
-        need = self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
-        if acc.n < need:
+        if acc.n < self._min_samples:
             due.append((idx, False))
             return
-        end_us = acc.run_start_us + (acc.k + 1) * W
-        self.pending = (acc, end_us + round(self.cfg.guard_s * 1e6))
+        self.pending = (acc, self._commit_us(acc.run_start_us, acc.k))
+
+    @property
+    def _min_samples(self) -> float:
+        """A window with fewer samples than this (min_fill of its nominal count) is dropped."""
+        return self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
+
+    def _commit_us(self, run_start_us: int | np.ndarray, k: int | np.ndarray) -> int | np.ndarray:
+        """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
+        return (run_start_us + (k + 1) * round(self.cfg.window_s * 1e6)
+                + round(self.cfg.guard_s * 1e6))
 
     def _commit_all(self, b: RawBatch, due: list[tuple[int, bool]],
                     table: _Sums | None) -> list[_Event]:
@@ -659,33 +665,28 @@ class Pipeline:
         not at the last update (`_scan`'s other reason; whether a window opens a cell or
         merges into the latest slot is the buffer's call, one window at a time)."""
         marks, ue, watch = self._marks, self.cfg.update_every, self.bootstrapped
-        add, fresh, buf = self.buffer.add, self.fresh, self.buffer
-        counts = self.counts
-        kept, rejected = counts["windows"], counts["windows_rejected"]
-        hit = None
+        add, fresh, buf, counts = self.buffer.add, self.fresh, self.buffer, self.counts
         for c, row in zip(range(c0, c1), chunk.rows(c0, c1), strict=True):
-            if slot[c] > done or marks is not None:
-                counts["windows"], counts["windows_rejected"] = kept, rejected
-                done = self._reject_short(due, done, slot[c])
-                if marks is not None:
-                    self._reach(due[slot[c]][0])
-                kept, rejected = counts["windows"], counts["windows_rejected"]
+            done = self._reject_short(due, done, slot[c])
+            if marks is not None:
+                self._reach(due[slot[c]][0])
             ok, v, aux, t_mid, n, var, direction, run, cell = row
             done = slot[c] + 1
             if not ok:
-                rejected += 1
+                counts["windows_rejected"] += 1
                 continue
             add(v, aux, t_mid, n, var, direction, run, cell)
             fresh.append((v, aux, t_mid, n, var))
-            kept += 1
-            if watch and kept % ue == 0 and buf.cells_opened != self.coverage_at_update:
-                hit = c
-                break
-        counts["windows"], counts["windows_rejected"] = kept, rejected
-        return done, hit
+            counts["windows"] += 1
+            if (watch and counts["windows"] % ue == 0
+                    and buf.cells_opened != self.coverage_at_update):
+                return done, c
+        return done, None
 
     def _reject_short(self, due: list[tuple[int, bool]], done: int, stop: int) -> int:
         """Due entries done..stop are windows too short to keep (`_finish`): counted."""
+        if stop <= done:
+            return done
         if self._marks is not None:
             for idx, _ in due[done:stop]:
                 self._reach(idx)
@@ -722,10 +723,9 @@ class Pipeline:
         in_fresh = len(self.fresh) - n_before  # fresh windows from before the chunk
         late = (t_us[np.asarray(at[c0:c0 + len(ok)])[checks]] - self.estimate.t_us
                 >= self.cfg.max_update_interval_s * 1e6)
+        first_late = int(np.argmax(late)) if late.any() else len(checks)  # no test there
         upto = n_before + cum[checks]  # the chunk's windows that passed, up to each check
-        fail = self._test_until(chunk, in_fresh, upto, stop=int(np.argmax(late)) if late.any()
-                                else len(checks))
-        first = min(fail, int(np.argmax(late)) if late.any() else len(checks))
+        first = self._test_until(chunk, in_fresh, upto, stop=first_late)
         return int(checks[first]) + c0 if first < len(checks) else None
 
     def _must_update(self) -> bool:
@@ -743,14 +743,16 @@ class Pipeline:
         if stop == 0:
             return 0
         m, s2, s1 = self.tested
+        before = max(in_fresh - m, 0)  # untested windows from before the chunk
+        tested = max(m - in_fresh, 0)  # the chunk's windows tested already
         z = []
-        if m < in_fresh:  # windows committed before the chunk: tested with its own
+        if before:  # tested with the chunk's own
             w = self._fresh_windows(m, in_fresh)
             z.append(innovations(self.model, self.estimate, w, self.covariates(w.t_us, w.aux),
                                  self.cfg.estimator))
-        z.append(chunk.innovations(self)[max(m - in_fresh, 0):int(upto[stop - 1])])
+        z.append(chunk.innovations(self)[tested:int(upto[stop - 1])])
         zz = np.concatenate(z)
-        ends = upto[:stop] - (max(m, in_fresh) - in_fresh) + (in_fresh - min(m, in_fresh))
+        ends = before + upto[:stop] - tested  # each check's last window in zz, plus one
         starts = np.concatenate(([0], ends[:-1]))
         # each check's windows summed in order, then the checks one after another
         ms = m + ends
