@@ -397,8 +397,7 @@ def test_the_detector_scale_is_the_median_norm_from_counts_per_bin() -> None:
         v *= scale
         counts = collections.Counter()
         for part in np.array_split(v, 7):
-            keys, n = np.unique(dc._norm_bins(part), return_counts=True)
-            counts.update(dict(zip(keys.tolist(), n.tolist(), strict=True)))
+            dc._count(counts, dc._norm_bins(part))
         lo, hi = dc._median_keys(counts)
         s0 = (dc._bin_middle(lo) + dc._bin_middle(hi)) / 2
         exact = float(np.median(np.linalg.norm(v, axis=1)))

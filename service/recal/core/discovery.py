@@ -250,12 +250,10 @@ def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
             if not len(b):
                 continue
             samples += len(b)
-            values, counts = np.unique(_norm_bins(b.v), return_counts=True)
-            bins.update(dict(zip(values.tolist(), counts.tolist(), strict=True)))
+            _count(bins, _norm_bins(b.v))
             t = b.t_us if last_t is None else np.concatenate(([last_t], b.t_us))
             dt = np.diff(t)  # across batches too: the same as over the whole
-            values, counts = np.unique(dt[dt > 0], return_counts=True)
-            steps.update(dict(zip(values.tolist(), counts.tolist(), strict=True)))
+            _count(steps, dt[dt > 0])
             last_t = int(b.t_us[-1])
         if samples < 2:
             raise ValueError("a recording needs samples to discover effects on")
@@ -274,6 +272,12 @@ def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
 
     w, aux_names, t0_us = window_means(batches(), cfg, s0)
     return data_from_windows(w, aux_names, t0_us)
+
+
+def _count(counts: collections.Counter[int], keys: np.ndarray) -> None:
+    """Add how often each integer key occurs in ``keys`` to ``counts``."""
+    values, n = np.unique(keys, return_counts=True)
+    counts.update(dict(zip(values.tolist(), n.tolist(), strict=True)))
 
 
 def _median_of_counts(counts: collections.Counter[int]) -> float:
