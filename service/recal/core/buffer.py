@@ -247,8 +247,8 @@ class WindowBuffer:
     def _merge(self, v: Sequence[float], aux: Sequence[float], t_us: int, n: int, var: float,
                direction: Sequence[float], run: int, cell: int) -> bool:
         """Fold the window into the latest slot if it continues that slot's run, in the same
-        cell, within merge_deg of its direction and below merge_max windows. (Written out in
-        Python floats: it runs for nearly every window.)"""
+        cell, within merge_deg of its direction and below merge_max windows. (In Python floats:
+        it runs for nearly every window, and numpy's per-call cost would dominate.)"""
         last = self.last
         if last is None or last[1] != run:
             return False
@@ -275,12 +275,12 @@ class WindowBuffer:
             h.aux = [w0 * a + w1 * b for a, b in zip(h.aux, _floats(aux), strict=True)]
         h.t_us = round(w0 * h.t_us + w1 * int(t_us))
         h.var = w0 * h.var + w1 * float(var)  # pooled within-window variance
-        dx, dy, dz = w0 * ox + w1 * ex, w0 * oy + w1 * ey, w0 * oz + w1 * ez
-        nd = math.sqrt(dx * dx + dy * dy + dz * dz)
-        h.dir = [dx / nd, dy / nd, dz / nd]
+        d = [w0 * ox + w1 * ex, w0 * oy + w1 * ey, w0 * oz + w1 * ez]
+        nd = _norm3(d)
+        h.dir = [d[0] / nd, d[1] / nd, d[2] / nd]
         h.n = n0 + n1
         h.k += 1
-        x = math.sqrt(vx * vx + vy * vy + vz * vz)  # Welford: how much the norms disagree
+        x = _norm3([vx, vy, vz])  # Welford: how much the windows' norms disagree
         mean1 = h.nmean + (x - h.nmean) / h.k
         h.nm2 += (x - h.nmean) * (x - mean1)
         h.nmean = mean1
