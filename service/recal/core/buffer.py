@@ -291,11 +291,12 @@ class WindowBuffer:
         return True
 
     def windows(self) -> Windows:
-        m = self.filled
-        order = np.argsort(self.t_us[m], kind="stable")
-        return Windows(self.v[m][order], self.aux[m][order], self.t_us[m][order],
-                       self.n[m][order], self.var[m][order], self.k[m][order],
-                       (self.nm2[m] / np.maximum(self.k[m] - 1, 1))[order])
+        self._flush()
+        slots = np.flatnonzero(self.filled)
+        s = slots[np.argsort(self._t_us[slots], kind="stable")]  # oldest first
+        k = self._k[s]
+        return Windows(self._v[s], self._aux[s], self._t_us[s], self._n[s], self._var[s], k,
+                       self._nm2[s] / np.maximum(k - 1, 1))
 
     def __len__(self) -> int:
         return int(self.filled.sum())

@@ -325,7 +325,7 @@ def _problem(model: SensorModel, prior: Prior, p_start: np.ndarray, windows: Win
     else:
         lag, u, sd = offsets.design(model, windows, now_us, cfg)
     P, k = model.size, len(u)
-    x = np.r_[np.asarray(p_start, np.float64), u]
+    x = np.concatenate((np.asarray(p_start, np.float64), u))
     info = np.zeros((P + k, P + k))
     info[:P, :P] = prior.info
     info[P:, P:] = np.diag(1.0 / sd**2)  # nuisances: zero-mean priors
@@ -336,8 +336,8 @@ def _problem(model: SensorModel, prior: Prior, p_start: np.ndarray, windows: Win
         T = np.eye(P + k)
         T[model.slice(Offset()), P + k - 3:] = -np.eye(3)
         info = T.T @ info @ T
-    pb = _Problem(model, windows, cov, np.ones(len(windows)), np.r_[prior.mean, np.zeros(k)],
-                  info, lag)
+    mean = np.concatenate((prior.mean, np.zeros(k)))
+    pb = _Problem(model, windows, cov, np.ones(len(windows)), mean, info, lag)
     xi, B = pb.residual(x, jacobian=True)
     # C_mu from the parameters' own columns (the process noise of each parameter)
     pb = replace(pb, c_mu=_window_variance(model, windows, B[:, :P], now_us, cfg))
@@ -360,7 +360,9 @@ def _fit(pb: _Problem, x: np.ndarray, xi: np.ndarray, B: np.ndarray, free_x: np.
     """Gauss-Newton on the problem from x (xi, B there) over the free entries of x =
     [p, nuisances]; the covariance of the free model parameters marginalizes the nuisances."""
     P = pb.model.size
-    fx = np.r_[free_x, np.ones(len(x) - len(free_x), bool)] if len(free_x) < len(x) else free_x
+    fx = free_x
+    if len(free_x) < len(x):
+        fx = np.concatenate((free_x, np.ones(len(x) - len(free_x), bool)))
     D = 1.0 / np.sqrt(np.diag(pb.info))[fx]  # scale to the prior spread: conditions A
     L0 = pb.info[np.ix_(fx, fx)]
     j_start = j = pb.objective(xi, x)
@@ -514,7 +516,7 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
         informed[:model.size][model.mask(["offset"]) & ~_covariate_mask(model)] = True
         informed[-3:] = True
     free &= informed[:model.size]
-    sol = _fit(pb, x, xi, B, np.r_[free, informed[model.size:]], cfg)
+    sol = _fit(pb, x, xi, B, np.concatenate((free, informed[model.size:])), cfg)
     observable, condition = _observability(sol, prior, free, cfg)
     rms = (float(np.sqrt(np.mean(sol.xi_start**2))), float(np.sqrt(np.mean(sol.xi_end**2))))
     flags = (condition, tuple(map(bool, observable)), tuple(map(bool, free)))
