@@ -59,9 +59,11 @@ from pathlib import Path
 
 import numpy as np
 
+from recal.core import hindsight
 from recal.core.detector import detect
 from recal.core.effects import Ratiometric
 from recal.core.estimator import Prior
+from recal.core.hindsight import HindsightFit
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.samples import RawBatch
@@ -72,6 +74,7 @@ VENVS = HERE / ".venvs"
 RUNNER = HERE / "compare_tools_runner.py"
 RATE_HZ = 50.0
 FLOOR = "floor"  # the contender that times recal's per-sample passes alone (run_floor)
+HINDSIGHT = "hindsight"  # the contender that runs recal's core in batch use (run_hindsight)
 COUNTS_PER_G = 1024.0
 START_US = 1_704_067_200_000_000  # 2024-01-01 00:00 UTC: the tools want calendar time stamps
 RATIOMETRIC_PER_V = 0.05
@@ -246,6 +249,23 @@ def run_recal(raw_g: RawBatch, model: SensorModel, batch: int,
     return out, time.perf_counter() - t0, pipe
 
 
+def run_hindsight(raw_g: RawBatch, model: SensorModel, batch: int
+                  ) -> tuple[np.ndarray, float, HindsightFit]:
+    """The core in batch use, as the tools are (`core.hindsight`): the live detector and
+    windows over the whole recording, one fit with hindsight, every sample corrected with it;
+    in the same batches as `run_recal`."""
+    batches = [raw_g[i:i + batch] for i in range(0, len(raw_g), batch)]
+    t0 = time.perf_counter()
+    fit = hindsight.calibrate(lambda: batches, model, PipelineConfig(rate_hz=RATE_HZ))
+    out = np.concatenate([fit.correct(b) for b in batches])
+    return out, time.perf_counter() - t0, fit
+
+
+def hindsight_status(fit: HindsightFit) -> str:
+    held = f"; held at start, unobservable: {', '.join(fit.held)}" if fit.held else ""
+    return f"calibrated: {fit.windows} windows ({fit.dropped} dropped){held}"
+
+
 def run_floor(raw_g: RawBatch, model: SensorModel, batch: int) -> float:
     """Seconds of the two passes over every sample the core cannot skip, alone: the detector
     (Lötters eq. 1-2) and the correction with fixed parameters, in the same batches as
@@ -323,10 +343,12 @@ def run_case(case: Case, args: argparse.Namespace, tools: list[str], workdir: Pa
     tool_rows = {t: Row(case.name, TOOL_LABELS[t], "batch") for t in tools}
     ours = {label: Row(case.name, f"recal core ({label})", "streaming")
             for label, _ in case.models}
+    best = case.models[0][0]  # the model that fits the case
+    mine = Row(case.name, f"recal core with hindsight ({best})", "batch (recal)")
     models = dict(case.models)
     floor = Row(case.name, "recal's per-sample passes alone (detector + correction)", "floor",
                 status="timed only: no estimator, not a calibration")
-    contenders = [*tools, *ours, FLOOR]
+    contenders = [*tools, *ours, HINDSIGHT, FLOOR]
     for r in range(runs):
         # take turns, starting with a different contender each run: drift in machine load
         # then spreads over everyone instead of always hitting the same one
@@ -335,7 +357,15 @@ def run_case(case: Case, args: argparse.Namespace, tools: list[str], workdir: Pa
             if who in tool_rows:
                 _run_tool_once(tool_rows[who], who, case_dir, sim, first, score_it=r == 0)
             elif who == FLOOR:
-                floor.seconds.append(run_floor(raw_g, models[case.models[0][0]](), args.batch))
+                floor.seconds.append(run_floor(raw_g, models[best](), args.batch))
+            elif who == HINDSIGHT:
+                _log(f"[{case.name}] recal core with hindsight ({best}), run {r + 1}/{runs}")
+                cal, sec, fit = run_hindsight(raw_g, models[best](), args.batch)
+                mine.seconds.append(sec)
+                if r == 0:
+                    mine.status = hindsight_status(fit)
+                    score(mine, cal, sim, first)
+                del cal
             else:
                 _log(f"[{case.name}] recal core ({who}), run {r + 1}/{runs}")
                 cal, sec, pipe = run_recal(raw_g, models[who](), args.batch)
@@ -344,7 +374,7 @@ def run_case(case: Case, args: argparse.Namespace, tools: list[str], workdir: Pa
                     ours[who].status = recal_status(pipe)
                     score(ours[who], cal, sim, first)
                 del cal, pipe
-    rows += [tool_rows[t] for t in tools] + list(ours.values()) + [floor]
+    rows += [tool_rows[t] for t in tools] + list(ours.values()) + [mine, floor]
     shutil.rmtree(case_dir, ignore_errors=True)
     return rows, n
 

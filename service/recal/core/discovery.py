@@ -1,12 +1,12 @@
 """Effect discovery: fit, look at what is left, find the effect the model lacks, add it.
 
 A still sensor reads 1 g (Lötters 1998, eq. 8 and 14: xi = 1 g - |a|). On the quasi-static
-window means of a recording (the live detector and windowing, `pipeline.window_means`) or on
+window means of a recording (the live detector and windowing, `windowing.window_means`) or on
 the rows of a static table, `discover`:
 
 1. fits the current model by the batch form of Lötters eq. 11a (`estimator.solve`, iterated
    Gauss-Newton), with the live estimator's default prior, over the parameters the poses
-   can determine (`_free`: a gain needs its axis seen from both sides, an offset its axis
+   can determine (`free_params`: a gain needs its axis seen from both sides, an offset its axis
    seen at all);
 2. analyses the residual: xi per window and its correlation with every auxiliary channel, with
    time and with the gravity direction; and, per candidate effect, the fraction of xi that the
@@ -58,7 +58,8 @@ from recal.core.buffer import Windows
 from recal.core.effects import TIME, Covariates, CrossAxis, Effect, Nonlinearity, make_effect
 from recal.core.estimator import EstimatorConfig, Prior, solve
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig, window_means
+from recal.core.pipeline import PipelineConfig
+from recal.core.windowing import window_means
 from recal.samples import RawBatch
 
 __all__ = [
@@ -66,6 +67,7 @@ __all__ = [
     "DiscoveryConfig",
     "DiscoveryData",
     "DiscoveryResult",
+    "ModelFit",
     "ResidualAnalysis",
     "SelectedEffect",
     "Step",
@@ -76,10 +78,13 @@ __all__ = [
     "data_from_windows",
     "discover",
     "discover_pipeline",
+    "fit_model",
+    "free_params",
     "n_se_for",
     "orientation_features",
     "residual_analysis",
     "scorable",
+    "start_params",
     "time_blocks",
 ]
 
@@ -388,11 +393,11 @@ def scorable(data: DiscoveryData, blocks: np.ndarray, a: np.ndarray) -> np.ndarr
 # ---------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
-class _Fit:
+class ModelFit:
     p: np.ndarray
     cov: np.ndarray  # posterior covariance (raw units, Lötters eq. 11b); prior on fixed ones
     prior_sd: np.ndarray
-    free: np.ndarray  # the parameters the poses let move (see _free)
+    free: np.ndarray  # the parameters the poses let move (see free_params)
     data_info: np.ndarray  # B^T C_mu^-1 B of the windows alone, free parameters
 
     @property
@@ -403,7 +408,7 @@ class _Fit:
         return int(np.sum(np.linalg.eigvalsh(d[:, None] * self.data_info * d[None, :]) > 1.0))
 
 
-def _free(model: SensorModel, p: np.ndarray, data: DiscoveryData) -> np.ndarray:
+def free_params(model: SensorModel, p: np.ndarray, data: DiscoveryData) -> np.ndarray:
     """Parameters the poses can determine, by the live pipeline's rule (a gain needs its axis
     seen from both sides, Effect.observable_with) and, for offsets, their axis seen from one
     side at least. In a single pose an offset across gravity moves |a| only to second order,
@@ -418,16 +423,16 @@ def _free(model: SensorModel, p: np.ndarray, data: DiscoveryData) -> np.ndarray:
     return free
 
 
-def _fit(model: SensorModel, p0: np.ndarray, data: DiscoveryData,
-         cfg: DiscoveryConfig) -> _Fit:
+def fit_model(model: SensorModel, p0: np.ndarray, data: DiscoveryData,
+         cfg: DiscoveryConfig) -> ModelFit:
     """Lötters eq. 11a iterated from p0 (also the prior mean) over the free parameters."""
     prior = Prior.from_sd(p0, model.prior_sd() * cfg.prior_scale)
     now = int(data.windows.t_us.max()) if len(data) else 0
-    free = _free(model, p0, data)
+    free = free_params(model, p0, data)
     sol = solve(model, prior, p0, data.windows, data.cov, now, cfg.estimator(), free)
     cov = np.diag(prior.sd**2)
     cov[np.ix_(free, free)] = sol.cov_free
-    return _Fit(sol.p, cov, prior.sd, free, sol.data_info)
+    return ModelFit(sol.p, cov, prior.sd, free, sol.data_info)
 
 
 def _xi(model: SensorModel, p: np.ndarray, data: DiscoveryData) -> np.ndarray:
@@ -441,7 +446,7 @@ def _half_axes(v: np.ndarray) -> int:
                + np.sum(u < -COVERAGE_LEVEL_G, axis=0).astype(bool).sum())
 
 
-def _start(model: SensorModel, data: DiscoveryData) -> np.ndarray:
+def start_params(model: SensorModel, data: DiscoveryData) -> np.ndarray:
     """Starting values: ellipsoid (all six half-axes seen) or sphere fit (five), else nominal
     (too few orientations: e.g. one still pose, where only the offset along gravity shows)."""
     v = data.windows.v
@@ -472,7 +477,7 @@ class _Scored:
     """A model, its fit on all data, and its k-fold fits and held-out residuals."""
 
     model: SensorModel
-    fit: _Fit
+    fit: ModelFit
     fold_p: tuple[np.ndarray, ...]
     heldout_xi: np.ndarray
 
@@ -485,12 +490,12 @@ def _score(model: SensorModel, data: DiscoveryData, blocks: np.ndarray, starts: 
            p_all: np.ndarray, cfg: DiscoveryConfig) -> _Scored:
     """Fit on all windows (from p_all) and, per block, on the other blocks (from starts[k],
     which came from those blocks alone: no held-out value leaks in through a start)."""
-    fit = _fit(model, p_all, data, cfg)
+    fit = fit_model(model, p_all, data, cfg)
     held = np.empty(len(data))
     fold_p = []
     for k, p0 in enumerate(starts):
         test = blocks == k
-        pk = _fit(model, p0, data.subset(~test), cfg).p
+        pk = fit_model(model, p0, data.subset(~test), cfg).p
         held[test] = _xi(model, pk, data.subset(test))
         fold_p.append(pk)
     return _Scored(model, fit, tuple(fold_p), held)
@@ -585,7 +590,7 @@ def _explained(model: SensorModel, p: np.ndarray, data: DiscoveryData, xi: np.nd
     removing what the model's own columns already span (Lötters eq. 13a at nominal)."""
     ext, q = model.extend(p, effect, spread)
     _, B = ext.residual_jacobian(q, data.windows.v, data.cov)
-    free = _free(ext, q, data)  # fixed columns would fit noise (see _free)
+    free = free_params(ext, q, data)  # fixed columns would fit noise (see free_params)
     own = np.ones(ext.size, bool)
     own[ext.slice(effect)] = False
     Bo, Bc = B[:, own & free], B[:, ~own & free]
@@ -733,10 +738,10 @@ class DiscoveryResult:
         return self.analysis_final.rms_mg
 
     def held_at_start(self) -> tuple[str, ...]:
-        """Parameters of the final model the poses cannot determine (`_free`: a gain needs its
+        """Parameters of the final model the poses cannot determine (`free_params`: a gain needs its
         axis seen from both sides, an offset from one at least), so they kept their start
         value: e.g. every gain, and the offsets across gravity, of a recording in one pose."""
-        free = _free(self.model, self.p, self.data)
+        free = free_params(self.model, self.p, self.data)
         return tuple(n for n, f in zip(self.model.names, free, strict=True) if not f)
 
     def corrected(self, final: bool = True) -> np.ndarray:
@@ -771,7 +776,7 @@ KIND_ORDER = ("offset", "gain", "ratiometric", "cross_axis", "nonlinearity")
 TIE_GAIN = 0.01
 
 
-def _selected(model: SensorModel, fit: _Fit, effect: Effect,
+def _selected(model: SensorModel, fit: ModelFit, effect: Effect,
               cfg: DiscoveryConfig) -> SelectedEffect:
     sl = model.slice(effect)
     names = model.names[sl]
@@ -976,8 +981,8 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
     if model is None:
         model = SensorModel.diagonal(data.s0)
     blocks = time_blocks(data.windows.t_us, n_blocks)
-    p_all = _start(model, data) if p is None else np.asarray(p, np.float64)
-    starts = [_start(model, data.subset(blocks != k)) for k in range(n_blocks)]
+    p_all = start_params(model, data) if p is None else np.asarray(p, np.float64)
+    starts = [start_params(model, data.subset(blocks != k)) for k in range(n_blocks)]
     base = _score(model, data, blocks, starts, p_all, cfg)
     scored = scorable(data, blocks, model.correct(base.fit.p, data.windows.v, data.cov))
     if not scored.any():

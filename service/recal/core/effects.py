@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from recal.core.triaxial import per_axis
+
 __all__ = [
     "EFFECT_KINDS",
     "TIME",
@@ -123,6 +125,13 @@ class Effect:
         return tuple(f"{self.symbol}{suffix}_{ax}" for ax in AXES)
 
     symbol = "p"
+    #: apply is x -> x A + c, the same A and c for every sample, unless it reads a covariate
+    linear_in_x = False
+
+    @property
+    def affine(self) -> bool:
+        """Whether the stage is one affine map for every sample (`SensorModel.affine`)."""
+        return self.linear_in_x and not self.channels
 
     @property
     def size(self) -> int:
@@ -259,6 +268,7 @@ class Offset(Effect):
     kind: str = field(default="offset", init=False)
     stage: int = field(default=2, init=False)
     symbol = "o"
+    linear_in_x = True
 
     def prior_sd(self, s0, spread):
         if self.covariate is None:
@@ -282,7 +292,7 @@ class Offset(Effect):
 
     def apply(self, x, cov, theta):
         if self.covariate is None:
-            return x - theta
+            return per_axis(np.subtract, x, theta)
         return x - self.delta(cov)[:, None] * theta
 
     def d_theta(self, x, cov, theta):
@@ -309,6 +319,7 @@ class Scale(Effect):
     kind: str = field(default="scale", init=False)
     stage: int = field(default=3, init=False)
     symbol = "s"
+    linear_in_x = True
 
     def nominal(self, s0):
         return np.full(3, float(s0))
@@ -326,7 +337,7 @@ class Scale(Effect):
         return np.full(3, 0.8 * s0), np.full(3, 1.2 * s0)
 
     def apply(self, x, cov, theta):
-        return x / theta
+        return per_axis(np.divide, x, theta)
 
     def d_theta(self, x, cov, theta):
         return _diag(-x / theta**2)
@@ -386,6 +397,7 @@ class CrossAxis(Effect):
 
     kind: str = field(default="cross_axis", init=False)
     stage: int = field(default=4, init=False)
+    linear_in_x = True
 
     @property
     def param_names(self) -> tuple[str, ...]:

@@ -20,7 +20,7 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from itertools import pairwise
 
@@ -40,11 +40,11 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
-from recal.core.triaxial import all3, norm3
+from recal.core.triaxial import norm3
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "from_state_dict",
-           "state_dict", "window_means"]
+__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WindowSums",
+           "from_state_dict", "run_starts", "state_dict", "usable"]
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,26 @@ class PipelineConfig:
             raise ValueError("update_every and bootstrap_min_cells must be at least 1")
         if self.max_update_interval_s < 0:
             raise ValueError("max_update_interval_s must be >= 0 (0: every try updates)")
+
+    @property
+    def min_samples(self) -> float:
+        """A window with fewer samples than this (min_fill of its nominal count) is dropped."""
+        return self.min_fill * self.window_s * self.rate_hz
+
+    @property
+    def window_us(self) -> int:
+        return round(self.window_s * 1e6)
+
+    def commit_us(self, run_start_us: int | np.ndarray, k: int | np.ndarray) -> int | np.ndarray:
+        """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
+        return run_start_us + (k + 1) * self.window_us + round(self.guard_s * 1e6)
+
+    def detector(self, s0: float) -> det.DetectorConfig:
+        """The detector's settings for a sensor of s0 raw units per g."""
+        clip = None if self.full_scale_g is None else 0.98 * self.full_scale_g * s0
+        return det.DetectorConfig(rate_hz=self.rate_hz, threshold_g=self.threshold_g,
+                                  hp_hz=self.hp_hz, lp_hz=self.lp_hz, s0=s0, clip_raw=clip,
+                                  flat_s=self.flat_s)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -199,7 +219,7 @@ class _Event:
 
 
 @dataclass(frozen=True, eq=False)
-class _Sums:
+class WindowSums:
     """The running sums of many windows, one row each (what an `_Acc` holds for one): a long
     run's windows are summed, scheduled and committed as arrays, not one object each."""
 
@@ -212,20 +232,20 @@ class _Sums:
     sum_t: np.ndarray
 
     @classmethod
-    def of_run(cls, run_start_us: int, k: np.ndarray, starts: list[int], v: np.ndarray,
-               aux: np.ndarray, t_us: np.ndarray) -> _Sums:
-        """Every window of one run (starts: each window's first sample): one reduction per
-        quantity."""
+    def of_run(cls, run_start_us: int | np.ndarray, k: np.ndarray, starts: list[int] | np.ndarray,
+               v: np.ndarray, aux: np.ndarray, t_us: np.ndarray) -> WindowSums:
+        """Every window of one run (run_start_us: its start) or of several (an array: each
+        sample's run start); starts: each window's first sample. One reduction per quantity."""
         idx = np.asarray(starts, np.intp)
+        rs = np.broadcast_to(np.asarray(run_start_us, np.int64), t_us.shape)
         saux = (np.add.reduceat(aux, idx, axis=0) if aux.shape[1]
                 else np.zeros((len(idx), 0)))
-        return cls(np.full(len(idx), run_start_us, np.int64), k[idx],
-                   np.diff(np.append(idx, len(v))), np.add.reduceat(v, idx, axis=0),
-                   np.add.reduceat(v * v, idx, axis=0), saux,
-                   np.add.reduceat(t_us - run_start_us, idx).astype(np.float64))  # exact
+        return cls(rs[idx], k[idx], np.diff(np.append(idx, len(v))),
+                   np.add.reduceat(v, idx, axis=0), np.add.reduceat(v * v, idx, axis=0), saux,
+                   np.add.reduceat(t_us - rs, idx).astype(np.float64))  # exact
 
     @classmethod
-    def of_accs(cls, accs: list[_Acc], n_aux: int) -> _Sums:
+    def of_accs(cls, accs: list[_Acc], n_aux: int) -> WindowSums:
         return cls(np.array([a.run_start_us for a in accs], np.int64),
                    np.array([a.k for a in accs], np.int64),
                    np.array([a.n for a in accs], np.int64),
@@ -235,21 +255,37 @@ class _Sums:
                    np.array([a.sum_t for a in accs], np.float64))
 
     @classmethod
-    def gather(cls, parts: list[_Acc | _Sums], n_aux: int) -> _Sums:
+    def gather(cls, parts: list[_Acc | WindowSums], n_aux: int) -> WindowSums:
         """One table of windows given one by one (`_Acc`) and in blocks, in that order."""
-        blocks: list[_Sums] = []
+        blocks: list[WindowSums] = []
         for part in parts:
-            if isinstance(part, _Sums):
+            if isinstance(part, WindowSums):
                 blocks.append(part)
             elif blocks and isinstance(blocks[-1], list):
                 blocks[-1].append(part)
             else:
                 blocks.append([part])
-        tables = [b if isinstance(b, _Sums) else cls.of_accs(b, n_aux) for b in blocks]
+        return cls.concat([b if isinstance(b, WindowSums) else cls.of_accs(b, n_aux)
+                           for b in blocks])
+
+    @classmethod
+    def concat(cls, tables: list[WindowSums]) -> WindowSums:
         if len(tables) == 1:
             return tables[0]
         return cls(*(np.concatenate([getattr(t, f.name) for t in tables])
                      for f in fields(cls)))
+
+    @classmethod
+    def empty(cls, n_aux: int) -> WindowSums:
+        return cls.of_accs([], n_aux)
+
+    def join(self, first: np.ndarray) -> WindowSums:
+        """Rows first[j]..first[j+1] summed into one each (pieces of one window, in order)."""
+        return WindowSums(self.run_start_us[first], self.k[first],
+                          np.add.reduceat(self.n, first), np.add.reduceat(self.sum_v, first, 0),
+                          np.add.reduceat(self.sum_v2, first, 0),
+                          (np.add.reduceat(self.sum_aux, first, 0) if self.sum_aux.shape[1]
+                           else self.sum_aux[first]), np.add.reduceat(self.sum_t, first))
 
     def __len__(self) -> int:
         return len(self.n)
@@ -258,8 +294,8 @@ class _Sums:
         return _Acc(int(self.run_start_us[j]), int(self.k[j]), int(self.n[j]), self.sum_v[j],
                     self.sum_v2[j], self.sum_aux[j], float(self.sum_t[j]))
 
-    def take(self, rows: np.ndarray) -> _Sums:
-        return _Sums(*(getattr(self, f.name)[rows] for f in fields(self)))
+    def take(self, rows: np.ndarray) -> WindowSums:
+        return WindowSums(*(getattr(self, f.name)[rows] for f in fields(self)))
 
     def means(self) -> tuple[Windows, np.ndarray]:
         """Window means (and the run each belongs to), all at once."""
@@ -275,7 +311,7 @@ class _Sums:
 
 @dataclass(eq=False)
 class _Chunk:
-    """Windows lo..lo+len of a batch's windows (`_Sums.means`) under the parameters in force:
+    """Windows lo..lo+len of a batch's windows (`WindowSums.means`) under the parameters in force:
     their norm gate, gravity directions and cells, worked out at once. Most end early, at an
     update that changes the parameters, so `Pipeline._commit_all` takes them in chunks that
     double (64, 128, ...) while the parameters hold; `rows` hands the buffer, which takes
@@ -397,12 +433,12 @@ class Pipeline:
             self.t0_us = int(batch.t_us[0])
         if self.det_state is None:  # bootstrap: the first sample's norm stands in for 1 g
             norms = np.linalg.norm(batch.v, axis=1)
-            usable = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
-            s0 = float(usable[0]) if len(usable) else 1.0
+            good = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
+            s0 = float(good[0]) if len(good) else 1.0
             self.model = SensorModel(self.model.effects, s0, self.model.spreads)
             self._start_detector(s0)
         self.det_state, d = det.detect(self.det_cfg, self.det_state, batch.v)
-        gate = d.gate & self._usable(batch)
+        gate = usable(d.gate, batch, self.model)
         start = (self.model, self.params.copy())
         if marks:
             self._marks = _Marks(marks, gate, self.counts["samples"],
@@ -432,15 +468,6 @@ class Pipeline:
     def covariates(self, t_us: np.ndarray, aux: np.ndarray) -> Covariates:
         return Covariates.from_samples(t_us, aux, self.aux_names, self.t0_us or 0)
 
-    def _usable(self, b: RawBatch) -> np.ndarray:
-        """Samples whose reading and the channels the model uses are finite: only they may
-        enter a window (an imported row may lack a value; a NaN must never reach the estimator
-        or a checkpoint)."""
-        ok = all3(np.isfinite(b.v))
-        cols = [self.aux_names.index(c) for c in self.model.covariates if c != TIME]
-        if cols:
-            ok &= np.isfinite(b.aux[:, cols]).all(axis=1)
-        return ok
 
     def coverage(self) -> Coverage:
         return self.buffer.coverage()
@@ -496,19 +523,13 @@ class Pipeline:
     def _runs(self, t_us: np.ndarray, gate: np.ndarray) -> tuple[list[tuple[int, int]], bool]:
         """[start, end) ranges of gated samples without time gaps, and whether the first range
         continues the run that was open at the end of the previous batch."""
-        gap_us = 3.0e6 / self.cfg.rate_hz
-        prev_t = int(t_us[0]) - 1 if self.last_t_us is None else self.last_t_us
-        dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
-        dt[0] = int(t_us[0]) - prev_t
-        np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
-        ok_dt = (dt > 0) & (dt <= gap_us)
-        start = gate.copy()
-        start[1:] &= ~gate[:-1] | ~ok_dt[1:]
+        start = run_starts(t_us, gate, self.last_t_us, self.last_gate, self.cfg.rate_hz)
+        continues = (bool(gate[0]) and not start[0]
+                     and (self.open is not None or self.pending is not None))
+        start[0] = gate[0]  # a range of this batch all the same
         stops = np.append(np.flatnonzero(~gate | start), len(gate))
         s_idx = np.flatnonzero(start)
         ends = stops[np.searchsorted(stops, s_idx, side="right")]
-        continues = (len(s_idx) > 0 and s_idx[0] == 0 and self.last_gate and bool(ok_dt[0])
-                     and (self.open is not None or self.pending is not None))
         return list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues
 
     def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[_Event], int]:
@@ -521,12 +542,12 @@ class Pipeline:
         return self._commit_all(b, due, table), len(table) if table is not None else 0
 
     def _schedule(self, b: RawBatch, gate: np.ndarray) -> tuple[list[tuple[int, bool]],
-                                                                 _Sums | None]:
+                                                                 WindowSums | None]:
         """The batch's window events in sample order: (index, True) for a window that
         commits at sample index, (index, False) for one too short to keep (`_finish`); and
         the committing windows' sums, in the same order."""
         due: list[tuple[int, bool]] = []
-        table: list[_Acc | _Sums] = []
+        table: list[_Acc | WindowSums] = []
         runs, continues = self._runs(b.t_us, gate)
         for r, (i0, i1) in enumerate(runs):
             if not (r == 0 and continues):
@@ -536,25 +557,25 @@ class Pipeline:
             self.open, self.pending = None, None
         if not runs:
             self.open, self.pending = None, None
-        return due, _Sums.gather(table, len(self.aux_names)) if table else None
+        return due, WindowSums.gather(table, len(self.aux_names)) if table else None
 
     def _schedule_run(self, b: RawBatch, i0: int, i1: int, due: list[tuple[int, bool]],
-                      table: list[_Acc | _Sums]) -> None:
+                      table: list[_Acc | WindowSums]) -> None:
         """`_schedule` for the run of gated samples i0..i1 (continuing `self.open` and
         `self.pending` if they are set): windows of window_s from the run's start."""
-        W = round(self.cfg.window_s * 1e6)
+        W = self.cfg.window_us
         run_start = self.open.run_start_us if self.open is not None else (
             self.pending[0].run_start_us if self.pending is not None else int(b.t_us[i0]))
         t = b.t_us[i0:i1]
         k = (t - run_start) // W
         cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
         if cuts:
-            sums = _Sums.of_run(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
+            sums = WindowSums.of_run(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
             first = sums.acc(0)
         else:  # one window (a live sensor's few samples): plain sums
             first = _Acc.of(run_start, int(k[0]), b.v[i0:i1], b.aux[i0:i1], t)
         # windows 1.. of a long run at once when none but the last is short (`_tail`)
-        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= self._min_samples))
+        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= self.cfg.min_samples))
         starts, ends = [0, *cuts], [*cuts, len(t)]
         for j in range(1 if fast else len(starts)):
             g0, g1 = starts[j], ends[j]
@@ -577,8 +598,8 @@ class Pipeline:
         if fast:
             self._tail(sums, cuts, t, i0, due, table)
 
-    def _tail(self, sums: _Sums, cuts: list[int], t: np.ndarray, i0: int,
-              due: list[tuple[int, bool]], table: list[_Acc | _Sums]) -> None:
+    def _tail(self, sums: WindowSums, cuts: list[int], t: np.ndarray, i0: int,
+              due: list[tuple[int, bool]], table: list[_Acc | WindowSums]) -> None:
         """`_schedule`'s loop over windows 1.. of a run (samples i0.., times t, window j
         from cuts[j-1]), all at once, when every one but the last is long enough to keep:
         window j is then pending from the start of window j + 1 and commits at its first
@@ -588,7 +609,7 @@ class Pipeline:
         g1 = np.append(g0[1:], len(t))
         # the window pending in each window 1..: the one before it (the first: as it is)
         commit = np.empty(len(g0), np.int64)
-        commit[1:] = self._commit_us(sums.run_start_us[1:-1], sums.k[1:-1])
+        commit[1:] = self.cfg.commit_us(sums.run_start_us[1:-1], sums.k[1:-1])
         commit[0] = self.pending[1] if self.pending is not None else 0
         at = np.maximum(np.searchsorted(t, commit), g0)
         if self.pending is None:
@@ -607,23 +628,13 @@ class Pipeline:
     def _finish(self, acc: _Acc, idx: int, due: list[tuple[int, bool]]) -> None:
         """A window is complete (seen at sample idx, the next window's first); keep it
         pending until the guard time has passed."""
-        if acc.n < self._min_samples:
+        if acc.n < self.cfg.min_samples:
             due.append((idx, False))
             return
-        self.pending = (acc, self._commit_us(acc.run_start_us, acc.k))
-
-    @property
-    def _min_samples(self) -> float:
-        """A window with fewer samples than this (min_fill of its nominal count) is dropped."""
-        return self.cfg.min_fill * self.cfg.window_s * self.cfg.rate_hz
-
-    def _commit_us(self, run_start_us: int | np.ndarray, k: int | np.ndarray) -> int | np.ndarray:
-        """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
-        return (run_start_us + (k + 1) * round(self.cfg.window_s * 1e6)
-                + round(self.cfg.guard_s * 1e6))
+        self.pending = (acc, self.cfg.commit_us(acc.run_start_us, acc.k))
 
     def _commit_all(self, b: RawBatch, due: list[tuple[int, bool]],
-                    table: _Sums | None) -> list[_Event]:
+                    table: WindowSums | None) -> list[_Event]:
         """Commit the scheduled windows in order. Between updates the parameters hold, so the
         norm gate, directions and cells of the windows are worked out a chunk at a time
         (`_Chunk`), and `_scan` finds the next window after which an update runs from the
@@ -838,10 +849,7 @@ class Pipeline:
         return out
 
     def _start_detector(self, s0: float) -> None:
-        clip = None if self.cfg.full_scale_g is None else 0.98 * self.cfg.full_scale_g * s0
-        self.det_cfg = det.DetectorConfig(
-            rate_hz=self.cfg.rate_hz, threshold_g=self.cfg.threshold_g, hp_hz=self.cfg.hp_hz,
-            lp_hz=self.cfg.lp_hz, s0=s0, clip_raw=clip, flat_s=self.cfg.flat_s)
+        self.det_cfg = self.cfg.detector(s0)
         self.det_state = det.init_state(self.det_cfg)
 
 
@@ -852,30 +860,35 @@ class Pipeline:
 SETTLED_SD_FRACTION = 0.25
 
 
+def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_gate: bool,
+               rate_hz: float) -> np.ndarray:
+    """Where a run of gated samples starts: a gated sample after one that was not, or after a
+    time step that is no step (<= 0) or a gap (> 3 nominal periods). The batch's first sample
+    continues the previous batch's run if that ended gated (prev_gate) one step before it."""
+    prev_t = int(t_us[0]) - 1 if prev_t_us is None else prev_t_us
+    dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
+    dt[0] = int(t_us[0]) - prev_t
+    np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
+    ok_dt = (dt > 0) & (dt <= 3.0e6 / rate_hz)
+    start = gate.copy()
+    start[1:] &= ~gate[:-1] | ~ok_dt[1:]
+    start[0] &= not (prev_gate and ok_dt[0])
+    return start
+
+
+def usable(gate: np.ndarray, b: RawBatch, model: SensorModel) -> np.ndarray:
+    """The detector's gate where the channels the model uses are finite too: only such samples
+    may enter a window (an imported row may lack a value; a NaN must never reach the estimator
+    or a checkpoint). The gate already excludes readings that are not finite."""
+    cols = [b.aux_names.index(c) for c in model.covariates if c != TIME]
+    if cols:
+        return gate & np.isfinite(b.aux[:, cols]).all(axis=1)
+    return gate
+
+
 def _settled(before: Estimate, after: Estimate) -> bool:
     sd = np.sqrt(np.clip(np.diag(after.cov), 1e-300, None))
     return bool(np.all(np.abs(after.p - before.p) <= SETTLED_SD_FRACTION * sd))
-
-
-def window_means(batches: Iterable[RawBatch], cfg: PipelineConfig, s0: float
-                 ) -> tuple[Windows, tuple[str, ...], int]:
-    """Every quasi-static window mean of a recording given batch by batch, by exactly the live
-    detector (Lötters eq. 1-2, in units of s0 raw per g) and windowing (window_s, guard_s,
-    min_fill), but with no norm gate and no estimator update: the raw material of
-    `core.discovery`. Returns (windows, the channels, the first sample's time)."""
-    collect = replace(cfg, norm_tol_g=float("inf"), update_every=2**62)
-    model = SensorModel.diagonal(float(s0))
-    pipe: Pipeline | None = None
-    for b in batches:  # batch-size invariant: batch by batch is the same as one call
-        if not len(b):
-            continue
-        if pipe is None:
-            pipe = Pipeline(collect, model, Prior.default(model), b.aux_names)
-        pipe.step(b)
-    if pipe is None:
-        raise ValueError("a recording needs samples to discover effects on")
-    assert pipe.t0_us is not None
-    return pipe._fresh_windows(), pipe.aux_names, pipe.t0_us  # never cleared: no update runs
 
 
 def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | None) -> dict | None:

@@ -1,17 +1,23 @@
-"""Row-wise reductions of triaxial (N,3) arrays, one column at a time.
+"""Row-wise reductions of triaxial (N,3) arrays, and per-axis arithmetic, one column at a time.
 
 numpy reduces `axis=1` of an (N,3) array with a generic strided loop that costs 3-5x as much
 as three column operations (100 000 rows: `np.linalg.norm(v, axis=1)` 2.0 ms against 0.55 ms;
 `np.isfinite(v).all(axis=1)` 1.8 ms against 0.35 ms). These run on every sample of a batch.
 The sums are added in the same order as numpy's (x + y) + z, so the results are bit-identical
-to `np.linalg.norm(v, axis=1)` and `np.add.reduce(v * v, axis=1)`.
+to `np.linalg.norm(v, axis=1)` and `np.add.reduce(v * v, axis=1)`. Likewise an (N,3) array
+minus or over one value per axis (3,): broadcast, numpy runs its inner loop once per row of 3;
+column by column it costs about two thirds as much (100 000 rows: 0.84 against 0.53 ms),
+with the same operations on the same numbers.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["all3", "any3", "norm3", "sum_sq3"]
+__all__ = ["affine3", "all3", "any3", "norm3", "per_axis", "sum_sq3"]
+
+#: Below this many rows the one broadcast call is cheaper than three column calls.
+_PER_AXIS_MIN_ROWS = 256
 
 
 def sum_sq3(v: np.ndarray) -> np.ndarray:
@@ -39,4 +45,23 @@ def any3(m: np.ndarray) -> np.ndarray:
     """m.any(axis=1) for a boolean (N,3) array."""
     out = m[:, 0] | m[:, 1]
     out |= m[:, 2]
+    return out
+
+
+def per_axis(op: np.ufunc, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """op(x, theta) for x (N,3) and one value per axis theta (3,), bit-identical."""
+    if len(x) < _PER_AXIS_MIN_ROWS or x.ndim != 2 or np.ndim(theta) != 1:
+        return op(x, theta)
+    out = np.empty(x.shape, np.result_type(x, theta))
+    for j in range(3):
+        op(x[:, j], theta[j], out=out[:, j])
+    return out
+
+
+def affine3(v: np.ndarray, A: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """v A + c for v (N,3), A (3,3), c (3,): one matrix product, then c added column by column
+    (broadcast, it would cost twice the product)."""
+    out = np.asarray(v, np.float64) @ A
+    for j in range(3):
+        out[:, j] += c[j]
     return out

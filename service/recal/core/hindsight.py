@@ -1,0 +1,129 @@
+"""Hindsight calibration: one fit on a whole recording's still windows, applied to all of it.
+
+This is what the batch tools do (actipy, scikit-digital-health, GGIR and wristpy fit one
+offset and gain per axis on a whole recording, then correct all of it), done with recal's
+detector, windows and sensor model: any registered effect (cross-axis terms, a supply or
+temperature channel, ...), and the parameters the poses cannot determine held at their start
+and reported. The live service streams instead (`pipeline`: each sample corrected with what
+was known when it arrived); this module is for a recording already on disk.
+
+1. windows: `windowing.Windowing`, the live detector (Lötters eq. 1-2) and windowing;
+2. the fit (`fit`): from an ellipsoid or sphere fit of the window means (`discovery`'s start),
+   Lötters eq. 11a iterated to convergence (`estimator.solve`, the prior rows at the start
+   values with the model's default spreads), over the parameters the poses determine (the
+   others held at their nominal values, as the live core holds them), with no process
+   noise: every window counts alike whatever its age. Windows whose corrected norm is
+   further than norm_tol_g from 1 g (movement the detector let through, the live pipeline's
+   norm gate) are dropped and the fit repeated until it keeps the same windows;
+3. the correction (inverse of Lötters eq. 3) of every sample: `HindsightFit.correct`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from recal.core.buffer import Windows
+from recal.core.discovery import (
+    DiscoveryConfig,
+    data_from_windows,
+    fit_model,
+    free_params,
+    start_params,
+)
+from recal.core.effects import Covariates
+from recal.core.model import SensorModel
+from recal.core.pipeline import PipelineConfig
+from recal.core.triaxial import affine3
+from recal.core.windowing import Windowing
+from recal.samples import RawBatch
+
+__all__ = ["HindsightFit", "calibrate", "fit"]
+
+#: Most fits of `fit`: each drops the windows the one before put beyond norm_tol_g.
+MAX_PASSES = 5
+
+
+@dataclass(frozen=True, eq=False)
+class HindsightFit:
+    """A recording's calibration with hindsight.
+
+    Attributes:
+        model, p: the sensor model and its fitted parameters (raw units, as `Estimate.p`).
+        cov: their posterior covariance (Lötters eq. 11b; the prior's for held ones).
+        free: the parameters the poses determined; the others were held at their start.
+        t0_us: origin of the model's "time" covariate (the recording's first sample).
+        windows: windows fitted; dropped: windows left out (movement, beyond norm_tol_g).
+        residual_rms_mg: RMS of 1 g - |a| over the windows fitted.
+    """
+
+    model: SensorModel
+    p: np.ndarray
+    cov: np.ndarray
+    free: np.ndarray
+    t0_us: int
+    windows: int
+    dropped: int
+    residual_rms_mg: float
+
+    def correct(self, b: RawBatch) -> np.ndarray:
+        """Raw samples -> acceleration in g (N,3): the model's chain of stages, or the one
+        affine map it amounts to when no stage reads a covariate (`SensorModel.affine`; the
+        same to rounding, several times faster)."""
+        if self._affine is not None:
+            return affine3(b.v, *self._affine)
+        cov = Covariates.from_samples(b.t_us, b.aux, b.aux_names, self.t0_us)
+        return self.model.correct(self.p, b.v, cov)
+
+    @functools.cached_property
+    def _affine(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return self.model.affine(self.p)
+
+    @property
+    def held(self) -> tuple[str, ...]:
+        """Parameters the recording's poses could not determine (held at their start)."""
+        return tuple(n for n, f in zip(self.model.names, self.free, strict=True) if not f)
+
+
+def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorModel,
+        norm_tol_g: float = 0.1) -> HindsightFit:
+    """The model fitted to a recording's window means (module doc, step 2)."""
+    data = data_from_windows(windows, aux_names, t0_us)
+    dropped = data.dropped
+    p = start_params(model, data)
+    # what the poses cannot determine stays at the model's nominal value (the datasheet, as
+    # in the live core), not at the start's: an ellipsoid or sphere fit to a cap of
+    # orientations trades the unseen axis's scale against its offset almost freely
+    held = ~free_params(model, p, data)
+    p[held] = model.nominal()[held]
+    cfg = DiscoveryConfig()
+    keep = np.ones(len(data), bool)
+    for _ in range(MAX_PASSES):
+        res = fit_model(model, p, data.subset(keep), cfg)
+        xi = model.residual(res.p, data.windows.v, data.cov)
+        now = np.abs(xi) <= norm_tol_g
+        if np.array_equal(now, keep) or not now.any():
+            break
+        keep = now
+    xi_kept = xi[keep]
+    return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(keep.sum()),
+                        dropped + int((~keep).sum()),
+                        1e3 * float(np.sqrt(np.mean(xi_kept**2))) if len(xi_kept) else 0.0)
+
+
+def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
+              cfg: PipelineConfig) -> HindsightFit:
+    """Fit a recording read batch by batch (``batches()``: one pass over it) with hindsight.
+    The detector runs in units of model.s0 raw per g."""
+    w = Windowing(cfg, model, model.s0)
+    for b in batches():
+        w.add(b)
+    if w.aux_names is None or w.t0_us is None:
+        raise ValueError("a recording needs samples to calibrate")
+    sums = w.kept()
+    if not len(sums):
+        raise ValueError("no quasi-static window in the recording: nothing to calibrate on")
+    return fit(sums.means()[0], w.aux_names, w.t0_us, model, cfg.norm_tol_g)

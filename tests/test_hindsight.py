@@ -1,0 +1,166 @@
+"""Batch use of the core: a recording's windows as arrays (`core.windowing`), the calibration
+with hindsight (`core.hindsight`), and the shortcuts they rely on (`SensorModel.affine`,
+`triaxial.per_axis`), against the live pipeline and the simulator's truth."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from recal.core import hindsight
+from recal.core.effects import Covariates, Offset, Ratiometric
+from recal.core.estimator import Prior
+from recal.core.model import SensorModel
+from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.triaxial import per_axis
+from recal.core.windowing import Windowing, window_means
+from recal.samples import RawBatch
+from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
+
+RATE = 50.0
+FIELDS = ("v", "aux", "t_us", "n", "var")
+
+
+def _batches(raw: RawBatch, size: int) -> list[RawBatch]:
+    return [raw[i:i + size] for i in range(0, len(raw), size)]
+
+
+def _live_windows(batches: list[RawBatch], cfg: PipelineConfig, s0: float):
+    """What the live pipeline commits, stepped as it runs: no norm gate, no update."""
+    collect = replace(cfg, norm_tol_g=float("inf"), update_every=2**62)
+    model = SensorModel.diagonal(s0)
+    pipe = Pipeline(collect, model, Prior.default(model), batches[0].aux_names)
+    for b in batches:
+        pipe.step(b)
+    return pipe._fresh_windows()
+
+
+def _awkward_recording() -> RawBatch:
+    """Lost samples, stretches below min_fill, 1 ms jitter (steps that go back: run breaks),
+    and NaN readings: every way a run or a window can end early."""
+    rng = np.random.default_rng(8)
+    r = simulate(0.3, RATE, 8, SensorSpec.random(rng, offset_mg=50, gain_pct=3))
+    i = np.arange(len(r.raw))
+    keep = rng.random(len(i)) > 0.02
+    for s0 in rng.integers(0, len(i), 40):
+        keep[(i >= s0) & (i < s0 + 150) & (i % 3 == 1)] = False
+    raw = r.raw[keep]
+    raw = replace(raw, t_us=raw.t_us + rng.integers(-1000, 1000, len(raw)))
+    v = raw.v.copy()
+    v[rng.integers(0, len(v), 20)] = np.nan
+    return replace(raw, v=v)
+
+
+def test_windows_as_arrays_are_the_live_pipelines_bit_for_bit_in_any_batches() -> None:
+    raw = _awkward_recording()
+    cfg = PipelineConfig(rate_hz=RATE)
+    ref = _live_windows([raw], cfg, 1024.0)
+    assert len(ref) > 300
+    for size in (7, 333, len(raw)):
+        w, names, t0 = window_means(_batches(raw, size), cfg, 1024.0)
+        assert names == raw.aux_names and t0 == int(raw.t_us[0])
+        for f in FIELDS:
+            assert np.array_equal(getattr(w, f), getattr(ref, f)), (size, f)
+    # the live pipeline in the same batches agrees too (a window cut by a batch end)
+    live = _live_windows(_batches(raw, 333), cfg, 1024.0)
+    w, _, _ = window_means(_batches(raw, 333), cfg, 1024.0)
+    assert all(np.array_equal(getattr(w, f), getattr(live, f)) for f in FIELDS)
+
+
+def test_windowing_keeps_a_window_once_its_run_went_on_guard_s_past_it() -> None:
+    """2 s windows, a 1 s guard, min_fill 0.8, at 50 Hz: window 1 of a still run (2-4 s
+    into it) is kept when the run lasts 5.1 s, not when it stops at 4.9 s; window 0 holding
+    two samples in three (67 of 100) is dropped."""
+    n = 20 * int(RATE)
+    t = (np.arange(n) * 1e6 / RATE).astype(np.int64)
+    v = np.tile([0.0, 0.0, 1.0], (n, 1)) + np.random.default_rng(0).normal(0, 1e-4, (n, 3))
+    cfg = PipelineConfig(rate_hz=RATE)
+
+    def kept(m: np.ndarray):
+        w = Windowing(cfg, SensorModel.diagonal(1.0), 1.0)
+        w.add(RawBatch(t[m], v[m], np.zeros((int(m.sum()), 0))))
+        return w.kept()
+
+    rs = int(kept(np.ones(n, bool)).run_start_us[0])  # the detector settles, then the run
+    assert kept(t < rs + 5_100_000).k.tolist() == [0, 1]
+    assert kept(t < rs + 4_900_000).k.tolist() == [0]
+    holes = (t < rs + 4_900_000) & ~((t < rs + 2_000_000) & (np.arange(n) % 3 == 1))
+    assert len(kept(holes)) == 0
+
+
+def _wearer(seed: int, wearer: WearerSpec | None = None, **sensor):
+    rng = np.random.default_rng(seed)
+    spec = replace(SensorSpec.random(rng, offset_mg=50, gain_pct=3, **sensor),
+                   counts_per_g=1024.0)
+    return simulate(2.0, RATE, seed, spec, wearer or WearerSpec())
+
+
+@pytest.mark.parametrize(("name", "model", "sensor"), [
+    ("plain", SensorModel.diagonal(1024.0), {}),
+    ("cross-axis", SensorModel.full(1024.0), {"cross_axis_deg": 1.5}),
+    ("supply", SensorModel.diagonal(1024.0).with_effect(Ratiometric("vdd_v", 3.3), 0.5),
+     {"ratiometric_per_v": 0.05}),
+])
+def test_hindsight_reaches_the_noise_floor_on_the_whole_recording(name, model, sensor) -> None:
+    """One fit, every sample corrected with it: no warm-up, the first minute as good as the
+    last. The floor is the error of the true parameters (the sensor's noise, ~1 mg at 1 s)."""
+    r = _wearer(21, **sensor)
+    batches = _batches(r.raw, 10_000)
+    fit = hindsight.calibrate(lambda: batches, model, PipelineConfig(rate_hz=RATE))
+    out = np.concatenate([fit.correct(b) for b in batches])
+    err = error_1s_mg(out, r.truth.a_true_g, RATE, True)
+    raw_err = error_1s_mg(r.raw.v / 1024.0, r.truth.a_true_g, RATE, True)
+    assert raw_err > 20.0
+    assert err < 1.3, (name, err)
+    assert fit.windows > 1000 and not fit.held
+    assert fit.residual_rms_mg < 3.0
+
+
+def test_hindsight_without_the_effect_is_worse_and_says_what_it_could_not_see() -> None:
+    """The diagonal model on a cross-axis sensor leaves tens of mg; an upright wearer (never
+    lying down: -z unseen) gets s_z held at its start and reported."""
+    r = _wearer(22, cross_axis_deg=1.5)
+    fit = hindsight.calibrate(lambda: [r.raw], SensorModel.diagonal(1024.0),
+                              PipelineConfig(rate_hz=RATE))
+    assert error_1s_mg(fit.correct(r.raw), r.truth.a_true_g, RATE, True) > 5.0
+    up = _wearer(23, WearerSpec(upright_only=True))
+    fit = hindsight.calibrate(lambda: [up.raw], SensorModel.diagonal(1024.0),
+                              PipelineConfig(rate_hz=RATE))
+    assert "s_z" in fit.held
+    before = error_1s_mg(up.raw.v / 1024.0, up.truth.a_true_g, RATE, True)
+    assert error_1s_mg(fit.correct(up.raw), up.truth.a_true_g, RATE, True) < before / 3
+
+
+def test_hindsight_refuses_a_recording_without_a_still_window() -> None:
+    t = (np.arange(500) * 2e4).astype(np.int64)
+    v = np.random.default_rng(1).normal(0, 1.0, (500, 3))  # shaking: never quasi-static
+    with pytest.raises(ValueError, match="no quasi-static window"):
+        hindsight.calibrate(lambda: [RawBatch(t, v, np.zeros((500, 0)))],
+                            SensorModel.diagonal(1.0), PipelineConfig(rate_hz=RATE))
+    with pytest.raises(ValueError, match="needs samples"):
+        hindsight.calibrate(lambda: [], SensorModel.diagonal(1.0), PipelineConfig(rate_hz=RATE))
+
+
+def test_an_affine_model_is_one_matrix_product_and_others_are_not() -> None:
+    rng = np.random.default_rng(3)
+    model = SensorModel.full(1024.0)
+    p = model.nominal() + rng.normal(0, 0.02, model.size) * (np.abs(model.nominal()) + 1)
+    v = rng.normal(0, 1024.0, (1000, 3))
+    A, c = model.affine(p)
+    cov = Covariates(np.zeros(len(v)), np.zeros((len(v), 0)))
+    assert np.allclose(v @ A + c, model.correct(p, v, cov), rtol=0, atol=1e-12)
+    assert SensorModel.diagonal(1.0).with_effect(Ratiometric("vdd", 3.3)).affine(
+        np.r_[np.zeros(3), np.ones(3), 0.01]) is None
+    assert SensorModel.diagonal(1.0).with_effect(Offset("temp", 25.0)).affine(
+        SensorModel.diagonal(1.0).with_effect(Offset("temp", 25.0)).nominal()) is None
+
+
+@pytest.mark.parametrize("n", [1, 5, 255, 256, 10_000])
+def test_per_axis_arithmetic_is_the_broadcast_bit_for_bit(n: int) -> None:
+    rng = np.random.default_rng(n)
+    x = rng.normal(0, 1000, (n, 3))
+    theta = rng.normal(0, 10, 3)
+    for op in (np.subtract, np.divide, np.multiply):
+        assert np.array_equal(per_axis(op, x, theta), op(x, theta))
