@@ -288,6 +288,27 @@ def _cmd_discover(a: argparse.Namespace) -> int:
     return 0
 
 
+# --- hindsight -------------------------------------------------------------------------------
+def _cmd_hindsight(a: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from recal import hindsight_file as hf
+    from recal.config import load_model_file
+
+    _new_output(a.out, a.overwrite, a.input)
+    _report_paths(a.json, a.out)
+    model = load_model_file(a.model)[0] if a.model else None
+    src = hf.open_source(a.input, a.sensor_id, a.rate, a.units)
+    # three passes over the input (module doc of recal.hindsight_file): samples read, in all
+    with tqdm(unit="sample", unit_scale=True, desc="hindsight (3 passes)", leave=False,
+              disable=a.quiet or None) as bar:
+        summary = hf.calibrate_file(src, a.out, model, a.overwrite, bar.update)
+    if a.json:
+        Path(a.json).write_text(json.dumps(summary, indent=2, default=str))
+    print("\n".join(hf.summary_lines(summary)))
+    return 0
+
+
 # --- replay / repair / run / demo / router ---------------------------------------------------
 def _cmd_replay(a: argparse.Namespace) -> int:
     from recal.replay import replay
@@ -425,6 +446,14 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                "every row's norm is 1 g, with the worst row's relative norm error over all rows "
                "and over the fitted rows.",
                ("recal static ../shared/data/static_positions/phone1.csv --fit-rows 1-20",)),
+    "hindsight": ("Calibrates a recording already on disk as the batch tools do (one fit on "
+                  "the whole recording, every sample corrected with it), with the live "
+                  "detector and windows and any model (--model from recal discover: "
+                  "cross-axis terms, a supply or temperature channel...). Parameters the "
+                  "recording's poses cannot determine are held at nominal and named. Writes "
+                  "raw, calibrated and the fit (MCAP) or t_us,x_g,y_g,z_g (CSV).",
+                  ("recal hindsight recordings/wearer-10min.mcap --out calibrated.mcap",
+                   "recal hindsight in.mcap --out out.csv --model model.json --json fit.json")),
     "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
                  "effects (offsets, gains or ratiometric scaling that follow an auxiliary "
                  "channel such as temperature or supply; cross-axis terms; non-linearity; "
@@ -568,6 +597,21 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rate", type=float, help="sample rate of a CSV without a time column")
     s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
     s.set_defaults(func=_cmd_discover)
+
+    s = _add_command(sub, "hindsight", "calibrate a recording on disk with hindsight: one fit "
+                       "on all of it, every sample corrected (as the batch tools do)")
+    s.add_argument("input", help="recording (.mcap) or CSV time series (t_us/t_s, x, y, z, "
+                   "channels)")
+    s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or FILE.csv")
+    s.add_argument("--model", help="model file (recal discover --write-model); default offsets "
+                   "and gains")
+    s.add_argument("--sensor-id", help="which sensor of a recording (default: the only one)")
+    s.add_argument("--json", help="write the fit (parameters, sd, held, windows) here")
+    s.add_argument("--rate", type=float, help="sample rate of a CSV without a time column")
+    s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    s.set_defaults(func=_cmd_hindsight)
 
     s = _add_command(sub, "import", "CSV (t_us or t_s, x, y, z, aux...) -> MCAP raw topic")
     s.add_argument("input", help="CSV file")

@@ -82,6 +82,7 @@ __all__ = [
     "free_params",
     "n_se_for",
     "orientation_features",
+    "rate_and_scale",
     "residual_analysis",
     "scorable",
     "start_params",
@@ -246,37 +247,41 @@ def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
     window_s: with the measured rate, windows of this length (guard half of it) instead of
     the default (ignored when cfg is given).
     """
+    if cfg is None or s0 is None:
+        rate_hz, median_norm = rate_and_scale(batches())
+        cfg = cfg or (PipelineConfig(rate_hz=rate_hz) if window_s is None else
+                      PipelineConfig(rate_hz=rate_hz, window_s=float(window_s),
+                                     guard_s=float(window_s) / 2))
+        s0 = median_norm if s0 is None else s0
+    w, aux_names, t0_us = window_means(batches(), cfg, s0)
+    return data_from_windows(w, aux_names, t0_us)
+
+
+def rate_and_scale(batches: Iterable[RawBatch]) -> tuple[float, float]:
+    """A recording's sample rate (1 / the median time step) and median sample norm (raw units
+    per g, to 1.2e-4), in one pass from counts of every time step and norm bin (`_norm_bins`):
+    memory by distinct steps and bins, not by samples."""
     bins: collections.Counter[int] = collections.Counter()  # norm bin -> how often
     steps: collections.Counter[int] = collections.Counter()  # time step (us) -> how often
     last_t: int | None = None
     samples = 0
-    if cfg is None or s0 is None:
-        for b in batches():
-            if not len(b):
-                continue
-            samples += len(b)
-            _count(bins, _norm_bins(b.v))
-            t = b.t_us if last_t is None else np.concatenate(([last_t], b.t_us))
-            dt = np.diff(t)  # across batches too: the same as over the whole
-            _count(steps, dt[dt > 0])
-            last_t = int(b.t_us[-1])
-        if samples < 2:
-            raise ValueError("a recording needs samples to discover effects on")
-    if cfg is None:
-        if not steps:
-            raise ValueError("time stamps never advance: cannot measure the sample rate")
-        rate_hz = 1e6 / _median_of_counts(steps)
-        cfg = (PipelineConfig(rate_hz=rate_hz) if window_s is None else
-               PipelineConfig(rate_hz=rate_hz, window_s=float(window_s),
-                              guard_s=float(window_s) / 2))
-    if s0 is None:
-        if not bins:
-            raise ValueError("no sample has a finite, nonzero reading: nothing to scale by")
-        lo, hi = _median_keys(bins)
-        s0 = (_bin_middle(lo) + _bin_middle(hi)) / 2
-
-    w, aux_names, t0_us = window_means(batches(), cfg, s0)
-    return data_from_windows(w, aux_names, t0_us)
+    for b in batches:
+        if not len(b):
+            continue
+        samples += len(b)
+        _count(bins, _norm_bins(b.v))
+        t = b.t_us if last_t is None else np.concatenate(([last_t], b.t_us))
+        dt = np.diff(t)  # across batches too: the same as over the whole
+        _count(steps, dt[dt > 0])
+        last_t = int(b.t_us[-1])
+    if samples < 2:
+        raise ValueError("a recording needs samples to discover effects on")
+    if not steps:
+        raise ValueError("time stamps never advance: cannot measure the sample rate")
+    if not bins:
+        raise ValueError("no sample has a finite, nonzero reading: nothing to scale by")
+    lo, hi = _median_keys(bins)
+    return 1e6 / _median_of_counts(steps), (_bin_middle(lo) + _bin_middle(hi)) / 2
 
 
 def _count(counts: collections.Counter[int], keys: np.ndarray) -> None:

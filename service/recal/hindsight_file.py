@@ -1,0 +1,185 @@
+"""`recal hindsight`: calibrate a recording on disk with hindsight (`core.hindsight`).
+
+Three passes over the input, one batch at a time (a week-long file needs memory for its
+windows, about 100 bytes each, not for its samples):
+
+1. the sample rate and the median norm (the detector's scale and the model's nominal sensitivity
+   unless a model file gives one), from counts (`discovery.rate_and_scale`);
+2. the quasi-static windows, and one fit of the model on all of them;
+3. every sample corrected with that fit and written out: an MCAP gets the raw topic copied as
+   logged, a calibrated topic (with the detector's gate and output per sample, as the live
+   node writes them) and the fit as a calibration message; a CSV gets t_us, x_g, y_g, z_g.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from recal.core import detector as det
+from recal.core import hindsight
+from recal.core.discovery import rate_and_scale
+from recal.core.model import SensorModel
+from recal.core.pipeline import PipelineConfig, usable
+from recal.samples import CalibratedBatch, RawBatch
+
+__all__ = ["Source", "calibrate_file", "summary_lines"]
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where the samples come from: ``batches()`` reads the input once more from its start;
+    ``logged()`` (MCAP only) yields each raw batch with its message as logged."""
+
+    name: str
+    sensor_id: str
+    batches: Callable[[], Iterable[RawBatch]]
+    logged: Callable[[], Iterator[tuple[RawBatch, Any]]] | None = None
+
+
+def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float | None = None,
+                units: str | None = None) -> Source:
+    """An MCAP recording (one sensor: the only one, or ``sensor_id``) or a CSV time series."""
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        from recal.io.csv_table import iter_csv
+
+        def rows() -> Iterator[RawBatch]:
+            return (t.batch for t in iter_csv(path, units=units, rate_hz=rate_hz))  # type: ignore[arg-type]
+
+        return Source(str(path), sensor_id or path.stem, rows)
+    from recal.io import recording
+
+    parts = recording.recording_parts(path)
+    found = recording.sensors(parts)
+    if sensor_id is None:
+        if len(found) != 1:
+            raise ValueError(f"{path}: {'no sensors' if not found else 'several sensors'} "
+                             f"({', '.join(found) or 'none'}); pick one with --sensor-id")
+        sensor_id = found[0]
+    elif sensor_id not in found:
+        raise ValueError(f"{path} has no sensor {sensor_id!r} (it has: "
+                         f"{', '.join(found) or 'none'})")
+    sid = sensor_id
+
+    def raw() -> Iterator[RawBatch]:
+        return (b for _, b, _ in recording.iter_raw(parts, sid))
+
+    def logged() -> Iterator[tuple[RawBatch, Any]]:
+        return ((b, m) for _, b, m in recording.iter_raw_logged(parts, sid))
+
+    return Source(str(path), sid, raw, logged)
+
+
+def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
+                   overwrite: bool = False, progress: Callable[[int], None] | None = None
+                   ) -> dict[str, Any]:
+    """Fit ``model`` (default: offsets and gains in the input's units) to the source with
+    hindsight and write every sample corrected; returns the summary (`summary_lines`).
+    progress(n): called with the samples of each batch of each pass."""
+    t0 = time.perf_counter()
+    rate_hz, median_norm = rate_and_scale(_counted(src.batches(), progress))
+    model = model or SensorModel.diagonal(median_norm)
+    cfg = PipelineConfig(rate_hz=rate_hz)
+    fit = hindsight.calibrate(lambda: _counted(src.batches(), progress), model, cfg)
+    if Path(out).suffix.lower() == ".csv":
+        samples = _write_csv(src, fit, cfg, out, progress)
+    else:
+        samples = _write_mcap(src, fit, cfg, out, overwrite, progress)
+    seconds = time.perf_counter() - t0
+    return {"in": src.name, "out": str(out), "sensor_id": src.sensor_id, "samples": samples,
+            "seconds": seconds, "samples_per_s": samples / seconds if seconds > 0 else None,
+            "rate_hz": rate_hz, **fit_summary(fit)}
+
+
+def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
+    """The fit as JSON-able values: parameters by name and in physical units, their sd."""
+    sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
+    return {"model": fit.model.to_dict(), "params": fit.model.params_dict(fit.p),
+            "described": fit.model.describe(fit.p),
+            "sd": dict(zip(fit.model.names, sd.tolist(), strict=True)),
+            "held": list(fit.held), "windows": fit.windows, "windows_dropped": fit.dropped,
+            "residual_rms_mg": fit.residual_rms_mg}
+
+
+def summary_lines(s: dict[str, Any]) -> list[str]:
+    """`recal hindsight`'s report for a person (--json has it all)."""
+    lines = [f"calibrated {s['samples']} samples of {s['sensor_id']} with hindsight in "
+             f"{s['seconds']:.2f} s into {s['out']}: one fit on {s['windows']} quasi-static "
+             f"windows ({s['windows_dropped']} dropped as movement), residual "
+             f"{s['residual_rms_mg']:.2f} mg"]
+    for effect, values in s["described"].items():
+        lines.append(f"  {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
+    if s["held"]:
+        lines.append(f"  held at nominal (the recording's poses cannot determine them): "
+                     f"{', '.join(s['held'])}")
+    return lines
+
+
+def _counted(batches: Iterable[RawBatch], progress: Callable[[int], None] | None
+             ) -> Iterator[RawBatch]:
+    for b in batches:
+        if progress is not None:
+            progress(len(b))
+        yield b
+
+
+class _Corrected:
+    """Pass 3: each batch corrected by the fit, with the detector's gate and output (its state
+    carried from batch to batch, as live)."""
+
+    def __init__(self, fit: hindsight.HindsightFit, cfg: PipelineConfig) -> None:
+        self.fit = fit
+        self.det_cfg = cfg.detector(fit.model.s0)
+        self.state = det.init_state(self.det_cfg)
+
+    def __call__(self, b: RawBatch) -> CalibratedBatch:
+        self.state, d = det.detect(self.det_cfg, self.state, b.v)
+        return CalibratedBatch(b.t_us, self.fit.correct(b), usable(d.gate, b, self.fit.model),
+                               d.detector_g)
+
+
+def _write_csv(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, out: str | Path,
+               progress: Callable[[int], None] | None) -> int:
+    from recal.io.csv_table import write_calibrated_csv
+
+    corrected = _Corrected(fit, cfg)
+    return write_calibrated_csv(out, (corrected(b) for b in _counted(src.batches(), progress)))
+
+
+def _write_mcap(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, out: str | Path,
+                overwrite: bool, progress: Callable[[int], None] | None) -> int:
+    from recal.io import recording as rec
+
+    corrected = _Corrected(fit, cfg)
+    samples, last_ns = 0, 0
+    writer = rec.RecordingWriter(out, chunk_size=1024 * 1024, background_flush=False,
+                                 fsync=False, overwrite=overwrite, background_compression=True,
+                                 metadata={"hindsight_of": Path(src.name).name})
+    try:
+        if src.logged is not None:
+            for b, m in src.logged():
+                if progress is not None:
+                    progress(len(b))
+                writer.write_encoded(m.topic, m.data, m.log_time_ns, m.publish_time_ns,
+                                     schema=rec.messages.RAW_SCHEMA)  # copied as logged
+                writer.write_calibrated(src.sensor_id, corrected(b), m.log_time_ns)
+                samples += len(b)
+                last_ns = max(last_ns, m.log_time_ns)
+        else:
+            for b in _counted(src.batches(), progress):
+                t_ns = int(b.t_us[0]) * 1000 if len(b) else last_ns
+                writer.write_raw(src.sensor_id, b, t_ns)
+                writer.write_calibrated(src.sensor_id, corrected(b), t_ns)
+                samples += len(b)
+                last_ns = max(last_ns, t_ns)
+        writer.write_calibration(src.sensor_id, {"hindsight": True, **fit_summary(fit)},
+                                 last_ns)
+    finally:
+        writer.close()
+    return samples
