@@ -133,6 +133,20 @@ def test_hindsight_without_the_effect_is_worse_and_says_what_it_could_not_see() 
     assert error_1s_mg(fit.correct(up.raw), up.truth.a_true_g, RATE, True) < before / 3
 
 
+@pytest.mark.parametrize("model", [SensorModel.full(1024.0), SensorModel.diagonal(1024.0)
+                                   .with_effect(Ratiometric("vdd_v", 3.3), 0.5)])
+def test_hindsight_corrects_into_an_output_array_as_it_returns(model) -> None:
+    """The affine shortcut (full model) and the chain (a supply channel) alike."""
+    r = _wearer(24, ratiometric_per_v=0.05)
+    fit = hindsight.calibrate(lambda: [r.raw], model, PipelineConfig(rate_hz=RATE))
+    out = np.full_like(r.raw.v, np.nan)
+    for i in range(0, len(r.raw), 7000):
+        fit.correct(r.raw[i:i + 7000], out[i:i + 7000])
+    assert np.allclose(out, fit.correct(r.raw), rtol=0, atol=1e-15)  # any batches
+    cov = Covariates.from_samples(r.raw.t_us, r.raw.aux, r.raw.aux_names, fit.t0_us)
+    assert np.allclose(out, model.correct(fit.p, r.raw.v, cov), rtol=0, atol=1e-12)
+
+
 def test_hindsight_refuses_a_recording_without_a_still_window() -> None:
     t = (np.arange(500) * 2e4).astype(np.int64)
     v = np.random.default_rng(1).normal(0, 1.0, (500, 3))  # shaking: never quasi-static

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from recal.core.triaxial import per_axis
+from recal.core.triaxial import per_axis, per_row
 
 __all__ = [
     "EFFECT_KINDS",
@@ -240,10 +240,12 @@ class Ratiometric(Effect):
         return np.hstack([d, (cov.get(self.reference) - self.reference_ref)[:, None]])
 
     def _factor(self, cov: Covariates, theta: np.ndarray) -> np.ndarray:
+        if self.reference is None:  # the one-column product, without a matrix product
+            return 1.0 + self.delta(cov) * float(theta[0])
         return 1.0 + self._deltas(cov) @ np.asarray(theta, np.float64)
 
     def apply(self, x, cov, theta):
-        return x / self._factor(cov, theta)[:, None]
+        return per_row(np.divide, x, self._factor(cov, theta))
 
     def d_theta(self, x, cov, theta):
         d = self._deltas(cov)

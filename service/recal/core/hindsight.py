@@ -69,14 +69,19 @@ class HindsightFit:
     dropped: int
     residual_rms_mg: float
 
-    def correct(self, b: RawBatch) -> np.ndarray:
-        """Raw samples -> acceleration in g (N,3): the model's chain of stages, or the one
-        affine map it amounts to when no stage reads a covariate (`SensorModel.affine`; the
-        same to rounding, several times faster)."""
+    def correct(self, b: RawBatch, out: np.ndarray | None = None) -> np.ndarray:
+        """Raw samples -> acceleration in g (N,3), into ``out`` if given (a recording's output
+        array, batch by batch): the model's chain of stages, or the one affine map it amounts
+        to when no stage reads a covariate (`SensorModel.affine`; the same to rounding,
+        several times faster)."""
         if self._affine is not None:
-            return affine3(b.v, *self._affine)
+            return affine3(b.v, *self._affine, out=out)
         cov = Covariates.from_samples(b.t_us, b.aux, b.aux_names, self.t0_us)
-        return self.model.correct(self.p, b.v, cov)
+        a = self.model.correct(self.p, b.v, cov)
+        if out is None:
+            return a
+        out[...] = a
+        return out
 
     @functools.cached_property
     def _affine(self) -> tuple[np.ndarray, np.ndarray] | None:
