@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from recal.core import hindsight
-from recal.core.effects import Covariates, Offset, Ratiometric
+from recal.core.effects import Covariates, Gain, Nonlinearity, Offset, Ratiometric
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
@@ -133,10 +133,13 @@ def test_hindsight_without_the_effect_is_worse_and_says_what_it_could_not_see() 
     assert error_1s_mg(fit.correct(up.raw), up.truth.a_true_g, RATE, True) < before / 3
 
 
-@pytest.mark.parametrize("model", [SensorModel.full(1024.0), SensorModel.diagonal(1024.0)
-                                   .with_effect(Ratiometric("vdd_v", 3.3), 0.5)])
+@pytest.mark.parametrize("model", [
+    SensorModel.full(1024.0),
+    SensorModel.diagonal(1024.0).with_effect(Ratiometric("vdd_v", 3.3), 0.5),
+    SensorModel.diagonal(1024.0).with_effect(Gain("vdd_v", 3.3), 0.5)])
 def test_hindsight_corrects_into_an_output_array_as_it_returns(model) -> None:
-    """The affine shortcut (full model) and the chain (a supply channel) alike."""
+    """The shortcut (full model; diagonal after a supply channel's divisor) and the chain
+    (a gain linear in the supply) alike."""
     r = _wearer(24, ratiometric_per_v=0.05)
     fit = hindsight.calibrate(lambda: [r.raw], model, PipelineConfig(rate_hz=RATE))
     out = np.full_like(r.raw.v, np.nan)
@@ -158,17 +161,25 @@ def test_hindsight_refuses_a_recording_without_a_still_window() -> None:
 
 
 def test_an_affine_model_is_one_matrix_product_and_others_are_not() -> None:
+    """Offsets, scales, cross-axis terms, also after a ratiometric stage (a per-sample
+    divisor): one 3x3 product to rounding. A stage that reads a channel after the first
+    affine one, or a nonlinear one: no shortcut."""
     rng = np.random.default_rng(3)
-    model = SensorModel.full(1024.0)
-    p = model.nominal() + rng.normal(0, 0.02, model.size) * (np.abs(model.nominal()) + 1)
-    v = rng.normal(0, 1024.0, (1000, 3))
-    A, c = model.affine(p)
-    cov = Covariates(np.zeros(len(v)), np.zeros((len(v), 0)))
-    assert np.allclose(v @ A + c, model.correct(p, v, cov), rtol=0, atol=1e-12)
-    assert SensorModel.diagonal(1.0).with_effect(Ratiometric("vdd", 3.3)).affine(
-        np.r_[np.zeros(3), np.ones(3), 0.01]) is None
-    assert SensorModel.diagonal(1.0).with_effect(Offset("temp", 25.0)).affine(
-        SensorModel.diagonal(1.0).with_effect(Offset("temp", 25.0)).nominal()) is None
+    n = 1000
+    v = rng.normal(0, 1024.0, (n, 3))
+    cov = Covariates(rng.uniform(0, 2, n), rng.uniform(3.6, 4.1, (n, 1)), ("vdd",))
+    for model in (SensorModel.full(1024.0),
+                  SensorModel.full(1024.0).with_effect(Ratiometric("vdd", 3.3), 0.5)):
+        p = model.nominal() + rng.normal(0, 0.02, model.size) * (np.abs(model.nominal()) + 1)
+        aff = model.affine(p)
+        assert aff is not None and len(aff.divisors) == model.has("ratiometric", "vdd")
+        want = model.correct(p, v, cov)
+        assert np.allclose(aff(v, cov), want, rtol=0, atol=1e-12)
+        out = np.empty_like(v)
+        assert aff(v, cov, out) is out and np.allclose(out, want, rtol=0, atol=1e-12)
+    for model in (SensorModel.diagonal(1.0).with_effect(Offset("vdd", 3.3)),
+                  SensorModel.diagonal(1.0).with_effect(Nonlinearity())):
+        assert model.affine(model.nominal()) is None
 
 
 @pytest.mark.parametrize("n", [1, 5, 255, 256, 10_000])

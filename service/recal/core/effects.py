@@ -127,6 +127,12 @@ class Effect:
     symbol = "p"
     #: apply is x -> x A + c, the same A and c for every sample, unless it reads a covariate
     linear_in_x = False
+    #: apply divides every reading by one factor per sample (`row_divisor`)
+    divides_rows = False
+
+    def row_divisor(self, cov: Covariates, theta: np.ndarray) -> np.ndarray:
+        """For a stage that divides_rows: the factor it divides each reading by."""
+        raise NotImplementedError(f"{self.label} does not divide whole readings")
 
     @property
     def affine(self) -> bool:
@@ -200,6 +206,7 @@ class Ratiometric(Effect):
 
     kind: str = field(default="ratiometric", init=False)
     stage: int = field(default=1, init=False)
+    divides_rows = True
     symbol = "rho"
     reference: str | None = None
     reference_ref: float = 0.0
@@ -243,6 +250,9 @@ class Ratiometric(Effect):
         if self.reference is None:  # the one-column product, without a matrix product
             return 1.0 + self.delta(cov) * float(theta[0])
         return 1.0 + self._deltas(cov) @ np.asarray(theta, np.float64)
+
+    def row_divisor(self, cov: Covariates, theta: np.ndarray) -> np.ndarray:
+        return self._factor(cov, theta)
 
     def apply(self, x, cov, theta):
         return per_row(np.divide, x, self._factor(cov, theta))

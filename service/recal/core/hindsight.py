@@ -35,9 +35,8 @@ from recal.core.discovery import (
     start_params,
 )
 from recal.core.effects import Covariates
-from recal.core.model import SensorModel
+from recal.core.model import AffineCorrection, SensorModel
 from recal.core.pipeline import PipelineConfig
-from recal.core.triaxial import affine3
 from recal.core.windowing import Windowing
 from recal.samples import RawBatch
 
@@ -71,20 +70,22 @@ class HindsightFit:
 
     def correct(self, b: RawBatch, out: np.ndarray | None = None) -> np.ndarray:
         """Raw samples -> acceleration in g (N,3), into ``out`` if given (a recording's output
-        array, batch by batch): the model's chain of stages, or the one affine map it amounts
-        to when no stage reads a covariate (`SensorModel.affine`; the same to rounding,
-        several times faster)."""
-        if self._affine is not None:
-            return affine3(b.v, *self._affine, out=out)
-        cov = Covariates.from_samples(b.t_us, b.aux, b.aux_names, self.t0_us)
-        a = self.model.correct(self.p, b.v, cov)
+        array, batch by batch): one small matrix product when the model allows it
+        (`SensorModel.affine`: the same to rounding, several times faster), else the model's
+        chain of stages."""
+        aff = self._affine
+        cov = (Covariates.from_samples(b.t_us, b.aux, b.aux_names, self.t0_us)
+               if aff is None or aff.divisors else None)
+        if aff is not None:
+            return aff(b.v, cov, out)
+        a = self.model.correct(self.p, b.v, cov)  # type: ignore[arg-type]
         if out is None:
             return a
         out[...] = a
         return out
 
     @functools.cached_property
-    def _affine(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def _affine(self) -> AffineCorrection | None:
         return self.model.affine(self.p)
 
     @property

@@ -21,7 +21,31 @@ import numpy as np
 from recal.core.effects import Covariates, CrossAxis, Effect, Offset, Scale, make_effect
 from recal.core.triaxial import norm3
 
-__all__ = ["SensorModel"]
+__all__ = ["AffineCorrection", "SensorModel"]
+
+
+@dataclass(frozen=True, eq=False)
+class AffineCorrection:
+    """a = (v A) / d + c for readings v (N,3): A (3,3), c (3,), and d the product of the
+    per-sample factors the leading stages divide every reading by (none: d = 1). What
+    `SensorModel.correct` computes, to rounding, for a model `SensorModel.affine` accepts."""
+
+    A: np.ndarray
+    c: np.ndarray
+    divisors: tuple[tuple[Effect, np.ndarray], ...] = ()
+
+    def __call__(self, v: np.ndarray, cov: Covariates | None,
+                 out: np.ndarray | None = None) -> np.ndarray:
+        """Corrected readings, into ``out`` (N,3) if given; cov is needed with divisors.
+        Column by column in place: broadcast over rows of 3, numpy's loop is slower."""
+        out = np.matmul(np.asarray(v, np.float64), self.A, out=out)
+        for e, theta in self.divisors:
+            d = e.row_divisor(cov, theta)  # type: ignore[arg-type]
+            for j in range(3):
+                out[:, j] /= d
+        for j in range(3):
+            out[:, j] += self.c[j]
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,15 +186,24 @@ class SensorModel:
             x = e.apply(x, cov, p[sl])
         return x
 
-    def affine(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """(A, c) such that correct(p, v) = v A + c (to rounding) for every reading, when every
-        stage is affine and reads no covariate (offsets, scales, cross-axis terms); else None.
-        One small matrix product then corrects a recording at a fraction of the chain's cost."""
-        if not all(e.affine for e in self.effects):
+    def affine(self, p: np.ndarray) -> AffineCorrection | None:
+        """The correction as one small matrix product (`AffineCorrection`), to rounding, when
+        the model's first stages each divide the whole reading by a factor of the covariates
+        (ratiometric) and the others are affine and read no covariate (offsets, scales,
+        cross-axis terms); else None. It corrects a recording at a fraction of the chain's
+        cost."""
+        k = 0
+        while k < len(self.effects) and self.effects[k].divides_rows:
+            k += 1
+        if not all(e.affine for e in self.effects[k:]):
             return None
-        pts = self.correct(p, np.vstack([np.zeros(3), np.eye(3)]),
+        rest = SensorModel(self.effects[k:], self.s0, self.spreads[k:])
+        q = np.concatenate([p[sl] for sl in self._slices[k:]] or [np.zeros(0)])
+        pts = rest.correct(q, np.vstack([np.zeros(3), np.eye(3)]),
                            Covariates(np.zeros(4), np.zeros((4, 0))))
-        return pts[1:] - pts[0], pts[0]
+        divisors = tuple((e, p[sl]) for e, sl in zip(self.effects[:k], self._slices[:k],
+                                                       strict=True))
+        return AffineCorrection(pts[1:] - pts[0], pts[0], divisors)
 
     def residual(self, p: np.ndarray, v: np.ndarray, cov: Covariates) -> np.ndarray:
         """xi = 1 - |a| alone (Lötters eq. 14), as `residual_jacobian` computes it: what a

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["affine3", "all3", "any3", "norm3", "per_axis", "per_row", "sum_sq3"]
+__all__ = ["all3", "any3", "norm3", "per_axis", "per_row", "sum_sq3"]
 
 #: Below this many rows the one broadcast call is cheaper than three column calls.
 _PER_AXIS_MIN_ROWS = 256
@@ -65,14 +65,4 @@ def per_row(op: np.ufunc, x: np.ndarray, w: np.ndarray) -> np.ndarray:
     out = np.empty(x.shape, np.result_type(x, w))
     for j in range(3):
         op(x[:, j], w, out=out[:, j])
-    return out
-
-
-def affine3(v: np.ndarray, A: np.ndarray, c: np.ndarray,
-            out: np.ndarray | None = None) -> np.ndarray:
-    """v A + c for v (N,3), A (3,3), c (3,): one matrix product, then c added column by column
-    (broadcast, it would cost twice the product); into ``out`` (N,3) if given."""
-    out = np.matmul(np.asarray(v, np.float64), A, out=out)
-    for j in range(3):
-        out[:, j] += c[j]
     return out
