@@ -6,8 +6,9 @@ run's start, a window kept once its run has gone on guard_s past it and if it ho
 its nominal samples. The pipeline settles each window as its samples arrive, because it must
 act on it at once. Looking back at a recording, every window of a batch is summed at once
 (`WindowSums`, one reduction per quantity) and the keep rule is applied when each run's last
-sample is known: about 4x faster than stepping a `Pipeline` that never updates, and the same
-windows with the same sums bit for bit (sums run in sample order either way).
+sample is known: about 2x faster than stepping a `Pipeline` that never updates (24 h at 50 Hz:
+0.25 s against 0.52 s), and the same windows with the same sums bit for bit (sums run in
+sample order either way).
 
 Streaming in the manner of scipy.signal.sosfilt: `Windowing` carries the detector state and
 the run open at a batch's end to the next batch, so a recording read batch by batch needs
@@ -29,6 +30,9 @@ from recal.samples import RawBatch
 
 __all__ = ["Windowing", "window_means"]
 
+#: Batches' pieces held apart before they are put in one table (`Windowing.add`).
+PIECES_KEPT = 64
+
 
 @dataclass(frozen=True, eq=False)
 class _Pieces:
@@ -40,6 +44,16 @@ class _Pieces:
     sums: WindowSums
     run_ids: np.ndarray
     run_last_us: np.ndarray
+
+    @classmethod
+    def concat(cls, parts: list[_Pieces]) -> _Pieces:
+        """Batches' pieces one after another (nothing joined yet)."""
+        if len(parts) == 1:
+            return parts[0]
+        return cls(np.concatenate([p.run for p in parts]),
+                   WindowSums.concat([p.sums for p in parts]),
+                   np.concatenate([p.run_ids for p in parts]),
+                   np.concatenate([p.run_last_us for p in parts]))
 
 
 @dataclass(eq=False)
@@ -100,6 +114,8 @@ class Windowing:
         run0 = self._runs - 1
         self._pieces.append(_Pieces(run0 + local[first[mine]], sums, run0 + local[last],
                                     b.t_us[last]))
+        if len(self._pieces) >= PIECES_KEPT:  # a few arrays, not thousands of small ones
+            self._pieces = [_Pieces.concat(self._pieces)]
         self._runs += int(local[-1])
         self._run_start_us = int(rs[-1])
 
@@ -109,16 +125,15 @@ class Windowing:
         end and that hold min_fill of their samples."""
         if not self._pieces:
             return WindowSums.empty(len(self.aux_names or ()))
-        run = np.concatenate([p.run for p in self._pieces])
-        pieces = WindowSums.concat([p.sums for p in self._pieces])
+        p = _Pieces.concat(self._pieces)
+        run = p.run
         new = np.ones(len(run), bool)
-        new[1:] = (run[1:] != run[:-1]) | (pieces.k[1:] != pieces.k[:-1])
+        new[1:] = (run[1:] != run[:-1]) | (p.sums.k[1:] != p.sums.k[:-1])
         first = np.flatnonzero(new)
-        sums = pieces.join(first)
-        ids = np.concatenate([p.run_ids for p in self._pieces])
-        last = np.concatenate([p.run_last_us for p in self._pieces])
+        sums = p.sums.join(first)
+        ids = p.run_ids
         first_of = np.flatnonzero(np.append(True, ids[1:] != ids[:-1]))
-        run_last = np.maximum.reduceat(last, first_of)  # a run's pieces are consecutive
+        run_last = np.maximum.reduceat(p.run_last_us, first_of)  # a run's are consecutive
         end_us = run_last[np.searchsorted(ids[first_of], run[first])]
         keep = ((end_us >= self.cfg.commit_us(sums.run_start_us, sums.k))
                 & (sums.n >= self.cfg.min_samples))
