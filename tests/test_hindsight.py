@@ -235,9 +235,22 @@ def test_cli_hindsight_writes_every_sample_calibrated_and_the_fit(tmp_path, caps
     assert np.array_equal(rows[:, 0].astype(np.int64), r.raw.t_us)
     assert np.allclose(rows[:, 1:], cal.a_g, rtol=0, atol=1e-12)
 
+    # a CSV in (the raw samples in counts), an MCAP out in messages of 1000 samples
+    raw_csv, from_csv = tmp_path / "raw.csv", tmp_path / "from_csv.mcap"
+    assert cli.main(["export", str(mcap), "--csv", str(raw_csv), "--topic", "raw"]) == 0
+    assert cli.main(["hindsight", str(raw_csv), "--units", "counts", "--out", str(from_csv),
+                     "--model", str(model_file), "--quiet"]) == 0
+    again = rec.read_all_calibrated(from_csv, raw_csv.stem)
+    assert np.array_equal(again.t_us, r.raw.t_us)
+    assert np.allclose(again.a_g, cal.a_g, rtol=0, atol=1e-9)
+    sizes = [len(b) for _, b, _ in rec.iter_calibrated(from_csv, raw_csv.stem)]
+    assert max(sizes) == 1000 and sum(sizes) == len(r.raw)
+
 
 def test_cli_hindsight_bad_input_is_one_line_and_nothing_is_overwritten(tmp_path,
                                                                           capsys) -> None:
+    import json
+
     from recal import cli
 
     r = _wearer(32)
@@ -245,8 +258,13 @@ def test_cli_hindsight_bad_input_is_one_line_and_nothing_is_overwritten(tmp_path
     _recording(mcap, {"a": r.raw[:20_000], "b": r.raw[:20_000]})
     out = tmp_path / "out.mcap"
     out.write_bytes(b"keep me")
+    supply = tmp_path / "supply.json"
+    supply.write_text(json.dumps(SensorModel.diagonal(1024.0)
+                                 .with_effect(Ratiometric("vdd_v", 3.3)).to_dict()))
     cases = [
         (["hindsight", str(mcap), "--out", str(tmp_path / "o.mcap")], "several sensors"),
+        (["hindsight", str(mcap), "--out", str(tmp_path / "o.mcap"), "--sensor-id", "a",
+          "--model", str(supply)], "needs channels ['vdd_v']"),
         (["hindsight", str(mcap), "--out", str(tmp_path / "o.mcap"), "--sensor-id", "c"],
          "no sensor 'c'"),
         (["hindsight", str(mcap), "--out", str(out), "--sensor-id", "a"], "--overwrite"),

@@ -28,7 +28,10 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import PipelineConfig, usable
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Source", "calibrate_file", "summary_lines"]
+__all__ = ["Source", "calibrate_file", "open_source", "summary_lines"]
+
+#: Samples per raw and calibrated message written from a CSV (as `recal import` writes them).
+MESSAGE_SAMPLES = 1000
 
 
 @dataclass(frozen=True)
@@ -171,13 +174,15 @@ def _write_mcap(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, o
                 writer.write_calibrated(src.sensor_id, corrected(b), m.log_time_ns)
                 samples += len(b)
                 last_ns = max(last_ns, m.log_time_ns)
-        else:
-            for b in _counted(src.batches(), progress):
-                t_ns = int(b.t_us[0]) * 1000 if len(b) else last_ns
-                writer.write_raw(src.sensor_id, b, t_ns)
-                writer.write_calibrated(src.sensor_id, corrected(b), t_ns)
-                samples += len(b)
-                last_ns = max(last_ns, t_ns)
+        else:  # a CSV: messages of MESSAGE_SAMPLES, each logged at its first sample's time
+            for chunk in _counted(src.batches(), progress):
+                for i in range(0, len(chunk), MESSAGE_SAMPLES):
+                    b = chunk[i:i + MESSAGE_SAMPLES]
+                    t_ns = int(b.t_us[0]) * 1000
+                    writer.write_raw(src.sensor_id, b, t_ns)
+                    writer.write_calibrated(src.sensor_id, corrected(b), t_ns)
+                    samples += len(b)
+                    last_ns = max(last_ns, t_ns)
         writer.write_calibration(src.sensor_id, {"hindsight": True, **fit_summary(fit)},
                                  last_ns)
     finally:

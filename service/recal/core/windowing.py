@@ -24,6 +24,7 @@ import numpy as np
 
 from recal.core import detector as det
 from recal.core.buffer import Windows
+from recal.core.effects import TIME
 from recal.core.model import SensorModel
 from recal.core.pipeline import PipelineConfig, WindowSums, run_starts, usable
 from recal.samples import RawBatch
@@ -69,15 +70,16 @@ class Windowing:
     cfg: PipelineConfig
     model: SensorModel
     s0: float
-    aux_names: tuple[str, ...] | None = None
-    t0_us: int | None = None
+    aux_names: tuple[str, ...] | None = field(default=None, init=False)  # the first batch's
+    t0_us: int | None = field(default=None, init=False)  # the first sample's time
     _det: det.DetectorConfig = field(init=False)
     _state: det.DetectorState = field(init=False)
-    _last_t_us: int | None = None
-    _last_gate: bool = False
-    _runs: int = 0  # runs started so far; the one open at the end is number _runs - 1
-    _run_start_us: int = 0  # its first sample's time
-    _pieces: list[_Pieces] = field(default_factory=list)
+    _last_t_us: int | None = field(default=None, init=False)
+    _last_gate: bool = field(default=False, init=False)
+    #: runs started so far; the one open at the end is number _runs - 1, started then
+    _runs: int = field(default=0, init=False)
+    _run_start_us: int = field(default=0, init=False)
+    _pieces: list[_Pieces] = field(default_factory=list, init=False)
 
     def __post_init__(self) -> None:
         self._det = self.cfg.detector(self.s0)
@@ -88,6 +90,10 @@ class Windowing:
         if not len(b):
             return
         if self.aux_names is None:
+            missing = set(self.model.covariates) - {TIME, *b.aux_names}
+            if missing:
+                raise ValueError(f"model needs channels {sorted(missing)} that the input "
+                                 f"lacks (it has {list(b.aux_names)})")
             self.aux_names, self.t0_us = b.aux_names, int(b.t_us[0])
         elif b.aux_names != self.aux_names:
             raise ValueError(f"batch channels {b.aux_names} differ from {self.aux_names}")
