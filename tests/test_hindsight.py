@@ -256,6 +256,8 @@ def test_cli_hindsight_bad_input_is_one_line_and_nothing_is_overwritten(tmp_path
     r = _wearer(32)
     mcap = tmp_path / "two.mcap"
     _recording(mcap, {"a": r.raw[:20_000], "b": r.raw[:20_000]})
+    one = tmp_path / "one.mcap"
+    _recording(one, {"a": r.raw[:1]})
     out = tmp_path / "out.mcap"
     out.write_bytes(b"keep me")
     supply = tmp_path / "supply.json"
@@ -272,6 +274,7 @@ def test_cli_hindsight_bad_input_is_one_line_and_nothing_is_overwritten(tmp_path
          "input"),
         (["hindsight", str(tmp_path / "none.mcap"), "--out", str(tmp_path / "o.mcap")],
          "none.mcap"),
+        (["hindsight", str(one), "--out", str(tmp_path / "o.mcap")], "at least two samples"),
     ]
     for argv, words in cases:
         assert cli.main(argv) == 2, argv

@@ -275,7 +275,7 @@ def rate_and_scale(batches: Iterable[RawBatch]) -> tuple[float, float]:
         _count(steps, dt[dt > 0])
         last_t = int(b.t_us[-1])
     if samples < 2:
-        raise ValueError("a recording needs samples to discover effects on")
+        raise ValueError("a recording needs at least two samples")
     if not steps:
         raise ValueError("time stamps never advance: cannot measure the sample rate")
     if not bins:
