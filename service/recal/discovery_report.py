@@ -60,11 +60,7 @@ def data_from_recording(path: str | Path, sensor_id: str | None = None,
 
     parts = recording.recording_parts(path)
     found = recording.sensors(parts)
-    if sensor_id is None:
-        if len(found) != 1:
-            raise ValueError(f"{path}: {'no sensors' if not found else 'several sensors'} "
-                             f"({', '.join(found) or 'none'}); pick one with --sensor-id")
-        sensor_id = found[0]
+    sensor_id = recording.pick_sensor(path, found, sensor_id)
     if not any(len(b) for _, b, _ in recording.iter_raw(parts, sensor_id)):
         raise ValueError(f"{path}: no raw samples for sensor {sensor_id!r} (sensors: "
                          f"{', '.join(found) or 'none'})")

@@ -60,15 +60,9 @@ def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float |
 
     parts = recording.recording_parts(path)
     found = recording.sensors(parts)
-    if sensor_id is None:
-        if len(found) != 1:
-            raise ValueError(f"{path}: {'no sensors' if not found else 'several sensors'} "
-                             f"({', '.join(found) or 'none'}); pick one with --sensor-id")
-        sensor_id = found[0]
-    elif sensor_id not in found:
-        raise ValueError(f"{path} has no sensor {sensor_id!r} (it has: "
-                         f"{', '.join(found) or 'none'})")
-    sid = sensor_id
+    sid = recording.pick_sensor(path, found, sensor_id)
+    if sid not in found:
+        raise ValueError(f"{path} has no sensor {sid!r} (it has: {', '.join(found) or 'none'})")
 
     def raw() -> Iterator[RawBatch]:
         return (b for _, b, _ in recording.iter_raw(parts, sid))

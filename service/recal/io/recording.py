@@ -99,6 +99,7 @@ __all__ = [
     "iter_raw",
     "iter_raw_logged",
     "metadata",
+    "pick_sensor",
     "read_all_calibrated",
     "read_all_raw",
     "recording_parts",
@@ -1142,6 +1143,17 @@ def sensors(path: Paths) -> list[str]:
     owners = {split_topic(c.topic)[0] for p in _as_paths(path) for c in _channels(p)}
     owners.discard(GATEWAY)
     return sorted(o for o in owners if _SENSOR_ID.fullmatch(o))
+
+
+def pick_sensor(path: PathLike, found: list[str], sensor_id: str | None) -> str:
+    """``sensor_id`` if given, else the recording's only sensor (``found``: `sensors`); a
+    recording with none or several needs one named (commands that read one sensor)."""
+    if sensor_id is not None:
+        return sensor_id
+    if len(found) != 1:
+        raise ValueError(f"{path}: {'no sensors' if not found else 'several sensors'} "
+                         f"({', '.join(found) or 'none'}); pick one with --sensor-id")
+    return found[0]
 
 
 @dataclass
