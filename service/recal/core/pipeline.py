@@ -44,7 +44,7 @@ from recal.core.triaxial import norm3
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WindowSums",
-           "from_state_dict", "run_starts", "state_dict", "usable"]
+           "check_channels", "from_state_dict", "run_starts", "state_dict", "usable"]
 
 
 @dataclass(frozen=True)
@@ -373,10 +373,7 @@ class Pipeline:
 
     def __init__(self, cfg: PipelineConfig, model: SensorModel, prior: Prior | None,
                  aux_names: tuple[str, ...] = (), t0_us: int | None = None) -> None:
-        missing = set(model.covariates) - {"time", *aux_names}
-        if missing:
-            raise ValueError(f"model needs channels {sorted(missing)} that the input lacks "
-                             f"(it has {list(aux_names)})")
+        check_channels(model, tuple(aux_names))
         self.cfg = cfg
         self.model = model
         self.prior = prior
@@ -475,9 +472,7 @@ class Pipeline:
     def adopt(self, model: SensorModel, prior: Prior) -> None:
         """Continue with another model (one effect discovery extended): its prior becomes the
         pre-calibration and the estimate; detector, buffer and windows carry on."""
-        missing = set(model.covariates) - {"time", *self.aux_names}
-        if missing:
-            raise ValueError(f"model needs channels {sorted(missing)} the input lacks")
+        check_channels(model, self.aux_names)
         self.model = model
         self.prior = prior
         self.estimate = Estimate.from_prior(prior)
@@ -874,6 +869,14 @@ def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_g
     start[1:] &= ~gate[:-1] | ~ok_dt[1:]
     start[0] &= not (prev_gate and ok_dt[0])
     return start
+
+
+def check_channels(model: SensorModel, aux_names: tuple[str, ...]) -> None:
+    """A model whose covariates the input's channels lack is an error, said before any work."""
+    missing = set(model.covariates) - {TIME, *aux_names}
+    if missing:
+        raise ValueError(f"model needs channels {sorted(missing)} that the input lacks "
+                         f"(it has {list(aux_names)})")
 
 
 def usable(gate: np.ndarray, b: RawBatch, model: SensorModel) -> np.ndarray:

@@ -24,9 +24,14 @@ import numpy as np
 
 from recal.core import detector as det
 from recal.core.buffer import Windows
-from recal.core.effects import TIME
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig, WindowSums, run_starts, usable
+from recal.core.pipeline import (
+    PipelineConfig,
+    WindowSums,
+    check_channels,
+    run_starts,
+    usable,
+)
 from recal.samples import RawBatch
 
 __all__ = ["Windowing", "window_means"]
@@ -90,10 +95,7 @@ class Windowing:
         if not len(b):
             return
         if self.aux_names is None:
-            missing = set(self.model.covariates) - {TIME, *b.aux_names}
-            if missing:
-                raise ValueError(f"model needs channels {sorted(missing)} that the input "
-                                 f"lacks (it has {list(b.aux_names)})")
+            check_channels(self.model, b.aux_names)
             self.aux_names, self.t0_us = b.aux_names, int(b.t_us[0])
         elif b.aux_names != self.aux_names:
             raise ValueError(f"batch channels {b.aux_names} differ from {self.aux_names}")
