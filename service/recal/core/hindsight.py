@@ -108,16 +108,16 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
     cfg = DiscoveryConfig()
     keep = np.ones(len(data), bool)
     for _ in range(MAX_PASSES):
-        res = fit_model(model, p, data.subset(keep), cfg)
+        fitted = keep  # the windows of this fit: what the report counts
+        res = fit_model(model, p, data.subset(fitted), cfg)
         xi = model.residual(res.p, data.windows.v, data.cov)
-        now = np.abs(xi) <= norm_tol_g
-        if np.array_equal(now, keep) or not now.any():
+        keep = np.abs(xi) <= norm_tol_g
+        if np.array_equal(keep, fitted) or not keep.any():
             break
-        keep = now
-    xi_kept = xi[keep]
-    return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(keep.sum()),
-                        dropped + int((~keep).sum()),
-                        1e3 * float(np.sqrt(np.mean(xi_kept**2))) if len(xi_kept) else 0.0)
+    xi_fitted = xi[fitted]
+    return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(fitted.sum()),
+                        dropped + int((~fitted).sum()),
+                        1e3 * float(np.sqrt(np.mean(xi_fitted**2))) if len(xi_fitted) else 0.0)
 
 
 def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
