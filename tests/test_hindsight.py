@@ -16,7 +16,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.core.triaxial import per_axis
 from recal.core.windowing import Windowing, window_means
-from recal.samples import RawBatch
+from recal.samples import RawBatch, batch_groups, rebatch
 from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
 
 RATE = 50.0
@@ -53,20 +53,56 @@ def _awkward_recording() -> RawBatch:
     return replace(raw, v=v)
 
 
+def _windowed(batches: list[RawBatch], cfg: PipelineConfig, s0: float):
+    """`Windowing` fed exactly these batches (`window_means` joins small ones first)."""
+    w = Windowing(cfg, SensorModel.diagonal(s0), s0)
+    for b in batches:
+        w.add(b)
+    return w.kept().means()[0]
+
+
 def test_windows_as_arrays_are_the_live_pipelines_bit_for_bit_in_any_batches() -> None:
     raw = _awkward_recording()
     cfg = PipelineConfig(rate_hz=RATE)
     ref = _live_windows([raw], cfg, 1024.0)
     assert len(ref) > 300
     for size in (7, 333, len(raw)):
-        w, names, t0 = window_means(_batches(raw, size), cfg, 1024.0)
-        assert names == raw.aux_names and t0 == int(raw.t_us[0])
+        w = _windowed(_batches(raw, size), cfg, 1024.0)
         for f in FIELDS:
             assert np.array_equal(getattr(w, f), getattr(ref, f)), (size, f)
     # the live pipeline in the same batches agrees too (a window cut by a batch end)
     live = _live_windows(_batches(raw, 333), cfg, 1024.0)
-    w, _, _ = window_means(_batches(raw, 333), cfg, 1024.0)
+    w = _windowed(_batches(raw, 333), cfg, 1024.0)
     assert all(np.array_equal(getattr(w, f), getattr(live, f)) for f in FIELDS)
+    # and window_means, which joins a recording's small batches (`rebatch`) before its work
+    w, names, t0 = window_means(_batches(raw, 7), cfg, 1024.0)
+    assert names == raw.aux_names and t0 == int(raw.t_us[0])
+    assert all(np.array_equal(getattr(w, f), getattr(ref, f)) for f in FIELDS)
+
+
+def test_rebatch_joins_small_batches_in_order_and_starts_anew_where_channels_change() -> None:
+    rng = np.random.default_rng(3)
+
+    def batch(n: int, names: tuple[str, ...] = ()) -> RawBatch:
+        return RawBatch(np.arange(n) + rng.integers(0, 10**9), rng.normal(size=(n, 3)),
+                        rng.normal(size=(n, len(names))), names)
+
+    small = [batch(1000) for _ in range(10)]
+    big = batch(70_000)
+    other = [batch(500, ("vdd_v",)) for _ in range(3)]
+    parts = [*small, big, *other]
+    out = list(rebatch(parts, 3000))
+    assert [len(b) for b in out] == [3000, 3000, 3000, 71_000, 1500]
+    assert [b.aux_names for b in out] == [()] * 4 + [("vdd_v",)]
+    joined = RawBatch.concat(out[:4])
+    assert np.array_equal(joined.t_us, np.concatenate([b.t_us for b in [*small, big]]))
+    assert np.array_equal(joined.v, np.concatenate([b.v for b in [*small, big]]))
+    assert np.array_equal(out[4].aux, np.concatenate([b.aux for b in other]))
+    assert next(rebatch([big], 3000)) is big  # big enough: passed on as it is, no copy
+    # the pairs behind it keep what came with each batch, in order
+    groups = list(batch_groups(((b, i) for i, b in enumerate(parts)), 3000))
+    assert [[i for _, i in g] for g in groups] == [[0, 1, 2], [3, 4, 5], [6, 7, 8], [9, 10],
+                                                   [11, 12, 13]]
 
 
 def test_windowing_keeps_a_window_once_its_run_went_on_guard_s_past_it() -> None:
@@ -221,6 +257,12 @@ def test_cli_hindsight_writes_every_sample_calibrated_and_the_fit(tmp_path, caps
     assert "calibrated 360000 samples of wrist" in said and "cross_axis" in said
     cal = rec.read_all_calibrated(out, "wrist")
     assert np.array_equal(cal.t_us, r.raw.t_us)
+    # one calibrated message per raw one (corrected some 65 000 samples at a time, written
+    # message by message), each sample as one correction of the whole recording gives it
+    assert [len(b) for _, b, _ in rec.iter_calibrated(out, "wrist")] == [1000] * 360
+    whole = hindsight.calibrate(lambda: [r.raw], SensorModel.full(1024.0),
+                                PipelineConfig(rate_hz=RATE))
+    assert np.array_equal(cal.a_g, whole.correct(r.raw))
     assert error_1s_mg(cal.a_g, r.truth.a_true_g, RATE, True) < 1.3
     assert cal.quasi_static.mean() > 0.5  # the detector's gate, as the live node writes it
     assert sum(len(b) for _, b, _ in rec.iter_raw(out, "wrist")) == len(r.raw)

@@ -6,12 +6,18 @@ Plain frozen dataclasses over numpy arrays, no I/O. The core computes on them, t
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
-__all__ = ["CalibratedBatch", "RawBatch"]
+__all__ = ["REBATCH_SAMPLES", "CalibratedBatch", "RawBatch", "batch_groups", "rebatch"]
+
+T = TypeVar("T")
+
+#: Samples per batch `rebatch` makes by default.
+REBATCH_SAMPLES = 65_536
 
 
 def _as_time_us(t_us: np.ndarray | Sequence[int]) -> np.ndarray:
@@ -124,3 +130,38 @@ class CalibratedBatch:
     def __getitem__(self, index: slice | np.ndarray) -> CalibratedBatch:
         return CalibratedBatch(self.t_us[index], self.a_g[index], self.quasi_static[index],
                                self.detector_g[index])
+
+
+
+def batch_groups(items: Iterable[tuple[RawBatch, T]], min_samples: int = REBATCH_SAMPLES
+                 ) -> Iterator[list[tuple[RawBatch, T]]]:
+    """Consecutive (batch, anything) pairs in groups of at least ``min_samples`` samples (the
+    last may hold fewer; a batch with other channels than the one before starts a new group,
+    so whoever reads them still sees the change)."""
+    group: list[tuple[RawBatch, T]] = []
+    held = 0
+    for item in items:
+        if group and item[0].aux_names != group[0][0].aux_names:
+            yield group
+            group, held = [], 0
+        group.append(item)
+        held += len(item[0])
+        if held >= min_samples:
+            yield group
+            group, held = [], 0
+    if group:
+        yield group
+
+
+def rebatch(batches: Iterable[RawBatch], min_samples: int = REBATCH_SAMPLES
+            ) -> Iterator[RawBatch]:
+    """Consecutive batches joined into batches of at least ``min_samples`` (`batch_groups`);
+    a batch that is big enough passes through as it is.
+
+    Batch work in numpy costs per call as well as per sample: the detector and the windows
+    (`core.windowing`) of 24 h at 50 Hz in messages of 1000 samples took 0.53 s, joined into
+    batches of 65 536 0.20 s, with the same windows bit for bit (their state carries across
+    batches). `recal hindsight` and `recal discover` read recordings this way.
+    """
+    for group in batch_groups(((b, None) for b in batches), min_samples):
+        yield group[0][0] if len(group) == 1 else RawBatch.concat([b for b, _ in group])

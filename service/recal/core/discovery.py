@@ -60,7 +60,7 @@ from recal.core.estimator import EstimatorConfig, Prior, solve
 from recal.core.model import SensorModel
 from recal.core.pipeline import PipelineConfig
 from recal.core.windowing import window_means
-from recal.samples import RawBatch
+from recal.samples import RawBatch, rebatch
 
 __all__ = [
     "CandidateScore",
@@ -265,7 +265,7 @@ def rate_and_scale(batches: Iterable[RawBatch]) -> tuple[float, float]:
     steps: collections.Counter[int] = collections.Counter()  # time step (us) -> how often
     last_t: int | None = None
     samples = 0
-    for b in batches:
+    for b in rebatch(batches):
         if not len(b):
             continue
         samples += len(b)
