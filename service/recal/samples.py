@@ -132,7 +132,6 @@ class CalibratedBatch:
                                self.detector_g[index])
 
 
-
 def batch_groups(items: Iterable[tuple[RawBatch, T]], min_samples: int = REBATCH_SAMPLES
                  ) -> Iterator[list[tuple[RawBatch, T]]]:
     """Consecutive (batch, anything) pairs in groups of at least ``min_samples`` samples (the
