@@ -429,7 +429,7 @@ def free_params(model: SensorModel, p: np.ndarray, data: DiscoveryData) -> np.nd
 
 
 def fit_model(model: SensorModel, p0: np.ndarray, data: DiscoveryData,
-         cfg: DiscoveryConfig) -> ModelFit:
+              cfg: DiscoveryConfig) -> ModelFit:
     """Lötters eq. 11a iterated from p0 (also the prior mean) over the free parameters."""
     prior = Prior.from_sd(p0, model.prior_sd() * cfg.prior_scale)
     now = int(data.windows.t_us.max()) if len(data) else 0

@@ -19,7 +19,7 @@ from itertools import pairwise
 import numpy as np
 
 from recal.core.effects import Covariates, CrossAxis, Effect, Offset, Scale, make_effect
-from recal.core.triaxial import norm3
+from recal.core.triaxial import norm3, per_axis, per_row
 
 __all__ = ["AffineCorrection", "SensorModel"]
 
@@ -37,15 +37,11 @@ class AffineCorrection:
     def __call__(self, v: np.ndarray, cov: Covariates | None,
                  out: np.ndarray | None = None) -> np.ndarray:
         """Corrected readings, into ``out`` (N,3) if given; cov is needed with divisors.
-        Column by column in place: broadcast over rows of 3, numpy's loop is slower."""
+        In place, column by column (`triaxial.per_row`, `per_axis`)."""
         out = np.matmul(np.asarray(v, np.float64), self.A, out=out)
         for e, theta in self.divisors:
-            d = e.row_divisor(cov, theta)  # type: ignore[arg-type]
-            for j in range(3):
-                out[:, j] /= d
-        for j in range(3):
-            out[:, j] += self.c[j]
-        return out
+            per_row(np.divide, out, e.row_divisor(cov, theta), out=out)  # type: ignore[arg-type]
+        return per_axis(np.add, out, self.c, out=out)
 
 
 @dataclass(frozen=True, eq=False)

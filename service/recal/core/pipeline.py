@@ -465,7 +465,6 @@ class Pipeline:
     def covariates(self, t_us: np.ndarray, aux: np.ndarray) -> Covariates:
         return Covariates.from_samples(t_us, aux, self.aux_names, self.t0_us or 0)
 
-
     def coverage(self) -> Coverage:
         return self.buffer.coverage()
 

@@ -48,21 +48,27 @@ def any3(m: np.ndarray) -> np.ndarray:
     return out
 
 
-def per_axis(op: np.ufunc, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """op(x, theta) for x (N,3) and one value per axis theta (3,), bit-identical."""
+def per_axis(op: np.ufunc, x: np.ndarray, theta: np.ndarray,
+             out: np.ndarray | None = None) -> np.ndarray:
+    """op(x, theta) for x (N,3) and one value per axis theta (3,), bit-identical; into
+    ``out`` if given (which may be x itself)."""
     if len(x) < _PER_AXIS_MIN_ROWS or x.ndim != 2 or np.ndim(theta) != 1:
-        return op(x, theta)
-    out = np.empty(x.shape, np.result_type(x, theta))
+        return op(x, theta, out=out)
+    if out is None:
+        out = np.empty(x.shape, np.result_type(x, theta))
     for j in range(3):
         op(x[:, j], theta[j], out=out[:, j])
     return out
 
 
-def per_row(op: np.ufunc, x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """op(x, w[:, None]) for x (N,3) and one value per row w (N,), bit-identical."""
+def per_row(op: np.ufunc, x: np.ndarray, w: np.ndarray,
+            out: np.ndarray | None = None) -> np.ndarray:
+    """op(x, w[:, None]) for x (N,3) and one value per row w (N,), bit-identical; into
+    ``out`` if given (which may be x itself)."""
     if len(x) < _PER_AXIS_MIN_ROWS or x.ndim != 2:
-        return op(x, w[:, None])
-    out = np.empty(x.shape, np.result_type(x, w))
+        return op(x, w[:, None], out=out)
+    if out is None:
+        out = np.empty(x.shape, np.result_type(x, w))
     for j in range(3):
         op(x[:, j], w, out=out[:, j])
     return out
