@@ -498,7 +498,9 @@ class CalibrationNode:
         The output is exactly what `process` gives each batch in turn (per batch, with its
         log time: calibrated, plot, body, events, and the calibration state after updates,
         as of that batch's end); only the per-call costs are paid once, since the pipeline
-        is batch-size invariant (replay joins a recording's small messages this way). Falls
+        is batch-size invariant (replay joins a recording's small messages this way; bit for
+        bit on integer readings such as ADC counts, else to the last bit of a window sum that
+        a message end cuts, `core.windowing`). Falls
         back to `process` one by one when the batches cannot share a step: pipeline not
         started, another channel layout, periodic rediscovery on.
         """

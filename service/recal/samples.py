@@ -159,8 +159,10 @@ def rebatch(batches: Iterable[RawBatch], min_samples: int = REBATCH_SAMPLES
 
     Batch work in numpy costs per call as well as per sample: the detector and the windows
     (`core.windowing`) of 24 h at 50 Hz in messages of 1000 samples took 0.53 s, joined into
-    batches of 65 536 0.20 s, with the same windows bit for bit (their state carries across
-    batches). `recal hindsight` and `recal discover` read recordings this way.
+    batches of 65 536 0.20 s, with the same windows (their state carries across batches; bit
+    for bit on integer readings such as ADC counts, else a window cut by a batch end may
+    differ in its last bit, `core.windowing`). `recal hindsight` and `recal discover` read
+    recordings this way.
     """
     for group in batch_groups(((b, None) for b in batches), min_samples):
         yield group[0][0] if len(group) == 1 else RawBatch.concat([b for b, _ in group])
