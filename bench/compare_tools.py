@@ -63,7 +63,6 @@ from recal.core import hindsight
 from recal.core.detector import detect
 from recal.core.effects import Ratiometric
 from recal.core.estimator import Prior
-from recal.core.hindsight import HindsightFit
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.samples import RawBatch
@@ -250,7 +249,7 @@ def run_recal(raw_g: RawBatch, model: SensorModel, batch: int,
 
 
 def run_hindsight(raw_g: RawBatch, model: SensorModel, batch: int
-                  ) -> tuple[np.ndarray, float, HindsightFit]:
+                  ) -> tuple[np.ndarray, float, hindsight.HindsightFit]:
     """The core in batch use, as the tools are (`core.hindsight`): the live detector and
     windows over the whole recording, one fit with hindsight, every sample corrected with it;
     in the same batches as `run_recal`."""
@@ -263,7 +262,7 @@ def run_hindsight(raw_g: RawBatch, model: SensorModel, batch: int
     return out, time.perf_counter() - t0, fit
 
 
-def hindsight_status(fit: HindsightFit) -> str:
+def hindsight_status(fit: hindsight.HindsightFit) -> str:
     held = f"; held at nominal, unobservable: {', '.join(fit.held)}" if fit.held else ""
     return f"calibrated: {fit.windows} windows ({fit.dropped} dropped){held}"
 
