@@ -16,7 +16,7 @@ relative to the file)::
     [zenoh]     mode = "peer", listen = [...], connect = [...], config_file = "zenoh-peer.json5"
     [mcap]      dir = "recordings" | path = "rec.mcap", chunk_size = 32768, flush_interval_s,
                 rotate_mb, rotate_hours, compression = "zstd", fsync = true
-    [checkpoint] dir = "checkpoints", interval_s = 60
+    [checkpoint] dir = "<state folder>/checkpoints", interval_s = 60, after_update_s = 5
     [pipeline]  threshold_g, window_s, model = "diagonal"|"full", mode = "all"|"offsets",
                 plot_hz = 10, any other PipelineConfig field; [pipeline.estimator],
                 [pipeline.buffer] pass to EstimatorConfig / BufferConfig
@@ -37,6 +37,7 @@ without a model file the sensor bootstraps (no prior).
 from __future__ import annotations
 
 import json
+import os
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
@@ -61,6 +62,7 @@ __all__ = [
     "SensorConfig",
     "ServiceConfig",
     "ZenohSettings",
+    "default_state_dir",
     "load_config",
     "load_model_file",
     "model_and_prior",
@@ -168,12 +170,34 @@ class McapConfig:
     fsync: bool = True
 
 
+def default_state_dir() -> Path:
+    """Where recal keeps its state when the config does not say, never the current directory:
+    systemd's ``StateDirectory=`` (it sets ``$STATE_DIRECTORY``), else ``$XDG_STATE_HOME/recal``,
+    else ``/var/lib/recal`` for root, else ``~/.local/state/recal``."""
+    systemd = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    if systemd:
+        return Path(systemd)
+    xdg = os.environ.get("XDG_STATE_HOME", "")
+    if xdg and Path(xdg).is_absolute():  # the XDG spec: a relative value is to be ignored
+        return Path(xdg) / "recal"
+    if os.geteuid() == 0:
+        return Path("/var/lib/recal")
+    return Path.home() / ".local" / "state" / "recal"
+
+
+def default_checkpoint_dir() -> Path:
+    return default_state_dir() / "checkpoints"
+
+
 @dataclass(frozen=True)
 class CheckpointConfig:
-    """Pipeline checkpoints: ``<dir>/<sensor>.json``, every ``interval_s`` and at stop."""
+    """Pipeline checkpoints: ``<dir>/<sensor>.json`` (see recal.checkpoints), every
+    ``interval_s``, within ``after_update_s`` of an accepted update (at most that often;
+    0: off), and at stop. ``dir`` None: none kept."""
 
-    dir: Path | None = Path("checkpoints")
+    dir: Path | None = field(default_factory=default_checkpoint_dir)
     interval_s: float = 60.0
+    after_update_s: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -467,9 +491,12 @@ def _mcap(ctx: _Ctx, d: Any) -> McapConfig:
 
 
 def _checkpoint(ctx: _Ctx, d: Any) -> CheckpointConfig:
-    d = _table(ctx, d, ("dir", "interval_s"))
-    return CheckpointConfig(_path(ctx, d, "dir", ctx.base / "checkpoints"),
-                            _num(ctx, d, "interval_s", 60.0, positive=True))
+    d = _table(ctx, d, ("dir", "interval_s", "after_update_s"))
+    after = _num(ctx, d, "after_update_s", 5.0)
+    if not after >= 0:
+        raise ctx.error("after_update_s", f"expected seconds >= 0 (0 = off), got {after!r}")
+    return CheckpointConfig(_path(ctx, d, "dir", default_checkpoint_dir()),
+                            _num(ctx, d, "interval_s", 60.0, positive=True), after)
 
 
 _PIPELINE_OWN = ("model", "mode", "plot_hz", "estimator", "buffer")

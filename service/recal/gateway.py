@@ -31,14 +31,17 @@ machine): the former design, two threads per port, used 90 % of a core with a la
 With ``run_nodes = false`` the gateway only logs and publishes raw; a node elsewhere
 (``recal.node.run_node``) subscribes to ``recal/*/raw``.
 
-The main thread checkpoints every pipeline atomically (tmp file + os.replace) every
-``checkpoint.interval_s`` and at stop, reports aggregated counts (parse errors, dropped
-publishes) once a second as events, and waits for SIGINT/SIGTERM or a stop event. Stopping
-reads what the ports still hold, calibrates it, writes the checkpoints, closes (and indexes)
-the MCAP and the Zenoh session. A restart resumes each pipeline from its checkpoint (the
-checkpoint wins over a changed prior in the config; delete ``<checkpoint dir>/<sensor>.json``
-to start from the prior again, and a checkpoint whose model kind differs from the config's is
-ignored with an event).
+The main thread checkpoints every pipeline atomically (recal.checkpoints) every
+``checkpoint.interval_s``, within ``after_update_s`` of an accepted update and at stop,
+reports aggregated counts (parse errors, dropped publishes) once a second as events, and waits
+for SIGINT/SIGTERM or a stop event. Stopping reads what the ports still hold, calibrates it,
+writes the checkpoints, closes (and indexes) the MCAP and the Zenoh session. A restart resumes
+each pipeline from its checkpoint once it has been checked (the checkpoint wins over a changed
+prior in the config; delete ``<checkpoint dir>/<sensor>.json`` to start from the prior again;
+one that cannot be trusted, or whose model kind differs from the config's, is moved aside with
+a console line and an event, and the previous generation or the prior is used). Before
+anything is opened, each calibrated sensor's lock in the state folder is taken: a second
+daemon for the same sensor id exits with one line naming the holder.
 
 Queries: ``recal/<sensor>/status`` answers the node's calibration state plus a ``gateway``
 section (port, samples logged, parse errors, ...); ``recal/<sensor>/align`` requests a
@@ -66,6 +69,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from recal.checkpoints import Checkpoints, SensorLockedError
 from recal.cli import add_run_arguments, run_from_args
 from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
 from recal.io import messages
@@ -74,14 +78,11 @@ from recal.io.recording import RecordingWriter, sensor_topic
 from recal.io.serial_source import SerialSource, SourceEvent
 from recal.node import (
     CalibrationNode,
-    CheckpointSchedule,
     LoggedBusSink,
     RecordingSink,
     Sink,
-    checkpoint_path,
     make_node,
     node_settings,
-    save_checkpoint,
 )
 from recal.samples import RawBatch
 
@@ -239,7 +240,7 @@ class Gateway:
     def __init__(self, cfg: ServiceConfig, writer: RecordingWriter, bus: Any,
                  nodes: dict[str, CalibrationNode | None],
                  out: Callable[[str], None] = print, *, batch_s: float = 0.0,
-                 idle_batch_s: float = 0.0) -> None:
+                 idle_batch_s: float = 0.0, checkpoints: Checkpoints | None = None) -> None:
         if batch_s < 0 or idle_batch_s < 0:
             raise ValueError("batch_s and idle_batch_s must be >= 0")
         self.cfg = cfg
@@ -262,6 +263,14 @@ class Gateway:
         self._io_errors = 0
         self._publish_reported = 0
         self._started_s = time.monotonic()
+        c = cfg.checkpoint
+        self.checkpoints = checkpoints or Checkpoints(
+            c.dir, c.interval_s, c.after_update_s, out=out, prefix=NOTE_PREFIX)
+        self.checkpoints.set_event(
+            lambda sid, kind, detail: self._sensor_event(sid, kind, time.time_ns(), detail))
+        for sid, p in self.ports.items():
+            if p.node is not None:
+                self.checkpoints.add(sid, p.node.accepted_updates)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -282,18 +291,19 @@ class Gateway:
         self._io_thread.start()
 
     def run(self, stop: threading.Event) -> None:
-        """Checkpoint (each sensor in its turn, see CheckpointSchedule) and report until
-        ``stop`` is set."""
-        schedule = CheckpointSchedule(self.cfg.checkpoint.interval_s)
-        for sid in self.ports:
-            schedule.add(sid)
+        """Checkpoint (each sensor in its turn, and soon after its accepted updates, see
+        recal.checkpoints) and report until ``stop`` is set."""
+        nodes = self._nodes()
         next_report = time.monotonic() + REPORT_INTERVAL_S
-        while not stop.wait(min(schedule.next_due_s(),
+        while not stop.wait(min(self.checkpoints.next_due_s(),
                                 max(0.0, next_report - time.monotonic()))):
             if time.monotonic() >= next_report:
                 self._report_counts(time.time_ns())
                 next_report = time.monotonic() + REPORT_INTERVAL_S
-            self.checkpoint(schedule.take_due())
+            self.checkpoints.save_due(nodes)
+
+    def _nodes(self) -> dict[str, CalibrationNode]:
+        return {sid: p.node for sid, p in self.ports.items() if p.node is not None}
 
     def stop(self) -> dict[str, int]:
         """Stop reading (after a last read of what the ports hold), flush the nodes,
@@ -563,19 +573,9 @@ class Gateway:
 
     def checkpoint(self, sensor_ids: Sequence[str] | None = None) -> None:
         """Write these sensors' (default: every) checkpoints atomically (no-op without a
-        checkpoint dir)."""
-        directory = self.cfg.checkpoint.dir
-        if directory is None:
-            return
-        for sid in self.ports if sensor_ids is None else sensor_ids:
-            p = self.ports[sid]
-            doc = p.node.checkpoint() if p.node is not None else None
-            if doc is None:
-                continue
-            try:
-                save_checkpoint(checkpoint_path(directory, sid), doc)
-            except OSError as exc:
-                self._sensor_event(sid, "checkpoint_failed", time.time_ns(), str(exc))
+        checkpoint dir); a failure is an event and a console line (rate-limited), never
+        raised."""
+        self.checkpoints.save(self._nodes(), sensor_ids)
 
 
 def join_by_layout(batches: list[RawBatch]) -> list[RawBatch]:
@@ -652,16 +652,25 @@ def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
 
 
 def _nodes(cfg: ServiceConfig, sink: Sink, model_path: str | Path | None,
-           problems: list[tuple[str, str, dict]]) -> dict[str, CalibrationNode | None]:
+           checkpoints: Checkpoints) -> dict[str, CalibrationNode | None]:
     nodes: dict[str, CalibrationNode | None] = {}
     for s in cfg.sensors:
         if not cfg.run_nodes:
             nodes[s.id] = None
             continue
         settings = node_settings(s, cfg, model_path)
-        nodes[s.id] = make_node(settings, sink, cfg.checkpoint.dir,
-                                lambda kind, d, sid=s.id: problems.append((sid, kind, d)))
+        nodes[s.id] = make_node(settings, sink, checkpoints)
     return nodes
+
+
+def _checkpoints(cfg: ServiceConfig, emit: Callable[[str], None]) -> Checkpoints:
+    """The sensors' checkpoints (none without nodes here), with their locks taken:
+    SensorLockedError or OSError when they cannot be."""
+    c = cfg.checkpoint
+    keeper = Checkpoints(c.dir if cfg.run_nodes else None, c.interval_s, c.after_update_s,
+                         out=emit, prefix=NOTE_PREFIX)
+    keeper.acquire(s.id for s in cfg.sensors)
+    return keeper
 
 
 def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] = (),
@@ -716,6 +725,27 @@ def _serve(cfg: ServiceConfig, mcap_out: str | Path | None, model_path: str | Pa
            stop: threading.Event, emit: Callable[[str], None], fail: Callable[[str], None],
            on_ready: Callable[[Gateway], None] | None, batch_s: float = 0.0,
            idle_batch_s: float = 0.0) -> int:
+    try:  # before anything is opened: a second daemon for a sensor must not touch its port
+        checkpoints = _checkpoints(cfg, emit)
+    except SensorLockedError as exc:
+        fail(f"{ERROR_PREFIX} {exc}")
+        return 1
+    except OSError as exc:
+        fail(f"{ERROR_PREFIX} cannot use the state folder {cfg.checkpoint.dir}: "
+             f"{exc.strerror or exc}")
+        return 1
+    try:
+        return _serve_locked(cfg, mcap_out, model_path, stop, emit, fail, on_ready, batch_s,
+                             idle_batch_s, checkpoints)
+    finally:
+        checkpoints.release()
+
+
+def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
+                  model_path: str | Path | None, stop: threading.Event,
+                  emit: Callable[[str], None], fail: Callable[[str], None],
+                  on_ready: Callable[[Gateway], None] | None, batch_s: float,
+                  idle_batch_s: float, checkpoints: Checkpoints) -> int:
     try:
         writer = open_recording(cfg, mcap_out)
     except (OSError, ValueError) as exc:
@@ -728,20 +758,24 @@ def _serve(cfg: ServiceConfig, mcap_out: str | Path | None, model_path: str | Pa
         fail(f"{ERROR_PREFIX} cannot open Zenoh: {exc}")
         return 1
     sink: Sink = RecordingSink(writer) if bus is None else LoggedBusSink(writer, bus)
-    problems: list[tuple[str, str, dict]] = []
+    problems: list[tuple[str, str, Any]] = []  # until the gateway can log them as events
+    checkpoints.set_event(lambda sid, kind, d: problems.append((sid, kind, d)))
     try:
-        nodes = _nodes(cfg, sink, model_path, problems)
+        nodes = _nodes(cfg, sink, model_path, checkpoints)
     except ConfigError as exc:
         writer.close()
         if bus is not None:
             bus.close()
         fail(f"{ERROR_PREFIX} {exc}")
         return 2
-    gw = Gateway(cfg, writer, bus, nodes, emit, batch_s=batch_s, idle_batch_s=idle_batch_s)
+    gw = Gateway(cfg, writer, bus, nodes, emit, batch_s=batch_s, idle_batch_s=idle_batch_s,
+                 checkpoints=checkpoints)
     gw.start()
     for sid, kind, detail in problems:
         gw._sensor_event(sid, kind, time.time_ns(), detail)
     starts = {sid: (n.start if n is not None else "remote") for sid, n in nodes.items()}
+    if checkpoints.enabled:
+        emit(f"{NOTE_PREFIX} checkpoints in {checkpoints.directory}")
     emit(f"{READY_PREFIX} mcap={gw.writer.paths[0]} sensors={starts}")
     if on_ready is not None:
         on_ready(gw)

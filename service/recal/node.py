@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import sys
 import threading
 import time
@@ -48,6 +47,16 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from recal.checkpoints import (
+    CHECKPOINT_FORMAT,
+    Checkpoints,
+    CheckpointSchedule,
+    SensorLockedError,
+    checkpoint_path,
+    load_checkpoint,
+    restore_pipeline,
+    save_checkpoint,
+)
 from recal.config import (
     AlignmentConfig,
     ConfigError,
@@ -67,7 +76,7 @@ from recal.samples import CalibratedBatch, RawBatch
 __all__ = [
     "BusSink",
     "CalibrationNode",
-    "CheckpointSchedule",
+    "CheckpointSchedule",  # re-exported from recal.checkpoints, where the checkpoint code lives
     "LoggedBusSink",
     "NodeSettings",
     "NullSink",
@@ -86,7 +95,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = 1
 NODE_READY_PREFIX = "recal node ready"
 RECV_ROUND = 4096  # most raw messages a remote node takes from its receiver per round
 # Raw messages a remote node buffers before Zenoh's thread waits (and after its 1 s wait,
@@ -274,90 +282,6 @@ def _conform(batch: RawBatch, names: tuple[str, ...], needed: Sequence[str]) -> 
             cols.append(np.full(len(batch), np.nan))
     aux = np.column_stack(cols) if cols else np.zeros((len(batch), 0))
     return RawBatch(batch.t_us, batch.v, aux, names)
-
-
-# ---------------------------------------------------------------------------------------------
-# Checkpoint files
-# ---------------------------------------------------------------------------------------------
-
-def checkpoint_path(directory: str | Path, sensor_id: str) -> Path:
-    return Path(directory) / f"{sensor_id}.json"
-
-
-def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
-    """Write JSON atomically: a temporary file in the same directory, fsync, os.replace.
-
-    A crash at any point leaves either the old checkpoint or the new one, never half of one.
-    """
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    with open(tmp, "w") as f:
-        json.dump(state, f, separators=(",", ":"))  # NaN allowed: Python reads it back
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, p)
-    try:  # make the rename itself durable
-        fd = os.open(p.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError:
-        pass  # some filesystems cannot fsync a directory; the data file is synced
-
-
-def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
-    """A checkpoint written by :func:`save_checkpoint`; None if there is none.
-
-    Raises ValueError for a file that exists but is not a checkpoint.
-    """
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except FileNotFoundError:
-        return None
-    try:
-        doc = json.loads(text)
-    except ValueError as exc:
-        raise ValueError(f"{p}: not a JSON checkpoint ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{p}: unknown checkpoint format")
-    return doc
-
-
-class CheckpointSchedule:
-    """When each sensor's checkpoint is next due: every ``interval_s``, the sensors spread over
-    the interval (the k-th added at phase k * 0.618... of it, evenly for any count).
-
-    Why: one checkpoint is a ~75 kB JSON document; 200 sensors written at once held the GIL
-    for ~3 s of CPU every minute, and the I/O loop's latency p99 went from 0.5 s to 3 s.
-    Spread out, each sensor's turn costs tens of milliseconds, shared with the loop.
-    """
-
-    _PHASE_STEP = (5 ** 0.5 - 1) / 2  # golden-ratio steps stay evenly spread as sensors come
-
-    def __init__(self, interval_s: float, clock: Callable[[], float] = time.monotonic) -> None:
-        self.interval_s = float(interval_s)
-        self._clock = clock
-        self._due: dict[str, float] = {}
-
-    def add(self, sensor_id: str) -> None:
-        if sensor_id not in self._due:
-            phase = (len(self._due) * self._PHASE_STEP) % 1.0
-            self._due[sensor_id] = self._clock() + self.interval_s * (phase or 1.0)
-
-    def take_due(self) -> list[str]:
-        """The sensors due now, each rescheduled one interval on."""
-        now = self._clock()
-        due = [sid for sid, t in self._due.items() if t <= now]
-        for sid in due:
-            self._due[sid] = now + self.interval_s
-        return due
-
-    def next_due_s(self) -> float:
-        """Seconds until the next sensor is due (inf with none)."""
-        return max(0.0, min(self._due.values()) - self._clock()) if self._due else float("inf")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -599,14 +523,12 @@ class CalibrationNode:
     @classmethod
     def from_checkpoint(cls, settings: NodeSettings, sink: Sink,
                         doc: dict[str, Any]) -> CalibrationNode:
-        """Continue from :meth:`checkpoint` output (ValueError if it does not fit)."""
+        """Continue from :meth:`checkpoint` output (ValueError if it does not fit or cannot be
+        trusted: `recal.checkpoints.restore_pipeline` checks the state)."""
         if doc.get("sensor_id") != settings.sensor_id:
             raise ValueError(f"checkpoint is for sensor {doc.get('sensor_id')!r}, "
                              f"not {settings.sensor_id!r}")
-        try:
-            pipe = Pipeline.from_state_dict(doc["pipeline"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"checkpoint does not restore: {type(exc).__name__}: {exc}") from None
+        pipe = restore_pipeline(doc.get("pipeline"))
         kinds = [e.kind for e in pipe.model.effects]
         configured = [e.kind for e in settings.model.effects]
         grown = settings.rediscovery.enabled and {e.key for e in settings.model.effects} <= {
@@ -615,8 +537,11 @@ class CalibrationNode:
             raise ValueError(f"checkpoint model {model_name(pipe.model)} differs from the "
                              f"configured {model_name(settings.model)}")
         ali = doc.get("alignment")
-        node = cls(settings, sink, pipeline=pipe,
-                   alignment=al.Alignment.from_dict(ali) if ali else None, start="checkpoint")
+        try:
+            alignment = al.Alignment.from_dict(ali) if ali else None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"checkpoint alignment: {type(exc).__name__}: {exc}") from None
+        node = cls(settings, sink, pipeline=pipe, alignment=alignment, start="checkpoint")
         due = doc.get("next_discovery_us")  # absent in checkpoints from before it was kept
         node._next_discovery_us = int(due) if isinstance(due, (int, float)) else None
         return node
@@ -875,25 +800,26 @@ def node_settings(sensor: SensorConfig, config: ServiceConfig,
                         sensor.full_scale_g, config.alignment, rediscovery=config.discovery)
 
 
-def make_node(settings: NodeSettings, sink: Sink, checkpoint_dir: str | Path | None = None,
+def make_node(settings: NodeSettings, sink: Sink,
+              checkpoints: Checkpoints | str | Path | None = None,
               on_problem: Callable[[str, dict[str, Any]], None] | None = None
               ) -> CalibrationNode:
-    """A node that resumes from ``<checkpoint_dir>/<sensor>.json`` if a usable one exists.
+    """A node that resumes from its checkpoint in ``checkpoints`` (a `Checkpoints`, or a state
+    folder) if a usable one exists: ``<sensor>.json``, else ``<sensor>.prev.json``.
 
-    A checkpoint that does not load or does not fit the configuration is reported through
-    ``on_problem("checkpoint_invalid", detail)`` and the node starts from the prior.
+    A checkpoint that does not load, cannot be trusted or does not fit the configuration is
+    moved aside and reported (the `Checkpoints`' console line and event, and through
+    ``on_problem("checkpoint_invalid", detail)``); the node then starts from the prior.
     """
-    if checkpoint_dir is not None:
-        path = checkpoint_path(checkpoint_dir, settings.sensor_id)
-        try:
-            doc = load_checkpoint(path)
-            if doc is not None:
-                return CalibrationNode.from_checkpoint(settings, sink, doc)
-        except ValueError as exc:
-            if on_problem is not None:
-                on_problem("checkpoint_invalid", {"path": str(path), "error": str(exc)})
-            log.warning("ignoring checkpoint %s: %s", path, exc)
-    return CalibrationNode(settings, sink)
+    keeper = checkpoints
+    if keeper is not None and not isinstance(keeper, Checkpoints):
+        keeper = Checkpoints(keeper, 60.0, out=lambda line: None)
+    if keeper is None or not keeper.enabled:
+        return CalibrationNode(settings, sink)
+    node = keeper.load(settings.sensor_id,
+                       lambda doc: CalibrationNode.from_checkpoint(settings, sink, doc),
+                       on_problem=on_problem)
+    return node if node is not None else CalibrationNode(settings, sink)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -941,6 +867,7 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     stop = stop_event or threading.Event()
     restore = install_stop_signals(stop)
     runner = _NodeRunner(cfg, bus, writer, set(sensor_ids), model_path, emit)
+    emit(f"recal node: checkpoints in {cfg.checkpoint.dir or '(none)'}")
     emit(f"{NODE_READY_PREFIX} mcap={writer.paths[0] if writer is not None else None}")
     try:
         runner.run(stop)
@@ -976,14 +903,17 @@ class _NodeRunner:
         self._bus_mod = _bus
         self.receiver = bus.receiver(_bus.key_pattern("raw"), capacity=RECV_CAPACITY)
         self.bad_messages = 0
-        self.schedule = CheckpointSchedule(cfg.checkpoint.interval_s)
+        self.checkpoints = Checkpoints(cfg.checkpoint.dir, cfg.checkpoint.interval_s,
+                                       cfg.checkpoint.after_update_s, out=emit,
+                                       event=self._sensor_event, prefix="recal node:")
+        self.refused: set[str] = set()  # sensors another process calibrates (locked)
         self._drops_reported = 0
         self._next_drop_report_s = 0.0
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             self._handle_round(self.receiver.recv_batch(RECV_ROUND, timeout=0.1))
-            self.checkpoint(self.schedule.take_due())  # a few sensors at a time
+            self.checkpoints.save_due(self.nodes)  # a few sensors at a time, and after updates
             self._report_drops()
         while True:  # what already arrived
             msgs = self.receiver.recv_batch(RECV_ROUND, timeout=0.0)
@@ -1027,14 +957,29 @@ class _NodeRunner:
         log_ns = time.time_ns()
         if self.writer is not None:
             self.writer.write_raw(sid, batch, log_ns)
-        node.process(batch, log_ns)
+        if node is not None:
+            node.process(batch, log_ns)
 
-    def _add(self, sid: str) -> CalibrationNode:
+    def _sensor_event(self, sid: str, kind: str, detail: Any) -> None:
+        self.sink.json(sid, "events", {"t_us": None, "kind": kind, "sensor_id": sid,
+                                       "detail": detail}, time.time_ns())
+
+    def _add(self, sid: str) -> CalibrationNode | None:
+        """A node for a sensor first heard; None (said once) when another process holds its
+        checkpoint lock in the same state folder: it calibrates that sensor, not this one."""
+        if sid in self.refused:
+            return None
+        try:
+            self.checkpoints.acquire([sid])
+        except (SensorLockedError, OSError) as exc:
+            self.refused.add(sid)
+            self.emit(f"recal node: not calibrating {sid}: {exc}")
+            return None
         sensor = self.cfg.sensor(sid) or SensorConfig(id=sid)
         settings = node_settings(sensor, self.cfg, self.model_path)
-        node = make_node(settings, self.sink, self.cfg.checkpoint.dir)
+        node = make_node(settings, self.sink, self.checkpoints)
         self.nodes[sid] = node
-        self.schedule.add(sid)
+        self.checkpoints.add(sid, node.accepted_updates)
         k = self._bus_mod.key
         self.bus.queryable(k(sid, "status"),
                            lambda _k, _p, n=node: self._messages.encode_json(n.status()))
@@ -1045,19 +990,15 @@ class _NodeRunner:
         return node
 
     def checkpoint(self, sensor_ids: Sequence[str] | None = None) -> None:
-        """Checkpoint these sensors (default: all)."""
-        if self.cfg.checkpoint.dir is None:
-            return
-        for sid in self.nodes if sensor_ids is None else sensor_ids:
-            doc = self.nodes[sid].checkpoint()
-            if doc is not None:
-                save_checkpoint(checkpoint_path(self.cfg.checkpoint.dir, sid), doc)
+        """Checkpoint these sensors (default: all); failures are reported, never raised."""
+        self.checkpoints.save(self.nodes, sensor_ids)
 
     def close(self) -> None:
         now = time.time_ns()
         for node in self.nodes.values():
             node.flush(now)
         self.checkpoint()
+        self.checkpoints.release()
         self.receiver.close()
 
 

@@ -1,0 +1,669 @@
+"""Checkpoint files: where a sensor's calibration survives a restart, and who owns it.
+
+A sensor's state folder (``[checkpoint] dir``) holds, per sensor id:
+
+* ``<sensor>.json``: the current checkpoint, written atomically (a temporary file, fsync,
+  rename, directory fsync): a crash leaves the old one or the new one, never half of one.
+* ``<sensor>.prev.json``: the generation before it (a hard link to the old file made before the
+  rename, so ``<sensor>.json`` is never missing). It is the fallback when the current one does
+  not load.
+* ``<sensor>.lock``: ``flock``-ed by the one process that calibrates the sensor (it holds its
+  PID): two daemons with the same sensor id and state folder would resume each other's
+  calibration and overwrite each other's checkpoints.
+* ``<sensor>.json.rejected`` (and ``<sensor>.prev.json.rejected``): a file that did not load,
+  moved aside so that no later rotation makes it the fallback; kept for inspection.
+
+A checkpoint is trusted only after it has been checked (:func:`load_checkpoint` for the file,
+:func:`restore_pipeline` for the state): size and nesting depth, strict JSON (no NaN, no
+infinity, no integer beyond 2^53), the format, then the pipeline rebuilt with
+``Pipeline.from_state_dict`` inside a guard and its result checked: the estimate and prior
+shaped like the model, finite, inside the model's own ``bounds()``, a symmetric covariance with
+positive variances, device times no later than the checkpoint's last sample (plus a day) and
+that one not after tomorrow in Unix time, and one probe step on a copy that must run and give
+finite output. New state fields are covered by the strict-JSON rule and the probe without
+edits here. The same checks (without the probe) run before each save: a state that would not
+load is never written over a good one.
+
+Saving: every ``interval_s`` (spread over sensors, :class:`CheckpointSchedule`) and, after an
+accepted update, within ``after_update_s`` (so a crash loses seconds of progress, not a
+minute). :class:`Checkpoints` is what the gateway and the remote node use: locks, loading with
+the fallback, saving, and the operator's console lines (a failed load is one line; failed saves
+are one line, then a sum at most once a minute).
+"""
+
+from __future__ import annotations
+
+import copy
+import errno
+import fcntl
+import json
+import logging
+import os
+import re
+import shutil
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from recal.core.pipeline import Pipeline
+from recal.samples import RawBatch
+
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "CheckpointError",
+    "CheckpointSchedule",
+    "Checkpoints",
+    "SensorLock",
+    "SensorLockedError",
+    "checkpoint_path",
+    "load_checkpoint",
+    "lock_path",
+    "lock_sensor",
+    "pipeline_problem",
+    "previous_path",
+    "restore_pipeline",
+    "save_checkpoint",
+]
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = 1
+MAX_BYTES = 32 << 20  # a checkpoint is ~100 kB with the default buffer; 8x the buffer is ~1 MB
+MAX_DEPTH = 32  # a pipeline state nests 5 deep; JSON parsers recurse per level
+MAX_INT = 2**53  # larger integers are no device time or count (and overflow int64 near 2^63)
+FUTURE_US = 86_400 * 10**6  # a day: how far any time in a state may lie past its last sample
+FAIL_NOTE_S = 60.0  # failed saves are summed up for the operator at most this often
+PROBE_SAMPLES = 4
+
+_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that exists but cannot be trusted (the message says why)."""
+
+
+class SensorLockedError(RuntimeError):
+    """Another process calibrates this sensor id from the same state folder."""
+
+    def __init__(self, sensor_id: str, path: Path, pid: int | None) -> None:
+        self.sensor_id, self.path, self.pid = sensor_id, path, pid
+        holder = f"process {pid}" if pid else "another process"
+        super().__init__(f"sensor {sensor_id!r} is already calibrated by {holder} "
+                         f"(lock {path}); one process per sensor id and state folder")
+
+
+# ---------------------------------------------------------------------------------------------
+# Paths
+# ---------------------------------------------------------------------------------------------
+
+def checkpoint_path(directory: str | Path, sensor_id: str) -> Path:
+    return Path(directory) / f"{sensor_id}.json"
+
+
+def previous_path(directory: str | Path, sensor_id: str) -> Path:
+    return Path(directory) / f"{sensor_id}.prev.json"
+
+
+def lock_path(directory: str | Path, sensor_id: str) -> Path:
+    return Path(directory) / f"{sensor_id}.lock"
+
+
+# ---------------------------------------------------------------------------------------------
+# Files
+# ---------------------------------------------------------------------------------------------
+
+def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool = True
+                    ) -> None:
+    """Write ``state`` as strict JSON atomically: a temporary file in the same directory,
+    fsync, the old file kept as ``<stem>.prev.json`` (``keep_previous``), os.replace, fsync of
+    the directory. ValueError (nothing written) if the state holds NaN or infinity."""
+    p = Path(path)
+    text = json.dumps(state, separators=(",", ":"), allow_nan=False)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        if keep_previous and p.is_file():
+            _link_previous(p)
+        os.replace(tmp, p)
+    except BaseException:
+        with _quiet():
+            tmp.unlink()
+        raise
+    _fsync_dir(p.parent)
+
+
+def _link_previous(p: Path) -> None:
+    """``<stem>.prev.json`` becomes the file now at ``p`` (a hard link, or a copy where the
+    filesystem has none), replaced atomically."""
+    prev = p.with_name(f"{p.stem}.prev{p.suffix}")
+    tmp = prev.with_name(f".{prev.name}.{os.getpid()}.tmp")
+    with _quiet():
+        tmp.unlink()
+    try:
+        os.link(p, tmp)
+    except OSError:
+        shutil.copyfile(p, tmp)
+    os.replace(tmp, prev)
+
+
+def _fsync_dir(directory: Path) -> None:
+    try:  # make the renames durable
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:
+        pass  # some filesystems cannot fsync a directory; the data file is synced
+
+
+class _quiet:
+    """``with _quiet():`` ignores OSError (best-effort clean-up)."""
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind: type | None, exc: BaseException | None, tb: Any) -> bool:
+        return kind is not None and issubclass(kind, OSError)
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
+    """A checkpoint written by :func:`save_checkpoint`; None if there is no file.
+
+    Raises CheckpointError (a ValueError) for anything else that is not a checkpoint: not a
+    regular file, unreadable, larger than MAX_BYTES, nested deeper than MAX_DEPTH, not strict
+    JSON (NaN, infinity, integers beyond 2^53), not a format-1 object.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            data = f.read(MAX_BYTES + 1)
+    except FileNotFoundError:
+        return None
+    except IsADirectoryError:
+        raise CheckpointError(f"{p}: a directory, not a checkpoint file") from None
+    except OSError as exc:
+        raise CheckpointError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if len(data) > MAX_BYTES:
+        raise CheckpointError(f"{p}: larger than {MAX_BYTES >> 20} MiB")
+    depth = json_depth(data)
+    if depth > MAX_DEPTH:
+        raise CheckpointError(f"{p}: JSON nested {depth} deep (at most {MAX_DEPTH})")
+    try:
+        doc = json.loads(data, parse_constant=_no_constant, parse_float=_finite_float,
+                         parse_int=_bounded_int)
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
+        raise CheckpointError(f"{p}: not a strict JSON checkpoint ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{p}: unknown checkpoint format")
+    return doc
+
+
+def json_depth(data: bytes) -> int:
+    """How deep the arrays and objects of a JSON text nest (strings skipped), vectorized: the
+    parser itself recurses per level, so a deep file must be refused before parsing."""
+    bare = np.frombuffer(_STRING.sub(b'""', data), np.uint8)
+    step = (np.isin(bare, (ord("["), ord("{"))).astype(np.int64)
+            - np.isin(bare, (ord("]"), ord("}"))))
+    return int(np.cumsum(step).max(initial=0))
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} in a checkpoint")
+
+
+def _finite_float(text: str) -> float:
+    x = float(text)
+    if not np.isfinite(x):
+        raise ValueError(f"number {text[:20]} out of range")
+    return x
+
+
+def _bounded_int(text: str) -> int:
+    if len(text) > 17:  # quick refusal before int() parses a megabyte of digits
+        raise ValueError(f"integer {text[:20]}... out of range")
+    x = int(text)
+    if abs(x) >= MAX_INT:
+        raise ValueError(f"integer {x} out of range")
+    return x
+
+
+# ---------------------------------------------------------------------------------------------
+# The state inside
+# ---------------------------------------------------------------------------------------------
+
+def restore_pipeline(state: Any, *, probe: bool = True, now_unix_s: float | None = None
+                     ) -> Pipeline:
+    """A pipeline rebuilt from a checkpoint's ``pipeline`` state, checked (CheckpointError
+    saying why if it cannot be trusted). Any exception while rebuilding is caught: a
+    checkpoint never crashes a start."""
+    if not isinstance(state, dict):
+        raise CheckpointError("no pipeline state")
+    try:
+        pipe = Pipeline.from_state_dict(state)
+    except Exception as exc:  # any shape or type a poisoned file gives
+        raise CheckpointError(f"does not restore: {type(exc).__name__}: {exc}") from None
+    why = pipeline_problem(pipe, now_unix_s)
+    if why is None and probe:
+        why = _probe_problem(pipe)
+    if why is not None:
+        raise CheckpointError(why)
+    return pipe
+
+
+def pipeline_problem(pipe: Pipeline, now_unix_s: float | None = None) -> str | None:
+    """Why this pipeline's state cannot be trusted, or None. Checks what every update and every
+    sample depends on: the estimate and prior (shapes, finite, inside the model's bounds,
+    covariance), the detector, and the device times."""
+    try:
+        return (_estimate_problem(pipe) or _detector_problem(pipe)
+                or _times_problem(pipe, time.time() if now_unix_s is None else now_unix_s))
+    except Exception as exc:  # a field of the wrong type
+        return f"unreadable state: {type(exc).__name__}: {exc}"
+
+
+def _estimate_problem(pipe: Pipeline) -> str | None:
+    model = pipe.model
+    n = len(model.names)
+    if not (np.isfinite(model.s0) and model.s0 > 0):
+        return f"model s0 {model.s0!r} is not a positive number"
+    lo, hi = model.bounds()
+    parts = []
+    if pipe.estimate is not None:
+        parts.append(("estimate", pipe.estimate.p, pipe.estimate.cov))
+    elif pipe.bootstrapped:
+        return "no estimate although bootstrapped"
+    if pipe.prior is not None:
+        parts.append(("prior", pipe.prior.mean, pipe.prior.info))
+    for what, p, m in parts:
+        p, m = np.asarray(p), np.asarray(m)
+        if p.shape != (n,) or m.shape != (n, n):
+            return (f"{what} has {p.shape} parameters and a {m.shape} matrix, the model "
+                    f"{n} ({', '.join(model.names)})")
+        if not (np.isfinite(p).all() and np.isfinite(m).all()):
+            return f"{what} is not finite"
+        out = [nm for nm, x, a, b in zip(model.names, p, lo, hi, strict=True)
+               if not a <= x <= b]
+        if out:
+            return f"{what} out of the model's bounds: " + ", ".join(
+                f"{nm} = {x:.6g}" for nm, x in zip(model.names, p, strict=True) if nm in out)
+        if not np.allclose(m, m.T, rtol=1e-6, atol=0) or not (np.diag(m) > 0).all():
+            return f"{what} matrix is not symmetric with a positive diagonal"
+    if pipe.estimate is not None:
+        e = pipe.estimate
+        if np.shape(e.rate) != (3,) or np.shape(e.step) != (3,):
+            return "estimate offset rate or step is not 3 values"
+    return None
+
+
+def _detector_problem(pipe: Pipeline) -> str | None:
+    if pipe.det_cfg is None:
+        return None
+    s0 = pipe.det_cfg.s0
+    if not (np.isfinite(s0) and s0 > 0):
+        return f"detector s0 {s0!r} is not a positive number"
+    return None
+
+
+def _times_problem(pipe: Pipeline, now_unix_s: float) -> str | None:
+    """Device times: the last sample's, not after tomorrow read as Unix time (a device clock
+    since boot is far below), and every other time in the state not more than a day after it
+    (a window about to be committed lies a little ahead; years ahead stall every update)."""
+    last = pipe.last_t_us
+    if last is None:
+        return None
+    if not isinstance(last, (int, np.integer)) or not 0 <= last <= (now_unix_s * 1e6
+                                                                   + FUTURE_US):
+        return f"last_t_us {last!r} is not a plausible device time"
+    for key, t in _times(pipe.state_dict()):
+        if not 0 <= t <= last + FUTURE_US:
+            return f"{key} = {t} is not between 0 and a day after last_t_us = {last}"
+    return None
+
+
+def _times(obj: Any, key: str = "") -> Iterator[tuple[str, float]]:
+    """Every number under a key ending in ``_us`` (device times by the project's naming)."""
+    if isinstance(obj, Mapping):
+        for k, v in obj.items():
+            yield from _times(v, str(k))
+    elif key.endswith("_us"):
+        if isinstance(obj, list):
+            flat = np.asarray(obj, float).ravel() if obj else np.zeros(0)
+            if flat.size:
+                yield key, float(flat.min())
+                yield key, float(flat.max())
+        elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
+            yield key, float(obj)
+    elif isinstance(obj, list) and obj and isinstance(obj[0], (Mapping, list)):
+        for v in obj:
+            yield from _times(v, key)
+
+
+def _probe_problem(pipe: Pipeline) -> str | None:
+    """Step a copy of the pipeline with a few samples of 1 g along z right after its last
+    sample: a state that fails or gives non-finite output there fails on every batch."""
+    try:
+        trial = copy.deepcopy(pipe)
+        dt_us = max(1, round(1e6 / trial.cfg.rate_hz))
+        t0 = (trial.last_t_us if trial.last_t_us is not None else 0) + dt_us
+        t_us = t0 + dt_us * np.arange(PROBE_SAMPLES, dtype=np.int64)
+        v = np.tile([0.0, 0.0, float(trial.model.s0)], (PROBE_SAMPLES, 1))
+        aux = np.zeros((PROBE_SAMPLES, len(trial.aux_names)))
+        out = trial.step(RawBatch(t_us, v, aux, trial.aux_names))
+    except Exception as exc:
+        return f"fails on data: {type(exc).__name__}: {exc}"
+    if not trial.model.covariates and not np.isfinite(out.calibrated.a_g).all():
+        return "calibrates to non-finite values"
+    if not np.isfinite(trial.params).all():
+        return "parameters not finite after a step"
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# Ownership
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class SensorLock:
+    """An flock held on ``<dir>/<sensor>.lock`` until :meth:`release` (or the process ends:
+    the kernel drops it, so a killed daemon never leaves a sensor locked)."""
+
+    sensor_id: str
+    path: Path
+    fd: int | None
+
+    def release(self) -> None:
+        if self.fd is not None:
+            with _quiet():
+                os.close(self.fd)  # the file stays: unlinking it would let two holders race
+            self.fd = None
+
+
+def lock_sensor(directory: str | Path, sensor_id: str) -> SensorLock:
+    """Take the sensor's lock in ``directory`` without waiting; SensorLockedError (with the
+    holder's PID) if another process holds it, OSError if the folder cannot be used."""
+    path = lock_path(directory, sensor_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        pid = _read_pid(fd)
+        os.close(fd)
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise SensorLockedError(sensor_id, path, pid) from None
+        raise
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return SensorLock(sensor_id, path, fd)
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        return int(text) if text.isdigit() else None
+    except OSError:
+        return None
+
+
+# ---------------------------------------------------------------------------------------------
+# When to save
+# ---------------------------------------------------------------------------------------------
+
+class CheckpointSchedule:
+    """When each sensor's checkpoint is next due: every ``interval_s``, the sensors spread over
+    the interval (the k-th added at phase k * 0.618... of it, evenly for any count).
+
+    Why: one checkpoint is a ~75 kB JSON document; 200 sensors written at once held the GIL
+    for ~3 s of CPU every minute, and the I/O loop's latency p99 went from 0.5 s to 3 s.
+    Spread out, each sensor's turn costs tens of milliseconds, shared with the loop.
+    """
+
+    _PHASE_STEP = (5 ** 0.5 - 1) / 2  # golden-ratio steps stay evenly spread as sensors come
+
+    def __init__(self, interval_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.interval_s = float(interval_s)
+        self._clock = clock
+        self._due: dict[str, float] = {}
+
+    def add(self, sensor_id: str) -> None:
+        if sensor_id not in self._due:
+            phase = (len(self._due) * self._PHASE_STEP) % 1.0
+            self._due[sensor_id] = self._clock() + self.interval_s * (phase or 1.0)
+
+    def take_due(self) -> list[str]:
+        """The sensors due now, each rescheduled one interval on."""
+        now = self._clock()
+        due = [sid for sid, t in self._due.items() if t <= now]
+        for sid in due:
+            self._due[sid] = now + self.interval_s
+        return due
+
+    def next_due_s(self) -> float:
+        """Seconds until the next sensor is due (inf with none)."""
+        return max(0.0, min(self._due.values()) - self._clock()) if self._due else float("inf")
+
+
+# ---------------------------------------------------------------------------------------------
+# The daemon's side: locks, loading with the fallback, saving, console lines
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class _Failures:
+    """Failed saves of one sensor since the last console line about them."""
+
+    count: int = 0
+    last_error: str = ""
+    failing: bool = False
+
+
+class Checkpoints:
+    """Checkpoints of the sensors one process calibrates, in one state folder.
+
+    Args:
+        directory: the state folder (None: no checkpoints, no locks).
+        interval_s: save every sensor this often.
+        after_update_s: after an accepted update, save within this many seconds (at most
+            that often per sensor; 0: off).
+        out: one console line for the operator (prefix included by the caller's ``prefix``).
+        event: ``event(sensor_id, kind, detail)`` for the log and the bus.
+        prefix: how console lines begin ("recal gateway:").
+    """
+
+    def __init__(self, directory: str | Path | None, interval_s: float,
+                 after_update_s: float = 5.0, *, out: Callable[[str], None] = print,
+                 event: Callable[[str, str, Any], None] | None = None,
+                 prefix: str = "recal:", clock: Callable[[], float] = time.monotonic) -> None:
+        self.directory = Path(directory) if directory is not None else None
+        self.after_update_s = float(after_update_s)
+        self.schedule = CheckpointSchedule(interval_s, clock)
+        self.out, self.prefix = out, prefix
+        self._event = event
+        self._clock = clock
+        self.locks: dict[str, SensorLock] = {}
+        self._saved_updates: dict[str, int] = {}
+        self._saved_at: dict[str, float] = {}
+        self._failures: dict[str, _Failures] = {}
+        self._fail_noted_s = float("-inf")
+        self.saves = 0
+        self.failed_saves = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.directory is not None
+
+    def set_event(self, event: Callable[[str, str, Any], None] | None) -> None:
+        """Where events go from now on (the gateway's log exists only after loading)."""
+        self._event = event
+
+    # -- ownership ----------------------------------------------------------------------------
+
+    def acquire(self, sensor_ids: Iterable[str]) -> None:
+        """Lock these sensors (all or none: SensorLockedError or OSError, nothing held)."""
+        if self.directory is None:
+            return
+        taken = []
+        try:
+            for sid in sensor_ids:
+                if sid not in self.locks:
+                    self.locks[sid] = lock_sensor(self.directory, sid)
+                    taken.append(sid)
+        except BaseException:
+            for sid in taken:
+                self.locks.pop(sid).release()
+            raise
+
+    def release(self) -> None:
+        for lock in self.locks.values():
+            lock.release()
+        self.locks.clear()
+
+    # -- loading ------------------------------------------------------------------------------
+
+    def load(self, sensor_id: str, restore: Callable[[dict[str, Any]], Any],
+             on_problem: Callable[[str, dict[str, Any]], None] | None = None) -> Any:
+        """``restore(doc)`` of the sensor's current checkpoint, else of the previous generation,
+        else None (start from the prior). A file that does not load or ``restore`` refuses is
+        moved aside (``.rejected``), reported as an event ``checkpoint_invalid`` and one
+        console line (and ``on_problem(kind, detail)``); nothing here raises for a bad file."""
+        if self.directory is None:
+            return None
+        cur = checkpoint_path(self.directory, sensor_id)
+        if not cur.exists() and not cur.is_symlink():
+            return None  # never saved, or deleted to start again from the prior
+        prev = previous_path(self.directory, sensor_id)
+        for path, fallback in ((cur, prev), (prev, None)):
+            try:
+                doc = load_checkpoint(path)
+                if doc is None:
+                    continue
+                if doc.get("sensor_id") != sensor_id:
+                    raise CheckpointError(f"{path}: for sensor {doc.get('sensor_id')!r}")
+                return restore(doc)
+            except Exception as exc:  # CheckpointError, a restore refusal, anything
+                self._reject(sensor_id, path, exc, fallback, on_problem)
+        return None
+
+    def _reject(self, sensor_id: str, path: Path, exc: Exception, fallback: Path | None,
+                on_problem: Callable[[str, dict[str, Any]], None] | None) -> None:
+        why = str(exc)
+        if not why.startswith(str(path)):
+            why = f"{path}: {why}"
+        aside = path.with_name(path.name + ".rejected")
+        try:
+            if aside.is_dir() and not aside.is_symlink():
+                shutil.rmtree(aside)
+            os.replace(path, aside)
+            moved: str | None = str(aside)
+        except OSError as err:
+            moved = None
+            log.warning("cannot move %s aside: %s", path, err)
+        usable = fallback is not None and fallback.exists()
+        then = f"trying {fallback.name}" if usable else "starting from the prior"
+        self.out(f"{self.prefix} {sensor_id}: checkpoint ignored: {why}; {then}")
+        log.warning("checkpoint ignored: %s", why)
+        detail = {"path": str(path), "error": why, "moved_to": moved,
+                  "fallback": str(fallback) if usable else "prior"}
+        if self._event is not None:
+            self._event(sensor_id, "checkpoint_invalid", detail)
+        if on_problem is not None:
+            on_problem("checkpoint_invalid", detail)
+
+    # -- saving -------------------------------------------------------------------------------
+
+    def add(self, sensor_id: str, accepted_updates: int = 0) -> None:
+        """Schedule a sensor's saves (its count of accepted updates as of now)."""
+        self.schedule.add(sensor_id)
+        self._saved_updates.setdefault(sensor_id, accepted_updates)
+        self._saved_at.setdefault(sensor_id, float("-inf"))
+
+    def next_due_s(self) -> float:
+        return self.schedule.next_due_s()
+
+    def save_due(self, nodes: Mapping[str, Any]) -> None:
+        """Save the sensors whose interval is up, and those with an accepted update since
+        their last save once ``after_update_s`` has passed since it."""
+        if self.directory is None:
+            return
+        due = set(self.schedule.take_due())
+        if self.after_update_s > 0:
+            now = self._clock()
+            for sid, node in nodes.items():
+                if (node is not None and sid not in due
+                        and getattr(node, "accepted_updates", 0) != self._saved_updates.get(sid)
+                        and now - self._saved_at.get(sid, float("-inf")) >= self.after_update_s):
+                    due.add(sid)
+        self.save(nodes, [sid for sid in nodes if sid in due])
+
+    def save(self, nodes: Mapping[str, Any], sensor_ids: Iterable[str] | None = None) -> None:
+        """Save these sensors (default: all) now; failures are reported, never raised."""
+        if self.directory is None:
+            return
+        for sid in nodes if sensor_ids is None else sensor_ids:
+            node = nodes.get(sid)
+            if node is None:
+                continue
+            updates = getattr(node, "accepted_updates", 0)
+            try:
+                doc = node.checkpoint()
+                if doc is None:
+                    continue
+                self._check_before_save(doc)
+                save_checkpoint(checkpoint_path(self.directory, sid), doc)
+            except (OSError, ValueError) as exc:
+                self._failed(sid, exc)
+                continue
+            self._saved_updates[sid] = updates
+            self._saved_at[sid] = self._clock()
+            self.saves += 1
+            self._succeeded(sid)
+        self._note_failures()
+
+    @staticmethod
+    def _check_before_save(doc: dict[str, Any]) -> None:
+        """The load checks (bar the probe): a state that would be refused at the next start is
+        not written over the last good one (ValueError)."""
+        restore_pipeline(doc.get("pipeline"), probe=False)
+
+    def _failed(self, sid: str, exc: Exception) -> None:
+        self.failed_saves += 1
+        error = (f"{type(exc).__name__}: {exc}" if not isinstance(exc, OSError)
+                 else f"{exc.strerror or exc}" + (f": {exc.filename}" if exc.filename else ""))
+        f = self._failures.setdefault(sid, _Failures())
+        if self._event is not None:
+            self._event(sid, "checkpoint_failed", {"error": error})
+        if not f.failing:  # the first failure of a run of them: a line at once
+            f.failing = True
+            self.out(f"{self.prefix} {sid}: checkpoint not saved: {error} (calibration goes "
+                     f"on; failures are summed up at most every {FAIL_NOTE_S:g} s)")
+            self._fail_noted_s = max(self._fail_noted_s, self._clock())
+            return
+        f.count += 1
+        f.last_error = error
+
+    def _succeeded(self, sid: str) -> None:
+        f = self._failures.get(sid)
+        if f is not None and f.failing:
+            more = f" after {f.count} more failures" if f.count else ""
+            self.out(f"{self.prefix} {sid}: checkpoint saved again{more}")
+            del self._failures[sid]
+
+    def _note_failures(self) -> None:
+        """At most one line a FAIL_NOTE_S: the failed saves since the last line."""
+        pending = {sid: f for sid, f in self._failures.items() if f.count}
+        now = self._clock()
+        if not pending or now < self._fail_noted_s + FAIL_NOTE_S:
+            return
+        self._fail_noted_s = now
+        what = ", ".join(f"{sid} {f.count}x ({f.last_error})" for sid, f in pending.items())
+        self.out(f"{self.prefix} checkpoints not saved in the last {FAIL_NOTE_S:g} s: {what}")
+        for f in pending.values():
+            f.count = 0
