@@ -217,7 +217,7 @@ def json_depth(data: bytes) -> int:
 
 
 def _no_constant(name: str) -> float:
-    raise ValueError(f"{name} in a checkpoint")
+    raise ValueError(f"{name}: not a finite number")
 
 
 def _finite_float(text: str) -> float:
@@ -251,7 +251,7 @@ def restore_pipeline(state: Any, *, probe: bool = True, now_unix_s: float | None
         pipe = Pipeline.from_state_dict(state)
     except Exception as exc:  # any shape or type a poisoned file gives
         raise CheckpointError(f"does not restore: {type(exc).__name__}: {exc}") from None
-    why = pipeline_problem(pipe, now_unix_s)
+    why = pipeline_problem(pipe, now_unix_s, state)
     if why is None and probe:
         why = _probe_problem(pipe)
     if why is not None:
@@ -259,13 +259,16 @@ def restore_pipeline(state: Any, *, probe: bool = True, now_unix_s: float | None
     return pipe
 
 
-def pipeline_problem(pipe: Pipeline, now_unix_s: float | None = None) -> str | None:
+def pipeline_problem(pipe: Pipeline, now_unix_s: float | None = None,
+                     state: Mapping[str, Any] | None = None) -> str | None:
     """Why this pipeline's state cannot be trusted, or None. Checks what every update and every
     sample depends on: the estimate and prior (shapes, finite, inside the model's bounds,
-    covariance), the detector, and the device times."""
+    covariance), the detector, and the device times (in ``state``, the pipeline's
+    ``state_dict()`` if it is at hand, else made here)."""
     try:
         return (_estimate_problem(pipe) or _detector_problem(pipe)
-                or _times_problem(pipe, time.time() if now_unix_s is None else now_unix_s))
+                or _times_problem(pipe, time.time() if now_unix_s is None else now_unix_s,
+                                  state))
     except Exception as exc:  # a field of the wrong type
         return f"unreadable state: {type(exc).__name__}: {exc}"
 
@@ -313,7 +316,8 @@ def _detector_problem(pipe: Pipeline) -> str | None:
     return None
 
 
-def _times_problem(pipe: Pipeline, now_unix_s: float) -> str | None:
+def _times_problem(pipe: Pipeline, now_unix_s: float, state: Mapping[str, Any] | None
+                   ) -> str | None:
     """Device times: the last sample's, not after tomorrow read as Unix time (a device clock
     since boot is far below), and every other time in the state not more than a day after it
     (a window about to be committed lies a little ahead; years ahead stall every update)."""
@@ -323,28 +327,29 @@ def _times_problem(pipe: Pipeline, now_unix_s: float) -> str | None:
     if not isinstance(last, (int, np.integer)) or not 0 <= last <= (now_unix_s * 1e6
                                                                    + FUTURE_US):
         return f"last_t_us {last!r} is not a plausible device time"
-    for key, t in _times(pipe.state_dict()):
+    for key, t in _times(pipe.state_dict() if state is None else state):
         if not 0 <= t <= last + FUTURE_US:
             return f"{key} = {t} is not between 0 and a day after last_t_us = {last}"
     return None
 
 
-def _times(obj: Any, key: str = "") -> Iterator[tuple[str, float]]:
-    """Every number under a key ending in ``_us`` (device times by the project's naming)."""
+def _times(obj: Any, path: str = "") -> Iterator[tuple[str, int]]:
+    """Every number under a key ending in ``_us`` (device times by the project's naming),
+    with where it is (``estimate.t_us``); of a list, its least and greatest."""
     if isinstance(obj, Mapping):
         for k, v in obj.items():
-            yield from _times(v, str(k))
-    elif key.endswith("_us"):
+            yield from _times(v, f"{path}.{k}" if path else str(k))
+    elif path.endswith("_us"):
         if isinstance(obj, list):
             flat = np.asarray(obj, float).ravel() if obj else np.zeros(0)
             if flat.size:
-                yield key, float(flat.min())
-                yield key, float(flat.max())
+                yield path, int(flat.min())
+                yield path, int(flat.max())
         elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
-            yield key, float(obj)
+            yield path, int(obj)
     elif isinstance(obj, list) and obj and isinstance(obj[0], (Mapping, list)):
         for v in obj:
-            yield from _times(v, key)
+            yield from _times(v, path)
 
 
 def _probe_problem(pipe: Pipeline) -> str | None:
@@ -460,7 +465,8 @@ class CheckpointSchedule:
 class _Failures:
     """Failed saves of one sensor since the last console line about them."""
 
-    count: int = 0
+    count: int = 0  # since the last console line
+    total: int = 0  # since the last successful save
     last_error: str = ""
     failing: bool = False
 
@@ -569,7 +575,6 @@ class Checkpoints:
         usable = fallback is not None and fallback.exists()
         then = f"trying {fallback.name}" if usable else "starting from the prior"
         self.out(f"{self.prefix} {sensor_id}: checkpoint ignored: {why}; {then}")
-        log.warning("checkpoint ignored: %s", why)
         detail = {"path": str(path), "error": why, "moved_to": moved,
                   "fallback": str(fallback) if usable else "prior"}
         if self._event is not None:
@@ -638,6 +643,7 @@ class Checkpoints:
         error = (f"{type(exc).__name__}: {exc}" if not isinstance(exc, OSError)
                  else f"{exc.strerror or exc}" + (f": {exc.filename}" if exc.filename else ""))
         f = self._failures.setdefault(sid, _Failures())
+        f.total += 1
         if self._event is not None:
             self._event(sid, "checkpoint_failed", {"error": error})
         if not f.failing:  # the first failure of a run of them: a line at once
@@ -652,8 +658,8 @@ class Checkpoints:
     def _succeeded(self, sid: str) -> None:
         f = self._failures.get(sid)
         if f is not None and f.failing:
-            more = f" after {f.count} more failures" if f.count else ""
-            self.out(f"{self.prefix} {sid}: checkpoint saved again{more}")
+            self.out(f"{self.prefix} {sid}: checkpoint saved again after {f.total} failed "
+                     f"save{'s' if f.total > 1 else ''}")
             del self._failures[sid]
 
     def _note_failures(self) -> None:

@@ -813,7 +813,7 @@ def make_node(settings: NodeSettings, sink: Sink,
     """
     keeper = checkpoints
     if keeper is not None and not isinstance(keeper, Checkpoints):
-        keeper = Checkpoints(keeper, 60.0, out=lambda line: None)
+        keeper = Checkpoints(keeper, 60.0, out=log.warning)
     if keeper is None or not keeper.enabled:
         return CalibrationNode(settings, sink)
     node = keeper.load(settings.sensor_id,
