@@ -269,8 +269,10 @@ def test_a_poisoned_checkpoint_is_refused_and_the_previous_generation_resumes(
     np.testing.assert_allclose([first["params"][n] for n in first["param_names"]],
                                prev["pipeline"]["estimate"]["p"], rtol=0, atol=1e-9)
     # the refused file is moved aside (kept for inspection), so no later save rotates it into
-    # the fallback
-    assert cur.with_name(cur.name + ".rejected").exists() and not cur.exists()
+    # the fallback, and the previous generation is current again (a crash before the next
+    # save must not start from the prior)
+    assert cur.with_name(cur.name + ".rejected").exists()
+    assert load_checkpoint(cur) == prev
     print(f"\n{poison}: {_assert_recalibrated(sink):.2f} mg; {lines[0]}")
 
 
@@ -285,6 +287,7 @@ def test_both_generations_poisoned_start_from_the_prior(tmp_path: Path) -> None:
     assert "NaN: not a finite number" in lines[0] and "o_x = 102400" in lines[1], lines
     assert [kind for _, kind, _ in events] == ["checkpoint_invalid"] * 2
     assert node.start == "prior"
+    assert not checkpoint_path(ck, SID).exists() and not previous_path(ck, SID).exists()
     first = sink.states()[0]
     assert first["reason"] == "start" and first["params"]["o_x"] == 0.0
     print(f"\nfrom the prior: {_assert_recalibrated(sink):.2f} mg")

@@ -72,7 +72,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = 1
-MAX_BYTES = 32 << 20  # a checkpoint is ~100 kB with the default buffer; 8x the buffer is ~1 MB
+# A checkpoint is ~100 kB with the default buffer, ~1 MB with 8x its cells; 8 MiB of numbers
+# parse into at most ~150 MB of Python objects.
+MAX_BYTES = 8 << 20
 MAX_DEPTH = 32  # a pipeline state nests 5 deep; JSON parsers recurse per level
 MAX_INT = 2**53  # larger integers are no device time or count (and overflow int64 near 2^63)
 FUTURE_US = 86_400 * 10**6  # a day: how far any time in a state may lie past its last sample
@@ -131,7 +133,7 @@ def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool
             f.flush()
             os.fsync(f.fileno())
         if keep_previous and p.is_file():
-            _link_previous(p)
+            _replace_with_copy(p, p.with_name(f"{p.stem}.prev{p.suffix}"))
         os.replace(tmp, p)
     except BaseException:
         with _quiet():
@@ -140,18 +142,22 @@ def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool
     _fsync_dir(p.parent)
 
 
-def _link_previous(p: Path) -> None:
-    """``<stem>.prev.json`` becomes the file now at ``p`` (a hard link, or a copy where the
-    filesystem has none), replaced atomically."""
-    prev = p.with_name(f"{p.stem}.prev{p.suffix}")
-    tmp = prev.with_name(f".{prev.name}.{os.getpid()}.tmp")
+def _replace_with_copy(src: Path, dst: Path) -> None:
+    """``dst`` becomes ``src``'s content (a hard link, or a copy where the filesystem has
+    none), replaced atomically: a crash leaves the old ``dst`` or the new one."""
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     with _quiet():
         tmp.unlink()
     try:
-        os.link(p, tmp)
-    except OSError:
-        shutil.copyfile(p, tmp)
-    os.replace(tmp, prev)
+        try:
+            os.link(src, tmp)
+        except OSError:
+            shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        with _quiet():
+            tmp.unlink()
+        raise
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -553,9 +559,17 @@ class Checkpoints:
                     continue
                 if doc.get("sensor_id") != sensor_id:
                     raise CheckpointError(f"{path}: for sensor {doc.get('sensor_id')!r}")
-                return restore(doc)
+                restored = restore(doc)
             except Exception as exc:  # CheckpointError, a restore refusal, anything
                 self._reject(sensor_id, path, exc, fallback, on_problem)
+                continue
+            if path == prev:  # the previous generation is current again: a crash before the
+                try:          # next save must not find no checkpoint at all
+                    _replace_with_copy(prev, cur)
+                    _fsync_dir(cur.parent)
+                except OSError as exc:
+                    log.warning("cannot copy %s to %s: %s", prev, cur, exc)
+            return restored
         return None
 
     def _reject(self, sensor_id: str, path: Path, exc: Exception, fallback: Path | None,
