@@ -420,8 +420,11 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
     "run": ("The daemon: reads every serial port, publishes raw and calibrated samples on "
             "Zenoh (recal/<sensor>/...), logs everything to MCAP (default: an auto-named file "
             "in recordings/; an existing file is never overwritten) and checkpoints each "
-            "sensor's calibration to checkpoints/. Runs until Ctrl-C or SIGTERM; after a crash, "
-            "`recal repair` recovers the log and the checkpoint resumes the calibration.",
+            "sensor's calibration in the state folder ([checkpoint] dir, else systemd's "
+            "$STATE_DIRECTORY, $XDG_STATE_HOME/recal or ~/.local/state/recal; printed at "
+            "start), where it also locks each sensor id. Runs until Ctrl-C or SIGTERM; after "
+            "a crash, `recal repair` recovers the log and the checkpoint resumes the "
+            "calibration.",
             ("recal run --port /dev/ttyACM0 --sensor-id wrist",
              "recal run --config configs/gateway.toml",
              "recal run --port /dev/ttyACM0 --port /dev/ttyACM1 --sensor-id l --sensor-id r")),
