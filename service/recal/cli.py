@@ -383,10 +383,24 @@ def run_from_args(a: argparse.Namespace) -> int:
                        batch_s=None if a.batch_ms is None else a.batch_ms / 1e3)
 
 
+def add_serving_arguments(ap: argparse.ArgumentParser) -> None:
+    """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node`` and
+    ``python -m recal.node``)."""
+    ap.add_argument("--sensor-id", action="append", default=[],
+                    help="serve this sensor (repeatable; default: the config's [[sensors]])")
+    ap.add_argument("--accept-any", action="store_const", const=True, default=None,
+                    help="also serve sensors nobody named, whoever publishes them "
+                         "(default: config [node] accept_any, false)")
+    ap.add_argument("--max-sensors", type=int, metavar="N", default=None,
+                    help="with --accept-any, serve at most N sensors not named "
+                         "(default: config [node] max_sensors, 16)")
+
+
 def _cmd_node(a: argparse.Namespace) -> int:
     from recal.node import run_node
 
-    return run_node(a.config, a.sensor_id, a.mcap, a.model)
+    return run_node(a.config, a.sensor_id, a.mcap, a.model, accept_any=a.accept_any,
+                    max_sensors=a.max_sensors)
 
 
 def _cmd_demo(a: argparse.Namespace) -> int:
@@ -515,8 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "(gateways elsewhere run with run_nodes = false)")
     s.add_argument("--config", help="service config (TOML): [zenoh], [[sensors]] priors, "
                    "[pipeline]")
-    s.add_argument("--sensor-id", action="append", default=[], help="only these sensors "
-                   "(repeatable; default: every sensor that publishes)")
+    add_serving_arguments(s)
     s.add_argument("--mcap", help="also log raw and calibrated here")
     s.add_argument("--model", help="model file for every sensor (recal discover --write-model)")
     s.set_defaults(func=_cmd_node)
