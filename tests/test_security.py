@@ -28,7 +28,7 @@ from recal.demo import free_port
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_json, encode_raw
-from recal.io.router import RouterProcess
+from recal.io.router import RouterProcess, run_router, security_summary
 from recal.node import (
     REJECT_IDS_KEPT,
     CalibrationNode,
@@ -132,7 +132,7 @@ def stranger_certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def fleet_router(certs: Path, tmp_path_factory: pytest.TempPathFactory
-                 ) -> Iterator[tuple[RouterProcess, str]]:
+                 ) -> Iterator[tuple[RouterProcess, str, Path]]:
     """The shipped router.json5 with the test's certificate paths and a free port."""
     port = free_port()
     text = (FLEET / "router.json5").read_text()
@@ -143,7 +143,7 @@ def fleet_router(certs: Path, tmp_path_factory: pytest.TempPathFactory
     path.write_text(text)
     proc = RouterProcess([], path).start()
     try:
-        yield proc, f"tls/localhost:{port}"
+        yield proc, f"tls/localhost:{port}", path
     finally:
         proc.stop()
 
@@ -160,7 +160,7 @@ def tls_client(endpoint: str, ca_dir: Path, name: str | None) -> Bus:
 
 
 @pytest.fixture()
-def fleet(fleet_router: tuple[RouterProcess, str], certs: Path
+def fleet(fleet_router: tuple[RouterProcess, str, Path], certs: Path
           ) -> Iterator[Callable[[str], Bus]]:
     """Opens clients of the fleet router by certificate name; closes them all at the end."""
     opened: list[Bus] = []
@@ -188,8 +188,10 @@ def drain(rx: Any, timeout_s: float) -> list[tuple[str, bytes]]:
 # --------------------------------------------------------------------------- TLS + ACL
 
 def test_fleet_router_refuses_clients_without_a_fleet_certificate(
-        fleet_router: tuple[RouterProcess, str], certs: Path, stranger_certs: Path) -> None:
-    endpoint = fleet_router[1]
+        fleet_router: tuple[RouterProcess, str, Path], certs: Path, stranger_certs: Path
+) -> None:
+    proc, endpoint, config_path = fleet_router
+    assert "tls=mtls acl=on" in proc.output and "warning" not in proc.output
     with pytest.raises(zenoh.ZError):  # no client certificate at all
         tls_client(endpoint, certs, None).close()
     with pytest.raises(zenoh.ZError):  # "gw-a", but signed by another CA
@@ -199,9 +201,35 @@ def test_fleet_router_refuses_clients_without_a_fleet_certificate(
                          overrides={"connect/timeout_ms": 1500})).close()
     ok = tls_client(endpoint, certs, "operator-1")  # the control: a fleet member gets in
     try:
-        assert ok.routers() == [fleet_router[0].zid]
+        assert ok.routers() == [proc.zid]
     finally:
         ok.close()
+    # the config accepts TLS links only: a plain TCP listener added by mistake is refused
+    stopped = threading.Event()
+    stopped.set()
+    with pytest.raises(zenoh.ZError, match="tcp"):
+        run_router([f"tcp/127.0.0.1:{free_port()}"], config_path, stopped, out=lambda _: None)
+
+
+def test_router_says_what_protects_it() -> None:
+    assert security_summary(zenoh_config("router")) == ("off", "off", [])
+    exposed = zenoh_config("router", listen=["tcp/192.168.1.10:7447"])
+    assert security_summary(exposed) == ("off", "off", ["tcp/192.168.1.10:7447"])
+    shipped = zenoh.Config.from_file(str(FLEET / "router.json5"))
+    shipped.insert_json5("listen/endpoints", '["tls/router.example:7447"]')
+    assert security_summary(shipped) == ("mtls", "on", ["tls/router.example:7447"])
+    lines: list[str] = []
+    stop = threading.Event()
+    th = threading.Thread(target=run_router, args=([f"tcp/127.0.0.1:{free_port()}"],),
+                          kwargs={"stop_event": stop, "out": lines.append}, daemon=True)
+    th.start()
+    try:
+        assert wait_for(lambda: bool(lines), 10)
+        assert "tls=off acl=off" in lines[0]
+        assert not [x for x in lines if "warning" in x]  # loopback only: no warning
+    finally:
+        stop.set()
+        th.join(10)
 
 
 def test_gateway_puts_only_its_own_sensors_keys(fleet: Callable[[str], Bus]) -> None:
