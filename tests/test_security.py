@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -461,3 +462,18 @@ def test_node_table_and_fleet_files_load(tmp_path: Path) -> None:
         "access_control"))
     assert acl["enabled"] and acl["default_permission"] == "deny"
     assert not list(FLEET.glob("*key*.pem"))  # no private key is shipped
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    ([], "name them in [[sensors]] or with --sensor-id"),
+    (["--accept-any", "--max-sensors", "0"], "--max-sensors: expected an integer >= 1"),
+    (["--sensor-id", "a/b"], "--sensor-id"),
+])
+def test_recal_node_without_sensors_to_serve_is_a_usage_error(
+        tmp_path: Path, args: list[str], message: str) -> None:
+    cfg = tmp_path / "node.toml"
+    cfg.write_text('[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:0"]\nconnect = []\n')
+    done = subprocess.run([sys.executable, "-m", "recal", "node", "--config", str(cfg), *args],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert message in done.stderr and "Traceback" not in done.stderr

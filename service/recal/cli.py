@@ -441,9 +441,12 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
              "recal run --port /dev/ttyACM0 --port /dev/ttyACM1 --sensor-id l --sensor-id r")),
     "node": ("A calibration node without serial ports: takes recal/*/raw from gateways that run "
              "with run_nodes = false (through a `recal router` or as peers), and publishes "
-             "calibrated, body, calibration and events for each sensor. Runs until Ctrl-C or "
-             "SIGTERM.",
-             ("recal node --config configs/gateway.toml --mcap node.mcap",)),
+             "calibrated, body, calibration and events for each sensor it serves: those of the "
+             "config's [[sensors]] or --sensor-id; other ids are counted and dropped unless "
+             "--accept-any (at most --max-sensors of them). Runs until Ctrl-C or SIGTERM.",
+             ("recal node --config configs/gateway.toml --mcap node.mcap",
+              "recal node --config configs/fleet/node.toml",
+              "recal node --config node.toml --accept-any --max-sensors 8")),
     "replay": ("Runs the raw topic of a recording through the same calibration node as the "
                "daemon (detector, windows, estimator, correction) and writes raw, calibrated, "
                "body, plot, calibration states and events to a new MCAP. No Zenoh, no clocks: "

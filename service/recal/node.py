@@ -1058,7 +1058,6 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     fail = out or (lambda line: print(line, file=sys.stderr, flush=True))
     try:
         cfg = config if isinstance(config, ServiceConfig) else load_config(config)
-        gate = _gate(cfg, sensor_ids, accept_any, max_sensors)
     except ConfigError as exc:
         fail(f"{ERROR_PREFIX} {exc}")
         return 2
@@ -1066,6 +1065,11 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     if own_bus and not cfg.zenoh.enabled:
         fail(f"{ERROR_PREFIX} a calibration node takes its samples from Zenoh, but the "
              f"config's [zenoh] enabled = false")
+        return 2
+    try:
+        gate = _gate(cfg, sensor_ids, accept_any, max_sensors)
+    except ConfigError as exc:
+        fail(f"{ERROR_PREFIX} {exc}")
         return 2
     try:
         bus = open_bus(cfg) if own_bus else bus
