@@ -77,7 +77,7 @@ def node_config(tmp: Path, sensors: tuple[str, ...], **over: Any) -> Any:
 class NodeThread:
     """run_node on a given bus in a thread; its console lines kept."""
 
-    def __init__(self, cfg: Any, bus: Bus, mcap: Path, **kw: Any) -> None:
+    def __init__(self, cfg: Any, bus: Bus | None, mcap: Path, **kw: Any) -> None:
         self.stop = threading.Event()
         self.lines: list[str] = []
         self.rc: list[int] = []
@@ -277,13 +277,29 @@ def test_only_operators_query_align_and_only_the_owner_answers(
     assert asked == [key("wrist", "align")]
 
 
+def fleet_node_toml(tmp: Path, certs: Path, endpoint: str) -> Path:
+    """The shipped node.toml and client.json5 with the test's certificates, router port and
+    folders: the node opens its own session from them, as `recal node --config` does."""
+    client = (FLEET / "client.json5").read_text()
+    client = client.replace("/etc/recal/fleet/client", f"{certs}/node-1").replace(
+        "/etc/recal/fleet/", f"{certs}/").replace("tls/localhost:7447", endpoint)
+    (tmp / "client.json5").write_text(client)
+    node = (FLEET / "node.toml").read_text().replace(
+        "../sensor-priors.toml", str(REPO / "configs" / "sensor-priors.toml")).replace(
+        "/var/lib/recal/checkpoints", str(tmp / "ck"))
+    assert str(tmp / "ck") in node
+    (tmp / "node.toml").write_text(node)
+    return tmp / "node.toml"
+
+
 def test_node_behind_the_fleet_router_calibrates_only_the_owners_stream(
-        fleet: Callable[[str], Bus], tmp_path: Path) -> None:
+        fleet: Callable[[str], Bus], fleet_router: tuple[RouterProcess, str, Path],
+        certs: Path, tmp_path: Path) -> None:
     """gw-b injects a plausible stream on wrist's key (offset 60 counts instead of 20): the
     router drops it, so the node's wrist state and checkpoint hold gw-a's samples only."""
-    gw_a, gw_b, node_bus, operator = (fleet(n) for n in NAMES)
-    cfg = node_config(tmp_path, ("wrist", "hip"))
-    nt = NodeThread(cfg, node_bus, tmp_path / "node.mcap")
+    gw_a, gw_b, operator = fleet("gw-a"), fleet("gw-b"), fleet("operator-1")
+    cfg = load_config(fleet_node_toml(tmp_path, certs, fleet_router[1]))
+    nt = NodeThread(cfg, None, tmp_path / "node.mcap")
     try:
         sent = 0
         for i in range(4):
