@@ -259,7 +259,7 @@ def test_a_poisoned_checkpoint_is_refused_and_the_previous_generation_resumes(
     # one console line naming the file and what happens next; one event
     assert len(lines) == 1, lines
     assert lines[0].startswith(f"test: {SID}: checkpoint ignored: {cur}") and \
-        "trying s1.prev.json" in lines[0], lines[0]
+        "trying s1.json.prev" in lines[0], lines[0]
     assert [(sid, kind) for sid, kind, _ in events] == [(SID, "checkpoint_invalid")]
     # the previous generation resumed: its parameters are the first state published
     assert node.start == "checkpoint"
@@ -283,7 +283,7 @@ def test_both_generations_poisoned_start_from_the_prior(tmp_path: Path) -> None:
     POISONS["offsets_100g"](previous_path(ck, SID))
     node, sink, lines, events = _run_from_folder(ck)
     assert len(lines) == 2, lines
-    assert "trying s1.prev.json" in lines[0] and "starting from the prior" in lines[1], lines
+    assert "trying s1.json.prev" in lines[0] and "starting from the prior" in lines[1], lines
     assert "NaN: not a finite number" in lines[0] and "o_x = 102400" in lines[1], lines
     assert [kind for _, kind, _ in events] == ["checkpoint_invalid"] * 2
     assert node.start == "prior"
@@ -567,7 +567,7 @@ def test_a_daemon_started_on_a_poisoned_folder_says_so_and_resumes_the_previous_
     said = [ln for ln in gw.lines if "checkpoint ignored" in ln]
     assert len(said) == 1 and said[0].startswith(f"{NOTE_PREFIX} {SID}: checkpoint ignored: "
                                                  f"{checkpoint_path(ck, SID)}"), gw.lines
-    assert "NaN: not a finite number" in said[0] and "trying s1.prev.json" in said[0]
+    assert "NaN: not a finite number" in said[0] and "trying s1.json.prev" in said[0]
     assert "'checkpoint'" in (gw.ready_line or "")
     states = [obj for _, obj, _ in rec.iter_json(gw.mcap, f"/{SID}/calibration")]
     assert states[0]["reason"] == "restored"

@@ -4,14 +4,17 @@ A sensor's state folder (``[checkpoint] dir``) holds, per sensor id:
 
 * ``<sensor>.json``: the current checkpoint, written atomically (a temporary file, fsync,
   rename, directory fsync): a crash leaves the old one or the new one, never half of one.
-* ``<sensor>.prev.json``: the generation before it (a hard link to the old file made before the
+* ``<sensor>.json.prev``: the generation before it (a hard link to the old file made before the
   rename, so ``<sensor>.json`` is never missing). It is the fallback when the current one does
   not load.
 * ``<sensor>.lock``: ``flock``-ed by the one process that calibrates the sensor (it holds its
   PID): two daemons with the same sensor id and state folder would resume each other's
   calibration and overwrite each other's checkpoints.
-* ``<sensor>.json.rejected`` (and ``<sensor>.prev.json.rejected``): a file that did not load,
+* ``<sensor>.json.rejected`` (and ``<sensor>.json.prev.rejected``): a file that did not load,
   moved aside so that no later rotation makes it the fallback; kept for inspection.
+
+Every name ends in its own suffix after the sensor id, so no two sensors' files can share a
+name (sensor ids may contain dots: ``a.prev.json`` could be ``a``'s or ``a.prev``'s).
 
 A checkpoint is trusted only after it has been checked (:func:`load_checkpoint` for the file,
 :func:`restore_pipeline` for the state): size and nesting depth, strict JSON (no NaN, no
@@ -107,7 +110,7 @@ def checkpoint_path(directory: str | Path, sensor_id: str) -> Path:
 
 
 def previous_path(directory: str | Path, sensor_id: str) -> Path:
-    return Path(directory) / f"{sensor_id}.prev.json"
+    return Path(directory) / f"{sensor_id}.json.prev"
 
 
 def lock_path(directory: str | Path, sensor_id: str) -> Path:
@@ -121,7 +124,7 @@ def lock_path(directory: str | Path, sensor_id: str) -> Path:
 def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool = True
                     ) -> None:
     """Write ``state`` as strict JSON atomically: a temporary file in the same directory,
-    fsync, the old file kept as ``<stem>.prev.json`` (``keep_previous``), os.replace, fsync of
+    fsync, the old file kept as ``<name>.prev`` (``keep_previous``), os.replace, fsync of
     the directory. ValueError (nothing written) if the state holds NaN or infinity."""
     p = Path(path)
     text = json.dumps(state, separators=(",", ":"), allow_nan=False)
@@ -133,7 +136,7 @@ def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool
             f.flush()
             os.fsync(f.fileno())
         if keep_previous and p.is_file():
-            _replace_with_copy(p, p.with_name(f"{p.stem}.prev{p.suffix}"))
+            _replace_with_copy(p, p.with_name(f"{p.name}.prev"))
         os.replace(tmp, p)
     except BaseException:
         with _quiet():

@@ -383,10 +383,24 @@ def run_from_args(a: argparse.Namespace) -> int:
                        batch_s=None if a.batch_ms is None else a.batch_ms / 1e3)
 
 
+def add_serving_arguments(ap: argparse.ArgumentParser) -> None:
+    """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node`` and
+    ``python -m recal.node``)."""
+    ap.add_argument("--sensor-id", action="append", default=[],
+                    help="serve this sensor (repeatable; default: the config's [[sensors]])")
+    ap.add_argument("--accept-any", action="store_const", const=True, default=None,
+                    help="also serve sensors nobody named, whoever publishes them "
+                         "(default: config [node] accept_any, false)")
+    ap.add_argument("--max-sensors", type=int, metavar="N", default=None,
+                    help="with --accept-any, serve at most N sensors not named "
+                         "(default: config [node] max_sensors, 16)")
+
+
 def _cmd_node(a: argparse.Namespace) -> int:
     from recal.node import run_node
 
-    return run_node(a.config, a.sensor_id, a.mcap, a.model)
+    return run_node(a.config, a.sensor_id, a.mcap, a.model, accept_any=a.accept_any,
+                    max_sensors=a.max_sensors)
 
 
 def _cmd_demo(a: argparse.Namespace) -> int:
@@ -430,9 +444,12 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
              "recal run --port /dev/ttyACM0 --port /dev/ttyACM1 --sensor-id l --sensor-id r")),
     "node": ("A calibration node without serial ports: takes recal/*/raw from gateways that run "
              "with run_nodes = false (through a `recal router` or as peers), and publishes "
-             "calibrated, body, calibration and events for each sensor. Runs until Ctrl-C or "
-             "SIGTERM.",
-             ("recal node --config configs/gateway.toml --mcap node.mcap",)),
+             "calibrated, body, calibration and events for each sensor it serves: those of the "
+             "config's [[sensors]] or --sensor-id; other ids are counted and dropped unless "
+             "--accept-any (at most --max-sensors of them). Runs until Ctrl-C or SIGTERM.",
+             ("recal node --config configs/gateway.toml --mcap node.mcap",
+              "recal node --config configs/fleet/node.toml",
+              "recal node --config node.toml --accept-any --max-sensors 8")),
     "replay": ("Runs the raw topic of a recording through the same calibration node as the "
                "daemon (detector, windows, estimator, correction) and writes raw, calibrated, "
                "body, plot, calibration states and events to a new MCAP. No Zenoh, no clocks: "
@@ -518,8 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "(gateways elsewhere run with run_nodes = false)")
     s.add_argument("--config", help="service config (TOML): [zenoh], [[sensors]] priors, "
                    "[pipeline]")
-    s.add_argument("--sensor-id", action="append", default=[], help="only these sensors "
-                   "(repeatable; default: every sensor that publishes)")
+    add_serving_arguments(s)
     s.add_argument("--mcap", help="also log raw and calibrated here")
     s.add_argument("--model", help="model file for every sensor (recal discover --write-model)")
     s.set_defaults(func=_cmd_node)
