@@ -580,3 +580,43 @@ def test_a_daemon_started_on_a_poisoned_folder_says_so_and_resumes_the_previous_
         "checkpoint_invalid"]
     assert load_checkpoint(checkpoint_path(ck, SID))["pipeline"]["counts"]["samples"] == (
         prev["pipeline"]["counts"]["samples"] + sent)
+
+
+def test_a_node_leaves_alone_a_sensor_another_process_holds(tmp_path: Path) -> None:
+    """`recal node` on the same state folder as a daemon that holds ``wrist``: it says so once,
+    does not calibrate or checkpoint wrist, and calibrates ``hip``."""
+    from recal.io.router import RouterProcess
+    from test_security import (
+        NodeThread,
+        node_config,
+        plain_client,
+        publish_raw,
+        status_of,
+        still_raw,
+    )
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = RouterProcess([endpoint]).start()
+    ck = tmp_path / "ck"
+    node_bus, gw = plain_client(endpoint), plain_client(endpoint)
+    held = lock_sensor(ck, "wrist")  # flock: another open file description is another holder
+    try:
+        nt = NodeThread(node_config(tmp_path, ("wrist", "hip")), node_bus, tmp_path / "n.mcap")
+        try:
+            assert publish_raw(gw, "wrist", still_raw(60))
+            assert publish_raw(gw, "hip", still_raw(60))
+            assert wait_for(lambda: (status_of(gw, "hip") or {}).get("node", {}).get(
+                "samples") == 60, 10)
+            assert wait_for(lambda: any("not calibrating wrist" in x for x in nt.lines), 5)
+            assert publish_raw(gw, "wrist", still_raw(60, t0_us=2_000_000))
+            assert status_of(gw, "wrist") is None  # no node, no queryable
+        finally:
+            assert nt.close() == 0
+    finally:
+        held.release()
+        node_bus.close()
+        gw.close()
+        router.stop()
+    said = [x for x in nt.lines if "not calibrating" in x]
+    assert len(said) == 1 and f"process {os.getpid()}" in said[0], nt.lines
+    assert not checkpoint_path(ck, "wrist").exists() and checkpoint_path(ck, "hip").is_file()
