@@ -306,6 +306,36 @@ def test_a_sound_folder_resumes_without_a_word(tmp_path: Path) -> None:
     _assert_recalibrated(sink)
 
 
+@pytest.mark.parametrize("kind", ["no_prior", "full"])
+def test_sound_checkpoints_of_other_starts_resume_bit_for_bit(tmp_path: Path, kind: str) -> None:
+    """The checks refuse nothing sound: a bootstrapping sensor (no prior; before and after its
+    ellipsoid start) and the cross-axis model resume and continue exactly as the original."""
+    prior = PriorConfig() if kind == "no_prior" else PriorConfig(counts_per_g=S0)
+    sensor = SensorConfig(id=SID, rate_hz=RATE_HZ, prior=prior,
+                          model="full" if kind == "full" else None)
+    settings = node_settings(sensor, ServiceConfig(checkpoint=CheckpointConfig(dir=tmp_path)))
+    raw = wearer().raw
+    node = CalibrationNode(settings, Capture())
+    keeper = Checkpoints(tmp_path, 60.0, out=pytest.fail)  # any console line fails the test
+    def at(minutes: float) -> int:
+        return round(minutes * 60 * RATE_HZ)
+
+    done = 0
+    for minutes in (1, 25):  # before and after the bootstrap (or a few updates)
+        _feed(node, raw[done:at(minutes)])
+        keeper.save({SID: node})
+        assert node.pipeline is not None
+        assert node.pipeline.bootstrapped == (minutes > 1 or kind != "no_prior")
+        again = make_node(settings, Capture(), keeper)
+        assert again.start == "checkpoint"
+        nxt = raw[at(minutes):at(minutes + 2)]
+        out_a, out_b = node.process(nxt, 0), again.process(nxt, 0)
+        assert out_a is not None and out_b is not None
+        np.testing.assert_array_equal(out_a.calibrated.a_g, out_b.calibrated.a_g)
+        assert again.pipeline is not None and node.pipeline.counts == again.pipeline.counts
+        done = at(minutes + 2)
+
+
 def test_file_level_limits() -> None:
     """Depth is measured without parsing (strings skipped); the parser never sees a deep file."""
     assert json_depth(b'{"a": [[1], {"b": "[[[[["}]}') == 3
