@@ -36,6 +36,7 @@ are one line, then a sum at most once a minute).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import errno
 import fcntl
@@ -44,6 +45,7 @@ import logging
 import os
 import re
 import shutil
+import stat
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
@@ -63,6 +65,7 @@ __all__ = [
     "SensorLock",
     "SensorLockedError",
     "checkpoint_path",
+    "json_depth",
     "load_checkpoint",
     "lock_path",
     "lock_sensor",
@@ -139,7 +142,7 @@ def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool
             _replace_with_copy(p, p.with_name(f"{p.name}.prev"))
         os.replace(tmp, p)
     except BaseException:
-        with _quiet():
+        with contextlib.suppress(OSError):
             tmp.unlink()
         raise
     _fsync_dir(p.parent)
@@ -149,7 +152,7 @@ def _replace_with_copy(src: Path, dst: Path) -> None:
     """``dst`` becomes ``src``'s content (a hard link, or a copy where the filesystem has
     none), replaced atomically: a crash leaves the old ``dst`` or the new one."""
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    with _quiet():
+    with contextlib.suppress(OSError):
         tmp.unlink()
     try:
         try:
@@ -158,7 +161,7 @@ def _replace_with_copy(src: Path, dst: Path) -> None:
             shutil.copyfile(src, tmp)
         os.replace(tmp, dst)
     except BaseException:
-        with _quiet():
+        with contextlib.suppress(OSError):
             tmp.unlink()
         raise
 
@@ -174,16 +177,6 @@ def _fsync_dir(directory: Path) -> None:
         pass  # some filesystems cannot fsync a directory; the data file is synced
 
 
-class _quiet:
-    """``with _quiet():`` ignores OSError (best-effort clean-up)."""
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, kind: type | None, exc: BaseException | None, tb: Any) -> bool:
-        return kind is not None and issubclass(kind, OSError)
-
-
 def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
     """A checkpoint written by :func:`save_checkpoint`; None if there is no file.
 
@@ -193,12 +186,15 @@ def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
     """
     p = Path(path)
     try:
+        mode = p.stat().st_mode
+        if stat.S_ISDIR(mode):
+            raise CheckpointError(f"{p}: a directory, not a checkpoint file")
+        if not stat.S_ISREG(mode):  # a FIFO would block the start
+            raise CheckpointError(f"{p}: not a regular file")
         with open(p, "rb") as f:
             data = f.read(MAX_BYTES + 1)
     except FileNotFoundError:
         return None
-    except IsADirectoryError:
-        raise CheckpointError(f"{p}: a directory, not a checkpoint file") from None
     except OSError as exc:
         raise CheckpointError(f"{p}: cannot read ({exc.strerror or exc})") from None
     if len(data) > MAX_BYTES:
@@ -396,7 +392,7 @@ class SensorLock:
 
     def release(self) -> None:
         if self.fd is not None:
-            with _quiet():
+            with contextlib.suppress(OSError):
                 os.close(self.fd)  # the file stays: unlinking it would let two holders race
             self.fd = None
 

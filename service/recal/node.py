@@ -588,7 +588,11 @@ class CalibrationNode:
             raise ValueError(f"checkpoint alignment: {type(exc).__name__}: {exc}") from None
         node = cls(settings, sink, pipeline=pipe, alignment=alignment, start="checkpoint")
         due = doc.get("next_discovery_us")  # absent in checkpoints from before it was kept
-        node._next_discovery_us = int(due) if isinstance(due, (int, float)) else None
+        every_us = round(settings.rediscovery.every_h * 3.6e9)
+        last = pipe.last_t_us or 0
+        # one further ahead than a period never comes: scheduled again from the data
+        node._next_discovery_us = (int(due) if isinstance(due, (int, float))
+                                   and 0 <= due <= last + every_us else None)
         return node
 
     # -- starting -----------------------------------------------------------------------------
