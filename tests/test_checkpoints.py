@@ -178,6 +178,10 @@ def _detector_shape(doc: dict) -> None:  # loads, but every step would fail: the
     doc["pipeline"]["detector"]["zi_hp"] = [[0.0]]
 
 
+def _prior_offsets_100g(doc: dict) -> None:  # its own bounds would move with it
+    doc["pipeline"]["prior"]["mean"][:3] = [100 * S0, 100 * S0, -100 * S0]
+
+
 def _prior_nan(doc: dict) -> None:
     doc["pipeline"]["prior"]["mean"][4] = math.nan
 
@@ -212,6 +216,7 @@ POISONS = {
     "last_t_us_2_70": _edit(_time_2_70),
     "time_years_ahead": _edit(_years_ahead),
     "prior_nan": _edit(_prior_nan),
+    "prior_offsets_100g": _edit(_prior_offsets_100g),
     "detector_state_shape": _edit(_detector_shape),
     "deep_nesting": _deep,
     "directory": _directory,
@@ -306,15 +311,19 @@ def test_a_sound_folder_resumes_without_a_word(tmp_path: Path) -> None:
     _assert_recalibrated(sink)
 
 
-@pytest.mark.parametrize("kind", ["no_prior", "full"])
+@pytest.mark.parametrize("kind", ["no_prior", "full", "zero_g_2048"])
 def test_sound_checkpoints_of_other_starts_resume_bit_for_bit(tmp_path: Path, kind: str) -> None:
     """The checks refuse nothing sound: a bootstrapping sensor (no prior; before and after its
-    ellipsoid start) and the cross-axis model resume and continue exactly as the original."""
-    prior = PriorConfig() if kind == "no_prior" else PriorConfig(counts_per_g=S0)
+    ellipsoid start), the cross-axis model, and an unsigned ADC that reads 2048 counts at 0 g
+    (offsets bounded around that zero-g) resume and continue exactly as the original."""
+    zero = 2048.0 if kind == "zero_g_2048" else 0.0
+    prior = PriorConfig() if kind == "no_prior" else PriorConfig(counts_per_g=S0,
+                                                                   zero_g=(zero,) * 3)
     sensor = SensorConfig(id=SID, rate_hz=RATE_HZ, prior=prior,
                           model="full" if kind == "full" else None)
     settings = node_settings(sensor, ServiceConfig(checkpoint=CheckpointConfig(dir=tmp_path)))
     raw = wearer().raw
+    raw = RawBatch(raw.t_us, raw.v + zero, raw.aux, raw.aux_names)
     node = CalibrationNode(settings, Capture())
     keeper = Checkpoints(tmp_path, 60.0, out=pytest.fail)  # any console line fails the test
     def at(minutes: float) -> int:

@@ -20,12 +20,13 @@ A checkpoint is trusted only after it has been checked (:func:`load_checkpoint` 
 :func:`restore_pipeline` for the state): size and nesting depth, strict JSON (no NaN, no
 infinity, no integer beyond 2^53), the format, then the pipeline rebuilt with
 ``Pipeline.from_state_dict`` inside a guard and its result checked: the estimate and prior
-shaped like the model, finite, inside the model's own ``bounds()``, a symmetric covariance with
-positive variances, device times no later than the checkpoint's last sample (plus a day) and
-that one not after tomorrow in Unix time, and one probe step on a copy that must run and give
-finite output. New state fields are covered by the strict-JSON rule and the probe without
-edits here. The same checks (without the probe) run before each save: a state that would not
-load is never written over a good one.
+shaped like the model, finite, inside the model's own ``bounds()`` (the offsets' centred on
+the configured zero-g, `param_bounds`), a symmetric covariance with positive variances, device
+times no later than the checkpoint's last sample (plus a day) and that one not after tomorrow
+in Unix time, and one probe step on a copy that must run and give finite output. New state
+fields are covered by the strict-JSON rule and the probe without edits here. The same checks
+(without the probe) run before each save: a state that would not load is never written over a
+good one.
 
 Saving: every ``interval_s`` (spread over sensors, :class:`CheckpointSchedule`) and, after an
 accepted update, within ``after_update_s`` (so a crash loses seconds of progress, not a
@@ -54,6 +55,8 @@ from typing import Any
 
 import numpy as np
 
+from recal.core.estimator import Prior
+from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.samples import RawBatch
 
@@ -69,6 +72,7 @@ __all__ = [
     "load_checkpoint",
     "lock_path",
     "lock_sensor",
+    "param_bounds",
     "pipeline_problem",
     "previous_path",
     "restore_pipeline",
@@ -245,18 +249,19 @@ def _bounded_int(text: str) -> int:
 # The state inside
 # ---------------------------------------------------------------------------------------------
 
-def restore_pipeline(state: Any, *, probe: bool = True, now_unix_s: float | None = None
-                     ) -> Pipeline:
+def restore_pipeline(state: Any, *, reference: tuple[SensorModel, Prior | None] | None = None,
+                     probe: bool = True, now_unix_s: float | None = None) -> Pipeline:
     """A pipeline rebuilt from a checkpoint's ``pipeline`` state, checked (CheckpointError
-    saying why if it cannot be trusted). Any exception while rebuilding is caught: a
-    checkpoint never crashes a start."""
+    saying why if it cannot be trusted). ``reference``: the configured model and prior, whose
+    zero-g centres the offsets' bounds (else the checkpoint's own prior does). Any exception
+    while rebuilding is caught: a checkpoint never crashes a start."""
     if not isinstance(state, dict):
         raise CheckpointError("no pipeline state")
     try:
         pipe = Pipeline.from_state_dict(state)
     except Exception as exc:  # any shape or type a poisoned file gives
         raise CheckpointError(f"does not restore: {type(exc).__name__}: {exc}") from None
-    why = pipeline_problem(pipe, now_unix_s, state)
+    why = pipeline_problem(pipe, now_unix_s, state, reference)
     if why is None and probe:
         why = _probe_problem(pipe)
     if why is not None:
@@ -265,25 +270,51 @@ def restore_pipeline(state: Any, *, probe: bool = True, now_unix_s: float | None
 
 
 def pipeline_problem(pipe: Pipeline, now_unix_s: float | None = None,
-                     state: Mapping[str, Any] | None = None) -> str | None:
+                     state: Mapping[str, Any] | None = None,
+                     reference: tuple[SensorModel, Prior | None] | None = None) -> str | None:
     """Why this pipeline's state cannot be trusted, or None. Checks what every update and every
-    sample depends on: the estimate and prior (shapes, finite, inside the model's bounds,
-    covariance), the detector, and the device times (in ``state``, the pipeline's
+    sample depends on: the estimate and prior (shapes, finite, inside the bounds, covariance;
+    see `param_bounds`), the detector, and the device times (in ``state``, the pipeline's
     ``state_dict()`` if it is at hand, else made here)."""
     try:
-        return (_estimate_problem(pipe) or _detector_problem(pipe)
+        return (_estimate_problem(pipe, reference) or _detector_problem(pipe)
                 or _times_problem(pipe, time.time() if now_unix_s is None else now_unix_s,
                                   state))
     except Exception as exc:  # a field of the wrong type
         return f"unreadable state: {type(exc).__name__}: {exc}"
 
 
-def _estimate_problem(pipe: Pipeline) -> str | None:
+def param_bounds(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Where a restored estimate and prior mean must lie: the model's own bounds
+    (`SensorModel.bounds`), the offsets' centred on the configured zero-g (``reference``'s
+    prior) or else the checkpoint's prior's, as the estimator's gate holds updates around the
+    prior's zero-g (an unsigned ADC reads ~2048 counts at 0 g). The configured zero-g, when
+    known, also bounds the checkpoint's own prior: a poisoned prior cannot move its bounds."""
+    model = pipe.model
+    lo, hi = model.bounds()
+    key = ("offset", None)
+    if not model.has(*key):
+        return lo, hi
+    centre: np.ndarray | None = None
+    if reference is not None and reference[1] is not None and reference[0].has(*key):
+        centre = np.asarray(reference[1].mean)[reference[0].slice(key)]
+    elif pipe.prior is not None:
+        centre = np.asarray(pipe.prior.mean)[model.slice(key)]
+    if centre is not None and centre.shape == (3,) and np.isfinite(centre).all():
+        sl = model.slice(key)
+        lo[sl] += centre
+        hi[sl] += centre
+    return lo, hi
+
+
+def _estimate_problem(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | None
+                      ) -> str | None:
     model = pipe.model
     n = len(model.names)
     if not (np.isfinite(model.s0) and model.s0 > 0):
         return f"model s0 {model.s0!r} is not a positive number"
-    lo, hi = model.bounds()
+    lo, hi = param_bounds(pipe, reference)
     parts = []
     if pipe.estimate is not None:
         parts.append(("estimate", pipe.estimate.p, pipe.estimate.cov))

@@ -573,7 +573,7 @@ class CalibrationNode:
         if doc.get("sensor_id") != settings.sensor_id:
             raise ValueError(f"checkpoint is for sensor {doc.get('sensor_id')!r}, "
                              f"not {settings.sensor_id!r}")
-        pipe = restore_pipeline(doc.get("pipeline"))
+        pipe = restore_pipeline(doc.get("pipeline"), reference=(settings.model, settings.prior))
         kinds = [e.kind for e in pipe.model.effects]
         configured = [e.kind for e in settings.model.effects]
         grown = settings.rediscovery.enabled and {e.key for e in settings.model.effects} <= {
