@@ -31,6 +31,11 @@ __all__ = ["Located", "fit_ellipsoid", "fit_sphere", "initial_params", "locate",
 
 #: Window means further than this from the sphere (relative: 50 mg) are not still poses.
 LOCATE_OUTLIER_G = 0.05
+#: A sphere whose inliers are further than this from it (relative RMS) is none: the noise of
+#: one still pose fits a tiny sphere around itself at ~0.42 (the chi distribution with 3
+#: degrees of freedom), while a whole recording of a ratiometric part whose zero-g follows a
+#: sagging supply is still a usable first guess at ~0.1.
+LOCATE_MAX_RESIDUAL_G = 0.2
 #: Passes of `locate`'s fit, each dropping the windows the one before put off the sphere.
 LOCATE_PASSES = 6
 #: Half-axes the centred directions must reach beyond COVERAGE_LEVEL_G for a fit to stand
@@ -67,7 +72,8 @@ def locate(v: np.ndarray, grid: int = 6) -> Located | None:
     """Zero-g and scale of still window means v (M,3) in any raw unit: a sphere fit
     (`fit_sphere`) repeated without the windows off it (movement a detector with a wrong scale
     let through: their means are short of or beyond 1 g), judged by how the centred inliers
-    cover the orientations. None: too few windows, or no sphere through them."""
+    cover the orientations. None: too few windows, or no sphere through them (inliers further
+    than LOCATE_MAX_RESIDUAL_G from it, RMS)."""
     v = np.asarray(v, np.float64).reshape(-1, 3)
     v = v[np.all(np.isfinite(v), axis=1)]
     keep = np.ones(len(v), bool)
@@ -88,11 +94,14 @@ def locate(v: np.ndarray, grid: int = 6) -> Located | None:
         keep = new
     if fit is None or keep.sum() < 10:
         return None
+    residual = float(np.sqrt(np.mean(dev[keep] ** 2)))
+    if residual > LOCATE_MAX_RESIDUAL_G:  # no sphere: one pose's noise around a tiny one
+        return None
     u = v[keep] - c
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     half = int((u > COVERAGE_LEVEL_G).any(axis=0).sum() + (u < -COVERAGE_LEVEL_G).any(axis=0).sum())
     cells = len(np.unique(cell_of(u, grid)))
-    return Located(c, r, keep, half, cells, float(np.sqrt(np.mean(dev[keep] ** 2))))
+    return Located(c, r, keep, half, cells, residual)
 
 
 def off_by(centre: np.ndarray, scale: float, centre0: np.ndarray, scale0: float,
