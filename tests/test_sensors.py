@@ -15,6 +15,7 @@ import pytest
 
 from recal import cli, sim
 from recal.config import model_and_prior, parse_config
+from recal.core import static
 from recal.core.bootstrap import locate
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
@@ -236,3 +237,28 @@ def test_locate_finds_zero_g_and_scale_from_window_means_only_when_covered() -> 
     one_pose = centre + scale * u[0] + rng.normal(0, 1.5, (40, 3))
     got = locate(one_pose)
     assert got is None or not got.covers()
+
+
+def test_static_tables_of_an_unsigned_adc() -> None:
+    """`recal static` on a 12-bit analog part's table (zero-g ~2048): both fits find it, and
+    gains are named against the fitted scale, not the rows' median norm (~9 g)."""
+    rng = np.random.default_rng(4)
+    dirs = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
+                     if (x, y, z) != (0, 0, 0)], float)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    gains = np.array([1.02, 0.985, 1.0])
+    zero = np.array([2051.0, 2040.0, 2060.0])
+    v = np.round(zero + 372.0 * gains * dirs + rng.normal(0, 0.3, dirs.shape))
+    rows = np.ones(len(v), bool)
+    fit = static.fit_unknown_orientations(v, rows, full=False, loss="l2")
+    assert fit.rel_norm_error.max() < 0.003
+    assert fit.params["gain_reference"]["counts_per_g"] == pytest.approx(372.0 * gains.mean(),
+                                                                          rel=0.002)
+    got = [fit.params["described"]["scale"][f"gain_{a}_pct"] for a in "xyz"]
+    np.testing.assert_allclose(got, 100 * (gains / gains.mean() - 1), atol=0.1)
+    faces = np.flatnonzero(np.abs(dirs).max(axis=1) == 1.0)  # the six face positions
+    known = np.zeros(len(v), bool)
+    known[faces] = True
+    fk = static.fit_known_orientations(v, known)
+    np.testing.assert_allclose(fk.params["O"], zero, atol=1.5)
+    assert fk.rel_norm_error[known].max() < 0.003

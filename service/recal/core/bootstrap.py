@@ -27,7 +27,8 @@ from recal.core.buffer import cell_of
 from recal.core.effects import CrossAxis, Offset, Scale
 from recal.core.model import SensorModel
 
-__all__ = ["Located", "fit_ellipsoid", "fit_sphere", "initial_params", "locate", "off_by"]
+__all__ = ["Located", "fit_ellipsoid", "fit_sphere", "initial_params", "locate", "off_by",
+           "zero_and_scale"]
 
 #: Window means further than this from the sphere (relative: 50 mg) are not still poses.
 LOCATE_OUTLIER_G = 0.05
@@ -182,3 +183,17 @@ def initial_params(model: SensorModel, v: np.ndarray,
         M = U * s[None, :]
         p[fitted.slice(CrossAxis())] = [M[0, 1], M[0, 2], M[1, 2]]
     return fitted, p
+
+
+def zero_and_scale(v: np.ndarray) -> tuple[np.ndarray, float]:
+    """Zero-g and raw units per g of still readings v (M,3): 0 and their median norm (a signed
+    sensor), unless a sphere through them (`locate`, orientations covered) shows those
+    materially wrong (`off_by`: an analog part on an unsigned ADC), then its centre and
+    radius. The batch tools' rule (discover, hindsight, static); the live pipeline's is the
+    same, applied as the windows come (`Pipeline._relocate`)."""
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    s0 = float(np.median(np.linalg.norm(v, axis=1))) if len(v) else 1.0
+    loc = locate(v) if len(v) else None
+    if loc is not None and loc.covers() and off_by(loc.centre, loc.scale, np.zeros(3), s0):
+        return np.asarray(loc.centre, np.float64), float(loc.scale)
+    return np.zeros(3), s0

@@ -53,7 +53,7 @@ from itertools import combinations, pairwise
 import numpy as np
 from scipy import stats
 
-from recal.core.bootstrap import initial_params, locate, off_by
+from recal.core.bootstrap import initial_params, off_by, zero_and_scale
 from recal.core.buffer import Windows
 from recal.core.effects import TIME, Covariates, CrossAxis, Effect, Nonlinearity, make_effect
 from recal.core.estimator import EstimatorConfig, Prior, solve
@@ -223,18 +223,6 @@ def data_from_windows(windows: Windows, aux_names: tuple[str, ...], t0_us: int,
     cov = Covariates.from_samples(kept.t_us, kept.aux, tuple(aux_names), int(t0_us))
     zero, s0 = zero_and_scale(kept.v)
     return DiscoveryData(kept, cov, s0, has_time, dropped=int((~keep).sum()), zero=zero)
-
-
-def zero_and_scale(v: np.ndarray) -> tuple[np.ndarray, float]:
-    """Zero-g and raw units per g of still readings v: 0 and their median norm (a signed
-    sensor), unless a sphere through them (`bootstrap.locate`, orientations covered) shows
-    those materially wrong (`bootstrap.off_by`: an analog part on an unsigned ADC), then its
-    centre and radius. The live pipeline's rule (`Pipeline._relocate`)."""
-    s0 = _median_norm(v)
-    loc = locate(v) if len(v) else None
-    if loc is not None and loc.covers() and off_by(loc.centre, loc.scale, np.zeros(3), s0):
-        return np.asarray(loc.centre, np.float64), float(loc.scale)
-    return np.zeros(3), s0
 
 
 def data_from_batch(batch: RawBatch, cfg: PipelineConfig | None = None,
