@@ -262,3 +262,15 @@ def test_static_tables_of_an_unsigned_adc() -> None:
     fk = static.fit_known_orientations(v, known)
     np.testing.assert_allclose(fk.params["O"], zero, atol=1.5)
     assert fk.rel_norm_error[known].max() < 0.003
+
+
+def test_cli_simulate_writes_a_sensor_type(tmp_path: Path, capsys: Any) -> None:
+    out = tmp_path / "a.mcap"
+    assert cli.main(["simulate", "--out", str(out), "--hours", "0.02", "--rate", "25",
+                     "--sensor-type", "adxl335-adc12"]) == 0
+    v = rec.read_all_raw(out, "sim0").v
+    assert v.min() >= 0 and v.max() <= 4095 and np.all(v == np.round(v))
+    assert abs(float(np.median(v)) - 2048) < 400
+    assert cli.main(["simulate", "--out", str(tmp_path / "b.mcap"), "--hours", "0.02",
+                     "--sensor-type", "no-such-part"]) == 2
+    assert "--sensor-type must be one of" in capsys.readouterr().err
