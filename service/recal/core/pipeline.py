@@ -531,7 +531,6 @@ class Pipeline:
         self.prior = prior
         self.estimate = Estimate.from_prior(prior)
         self.bootstrapped = True
-        self.from_prior = True
         self._redirect()
 
     def _reach(self, idx: int) -> None:
@@ -858,6 +857,8 @@ class Pipeline:
         if half_axes < 5 or cov.cells_filled < self.cfg.bootstrap_min_cells:
             return None
         if self.centre0.any():  # zero-g was found, roughly: coverage around the best centre
+            if self.counts["windows"] % self.cfg.update_every:
+                return None
             loc = locate(self.buffer.windows().v, self.cfg.buffer.grid)
             if loc is None or not loc.covers(cells=self.cfg.bootstrap_min_cells):
                 return None
@@ -890,8 +891,8 @@ class Pipeline:
         the wrong one gated leave the buffer. Later windows bin by their centred directions,
         and the bootstrap waits until those cover the orientations around the centre found
         then (`_try_bootstrap`)."""
-        if len(self.buffer) < 10:
-            return
+        if len(self.buffer) < 10 or self.counts["windows"] % self.cfg.update_every:
+            return  # a sphere fit per update_every windows: a wearer who never turns costs little
         slots = self.buffer.slots()
         loc = locate(self.buffer.v[slots], self.cfg.buffer.grid)
         if (loc is None or not loc.covers(cells=max(4, self.cfg.bootstrap_min_cells // 2))
