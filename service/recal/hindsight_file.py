@@ -116,6 +116,10 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
              f"{s['residual_rms_mg']:.2f} mg"]
     for effect, values in s["described"].items():
         lines.append(f"  {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
+    ref = s.get("gain_reference")
+    if ref is not None and "scale" in s["described"]:
+        lines.append(f"  gains against {ref['counts_per_g']:.6g} raw units per g (the mean "
+                     f"fitted scale: no prior)")
     if s["held"]:
         lines.append(f"  held at nominal (the recording's poses cannot determine them): "
                      f"{', '.join(s['held'])}")
