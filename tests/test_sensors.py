@@ -7,6 +7,7 @@ a floor of about 1 mg)."""
 from __future__ import annotations
 
 import json
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -220,6 +221,34 @@ def test_unsigned_start_is_the_same_for_any_batching_and_after_a_checkpoint() ->
     b2, v2 = _run(resumed, rest, 500)
     np.testing.assert_array_equal(b1, b2)
     assert v1 == v2 and pipe.phase == resumed.phase == "bootstrap"
+
+
+def test_unsigned_start_reports_each_message_state_when_messages_are_joined() -> None:
+    """`step(marks=...)` across the re-centring (which redoes part of the batch): the states
+    at the marks are those stepping each message alone shows, and so is the output."""
+    s = _sim("adxl335-adc12", seed=3, minutes=12.0)
+    rng = np.random.default_rng(5)
+    cuts = np.cumsum(rng.integers(1, 700, size=len(s.raw)))
+    cuts = [0, *cuts[cuts < len(s.raw)].tolist(), len(s.raw)]
+    msgs = [s.raw[a:b] for a, b in pairwise(cuts)]
+    new = lambda: Pipeline(PipelineConfig(rate_hz=RATE), SensorModel.diagonal(), None, ())  # noqa: E731
+    seq, expected, a_seq = new(), {}, []
+    for m, end in zip(msgs, cuts[1:], strict=True):
+        out = seq.step(m)
+        a_seq.append(out.calibrated.a_g)
+        if out.updates:
+            expected[end] = json.dumps(seq.summary(), sort_keys=True, default=str)
+    joined, got, a_joined = new(), {}, []
+    for lo in range(0, len(msgs), 7):  # 7 messages per step
+        base = cuts[lo]
+        out = joined.step(RawBatch.concat(msgs[lo:lo + 7]),
+                          marks=[e - base for e in cuts[lo + 1:lo + 8]])
+        a_joined.append(out.calibrated.a_g)
+        got |= {base + m: json.dumps(st, sort_keys=True, default=str)
+                for m, (_, st) in out.states.items()}
+    np.testing.assert_array_equal(np.concatenate(a_seq), np.concatenate(a_joined))
+    assert len(expected) >= 10 and got == expected
+    assert seq.phase == joined.phase == "bootstrap"
 
 
 def test_locate_finds_zero_g_and_scale_from_window_means_only_when_covered() -> None:
