@@ -91,6 +91,11 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         offset_drift_g_per_h=tuple(np.full(3, a.drift_mg_per_h / 1e3) * rng.choice([-1, 1], 3)),
         q_per_g=tuple(np.full(3, a.nonlinearity_pct / 100) * rng.choice([-1, 1], 3)),
         temp_channel=a.temp_name, supply_channel=a.supply_name)
+    if a.sensor_type:  # the type's fields (counts per g, zero-g, ADC) over the options'
+        if a.sensor_type not in sim.SENSOR_TYPES:
+            raise UsageError(f"--sensor-type must be one of {', '.join(sim.SENSOR_TYPES)}, "
+                             f"not {a.sensor_type!r}")
+        sensor = replace(sensor, **sim.SENSOR_TYPES[a.sensor_type])
     temp = {k: v for k, v in (("temp_wander_c", a.temp_wander_c),
                               ("temp_wander_tau_min", a.temp_tau_min)) if v is not None}
     wearer = sim.WearerSpec(upright_only=a.upright_only, always_aux=a.aux, **temp)
@@ -568,6 +573,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="white noise per axis (default 4)")
     s.add_argument("--counts-per-g", type=float, default=1024.0,
                    help="ADC scale (default 1024); 0: no ADC, readings in g")
+    s.add_argument("--sensor-type", metavar="TYPE",
+                   help="a sensor people plug in: adxl335-adc12, mma7260-adc14 (analog, "
+                        "unsigned ADC), digital-2g ... digital-16g, adxl345-10bit, phone-ms2 "
+                        "(floats); its counts per g, zero-g and ADC replace --counts-per-g")
     s.add_argument("--offset-tc-mg-per-c", type=float, default=0.0,
                    help="offset temperature coefficient (random sign per axis)")
     s.add_argument("--gain-tc-pct-per-c", type=float, default=0.0,
