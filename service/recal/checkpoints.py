@@ -289,8 +289,9 @@ def param_bounds(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | N
     """Where a restored estimate and prior mean must lie: the model's own bounds
     (`SensorModel.bounds`), the offsets' centred on the configured zero-g (``reference``'s
     prior) or else the checkpoint's prior's, as the estimator's gate holds updates around the
-    prior's zero-g (an unsigned ADC reads ~2048 counts at 0 g). The configured zero-g, when
-    known, also bounds the checkpoint's own prior: a poisoned prior cannot move its bounds."""
+    prior's zero-g (`recal.core.estimator.bounds_around`; an unsigned ADC reads ~2048 counts
+    at 0 g). The configured zero-g, when known, also bounds the checkpoint's own prior: a
+    poisoned prior cannot move its bounds."""
     model = pipe.model
     lo, hi = model.bounds()
     key = ("offset", None)
