@@ -59,6 +59,8 @@ from recal.config import (
     model_and_prior,
 )
 from recal.core import alignment as al
+from recal.core import timebase as tb
+from recal.core.effects import TIME as TIME_COVARIATE
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, StepOutput
@@ -438,10 +440,17 @@ class CalibrationNode:
             None starts one from ``settings`` at the first batch.
         alignment: a known mounting (from a checkpoint).
         start: how the pipeline began: "prior", "bootstrap", "checkpoint", "recording".
+        timebase: the device clock's time base to continue (a checkpoint's or a recording's
+            setup; with a pipeline but none, device time is taken as microseconds).
+
+    Device time goes through :mod:`recal.core.timebase` before ``Pipeline.step`` (unwrapped,
+    units, reboots; never backwards), here where the live node and replay both pass: the raw
+    log keeps the device's values, the calibrated output has the time base's.
     """
 
     def __init__(self, settings: NodeSettings, sink: Sink, *, pipeline: Pipeline | None = None,
-                 alignment: al.Alignment | None = None, start: str | None = None) -> None:
+                 alignment: al.Alignment | None = None, start: str | None = None,
+                 timebase: tb.TimebaseState | None = None) -> None:
         self.settings = settings
         self.sensor_id = settings.sensor_id
         self.sink = sink
@@ -466,8 +475,16 @@ class CalibrationNode:
         self._next_discovery_us: int | None = None
         self._discovery: _Rediscovery | None = None  # a run in its thread
         self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
+        self.timebase = timebase
+        #: why this sensor cannot be calibrated at all (a channel the model needs is missing
+        #: from the stream), reported once as an event; None while it can
+        self.failed: str | None = None
+        #: an operator's console line (the gateway sets it): time units and reboots
+        self.on_note: Callable[[str], None] | None = None
         if pipeline is not None:
             self._tracker = self._make_tracker(pipeline.cfg.rate_hz)
+            if timebase is None:  # from before time bases were kept: microseconds, as then
+                self.timebase = tb.TimebaseState(step_us=1e6 / pipeline.cfg.rate_hz)
 
     # -- public -------------------------------------------------------------------------------
 
@@ -484,6 +501,9 @@ class CalibrationNode:
         if len(batch) == 0:
             return None
         with self._lock:
+            if self.failed is not None:
+                self.samples_skipped += len(batch)
+                return None
             if self.pipeline is None:
                 batch = self._hold_until_rate(batch)
                 if not len(batch):
@@ -510,13 +530,15 @@ class CalibrationNode:
                 self.process(*items.pop(0))  # until the rate is known and the pipeline runs
             pipe = self.pipeline
             if (len(items) < 2 or pipe is None or self.settings.rediscovery.enabled
+                    or self.failed is not None
                     or any(b.aux_names != pipe.aux_names for b, _ in items)):
                 for batch, log_ns in items:
                     self.process(batch, log_ns)
                 return
             ends = np.cumsum([len(b) for b, _ in items]).tolist()
             model, estimate = pipe.model, pipe.estimate  # as of before the step
-            out = pipe.step(RawBatch.concat([b for b, _ in items]), marks=ends)
+            joined = self._device_time(RawBatch.concat([b for b, _ in items]), items[0][1])
+            out = pipe.step(joined, marks=ends)
             self._last_names = pipe.aux_names
             todo = list(out.updates)
             lo = 0
@@ -594,7 +616,8 @@ class CalibrationNode:
                     "saved_unix_s": time.time(), "t_us": self.last_t_us,
                     "pipeline": self.pipeline.state_dict(),
                     "alignment": self.alignment.to_dict() if self.alignment else None,
-                    "next_discovery_us": due}
+                    "next_discovery_us": due,
+                    "timebase": self.timebase.to_dict() if self.timebase else None}
 
     @classmethod
     def from_checkpoint(cls, settings: NodeSettings, sink: Sink,
@@ -615,8 +638,10 @@ class CalibrationNode:
             raise ValueError(f"checkpoint model {model_name(pipe.model)} differs from the "
                              f"configured {model_name(settings.model)}")
         ali = doc.get("alignment")
+        tbd = doc.get("timebase")  # absent in checkpoints from before it was kept
         node = cls(settings, sink, pipeline=pipe,
-                   alignment=al.Alignment.from_dict(ali) if ali else None, start="checkpoint")
+                   alignment=al.Alignment.from_dict(ali) if ali else None, start="checkpoint",
+                   timebase=tb.TimebaseState.from_dict(tbd) if isinstance(tbd, dict) else None)
         due = doc.get("next_discovery_us")  # absent in checkpoints from before it was kept
         node._next_discovery_us = int(due) if isinstance(due, (int, float)) else None
         return node
@@ -624,10 +649,12 @@ class CalibrationNode:
     # -- starting -----------------------------------------------------------------------------
 
     def _hold_until_rate(self, batch: RawBatch) -> RawBatch:
-        """Keep samples until the rate is known; then start the pipeline and return them."""
+        """Keep samples until the rate and the clock's unit are known (``infer_samples``,
+        or two samples with a nominal rate); then start the pipeline and return them."""
         self._pending.append(batch)
         self._pending_n += len(batch)
-        if self.settings.rate_hz is None and self._pending_n < self.settings.infer_samples:
+        need = self.settings.infer_samples if self.settings.rate_hz is None else 2
+        if self._pending_n < need:
             return RawBatch.empty(batch.aux_names)
         # time stamps that never advance give no rate: stop waiting (bounded memory)
         return self._start_pipeline(force=self._pending_n >= 20 * self.settings.infer_samples)
@@ -638,10 +665,23 @@ class CalibrationNode:
         batch = RawBatch.concat([b for b in parts if isinstance(b, RawBatch)])
         self._pending, self._pending_n = [], 0
         s = self.settings
-        rate = s.rate_hz or infer_rate_hz(batch.t_us) or (DEFAULT_RATE_HZ if force else None)
+        missing = [c for c in s.model.covariates if c not in names and c != TIME_COVARIATE]
+        if missing:  # no batch of this stream can be calibrated: say so once, not per batch
+            self.failed = (f"the model needs channel {missing[0]!r}, the stream has "
+                           f"{list(names)}")
+            self.samples_skipped += len(batch)
+            self._event("missing_channel", int(batch.t_us[0]), 0, {
+                "missing": missing, "stream": list(names), "error": self.failed})
+            return RawBatch.empty(names)
+        tcfg = tb.TimebaseConfig(rate_hz=s.rate_hz)
+        state, _ = tb.start(batch.t_us, tcfg)
+        t_out = tb.step(state, batch.t_us, tcfg)[1]  # a look ahead, for the rate only
+        rate = s.rate_hz or infer_rate_hz(t_out) or (DEFAULT_RATE_HZ if force else None)
         if rate is None:  # time stamps all equal: keep waiting for usable ones
             self._pending, self._pending_n = [batch], len(batch)
             return RawBatch.empty(names)
+        # the step the nominal rate gives, so that wraps and reboots are judged by it
+        self.timebase = replace(state, step_us=1e6 / rate)
         cfg = s.pipeline.pipeline_config(rate, s.full_scale_g)
         self.pipeline = Pipeline(cfg, s.model, s.prior, names)
         self._tracker = self._make_tracker(rate)
@@ -656,6 +696,7 @@ class CalibrationNode:
         self._started = True
         self.sink.json(self.sensor_id, "setup", {
             "t_us": t_us, "sensor_id": self.sensor_id, "start": self.start,
+            "timebase": self.timebase.to_dict() if self.timebase else None,
             "rate_hz": self.pipeline.cfg.rate_hz, "plot_every": self._plot_every(),
             "alignment_settings": asdict(self.settings.alignment),
             "alignment": self.alignment.to_dict() if self.alignment else None,
@@ -678,7 +719,7 @@ class CalibrationNode:
         fitted = self._fit_layout(batch, log_ns)
         if fitted is None:
             return None
-        out = pipe.step(fitted)
+        out = pipe.step(self._device_time(fitted, log_ns))
         self._emit(out, log_ns)
         return out
 
@@ -695,6 +736,40 @@ class CalibrationNode:
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
                                  "body")
+
+    def _device_time(self, batch: RawBatch, log_ns: int) -> RawBatch:
+        """The batch on the time base (recal.core.timebase), its events reported."""
+        assert self.timebase is not None and self.pipeline is not None
+        tcfg = tb.TimebaseConfig(rate_hz=self.pipeline.cfg.rate_hz)
+        unit_events: list[dict[str, Any]] = []
+        if self.timebase.last_dev is None:  # the stream's first batch: say how time is read
+            first, unit_events = tb.start(batch.t_us, tcfg)
+            if first.unit_us != self.timebase.unit_us:
+                unit_events = []
+        self.timebase, t_us, events = tb.step(self.timebase, batch.t_us, tcfg)
+        for ev in [*unit_events, *events]:
+            self._time_event(ev, int(t_us[ev["index"]]), log_ns)
+        if np.array_equal(t_us, batch.t_us):
+            return batch
+        return RawBatch(t_us, batch.v, batch.aux, batch.aux_names)
+
+    def _time_event(self, ev: dict[str, Any], t_us: int, log_ns: int) -> None:
+        self._event(ev["kind"], t_us, log_ns, ev["detail"])
+        d = ev["detail"]
+        note = None
+        if ev["kind"] == "time_units":
+            note = (f"device time is in {d['unit']}, not microseconds (as microseconds it "
+                    f"implies {d['implied_rate_hz_as_us']:.0f} Hz; read as {d['unit']}: "
+                    f"{d['rate_hz']:.4g} Hz)")
+        elif ev["kind"] == "time_implausible":
+            note = (f"device time implies {d['implied_rate_hz']:.4g} Hz, outside "
+                    f"{d['min_rate_hz']:g}-{d['max_rate_hz']:g} Hz in any unit: check the "
+                    "time column")
+        elif ev["kind"] == "time_reboot":
+            note = (f"device time restarted ({d['device_before']} -> {d['device_after']} "
+                    f"{d['unit']}): the device rebooted; output time continues")
+        if note is not None and self.on_note is not None:
+            self.on_note(note)
 
     def _as_of(self) -> tuple[SensorModel, Any]:
         """Model and estimate as of the batch being reported (see ``_view``)."""
