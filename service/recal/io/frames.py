@@ -917,10 +917,13 @@ def _format_number(x: float) -> str:
     return repr(x)
 
 
-def encode_ascii(batch: RawBatch, header: bool = False, line_ending: str = "\n") -> bytes:
+def encode_ascii(batch: RawBatch, header: bool = False, line_ending: str = "\n", *,
+                 time_column: bool = True, header_prefix: str = "#") -> bytes:
     """Device side of the ASCII format: optional ``#t_us,x,y,z,<aux names>`` header, then lines.
 
     Numbers are written with ``repr`` quality, so parsing gives back exactly the same floats.
+    ``time_column=False`` writes ``x,y,z[,aux]`` lines (and header) as simple firmware does;
+    ``header_prefix=""`` a header without ``#``.
     """
     if line_ending not in ("\n", "\r\n"):
         raise ValueError("line_ending must be '\\n' or '\\r\\n'")
@@ -929,11 +932,15 @@ def encode_ascii(batch: RawBatch, header: bool = False, line_ending: str = "\n")
         bad = [n for n in batch.aux_names if not _NAME_RE.fullmatch(n) or _FLOAT_RE.fullmatch(n)]
         if bad:
             raise ValueError(f"auxiliary names {bad} cannot be written in an ASCII header")
-        out.append(",".join(("#t_us", "x", "y", "z", *batch.aux_names)) + line_ending)
+        names = ("t_us", "x", "y", "z") if time_column else ("x", "y", "z")
+        out.append(header_prefix + ",".join((*names, *batch.aux_names)) + line_ending)
     values = np.hstack((batch.v, batch.aux)).tolist()
     fmt = _format_number
-    out.extend(f"{t},{','.join(map(fmt, row))}{line_ending}"
-               for t, row in zip(batch.t_us.tolist(), values, strict=True))
+    if time_column:
+        out.extend(f"{t},{','.join(map(fmt, row))}{line_ending}"
+                   for t, row in zip(batch.t_us.tolist(), values, strict=True))
+    else:
+        out.extend(f"{','.join(map(fmt, row))}{line_ending}" for row in values)
     return "".join(out).encode("ascii")
 
 
