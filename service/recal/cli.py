@@ -373,14 +373,37 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="handle what arrived every this many ms instead of at once: less CPU, "
                    "up to this much more latency (default: the config's batch_ms, 0 = at once; "
                    "100 for a battery-powered gateway)")
+    p.add_argument("--rate", type=_positive, metavar="HZ",
+                   help="the sensors' sample rate (as the config's rate_hz); with it, lines "
+                   "without a time column (x,y,z[,aux]) are stamped first arrival + i / rate")
+    p.add_argument("--aux-names", type=_names, metavar="A,B",
+                   help="the auxiliary channels after x,y,z, by name (as the config's "
+                   "aux_names; '' for none; default: the device's header)")
+    p.add_argument("--prior", metavar="NAME", help="a named prior (the config's priors_file "
+                   "or [priors]; without --config, configs/sensor-priors.toml)")
+    p.add_argument("--counts-per-g", type=_positive, metavar="N",
+                   help="nominal sensitivity in raw units per g (the prior's counts_per_g)")
+    p.add_argument("--zero-g", type=float, metavar="N",
+                   help="the reading at 0 g, raw units, every axis (the prior's zero_g)")
+
+
+def _names(text: str) -> tuple[str, ...]:
+    """argparse type: comma-separated channel names ('' for none)."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"a name is given twice in {text!r}")
+    return names
 
 
 def run_from_args(a: argparse.Namespace) -> int:
     """The daemon, with the options of `add_run_arguments`."""
     from recal.gateway import run_gateway
 
+    options = {"rate_hz": a.rate, "aux_names": a.aux_names, "prior": a.prior,
+               "counts_per_g": a.counts_per_g, "zero_g": a.zero_g}
     return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model,
-                       batch_s=None if a.batch_ms is None else a.batch_ms / 1e3)
+                       batch_s=None if a.batch_ms is None else a.batch_ms / 1e3,
+                       sensor_options=options)
 
 
 def _cmd_node(a: argparse.Namespace) -> int:
@@ -424,6 +447,7 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
             "`recal repair` recovers the log and the checkpoint resumes the calibration.",
             ("recal run --port /dev/ttyACM0 --sensor-id wrist",
              "recal run --config configs/gateway.toml",
+             "recal run --port /dev/ttyUSB0 --rate 50 --aux-names vdd --prior sim-1024",
              "recal run --port /dev/ttyACM0 --port /dev/ttyACM1 --sensor-id l --sensor-id r")),
     "node": ("A calibration node without serial ports: takes recal/*/raw from gateways that run "
              "with run_nodes = false (through a `recal router` or as peers), and publishes "
