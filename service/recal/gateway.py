@@ -124,6 +124,7 @@ PARSE_NOTE_S = 60.0  # bad input is summed up for the operator at most this ofte
 # a partial line cut at a (re)connect is expected: an event in the log, no line for the operator
 PARSE_NOT_NOTED = frozenset({"resync_dropped", "truncated"})
 STOP_JOIN_S = 10.0
+FINAL_LINE_S = 0.1  # at stop, how long a partial line may take to end
 
 
 # ---------------------------------------------------------------------------------------------
@@ -370,6 +371,14 @@ class Gateway:
             # a last read of every port, not as "readable": an empty read then means nothing
             # was left, not that the device hung up (a port_lost at every stop, before)
             self._guarded_round(sel, [], final=True)
+            # a line the device was writing as we stopped gets a moment to end: cut here, its
+            # rest would start the next run's stream and both halves would be lost
+            deadline = time.monotonic() + FINAL_LINE_S
+            while (time.monotonic() < deadline
+                   and any(getattr(p.source.parser, "partial", False)
+                           for p in self.ports.values() if p.source.is_open)):
+                time.sleep(0.005)
+                self._guarded_round(sel, [], final=True)
         finally:
             sel.close()
 

@@ -393,6 +393,11 @@ class AsciiLineParser:
         """Names of the auxiliary channels as currently known (empty until learnt)."""
         return self._layout.names or ()
 
+    @property
+    def partial(self) -> bool:
+        """Whether part of a line is waiting for its end."""
+        return bool(self._pending)
+
     def feed(self, data: bytes) -> RawBatch:
         """Parse the complete lines in ``pending + data``; keep the unfinished tail."""
         data = bytes(data)
@@ -758,6 +763,11 @@ class CobsFrameParser:
     @property
     def aux_names(self) -> tuple[str, ...]:
         return self._layout.names or ()
+
+    @property
+    def partial(self) -> bool:
+        """Whether part of a frame is waiting for its delimiter."""
+        return bool(self._pending)
 
     def feed(self, data: bytes) -> RawBatch:
         """Parse the complete frames in ``pending + data``; keep the unfinished tail."""

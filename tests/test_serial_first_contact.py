@@ -1,0 +1,303 @@
+"""First contact with a serial device, its clock, and who owns the port: `python -m recal run`
+as a real process on a real pseudo-terminal (recal.io.pty_device), its MCAP read back with
+the mcap reader. Every wait is bounded in count and time."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from gateway_process import GatewayProcess
+from polling import wait_for
+from recal.core.effects import Ratiometric
+from recal.core.model import SensorModel
+from recal.io import recording as rec
+from recal.io.pty_device import PtyDevice
+from recal.samples import RawBatch
+from recal.sim import SensorSpec, simulate
+
+SID = "s1"
+WRAP = 2**32
+
+
+def config(tmp: Path) -> Path:
+    """Zenoh off, the log flushed every 50 ms, checkpoints every 0.25 s; no sensors (ports
+    and priors come from the command line)."""
+    path = tmp / "gateway.toml"
+    path.write_text(f"""[zenoh]
+enabled = false
+
+[mcap]
+flush_interval_s = 0.05
+
+[checkpoint]
+dir = "{tmp / 'ck'}"
+interval_s = 0.25
+""")
+    return path
+
+
+def device_samples(n: int, rate_hz: float, t0_us: int = 1_000_000, seed: int = 4,
+                   aux: tuple[str, ...] = ()) -> RawBatch:
+    """``n`` samples of a simulated wearer in ADC counts (short lines: the pty buffers 13 kB),
+    stamped from ``t0_us``; ``aux`` channels are a supply voltage."""
+    raw = simulate(n / rate_hz / 3600 * 1.01, rate_hz, seed,
+                   SensorSpec.random(np.random.default_rng(seed))).raw[:n]
+    t = t0_us + np.round(np.arange(n) * 1e6 / rate_hz).astype(np.int64)
+    extra = np.round(3.3 + 0.01 * np.random.default_rng(seed).standard_normal((n, len(aux))),
+                     3)
+    return RawBatch(t, raw.v, extra, aux)
+
+
+def run_args(link: str, *more: str) -> list[str]:
+    return ["--port", link, "--sensor-id", SID, "--counts-per-g", "1024", "--zero-g", "0",
+            *more]
+
+
+def stop(gp: GatewayProcess) -> None:
+    gp.proc.send_signal(signal.SIGTERM)
+    assert gp.proc.wait(30) == 0, gp.lines
+    assert not any("Traceback" in ln for ln in gp.lines), gp.lines
+
+
+def finished(path: Path) -> bool:
+    """Whether the recording was closed properly (the mcap reader finds its summary)."""
+    with open(path, "rb") as f:
+        return make_reader(f).get_summary() is not None
+
+
+def raw_logged(path: Path) -> RawBatch:
+    assert finished(path)
+    return rec.read_all_raw(path, SID)
+
+
+def calibrated(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    cal = rec.read_all_calibrated(path, SID)
+    assert np.isfinite(cal.a_g).all()  # no NaN published
+    return cal.t_us, cal.a_g
+
+
+def events(path: Path) -> list[dict]:
+    return [obj for _, obj, _ in rec.iter_json(path, f"/{SID}/events")]
+
+
+def assert_same(got: RawBatch, sent: RawBatch) -> None:
+    np.testing.assert_array_equal(got.t_us, sent.t_us)
+    np.testing.assert_array_equal(got.v, sent.v)
+    np.testing.assert_array_equal(got.aux, sent.aux)
+
+
+def one_error_line(args: list[str], cwd: Path) -> tuple[int, str, float]:
+    """`python -m recal run ...` expected to fail at start: (status, its one stderr line, s)."""
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "recal", "run", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    lines = done.stderr.splitlines()
+    assert "Traceback" not in done.stderr + done.stdout, done.stderr
+    assert len(lines) == 1 and lines[0].startswith("recal: error: "), done.stderr
+    return done.returncode, lines[0], time.monotonic() - started
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def test_a_device_that_talked_before_the_port_opened_loses_nothing(tmp_path: Path,
+                                                                  children: list) -> None:
+    """Header first (without '#'), then lines, all written before the daemon starts: every
+    sample is logged once, under the header's channel name, and calibrated."""
+    link = str(tmp_path / "tty0")
+    sent = device_samples(700, 100.0, aux=("vdd",))
+    with PtyDevice(link, header=True, header_prefix="") as dev:
+        dev.write_batch(sent[:400])  # header + 400 lines, nobody reading yet
+        assert dev.bytes_dropped == 0
+        gp = GatewayProcess(config(tmp_path), tmp_path / "run.mcap",
+                            run_args(link, "--rate", "100"))
+        children.append(gp)
+        dev.write_batch(sent[400:])
+        assert dev.bytes_dropped == 0
+        assert wait_for(lambda: gp.has_open(os.path.realpath(link)), 10)
+        time.sleep(0.5)
+        stop(gp)
+    got = raw_logged(gp.mcap)
+    assert got.aux_names == ("vdd",)
+    assert_same(got, sent)
+    t_cal, _ = calibrated(gp.mcap)
+    np.testing.assert_array_equal(t_cal, sent.t_us)
+    assert "missing_channel" not in [e["kind"] for e in events(gp.mcap)]
+
+
+def test_a_model_needing_a_channel_the_stream_lacks_is_one_error(tmp_path: Path,
+                                                                 children: list) -> None:
+    """A model with a supply term on 'vdd' and a device whose header-less lines give
+    positional names: one error line, exit 2, the MCAP finished with what was logged; the
+    same with --aux-names that lack it, refused before anything starts."""
+    model = SensorModel.diagonal(1024.0).with_effect(Ratiometric("vdd", 3.3), 0.5)
+    model_file = tmp_path / "vdd-model.json"
+    model_file.write_text(json.dumps(model.to_dict()))
+    link = str(tmp_path / "tty0")
+    sent = device_samples(300, 100.0, aux=("vdd",))
+    mcap = tmp_path / "run.mcap"
+    with PtyDevice(link, header=False) as dev:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "recal", "run", "--config", str(config(tmp_path)),
+             "--mcap", str(mcap), *run_args(link, "--rate", "100", "--model", str(model_file))],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            assert wait_for(lambda: dev.write_batch(sent[:10]) > 0 and proc.poll() is not None,
+                            30, 0.2)
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    assert proc.returncode == 2, err
+    assert "Traceback" not in out + err, err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("recal: error: sensor s1: the model needs "
+                                                   "channel 'vdd'"), err
+    assert "aux0" in lines[0]
+    got = raw_logged(mcap)  # finished, and what was read is in it
+    assert len(got) >= 2 and np.isin(got.t_us, sent.t_us).all()
+    assert [e["kind"] for e in events(mcap)].count("missing_channel") == 1
+
+    status, line, _ = one_error_line(
+        ["--config", str(config(tmp_path)), "--mcap", str(tmp_path / "b.mcap"),
+         *run_args(str(tmp_path / "absent"), "--aux-names", "temp", "--model", str(model_file))],
+        tmp_path)
+    assert status == 2 and "needs channel 'vdd'" in line and "['temp']" in line
+    assert not (tmp_path / "b.mcap").exists()
+
+
+def test_sigterm_and_restart_while_the_device_writes_loses_nothing(tmp_path: Path,
+                                                                  children: list) -> None:
+    """What the kernel buffered while the daemon was down (2 s and the restart) is read after
+    the re-open: the two logs together hold every sample the device wrote, once, in order."""
+    link = str(tmp_path / "tty0")
+    sent = device_samples(450, 50.0)  # 9 s at 50 Hz
+    cfg = config(tmp_path)
+    with PtyDevice(link, header=True) as dev:
+        first = GatewayProcess(cfg, tmp_path / "a.mcap", run_args(link, "--rate", "50"))
+        children.append(first)
+        dev.start_streaming(sent, rate_hz=50.0)
+        time.sleep(2.5)
+        stop(first)
+        time.sleep(2.2)  # the device goes on writing; nobody reads
+        second = GatewayProcess(cfg, tmp_path / "b.mcap", run_args(link, "--rate", "50"))
+        children.append(second)
+        assert dev.join(20.0)
+        assert dev.bytes_dropped == 0
+        time.sleep(0.5)
+        stop(second)
+    a, b = raw_logged(first.mcap), raw_logged(second.mcap)
+    assert len(a) > 50 and len(b) > 150
+    assert_same(RawBatch.concat([a, b]), sent)
+    assert "start: checkpoint" in " ".join(second.lines) or \
+        "'s1': 'checkpoint'" in (second.ready_line or "")
+
+
+def test_a_second_daemon_on_a_held_port_exits_at_once_naming_the_holder(
+        tmp_path: Path, children: list) -> None:
+    link = str(tmp_path / "tty0")
+    sent = device_samples(300, 100.0)
+    with PtyDevice(link, header=True) as dev:
+        first = GatewayProcess(config(tmp_path), tmp_path / "a.mcap", run_args(link))
+        children.append(first)
+        assert wait_for(lambda: first.has_open(os.path.realpath(link)), 10)
+        dev.start_streaming(sent, rate_hz=100.0)
+        (tmp_path / "other").mkdir()
+        status, line, took_s = one_error_line(
+            ["--config", str(config(tmp_path / "other")), "--mcap", str(tmp_path / "b.mcap"),
+             *run_args(link)], tmp_path)
+        assert status != 0 and took_s < 15
+        assert f"port {link} is in use by process {first.proc.pid}" in line, line
+        assert not (tmp_path / "b.mcap").exists()
+        assert dev.join(10.0) and dev.bytes_dropped == 0
+        time.sleep(0.3)
+        stop(first)
+    assert_same(raw_logged(first.mcap), sent)  # the first kept every sample
+
+
+def test_bad_port_values_are_one_error_line_quickly(tmp_path: Path) -> None:
+    (tmp_path / "file.txt").write_text("not a device\n")
+    cases = {str(tmp_path / "file.txt"): "is not a character device",
+             str(tmp_path): "is a directory",
+             "/dev/null": "is a character device but not a terminal",
+             "bogus://device": "invalid URL"}
+    for port, fragment in cases.items():
+        status, line, took_s = one_error_line(
+            ["--config", str(config(tmp_path)), "--mcap", str(tmp_path / "x.mcap"),
+             *run_args(port)], tmp_path)
+        assert status == 2 and took_s < 15, (port, status, took_s)
+        assert f"port {port}" in line and fragment in line, line
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_a_missing_port_is_waited_for_and_picked_up(tmp_path: Path, children: list) -> None:
+    link = str(tmp_path / "ttyLATER")
+    gp = GatewayProcess(config(tmp_path), tmp_path / "run.mcap", run_args(link))
+    children.append(gp)
+    waiting = f"{SID}: port missing {link}"
+    assert wait_for(lambda: any(waiting in ln and "waiting for it" in ln for ln in gp.lines),
+                    10), gp.lines
+    sent = device_samples(100, 100.0, aux=("vdd",))
+    with PtyDevice(link, header=True) as dev:
+        assert wait_for(lambda: gp.has_open(os.path.realpath(link)), 10), gp.lines
+        dev.write_batch(sent)
+        time.sleep(0.5)
+        stop(gp)
+    assert any(f"{SID}: port opened {link}" in ln for ln in gp.lines), gp.lines
+    got = raw_logged(gp.mcap)
+    assert got.aux_names == ("vdd",)
+    assert_same(got, sent)
+
+
+@pytest.mark.parametrize("clock", ["us32", "ms", "none"])
+def test_device_clocks_through_the_daemon(tmp_path: Path, children: list, clock: str) -> None:
+    """The raw log keeps what the device wrote; the calibrated output is on the time base:
+    a wrapping micros() unwrapped, millis() read as ms (an event and a console line), lines
+    without time stamped 1/rate apart from their arrival (--rate 50)."""
+    link = str(tmp_path / "tty0")
+    rate = 50.0 if clock == "none" else 100.0
+    t0 = WRAP - 2_000_000 if clock == "us32" else 5_000_000
+    sent = device_samples(400, rate, t0_us=t0, aux=("vdd",))
+    more = ("--rate", "50") if clock == "none" else ()
+    with PtyDevice(link, header=True, clock=clock) as dev:
+        gp = GatewayProcess(config(tmp_path), tmp_path / "run.mcap", run_args(link, *more))
+        children.append(gp)
+        assert wait_for(lambda: gp.has_open(os.path.realpath(link)), 10)
+        for i in range(0, len(sent), 50):
+            dev.write_batch(sent[i:i + 50])
+            time.sleep(0.02)
+        assert dev.bytes_dropped == 0
+        time.sleep(0.5)
+        stop(gp)
+    got = raw_logged(gp.mcap)
+    assert got.aux_names == ("vdd",)
+    np.testing.assert_array_equal(got.v, sent.v)  # every line logged, once
+    t_cal, _ = calibrated(gp.mcap)
+    assert np.all(np.diff(t_cal) > 0)
+    kinds = [e["kind"] for e in events(gp.mcap)]
+    if clock == "us32":
+        np.testing.assert_array_equal(got.t_us, sent.t_us % WRAP)  # as the device wrote it
+        np.testing.assert_array_equal(t_cal, sent.t_us)  # unwrapped
+        assert kinds.count("time_wrap") == 1
+    elif clock == "ms":
+        np.testing.assert_array_equal(got.t_us, sent.t_us // 1000)
+        np.testing.assert_array_equal(t_cal, (sent.t_us // 1000) * 1000)
+        assert kinds.count("time_units") == 1
+        assert any("device time is in ms" in ln for ln in gp.lines), gp.lines
+    else:
+        np.testing.assert_array_equal(np.diff(got.t_us), 20_000)
+        np.testing.assert_array_equal(t_cal, got.t_us)
+        assert abs(got.t_us[0] / 1e6 - time.time()) < 60  # stamped from its arrival
