@@ -22,6 +22,7 @@ from recal.core.effects import Ratiometric
 from recal.core.model import SensorModel
 from recal.io import recording as rec
 from recal.io.pty_device import PtyDevice
+from recal.replay import replay
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, simulate
 
@@ -287,6 +288,9 @@ def test_device_clocks_through_the_daemon(tmp_path: Path, children: list, clock:
     np.testing.assert_array_equal(got.v, sent.v)  # every line logged, once
     t_cal, _ = calibrated(gp.mcap)
     assert np.all(np.diff(t_cal) > 0)
+    # replay of the raw log applies the same time base (the node's, with its setup)
+    replay(gp.mcap, tmp_path / "replayed.mcap", progress=False)
+    np.testing.assert_array_equal(calibrated(tmp_path / "replayed.mcap")[0], t_cal)
     kinds = [e["kind"] for e in events(gp.mcap)]
     if clock == "us32":
         np.testing.assert_array_equal(got.t_us, sent.t_us % WRAP)  # as the device wrote it

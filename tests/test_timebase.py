@@ -225,3 +225,27 @@ def test_xyz_lines_with_a_rate_calibrate() -> None:
     sink = MemorySink()
     feed(node(rate, sink), raw)
     assert error_after_30_min_mg(sink, res, rate) <= 1.5
+
+
+def test_recal_import_writes_the_time_base_and_says_so(tmp_path, capsys) -> None:
+    """A CSV whose t_us column is a 16-bit millisecond counter (it wraps every 65.5 s) with a
+    reboot: imported as unwrapped, never-backwards microseconds, each finding one line."""
+    from recal.cli import main
+    from recal.io import recording as rec
+
+    n = 4000  # 160 s at 25 Hz: wraps twice, then the device reboots
+    truth_ms = 1000 + np.arange(n, dtype=np.int64) * 40
+    dev_ms = truth_ms % 2**16
+    dev_ms[3400:] = 500 + np.arange(n - 3400) * 40  # rebooted: counts again from 0.5 s
+    rows = "\n".join(f"{t},{i % 7},{-i % 5},1024" for i, t in enumerate(dev_ms.tolist()))
+    (tmp_path / "in.csv").write_text("t_us,x,y,z\n" + rows + "\n")
+    assert main(["import", str(tmp_path / "in.csv"), "--out", str(tmp_path / "o.mcap"),
+                 "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "the time column counts ms, not microseconds" in out
+    assert "wrapped 2 time(s) (period 65536 ms)" in out
+    assert "restarted near 0 1 time(s)" in out
+    got = rec.read_all_raw(tmp_path / "o.mcap", "imported")
+    assert len(got) == n and np.all(np.diff(got.t_us) > 0)
+    np.testing.assert_array_equal(got.t_us[:3400], truth_ms[:3400] * 1000)
+    np.testing.assert_array_equal(np.diff(got.t_us[3400:]), 40_000)

@@ -121,6 +121,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
     writer: recording.RecordingWriter | None = None
     samples, skipped, bad_lines = 0, 0, []
     units, aux_names = "", ()
+    clock = _ImportClock(a.rate)
     # a bar on a terminal only: not in a pipe, a log or a test's captured stderr
     bar = tqdm(total=Path(a.input).stat().st_size, unit="B", unit_scale=True, desc="import",
                disable=a.quiet or not sys.stderr.isatty(), leave=False)
@@ -132,6 +133,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
             batch = table.batch
             if not len(batch):
                 continue
+            batch = clock.step(batch)
             t_us = batch.t_us
             if t_us.min() < 0 or t_us.max() >= 2**64 // 1000:  # MCAP log time = t_us * 1000 ns
                 raise UsageError(f"{a.input}: times must be from 0 to 584 years in "
@@ -156,7 +158,58 @@ def _cmd_import(a: argparse.Namespace) -> int:
     writer.close()
     print(f"imported {samples} samples ({units}, channels {list(aux_names) or 'none'}) into "
           f"{a.out}; {skipped} bad rows skipped")
+    for line in clock.lines():
+        print(line)
     return 0
+
+
+class _ImportClock:
+    """`recal import`'s time base (recal.core.timebase), chunk by chunk: a time column in
+    milliseconds under a microsecond name, a wrapping counter, a reboot are written as the
+    live node would calibrate them (unwrapped microseconds, never backwards) and said."""
+
+    def __init__(self, rate_hz: float | None) -> None:
+        from recal.core import timebase as tb
+
+        self._tb = tb
+        self.cfg = tb.TimebaseConfig(rate_hz=rate_hz)
+        self.state: tb.TimebaseState | None = None
+        self.events: list[dict] = []
+
+    def step(self, batch: RawBatch) -> RawBatch:
+        from recal.samples import RawBatch
+
+        if self.state is None:
+            self.state, self.events = self._tb.start(batch.t_us, self.cfg)
+        self.state, t_us, events = self._tb.step(self.state, batch.t_us, self.cfg)
+        self.events += [e for e in events if e["kind"] != "time_anomalies"]
+        if np.array_equal(t_us, batch.t_us):
+            return batch
+        return RawBatch(t_us, batch.v, batch.aux, batch.aux_names)
+
+    def lines(self) -> list[str]:
+        """What the time base did, for a person (nothing when the times were clean)."""
+        out = []
+        for e in self.events:
+            d = e["detail"]
+            if e["kind"] == "time_units":
+                out.append(f"time: the time column counts {d['unit']}, not microseconds (as "
+                           f"microseconds it implies {d['implied_rate_hz_as_us']:.0f} Hz); "
+                           f"written as {d['rate_hz']:.4g} Hz in microseconds")
+            elif e["kind"] == "time_implausible":
+                out.append(f"time: the time column implies {d['implied_rate_hz']:.4g} Hz in "
+                           "any unit; written as it is (check it)")
+        s = self.state
+        if s is not None and s.wraps:
+            out.append(f"time: the counter wrapped {s.wraps} time(s) (period {s.period} "
+                       f"{s.unit}); written unwrapped")
+        if s is not None and s.reboots:
+            out.append(f"time: the device time restarted near 0 {s.reboots} time(s) (a "
+                       "reboot); written continuing")
+        if s is not None and s.backwards + s.duplicates + s.jumps:
+            out.append(f"time: {s.backwards} steps back, {s.duplicates} repeated and "
+                       f"{s.jumps} jumps over 2 s; written never going back")
+        return out
 
 
 def _cmd_export(a: argparse.Namespace) -> int:
