@@ -305,3 +305,45 @@ def test_device_clocks_through_the_daemon(tmp_path: Path, children: list, clock:
         np.testing.assert_array_equal(np.diff(got.t_us), 20_000)
         np.testing.assert_array_equal(t_cal, got.t_us)
         assert abs(got.t_us[0] / 1e6 - time.time()) < 60  # stamped from its arrival
+
+
+TIOCGEXCL = 0x80045440  # Linux _IOR('T', 0x40, int): is the tty in exclusive mode
+
+
+def _exclusive(fd: int) -> bool:
+    import array
+    import fcntl
+
+    flag = array.array("i", [0])
+    fcntl.ioctl(fd, TIOCGEXCL, flag)
+    return bool(flag[0])
+
+
+def test_the_port_is_held_exclusively_while_open_and_released_at_close(tmp_path: Path) -> None:
+    """In process: TIOCEXCL set while a source holds the tty and cleared when it closes (the
+    pty's device side keeps it open: a flag left set would lock out the next non-root run);
+    a second source gets port_busy naming this PID, then opens once the first closed."""
+    from recal.io.frames import AsciiLineParser
+    from recal.io.serial_source import SerialSource
+
+    link = str(tmp_path / "tty0")
+    with PtyDevice(link, header=True) as dev:
+        slave = dev._slave
+        assert slave is not None and not _exclusive(slave)
+        first = SerialSource(link, AsciiLineParser(), backoff_initial_s=0.02)
+        second = SerialSource(link, AsciiLineParser(), backoff_initial_s=0.02)
+        try:
+            _, ev = first.poll()
+            assert [e.kind for e in ev] == ["port_opened"] and _exclusive(slave)
+            _, ev = second.poll()
+            assert [e.kind for e in ev] == ["port_busy"]
+            assert ev[0].detail["holder_pid"] == os.getpid()
+            assert ev[0].detail["error"] == f"in use by process {os.getpid()}"
+            first.close()
+            assert not _exclusive(slave)
+            assert wait_for(lambda: "port_opened" in [e.kind for e in second.poll()[1]], 2)
+            assert _exclusive(slave)
+        finally:
+            first.close()
+            second.close()
+        assert not _exclusive(slave)

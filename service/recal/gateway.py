@@ -546,7 +546,11 @@ class Gateway:
             return
         p.parse_noted, p.parse_noted_s = snapshot, now_s
         what = ", ".join(f"{k} {v}" for k, v in sorted(new.items()))
-        self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples kept")
+        hint = ""
+        if "wrong_columns" in new and p.sensor.format == "ascii" and p.sensor.rate_hz is None:
+            hint = " (lines x,y,z[,aux] without a time column need the rate: --rate or rate_hz)"
+        self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples "
+                 f"kept{hint}")
 
     def _publish_dropped(self) -> int:
         if self.bus is None:

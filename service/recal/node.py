@@ -25,7 +25,14 @@ Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
 * ``plot``: one JSON message per decimated sample (log only).
 * ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state
   (``pipeline_state_json``, so a replay reproduces the run bit for bit), the rate, the
-  alignment (log only).
+  alignment, the device clock's time base (``timebase``) (log only).
+
+Device time goes through :mod:`recal.core.timebase` right before ``Pipeline.step``: events
+``time_units`` (a clock in ms or s), ``time_implausible``, ``time_wrap``, ``time_reboot``,
+``time_anomalies`` (steps back, duplicates, jumps, counted per batch); the raw topic keeps
+the device's values. A model that needs a channel the stream lacks is one ``missing_channel``
+event at the stream's first batch; the node then skips (``failed``) instead of failing on
+every batch.
 
 Alignment (Zheng et al. sec. II.B): the reference posture is the first quasi-static run of
 ``min_still_s`` (10 s) within ``upright_max_deg`` of +z, after at least one accepted update;

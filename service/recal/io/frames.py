@@ -14,6 +14,11 @@ decimal numbers (integer ADC counts or floats). A header line names the columns,
 ``t_us,x,y,z,temp_c,vdd_v`` or ``#t_us,x,y,z,temp_c,vdd_v``: every field a name (a letter or
 ``_`` first, no spaces), at least four fields. The first four names are ignored (their meaning
 is fixed by position); the rest name the auxiliary channels. Other ``#`` lines are comments.
+Lines without a time column, ``x,y,z[,aux...]`` (a header whose first name is an x axis:
+``x``, ``ax``, ``acc_x``...; or, without a header, three fields), are accepted when the parser
+knows the rate (``rate_hz``): sample i since the last anchor is stamped
+``anchor + round(i * 1e6 / rate_hz)`` (:meth:`AsciiLineParser.anchor_time`: the shell's clock
+at the first arrival).
 
 Which auxiliary channels a stream carries (its layout) comes from, in this order of authority:
   1. the constructor's ``aux_names`` (configuration): fixed for the parser's life; a header that
@@ -50,7 +55,8 @@ COBS, control characters in a line), ``non_utf8``, ``too_long``, ``non_numeric``
 ``wrong_columns``, ``non_finite`` (NaN/inf in any column), ``out_of_range`` (|x|,|y|,|z| above
 ``max_abs_xyz``; t_us negative or beyond int64), ``bad_crc``, ``bad_length``, ``bad_version``,
 ``header_mismatch``, ``truncated`` (a partial line/frame dropped by :meth:`reset`),
-``resync_dropped`` (the possibly partial first line after a reset). ``header_lines``,
+``resync_dropped`` (the first line after a reset, when nothing shows it is whole: see
+:meth:`AsciiLineParser.reset`). ``header_lines``,
 ``comment_lines`` and ``empty_lines`` are informational and not in ``total``.
 
 Speed: clean input takes a vectorized path (numpy over the whole chunk; ``np.fromstring`` for
