@@ -133,11 +133,11 @@ def _cmd_import(a: argparse.Namespace) -> int:
             batch = table.batch
             if not len(batch):
                 continue
-            batch = clock.step(batch)
             t_us = batch.t_us
             if t_us.min() < 0 or t_us.max() >= 2**64 // 1000:  # MCAP log time = t_us * 1000 ns
                 raise UsageError(f"{a.input}: times must be from 0 to 584 years in "
                                  f"microseconds (found {t_us.min()} to {t_us.max()})")
+            batch = clock.step(batch)  # the file's times as they are checked, then this
             if writer is None:
                 units, aux_names = table.units, batch.aux_names
                 writer = recording.RecordingWriter(a.out, overwrite=True,
