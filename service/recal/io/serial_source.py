@@ -142,35 +142,38 @@ def port_problem(port: str) -> str | None:
         return f"{port} is a directory, not a serial port"
     if not stat.S_ISCHR(st.st_mode):
         return f"{port} is not a character device (a regular file?), not a serial port"
+    if not _is_terminal(port, st):
+        return f"{port} is a character device but not a terminal, not a serial port"
+    return None
+
+
+def _is_terminal(port: str, st: os.stat_result) -> bool:
+    """Whether a character device is a terminal, if possible without opening it (opening a
+    USB serial port raises DTR, which resets many boards): a pty slave by its major number,
+    else the kernel's device class in sysfs; open it only where neither tells."""
+    major, minor = os.major(st.st_rdev), os.minor(st.st_rdev)
+    if 136 <= major <= 143:  # Unix98 pty slaves (/dev/pts/N)
+        return True
+    sysfs = f"/sys/dev/char/{major}:{minor}/subsystem"
+    if os.path.exists(sysfs):
+        return os.path.basename(os.path.realpath(sysfs)) == "tty"
     try:  # O_NONBLOCK | O_NOCTTY: does not wait for carrier, does not become our terminal
         fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     except OSError as exc:
-        return None if exc.errno in _BUSY_ERRNOS else f"{port}: {exc.strerror}"
+        return exc.errno in _BUSY_ERRNOS  # held exclusively: only a tty can be
     try:
-        if not os.isatty(fd):
-            return f"{port} is a character device but not a terminal, not a serial port"
+        return os.isatty(fd)
     finally:
         os.close(fd)
-    return None
 
 
 def port_busy(port: str) -> str | None:
-    """``"in use by process N"`` when another process holds the device ``port`` (its flock
-    or TIOCEXCL), else None."""
+    """``"in use by process N"`` when another process holds an flock on the device ``port``
+    (another recal: read from /proc/locks, the device is not opened), else None."""
     if "://" in port or not os.path.exists(port):
         return None
-    try:
-        fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    except OSError as exc:
-        return _busy_text(port) if exc.errno in _BUSY_ERRNOS else None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as exc:
-        return _busy_text(port) if exc.errno in _BUSY_ERRNOS else None
-    finally:
-        os.close(fd)  # (releases the probe's own lock)
-    return None
-
+    pid = port_holder(port)
+    return None if pid is None else f"in use by process {pid}"
 
 def _open_unflushed(port: str, exclusive: bool, **kwargs: Any) -> Any:
     """``serial.serial_for_url(port, ...)``, opened without the input flush that pyserial
