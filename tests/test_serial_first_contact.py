@@ -201,6 +201,7 @@ def test_sigterm_and_restart_while_the_device_writes_loses_nothing(tmp_path: Pat
         time.sleep(0.5)
         stop(second)
     a, b = raw_logged(first.mcap), raw_logged(second.mcap)
+    print(f"\nsent {len(sent)}: first run logged {len(a)}, second {len(b)}")
     assert len(a) > 50 and len(b) > 150
     assert_same(RawBatch.concat([a, b]), sent)
     assert "start: checkpoint" in " ".join(second.lines) or \

@@ -497,7 +497,11 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
             "Zenoh (recal/<sensor>/...), logs everything to MCAP (default: an auto-named file "
             "in recordings/; an existing file is never overwritten) and checkpoints each "
             "sensor's calibration to checkpoints/. Runs until Ctrl-C or SIGTERM; after a crash, "
-            "`recal repair` recovers the log and the checkpoint resumes the calibration.",
+            "`recal repair` recovers the log and the checkpoint resumes the calibration. A port "
+            "is opened exclusively (a second daemon on it stops at once, naming the holder) and "
+            "without discarding what the device already sent; a missing device is waited for. "
+            "Lines without a time column (x,y,z) need --rate; device clocks that wrap, count "
+            "milliseconds or restart are unwrapped, recognised and reported.",
             ("recal run --port /dev/ttyACM0 --sensor-id wrist",
              "recal run --config configs/gateway.toml",
              "recal run --port /dev/ttyUSB0 --rate 50 --aux-names vdd --prior sim-1024",

@@ -580,7 +580,11 @@ class CalibrationNode:
             state = self._state(self.last_t_us, "status") if self.pipeline is not None else {
                 "sensor_id": self.sensor_id, "t_us": None, "reason": "status",
                 "params": None, "alignment": None}
+            tbs = self.timebase
             state["node"] = {"start": self.start, "rate_hz": self.rate_hz,
+                             "time": None if tbs is None else {"unit": tbs.unit,
+                                                               **tbs.counts()},
+                             "failed": self.failed,
                              "samples": self.samples, "samples_skipped": self.samples_skipped,
                              "accepted_updates": self.accepted_updates,
                              "still_s": self._tracker.duration_s if self._tracker else 0.0,
