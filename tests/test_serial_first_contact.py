@@ -21,6 +21,7 @@ from polling import wait_for
 from recal.core.effects import Ratiometric
 from recal.core.model import SensorModel
 from recal.io import recording as rec
+from recal.io.frames import encode_ascii
 from recal.io.pty_device import PtyDevice
 from recal.replay import replay
 from recal.samples import RawBatch
@@ -348,3 +349,66 @@ def test_the_port_is_held_exclusively_while_open_and_released_at_close(tmp_path:
             first.close()
             second.close()
         assert not _exclusive(slave)
+
+
+# --------------------------------------------------------------------------- the first line
+
+
+def _parse_after_break(stream: bytes, **kwargs: object) -> tuple[RawBatch, dict]:
+    from recal.io.frames import AsciiLineParser
+
+    parser = AsciiLineParser(**kwargs)  # type: ignore[arg-type]
+    parser.reset(resync=True)  # as at an open: the first bytes may be any line's tail
+    parts = [parser.feed(stream[i:i + 37]) for i in range(0, len(stream), 37)]
+    parts.append(parser.flush())
+    names = parts[-1].aux_names
+    return RawBatch.concat([RawBatch(p.t_us, p.v, p.aux, names) for p in parts]), \
+        parser.errors.nonzero()
+
+
+def test_a_stream_cut_anywhere_gives_exactly_the_lines_after_the_cut() -> None:
+    """Cut at every byte of its first lines, a stream gives every line that starts at or after
+    the cut (the first one too, when whole) and nothing else: no tail taken for a sample."""
+    sent = device_samples(12, 100.0, t0_us=5_000_000, aux=("vdd",))
+    lines = encode_ascii(sent).splitlines(keepends=True)
+    stream = b"".join(lines)
+    starts = np.cumsum([0] + [len(ln) for ln in lines])
+    for cut in range(int(starts[4])):
+        got, errors = _parse_after_break(stream[cut:])
+        first = int(np.searchsorted(starts, cut))  # the first line that starts at or after
+        assert_same(got, sent[first:])
+        tail = stream[cut:starts[first]].strip()  # (a lone newline is an empty line)
+        assert errors.get("resync_dropped", 0) == (tail != b""), (cut, errors)
+
+
+@pytest.mark.parametrize(("head", "names"), [(b"t_us,x,y,z,vdd\n", ("vdd",)),
+                                             (b"#t_us,x,y,z,vdd\n", ("vdd",)),
+                                             (b"us,x,y,z,vdd\n", ("vdd",)),  # cut in a name
+                                             (b"x,y,z,vdd\n", ("aux0",)),  # a field short
+                                             (b",z,vdd\n", ("aux0",))])
+def test_a_header_first_is_a_header_unless_it_is_a_tail(head: bytes,
+                                                        names: tuple[str, ...]) -> None:
+    sent = device_samples(5, 100.0, t0_us=5_000_000, aux=("vdd",))
+    got, _ = _parse_after_break(head + encode_ascii(sent))
+    assert got.aux_names == names
+    np.testing.assert_array_equal(got.t_us, sent.t_us)
+
+
+def test_lines_without_time_after_a_break() -> None:
+    """Without a header the first line cannot be vouched for (a cut x looks like an x); with
+    an x,y,z header every line is kept, stamped 1/rate apart from the anchor."""
+    sent = device_samples(6, 50.0, aux=("vdd",))
+    body = encode_ascii(sent, time_column=False)
+    # (x,y,z,vdd or t,x,y,z? the configured channel names say: 3 + 1 fields, no time)
+    got, errors = _parse_after_break(body, rate_hz=50.0, aux_names=("vdd",))
+    np.testing.assert_array_equal(got.v, sent.v[1:])
+    assert errors["resync_dropped"] == 1
+    got, errors = _parse_after_break(encode_ascii(sent, header=True, time_column=False,
+                                                  header_prefix=""), rate_hz=50.0)
+    np.testing.assert_array_equal(got.v, sent.v)
+    np.testing.assert_array_equal(np.diff(got.t_us), 20_000)
+    assert got.aux_names == ("vdd",) and "resync_dropped" not in errors
+    # x,y,z and no rate: nothing to stamp them with, counted (the daemon's line hints --rate)
+    xyz = RawBatch(sent.t_us, sent.v, np.zeros((len(sent), 0)), ())
+    got, errors = _parse_after_break(encode_ascii(xyz, time_column=False))
+    assert len(got) == 0 and errors == {"resync_dropped": 1, "wrong_columns": 5}

@@ -321,11 +321,6 @@ def _header_layout(fields_: list[str]) -> tuple[tuple[str, ...], bool]:
     return tuple(fields_[3 if timeless else 4:]), timeless
 
 
-def _whole_header(fields_: list[str]) -> bool:
-    """A header that cannot be the tail of a longer one: it starts with a time name or an x
-    axis (the tail ``y,z,temp_c,vdd_v`` of a header is a header too, with other names)."""
-    return _is_header(fields_) and (_TIME_NAME_RE.fullmatch(fields_[0]) is not None
-                                    or _X_NAME_RE.fullmatch(fields_[0]) is not None)
 
 
 def _parse_t_us(token: str) -> int | str:
@@ -436,12 +431,13 @@ class AsciiLineParser:
         """Forget the partial line (counted ``truncated``) after the byte stream broke.
 
         With ``resync`` the first line after the break may be the tail of a line, which can
-        look like a valid sample. It is kept when it is a header that starts with a time or x
-        name, or a sample that the next line vouches for (as many fields, and with a time
-        column ``0 < t1 - t0 <= t1 / 2``: a tail cut in the time field lost its leading
-        digits, so it is at least half of t1 behind; cut anywhere else it has fewer fields);
-        else it is dropped (``resync_dropped``). Lines without time cannot be vouched for.
-        Lines without time are anchored again at the next arrival.
+        look like a valid sample or header. It is held until the next line, and kept when that
+        line vouches for it: a header (or a ``#`` line, taken at once) when the next line has
+        as many fields; a sample when the next one has as many fields and, with a time column,
+        ``0 < t1 - t0 <= t1 / 2`` (a tail cut in the time field lost its leading digits, so it
+        is at least half of t1 behind; cut anywhere else it has fewer fields). Else it is
+        dropped (``resync_dropped``). A line without time cannot be vouched for. Lines
+        without time are anchored again at the next arrival.
         """
         if self._pending.strip():  # (a too-long line being skipped was counted already)
             self.errors.truncated += 1
@@ -482,13 +478,13 @@ class AsciiLineParser:
             self._fast_lines(chunk, arr, starts[first:], ends[first:], rows)
 
     def _one_line(self, line: bytes, rows: _Rows) -> None:
-        if self._resync and len(line) <= self.max_line_bytes:
+        if self._resync and len(line) <= self.max_line_bytes and line.strip():
             if self._candidate is None:
                 if not self._resync_first(line):
-                    return  # held (or blank): the next line decides
+                    return  # held: the next line decides
             else:
                 candidate, self._candidate, self._resync = self._candidate, None, False
-                if self._layout.timeless is not True and _vouches(candidate, line):
+                if self._whole(candidate, line):
                     self._one_line(candidate, rows)
                 else:
                     self.errors.resync_dropped += 1
@@ -499,21 +495,26 @@ class AsciiLineParser:
             self.errors.add(result)
 
     def _resync_first(self, line: bytes) -> bool:
-        """The first line after a break: True to parse it now (a header, or a comment),
-        False when it is held for the next line to vouch for (or blank)."""
-        text = line.strip()
-        if not text:
-            return False
-        fields_ = [f.strip() for f in text.lstrip(b"#").split(b",")]
-        try:
-            names = [f.decode("ascii") for f in fields_]
-        except UnicodeDecodeError:
-            names = []
-        if text.startswith(b"#") or (names and _whole_header(names)):
+        """The first line after a break: True to parse it now (a ``#`` header or comment:
+        a tail does not start with ``#``), False when it is held for the next line."""
+        if line.lstrip().startswith(b"#"):
             self._resync = False
             return True
         self._candidate = bytes(line)
         return False
+
+    def _whole(self, candidate: bytes, nxt: bytes) -> bool:
+        """Whether the line after ``candidate`` shows it whole: a header by the same number
+        of fields (the tail ``x,y,z,vdd`` of ``t_us,x,y,z,vdd`` has one field less than the
+        lines after it; a tail cut inside the first name keeps the channel names right), a
+        sample by :func:`_vouches`; a line without time never."""
+        try:
+            names = [f.strip() for f in candidate.decode("ascii").split(",")]
+        except UnicodeDecodeError:
+            return False
+        if _is_header(names):
+            return len(names) == nxt.count(b",") + 1
+        return self._layout.timeless is not True and _vouches(candidate, nxt)
 
     def _line_result(self, line: bytes) -> tuple[int, list[float]] | str | None:
         """One line (without its newline): a sample, an error name, or None (nothing to count)."""
