@@ -181,14 +181,16 @@ def _open_unflushed(port: str, exclusive: bool, **kwargs: Any) -> Any:
     if exclusive:
         kwargs["exclusive"] = True
     ser = serial.serial_for_url(port, do_not_open=True, **kwargs)
-    flush = getattr(type(ser), "_reset_input_buffer", None)
-    if flush is not None:
-        ser._reset_input_buffer = lambda: None  # shadows the method during open() only
+    # 3.5 calls _reset_input_buffer() at the end of open(), earlier releases the public one:
+    # shadowed on the instance during open() only
+    flushes = [n for n in ("_reset_input_buffer", "reset_input_buffer") if hasattr(ser, n)]
+    for name in flushes:
+        setattr(ser, name, lambda: None)
     try:
         ser.open()
     finally:
-        if flush is not None:
-            del ser._reset_input_buffer
+        for name in flushes:
+            delattr(ser, name)
     fd = getattr(ser, "fd", None)
     if exclusive and isinstance(fd, int):
         try:  # the kernel's own exclusive open: other (non-root) opens get EBUSY
