@@ -512,7 +512,7 @@ class CalibrationNode:
                 self.samples_skipped += len(batch)
                 return None
             if self.pipeline is None:
-                batch = self._hold_until_rate(batch)
+                batch = self._hold_until_rate(batch, log_time_ns)
                 if not len(batch):
                     return None
             if not self._started:
@@ -569,7 +569,7 @@ class CalibrationNode:
         """End of stream: calibrate samples still held for rate measurement."""
         with self._lock:
             if self.pipeline is None and self._pending:
-                batch = self._start_pipeline(force=True)
+                batch = self._start_pipeline(True, log_time_ns)
                 if len(batch):
                     self._announce(int(batch.t_us[0]), log_time_ns)
                     self._step(batch, log_time_ns)
@@ -659,7 +659,7 @@ class CalibrationNode:
 
     # -- starting -----------------------------------------------------------------------------
 
-    def _hold_until_rate(self, batch: RawBatch) -> RawBatch:
+    def _hold_until_rate(self, batch: RawBatch, log_ns: int) -> RawBatch:
         """Keep samples until the rate and the clock's unit are known (``infer_samples``,
         or two samples with a nominal rate); then start the pipeline and return them."""
         self._pending.append(batch)
@@ -668,9 +668,10 @@ class CalibrationNode:
         if self._pending_n < need:
             return RawBatch.empty(batch.aux_names)
         # time stamps that never advance give no rate: stop waiting (bounded memory)
-        return self._start_pipeline(force=self._pending_n >= 20 * self.settings.infer_samples)
+        return self._start_pipeline(self._pending_n >= 20 * self.settings.infer_samples,
+                                    log_ns)
 
-    def _start_pipeline(self, force: bool) -> RawBatch:
+    def _start_pipeline(self, force: bool, log_ns: int) -> RawBatch:
         names = self._pending[0].aux_names
         parts = [b if b.aux_names == names else _conform(b, names, ()) for b in self._pending]
         batch = RawBatch.concat([b for b in parts if isinstance(b, RawBatch)])
@@ -681,7 +682,7 @@ class CalibrationNode:
             self.failed = (f"the model needs channel {missing[0]!r}, the stream has "
                            f"{list(names)}")
             self.samples_skipped += len(batch)
-            self._event("missing_channel", int(batch.t_us[0]), 0, {
+            self._event("missing_channel", int(batch.t_us[0]), log_ns, {
                 "missing": missing, "stream": list(names), "error": self.failed})
             return RawBatch.empty(names)
         tcfg = tb.TimebaseConfig(rate_hz=s.rate_hz)
