@@ -249,3 +249,21 @@ def test_recal_import_writes_the_time_base_and_says_so(tmp_path, capsys) -> None
     assert len(got) == n and np.all(np.diff(got.t_us) > 0)
     np.testing.assert_array_equal(got.t_us[:3400], truth_ms[:3400] * 1000)
     np.testing.assert_array_equal(np.diff(got.t_us[3400:]), 40_000)
+
+
+def test_frequent_anomalies_are_one_event_a_device_minute_with_totals() -> None:
+    """A clock that repeats a stamp every 10th sample (a coarse ms clock): every repeat is
+    counted, the output strictly increases, and the events stay one a device minute."""
+    res = wearer(5.0, seed=4)
+    t = res.raw.t_us.copy()
+    t[10::10] = t[9::10][:len(t[10::10])]  # every 10th stamp repeats the one before
+    sink = MemorySink()
+    n = node(RATE_HZ, sink)
+    feed(n, RawBatch(t, res.raw.v, res.raw.aux, res.raw.aux_names), batch=7)
+    t_out, a = sink.joined()
+    assert np.all(np.diff(t_out) > 0) and np.isfinite(a).all()
+    said = [e for e in sink.events if e["kind"] == "time_anomalies"]
+    assert 5 <= len(said) <= 6  # 5 device minutes
+    assert n.timebase is not None and n.timebase.duplicates == len(t[10::10])
+    assert said[-1]["detail"]["total"]["duplicates"] <= n.timebase.duplicates
+    assert n.status()["node"]["time"]["duplicates"] == len(t[10::10])

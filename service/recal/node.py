@@ -103,6 +103,7 @@ RECV_ROUND = 4096  # most raw messages a remote node takes from its receiver per
 # 0.2 s of 50 sensors, and a node a second behind lost samples (bench/scale_out.py).
 RECV_CAPACITY = 1 << 17
 DEFAULT_RATE_HZ = 100.0  # only when a stream ends before its rate could be measured
+ANOMALY_EVENT_US = 60_000_000  # time_anomalies events at most this often (device time)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -483,6 +484,7 @@ class CalibrationNode:
         self._discovery: _Rediscovery | None = None  # a run in its thread
         self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
         self.timebase = timebase
+        self._anomalies_said_us = -ANOMALY_EVENT_US  # device time of the last time_anomalies
         #: why this sensor cannot be calibrated at all (a channel the model needs is missing
         #: from the stream), reported once as an event; None while it can
         self.failed: str | None = None
@@ -766,6 +768,12 @@ class CalibrationNode:
         return RawBatch(t_us, batch.v, batch.aux, batch.aux_names)
 
     def _time_event(self, ev: dict[str, Any], t_us: int, log_ns: int) -> None:
+        if ev["kind"] == "time_anomalies":
+            # a millisecond clock above 1 kHz repeats every other stamp: one event a device
+            # minute at most, with the totals (so a replay says the same)
+            if t_us < self._anomalies_said_us + ANOMALY_EVENT_US:
+                return
+            self._anomalies_said_us = t_us
         self._event(ev["kind"], t_us, log_ns, ev["detail"])
         d = ev["detail"]
         note = None
