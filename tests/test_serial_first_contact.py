@@ -439,3 +439,31 @@ def test_run_options_set_what_the_config_would(tmp_path: Path) -> None:
         ["--config", str(config(tmp_path)), "--mcap", str(tmp_path / "x.mcap"), "--port",
          str(tmp_path / "absent"), "--prior", "nosuch"], tmp_path)
     assert status == 2 and "--prior nosuch: no prior named 'nosuch'" in line
+
+
+def test_a_device_reboot_is_an_event_and_a_console_line(tmp_path: Path,
+                                                        children: list) -> None:
+    """The device restarts (its clock from 0, its header again) while the daemon runs: the
+    raw log keeps both clocks, the calibrated time goes on, an event and one console line."""
+    link = str(tmp_path / "tty0")
+    before = device_samples(200, 100.0, t0_us=3_600_000_000)  # an hour after boot
+    after = device_samples(200, 100.0, t0_us=1_500_000, seed=5)  # 1.5 s after a reboot
+    with PtyDevice(link, header=True) as dev:
+        gp = GatewayProcess(config(tmp_path), tmp_path / "run.mcap", run_args(link))
+        children.append(gp)
+        assert wait_for(lambda: gp.has_open(os.path.realpath(link)), 10)
+        dev.write_batch(before)
+        time.sleep(0.3)
+        dev.write_header(())  # it boots, says who it is
+        dev.write_batch(after)
+        assert wait_for(lambda: any("device time restarted" in ln for ln in gp.lines), 10), \
+            gp.lines
+        stop(gp)
+    got = raw_logged(gp.mcap)
+    assert_same(got, RawBatch.concat([before, after]))
+    t_cal, _ = calibrated(gp.mcap)
+    assert np.all(np.diff(t_cal) > 0)
+    np.testing.assert_array_equal(t_cal[:200], before.t_us)
+    assert t_cal[200] - t_cal[199] == 10_000  # one nominal step on
+    assert [e["kind"] for e in events(gp.mcap)].count("time_reboot") == 1
+    assert sum("device time restarted" in ln for ln in gp.lines) == 1
