@@ -467,3 +467,21 @@ def test_a_device_reboot_is_an_event_and_a_console_line(tmp_path: Path,
     assert t_cal[200] - t_cal[199] == 10_000  # one nominal step on
     assert [e["kind"] for e in events(gp.mcap)].count("time_reboot") == 1
     assert sum("device time restarted" in ln for ln in gp.lines) == 1
+
+
+def test_xyz_lines_without_a_rate_are_counted_and_the_console_says_what_is_missing(
+        tmp_path: Path, children: list) -> None:
+    link = str(tmp_path / "tty0")
+    sent = device_samples(100, 50.0)
+    with PtyDevice(link, header=False, clock="none") as dev:
+        gp = GatewayProcess(config(tmp_path), tmp_path / "run.mcap", run_args(link))
+        children.append(gp)
+        assert wait_for(lambda: gp.has_open(os.path.realpath(link)), 10)
+        dev.write_batch(sent)
+        assert wait_for(lambda: any("need the rate: --rate" in ln for ln in gp.lines), 10), \
+            gp.lines
+        stop(gp)
+    assert len(raw_logged(gp.mcap)) == 0
+    totals = [e["detail"]["total"] for e in events(gp.mcap) if e["kind"] == "parse_errors"]
+    # every line counted (the first after the open as resync_dropped: it cannot be vouched)
+    assert totals[-1] == {"wrong_columns": 99, "resync_dropped": 1}
