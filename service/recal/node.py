@@ -104,6 +104,9 @@ RECV_ROUND = 4096  # most raw messages a remote node takes from its receiver per
 RECV_CAPACITY = 1 << 17
 DEFAULT_RATE_HZ = 100.0  # only when a stream ends before its rate could be measured
 ANOMALY_EVENT_US = 60_000_000  # time_anomalies events at most this often (device time)
+# samples the clock's unit is read from when the rate is configured: the median of 7 steps
+# (a repeated stamp or a wrap among the first two would decide it alone)
+UNIT_SAMPLES = 8
 
 
 # ---------------------------------------------------------------------------------------------
@@ -663,10 +666,10 @@ class CalibrationNode:
 
     def _hold_until_rate(self, batch: RawBatch, log_ns: int) -> RawBatch:
         """Keep samples until the rate and the clock's unit are known (``infer_samples``,
-        or two samples with a nominal rate); then start the pipeline and return them."""
+        or ``UNIT_SAMPLES`` with a nominal rate); then start the pipeline and return them."""
         self._pending.append(batch)
         self._pending_n += len(batch)
-        need = self.settings.infer_samples if self.settings.rate_hz is None else 2
+        need = self.settings.infer_samples if self.settings.rate_hz is None else UNIT_SAMPLES
         if self._pending_n < need:
             return RawBatch.empty(batch.aux_names)
         # time stamps that never advance give no rate: stop waiting (bounded memory)
