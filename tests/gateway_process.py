@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 
 from polling import wait_for
@@ -39,10 +40,11 @@ prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
 class GatewayProcess:
     """`python -m recal run` as a child process; its output is read by a thread."""
 
-    def __init__(self, config: Path, mcap: Path) -> None:
+    def __init__(self, config: Path, mcap: Path, args: Sequence[str] = ()) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "recal", "run", "--config", str(config), "--mcap", str(mcap)],
+            [sys.executable, "-m", "recal", "run", "--config", str(config), "--mcap", str(mcap),
+             *args],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()

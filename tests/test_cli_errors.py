@@ -75,8 +75,14 @@ CASES = [
                                "no_effects.json"], 2, "a model needs at least one effect"),
     # a missing port
     ("no port at all", ["run", "--config", "no_zenoh.toml"], 2, "no sensors"),
-    ("port does not exist", ["run", "--config", "no_zenoh.toml", "--port", "ttyNOPE"], 2,
-     "port ttyNOPE: no such device"),
+    ("port is a regular file", ["run", "--config", "no_zenoh.toml", "--port", "no_time.csv"],
+     2, "port no_time.csv is not a character device"),
+    ("port is a directory", ["run", "--config", "no_zenoh.toml", "--port", "."], 2,
+     "port . is a directory"),
+    ("port is not a tty", ["run", "--config", "no_zenoh.toml", "--port", "/dev/null"], 2,
+     "port /dev/null is a character device but not a terminal"),
+    ("port url unknown", ["run", "--config", "no_zenoh.toml", "--port", "bogus://x"], 2,
+     "port bogus://x: invalid URL"),
     ("sensor without port", ["run", "--config", "portless.toml"], 2, "'wrist' has no port"),
     ("ports and ids differ", ["run", "--config", "no_zenoh.toml", "--port", "{tty}",
                               "--sensor-id", "a", "--sensor-id", "b"], 2, "1 ports but 2"),
@@ -225,7 +231,7 @@ def test_one_clear_error_line_and_no_traceback(
 
 
 # One case of each kind again as a real `python -m recal` process: what a user sees.
-AS_PROCESS = ["toml syntax", "port does not exist", "run mcap under a file",
+AS_PROCESS = ["toml syntax", "port is a regular file", "run mcap under a file",
               "csv all rows bad", "missing argument", "router bad endpoint"]
 
 
@@ -246,7 +252,7 @@ def test_nothing_is_left_behind_by_a_failed_start(
     with _workdir_in(tmp_path) as root:
         monkeypatch.chdir(root)
         before = set(os.listdir(root))
-        for case in ("run mcap under a file", "port does not exist", "missing model",
+        for case in ("run mcap under a file", "port is a regular file", "missing model",
                      "csv all rows bad"):
             args = next(c[1] for c in CASES if c[0] == case)
             status, _, _ = _main(_args(args, root), capfd)

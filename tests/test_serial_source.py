@@ -71,7 +71,7 @@ def test_reads_every_sample_over_a_pty(link: str, fmt: str) -> None:
     batch = _batch(2000)
     with PtyDevice(link, fmt) as device, \
             SerialSource(link, make_parser(fmt, None if fmt == "ascii" else AUX)) as source:
-        first, events = source.read_batch(0.0)  # opens the port (pyserial flushes input)
+        first, events = source.read_batch(0.0)  # opens the port (the device sent nothing yet)
         assert _kinds(events) == ["port_opened"] and len(first) == 0
         # From a thread: a pty buffers only a few kB, so one big write would wait for us.
         device.start_streaming(batch, rate_hz=1e6)

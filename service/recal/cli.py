@@ -126,6 +126,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
     writer: recording.RecordingWriter | None = None
     samples, skipped, bad_lines = 0, 0, []
     units, aux_names = "", ()
+    clock = _ImportClock(a.rate)
     # a bar on a terminal only: not in a pipe, a log or a test's captured stderr
     bar = tqdm(total=Path(a.input).stat().st_size, unit="B", unit_scale=True, desc="import",
                disable=a.quiet or not sys.stderr.isatty(), leave=False)
@@ -141,6 +142,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
             if t_us.min() < 0 or t_us.max() >= 2**64 // 1000:  # MCAP log time = t_us * 1000 ns
                 raise UsageError(f"{a.input}: times must be from 0 to 584 years in "
                                  f"microseconds (found {t_us.min()} to {t_us.max()})")
+            batch = clock.step(batch)  # the file's times as they are checked, then this
             if writer is None:
                 units, aux_names = table.units, batch.aux_names
                 writer = recording.RecordingWriter(a.out, overwrite=True,
@@ -161,7 +163,58 @@ def _cmd_import(a: argparse.Namespace) -> int:
     writer.close()
     print(f"imported {samples} samples ({units}, channels {list(aux_names) or 'none'}) into "
           f"{a.out}; {skipped} bad rows skipped")
+    for line in clock.lines():
+        print(line)
     return 0
+
+
+class _ImportClock:
+    """`recal import`'s time base (recal.core.timebase), chunk by chunk: a time column in
+    milliseconds under a microsecond name, a wrapping counter, a reboot are written as the
+    live node would calibrate them (unwrapped microseconds, never backwards) and said."""
+
+    def __init__(self, rate_hz: float | None) -> None:
+        from recal.core import timebase as tb
+
+        self._tb = tb
+        self.cfg = tb.TimebaseConfig(rate_hz=rate_hz)
+        self.state: tb.TimebaseState | None = None
+        self.events: list[dict] = []
+
+    def step(self, batch: RawBatch) -> RawBatch:
+        from recal.samples import RawBatch
+
+        if self.state is None:
+            self.state, self.events = self._tb.start(batch.t_us, self.cfg)
+        self.state, t_us, events = self._tb.step(self.state, batch.t_us, self.cfg)
+        self.events += [e for e in events if e["kind"] != "time_anomalies"]
+        if np.array_equal(t_us, batch.t_us):
+            return batch
+        return RawBatch(t_us, batch.v, batch.aux, batch.aux_names)
+
+    def lines(self) -> list[str]:
+        """What the time base did, for a person (nothing when the times were clean)."""
+        out = []
+        for e in self.events:
+            d = e["detail"]
+            if e["kind"] == "time_units":
+                out.append(f"time: the time column counts {d['unit']}, not microseconds (as "
+                           f"microseconds it implies {d['implied_rate_hz_as_us']:.0f} Hz); "
+                           f"written as {d['rate_hz']:.4g} Hz in microseconds")
+            elif e["kind"] == "time_implausible":
+                out.append(f"time: the time column implies {d['implied_rate_hz']:.4g} Hz in "
+                           "any unit; written as it is (check it)")
+        s = self.state
+        if s is not None and s.wraps:
+            out.append(f"time: the counter wrapped {s.wraps} time(s) (period {s.period} "
+                       f"{s.unit}); written unwrapped")
+        if s is not None and s.reboots:
+            out.append(f"time: the device time restarted near 0 {s.reboots} time(s) (a "
+                       "reboot); written continuing")
+        if s is not None and s.backwards + s.duplicates + s.jumps:
+            out.append(f"time: {s.backwards} steps back, {s.duplicates} repeated and "
+                       f"{s.jumps} jumps over 2 s; written never going back")
+        return out
 
 
 def _cmd_export(a: argparse.Namespace) -> int:
@@ -378,14 +431,37 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="handle what arrived every this many ms instead of at once: less CPU, "
                    "up to this much more latency (default: the config's batch_ms, 0 = at once; "
                    "100 for a battery-powered gateway)")
+    p.add_argument("--rate", type=_positive, metavar="HZ",
+                   help="the sensors' sample rate (as the config's rate_hz); with it, lines "
+                   "without a time column (x,y,z[,aux]) are stamped first arrival + i / rate")
+    p.add_argument("--aux-names", type=_names, metavar="A,B",
+                   help="the auxiliary channels after x,y,z, by name (as the config's "
+                   "aux_names; '' for none; default: the device's header)")
+    p.add_argument("--prior", metavar="NAME", help="a named prior (the config's priors_file "
+                   "or [priors]; without --config, configs/sensor-priors.toml)")
+    p.add_argument("--counts-per-g", type=_positive, metavar="N",
+                   help="nominal sensitivity in raw units per g (the prior's counts_per_g)")
+    p.add_argument("--zero-g", type=float, metavar="N",
+                   help="the reading at 0 g, raw units, every axis (the prior's zero_g)")
+
+
+def _names(text: str) -> tuple[str, ...]:
+    """argparse type: comma-separated channel names ('' for none)."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"a name is given twice in {text!r}")
+    return names
 
 
 def run_from_args(a: argparse.Namespace) -> int:
     """The daemon, with the options of `add_run_arguments`."""
     from recal.gateway import run_gateway
 
+    options = {"rate_hz": a.rate, "aux_names": a.aux_names, "prior": a.prior,
+               "counts_per_g": a.counts_per_g, "zero_g": a.zero_g}
     return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model,
-                       batch_s=None if a.batch_ms is None else a.batch_ms / 1e3)
+                       batch_s=None if a.batch_ms is None else a.batch_ms / 1e3,
+                       sensor_options=options)
 
 
 def add_serving_arguments(ap: argparse.ArgumentParser) -> None:
@@ -443,9 +519,14 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
             "$STATE_DIRECTORY, $XDG_STATE_HOME/recal or ~/.local/state/recal; printed at "
             "start), where it also locks each sensor id. Runs until Ctrl-C or SIGTERM; after "
             "a crash, `recal repair` recovers the log and the checkpoint resumes the "
-            "calibration.",
+            "calibration. A port is opened exclusively (a second daemon on it stops at once, "
+            "naming the holder) and without discarding what the device already sent; a "
+            "missing device is waited for. Lines without a time column (x,y,z) need --rate; "
+            "device clocks that wrap, count milliseconds or restart are unwrapped, recognised "
+            "and reported.",
             ("recal run --port /dev/ttyACM0 --sensor-id wrist",
              "recal run --config configs/gateway.toml",
+             "recal run --port /dev/ttyUSB0 --rate 50 --aux-names vdd --prior sim-1024",
              "recal run --port /dev/ttyACM0 --port /dev/ttyACM1 --sensor-id l --sensor-id r")),
     "node": ("A calibration node without serial ports: takes recal/*/raw from gateways that run "
              "with run_nodes = false (through a `recal router` or as peers), and publishes "

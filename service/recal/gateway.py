@@ -71,11 +71,19 @@ from typing import Any
 
 from recal.checkpoints import Checkpoints, SensorLockedError
 from recal.cli import add_run_arguments, run_from_args
-from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
+from recal.config import (
+    ConfigError,
+    PriorConfig,
+    SensorConfig,
+    ServiceConfig,
+    load_config,
+    parse_config,
+)
+from recal.core.effects import TIME as TIME_COVARIATE
 from recal.io import messages
 from recal.io.frames import make_parser
 from recal.io.recording import RecordingWriter, sensor_topic
-from recal.io.serial_source import SerialSource, SourceEvent
+from recal.io.serial_source import SerialSource, SourceEvent, port_busy, port_problem
 from recal.node import (
     CalibrationNode,
     LoggedBusSink,
@@ -111,11 +119,14 @@ LISTEN_CHECK_S = 0.5  # how often the loop asks whether anyone subscribes to liv
 LIVE_TOPICS = ("raw", "calibrated", "body")  # a subscriber to any of these wants low latency
 REPORT_INTERVAL_S = 1.0  # aggregated events (parse errors, dropped publishes) at most this often
 NOTE_PREFIX = "recal gateway:"  # a line for the operator (stdout: the journal under systemd)
-NOTE_KINDS = ("port_opened", "port_found", "port_lost", "port_missing")  # one line each
+NOTE_KINDS = ("port_opened", "port_found", "port_lost", "port_missing", "port_busy")  # a line each
+#: the priors `recal run --prior NAME` looks in without a --config (the shipped ones)
+SHIPPED_PRIORS = Path(__file__).resolve().parents[2] / "configs" / "sensor-priors.toml"
 PARSE_NOTE_S = 60.0  # bad input is summed up for the operator at most this often per sensor
 # a partial line cut at a (re)connect is expected: an event in the log, no line for the operator
 PARSE_NOT_NOTED = frozenset({"resync_dropped", "truncated"})
 STOP_JOIN_S = 10.0
+FINAL_LINE_S = 0.1  # at stop, how long a partial line may take to end
 
 
 # ---------------------------------------------------------------------------------------------
@@ -256,9 +267,17 @@ class Gateway:
         self.ports: dict[str, _Port] = {}
         for s in cfg.sensors:
             assert s.port is not None
-            parser = make_parser(s.format, s.aux_names)
+            # a known rate lets ASCII lines come without a time column (x,y,z[,aux])
+            extra = {"rate_hz": s.rate_hz} if s.format == "ascii" and s.rate_hz else {}
+            parser = make_parser(s.format, s.aux_names, **extra)
             src = SerialSource(s.port, parser, s.baudrate, read_timeout_s=0.02)
-            self.ports[s.id] = _Port(s, src, nodes.get(s.id))
+            node = nodes.get(s.id)
+            if node is not None:
+                node.on_note = lambda line, sid=s.id: self.out(f"{NOTE_PREFIX} {sid}: {line}")
+            self.ports[s.id] = _Port(s, src, node)
+        #: why the daemon stopped by itself (a sensor that cannot be calibrated), or None
+        self.fatal: str | None = None
+        self._stop_event: threading.Event | None = None
         self._io_thread: threading.Thread | None = None
         self._next_sweep_s = 0.0
         self._io_errors = 0
@@ -294,6 +313,9 @@ class Gateway:
     def run(self, stop: threading.Event) -> None:
         """Checkpoint (each sensor in its turn, and soon after its accepted updates, see
         recal.checkpoints) and report until ``stop`` is set."""
+        self._stop_event = stop
+        if self.fatal is not None:
+            stop.set()
         nodes = self._nodes()
         next_report = time.monotonic() + REPORT_INTERVAL_S
         while not stop.wait(min(self.checkpoints.next_due_s(),
@@ -360,6 +382,14 @@ class Gateway:
             # a last read of every port, not as "readable": an empty read then means nothing
             # was left, not that the device hung up (a port_lost at every stop, before)
             self._guarded_round(sel, [], final=True)
+            # a line the device was writing as we stopped gets a moment to end: cut here, its
+            # rest would start the next run's stream and both halves would be lost
+            deadline = time.monotonic() + FINAL_LINE_S
+            while (time.monotonic() < deadline
+                   and any(getattr(p.source.parser, "partial", False)
+                           for p in self.ports.values() if p.source.is_open)):
+                time.sleep(0.005)
+                self._guarded_round(sel, [], final=True)
         finally:
             sel.close()
 
@@ -469,6 +499,13 @@ class Gateway:
                 log.exception("node %s failed on a batch", p.sensor_id)
                 self._sensor_event(p.sensor_id, "node_error", log_ns, {
                     "error": f"{type(exc).__name__}: {exc}", "count": p.node_errors})
+        if p.node.failed is not None and self.fatal is None:
+            # no batch of this stream can ever be calibrated (a channel the model needs is
+            # not in it): a start-up error found at the first batch, so the daemon stops
+            # (the log is finished) instead of running on uncalibrated
+            self.fatal = f"sensor {p.sensor_id}: {p.node.failed}"
+            if self._stop_event is not None:
+                self._stop_event.set()
 
     # -- events -------------------------------------------------------------------------------
 
@@ -478,10 +515,11 @@ class Gateway:
                 if k != "port":
                     p.parse_errors[k] = p.parse_errors.get(k, 0) + int(v)
             return
-        if ev.kind == "open_failed":
+        if ev.kind in ("open_failed", "port_busy"):
             p.open_failures += 1
             if p.open_failures == 1:  # once per outage: retries follow with back-off
-                self._sensor_event(p.sensor_id, "port_missing", now, ev.detail)
+                kind = "port_missing" if ev.kind == "open_failed" else "port_busy"
+                self._sensor_event(p.sensor_id, kind, now, ev.detail)
             return
         if ev.kind in ("port_opened", "port_found"):
             p.is_open, p.ever_opened, p.open_failures = True, True, 0
@@ -519,7 +557,11 @@ class Gateway:
             return
         p.parse_noted, p.parse_noted_s = snapshot, now_s
         what = ", ".join(f"{k} {v}" for k, v in sorted(new.items()))
-        self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples kept")
+        hint = ""
+        if "wrong_columns" in new and p.sensor.format == "ascii" and p.sensor.rate_hz is None:
+            hint = " (lines x,y,z[,aux] without a time column need the rate: --rate or rate_hz)"
+        self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples "
+                 f"kept{hint}")
 
     def _publish_dropped(self) -> int:
         if self.bus is None:
@@ -531,7 +573,8 @@ class Gateway:
         if kind in NOTE_KINDS:
             why = f": {detail['error']}" if isinstance(detail, dict) and "error" in detail else ""
             port = detail.get("port", "") if isinstance(detail, dict) else ""
-            self.out(f"{NOTE_PREFIX} {sid}: {kind.replace('_', ' ')} {port}{why}".rstrip())
+            wait = "; waiting for it" if kind in ("port_missing", "port_busy") else ""
+            self.out(f"{NOTE_PREFIX} {sid}: {kind.replace('_', ' ')} {port}{why}{wait}".rstrip())
         data = self.writer.write_event(kind, now, sensor_id=sid, detail=detail)
         if publish:
             self._publish(sid, "events", data)
@@ -598,15 +641,13 @@ def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
     """The sensors to serve: ports from the command line (ids matched to config entries),
     else the configured sensors (limited to ``sensor_ids`` if given).
 
-    A device path given on the command line must exist now (a typo fails at once); ports
-    from the config are waited for, as is any device unplugged later (a deployment may boot
-    before its devices appear)."""
+    A device path that does not exist yet is waited for (a deployment may boot before its
+    devices appear, a device may be plugged in later), as is any device unplugged later;
+    one that can never be a serial port (a regular file, a directory, /dev/null, a URL scheme
+    pyserial does not know) or that another process holds is an error now."""
     if ports:
         if sensor_ids and len(sensor_ids) != len(ports):
             raise ConfigError(f"{len(ports)} ports but {len(sensor_ids)} sensor ids")
-        absent = [p for p in ports if "://" not in p and not os.path.exists(p)]
-        if absent:
-            raise ConfigError(f"port {absent[0]}: no such device")
         chosen = []
         for i, port in enumerate(ports):
             if sensor_ids:
@@ -647,7 +688,77 @@ def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
             raise ConfigError(f"port {s.port} is given to two sensors "
                               f"({seen_ports[device]!r} and {s.id!r})")
         seen_ports[device] = s.id
+    for s in sensors:
+        assert s.port is not None
+        problem = port_problem(s.port)
+        if problem is not None:
+            raise ConfigError(f"port {problem}")
+        busy = port_busy(s.port)
+        if busy is not None:  # e.g. a second daemon on the same device: it would split the
+            raise ConfigError(f"port {s.port} is {busy}")  # bytes with the first
     return sensors
+
+
+def _with_options(cfg: ServiceConfig, options: dict[str, Any]) -> ServiceConfig:
+    """Every served sensor with the command line's ``rate_hz``, ``aux_names`` and prior
+    (``prior``: a name in the config's priors, else the shipped ones; or ``counts_per_g``
+    and ``zero_g``), as if the config said so."""
+    changes: dict[str, Any] = {}
+    if options.get("rate_hz") is not None:
+        changes["rate_hz"] = float(options["rate_hz"])
+    if options.get("aux_names") is not None:
+        changes["aux_names"] = tuple(options["aux_names"])
+    name = options.get("prior")
+    named = _named_prior(cfg, name) if name is not None else None
+    cpg, zero = options.get("counts_per_g"), options.get("zero_g")
+
+    def prior(s: SensorConfig) -> PriorConfig:
+        base = named or s.prior
+        if cpg is None and zero is None:
+            return base
+        return replace(base, counts_per_g=cpg if cpg is not None else base.counts_per_g,
+                       zero_g=(float(zero),) * 3 if zero is not None else base.zero_g)
+
+    if not changes and named is None and cpg is None and zero is None:
+        return cfg
+    return cfg.with_sensors([replace(s, **changes, prior=prior(s)) for s in cfg.sensors])
+
+
+def _named_prior(cfg: ServiceConfig, name: str) -> PriorConfig:
+    """The prior called ``name`` in the config's priors (``priors_file``, ``[priors]``), or
+    in the shipped configs/sensor-priors.toml without a config."""
+    import tomllib
+
+    doc: dict[str, Any] = {"sensors": [{"id": "cli", "prior": name}]}
+    base = Path(".")
+    if cfg.source is not None:
+        base = Path(cfg.source).parent
+        try:
+            raw = tomllib.loads(Path(cfg.source).read_text())
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"--prior {name}: {exc}") from None
+        doc.update({k: raw[k] for k in ("priors_file", "priors") if k in raw})
+    elif SHIPPED_PRIORS.exists():
+        doc["priors_file"] = str(SHIPPED_PRIORS)
+    try:
+        return parse_config(doc, base, "--prior").sensors[0].prior
+    except ConfigError as exc:
+        raise ConfigError(f"--prior {name}: {str(exc).rsplit('prior: ', 1)[-1]}") from None
+
+
+def _check_channels(cfg: ServiceConfig, model_path: str | Path | None) -> None:
+    """A model that reads a channel the sensor's configured channels lack is an error now
+    (channels learnt from the stream are checked at its first batch, by the node)."""
+    from recal.node import node_settings
+
+    for s in cfg.sensors:
+        if s.aux_names is None or not cfg.run_nodes:
+            continue
+        model = node_settings(s, cfg, model_path).model
+        missing = [c for c in model.covariates if c not in s.aux_names and c != TIME_COVARIATE]
+        if missing:
+            raise ConfigError(f"sensor {s.id}: the model needs channel {missing[0]!r}, the "
+                              f"sensor's channels are {list(s.aux_names)}")
 
 
 def _nodes(cfg: ServiceConfig, sink: Sink, model_path: str | Path | None,
@@ -678,7 +789,8 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
                 stop_event: threading.Event | None = None, *,
                 out: Callable[[str], None] | None = None,
                 on_ready: Callable[[Gateway], None] | None = None,
-                batch_s: float | None = None, idle_batch_s: float | None = None) -> int:
+                batch_s: float | None = None, idle_batch_s: float | None = None,
+                sensor_options: dict[str, Any] | None = None) -> int:
     """Run the daemon until ``stop_event`` is set or SIGINT/SIGTERM arrives.
 
     Args:
@@ -695,7 +807,10 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
             None: the config's ``batch_ms``.
         idle_batch_s: the tick while nobody subscribes live (see Gateway); None: the config's
             ``idle_batch_ms``.
-    Returns 0 on a clean stop, 2 for a configuration error, 1 if the log or bus cannot open.
+        sensor_options: the command line's ``rate_hz``, ``aux_names``, ``prior`` (a name),
+            ``counts_per_g``, ``zero_g`` for every served sensor (see ``_with_options``).
+    Returns 0 on a clean stop, 2 for a configuration error (also one found at a sensor's first
+    batch: a channel its model needs is not in the stream), 1 if the log or bus cannot open.
     """
     emit = out or (lambda s: print(s, flush=True))
     fail = out or (lambda s: print(s, file=sys.stderr, flush=True))
@@ -703,7 +818,9 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
         if batch_s is not None and not batch_s >= 0:
             raise ConfigError(f"--batch-ms must be 0 or more, not {batch_s * 1e3:g}")
         cfg = config if isinstance(config, ServiceConfig) else load_config(config)
-        cfg = cfg.with_sensors(_sensors(cfg, ports, sensor_ids))
+        cfg = _with_options(cfg.with_sensors(_sensors(cfg, ports, sensor_ids)),
+                            sensor_options or {})
+        _check_channels(cfg, model_path)
         batch_s = cfg.batch_ms / 1e3 if batch_s is None else batch_s
         idle_batch_s = cfg.idle_batch_ms / 1e3 if idle_batch_s is None else idle_batch_s
         if not cfg.sensors:
@@ -783,6 +900,9 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
     finally:
         logged = gw.stop()
     emit(f"{STOPPED_PREFIX} samples={logged}")
+    if gw.fatal is not None:
+        fail(f"{ERROR_PREFIX} {gw.fatal}")
+        return 2
     return 0
 
 

@@ -25,7 +25,14 @@ Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
 * ``plot``: one JSON message per decimated sample (log only).
 * ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state
   (``pipeline_state_json``, so a replay reproduces the run bit for bit), the rate, the
-  alignment (log only).
+  alignment, the device clock's time base (``timebase``) (log only).
+
+Device time goes through :mod:`recal.core.timebase` right before ``Pipeline.step``: events
+``time_units`` (a clock in ms or s), ``time_implausible``, ``time_wrap``, ``time_reboot``,
+``time_anomalies`` (steps back, duplicates, jumps, counted per batch); the raw topic keeps
+the device's values. A model that needs a channel the stream lacks is one ``missing_channel``
+event at the stream's first batch; the node then skips (``failed``) instead of failing on
+every batch.
 
 Alignment (Zheng et al. sec. II.B): the reference posture is the first quasi-static run of
 ``min_still_s`` (10 s) within ``upright_max_deg`` of +z, after at least one accepted update;
@@ -68,6 +75,8 @@ from recal.config import (
     model_and_prior,
 )
 from recal.core import alignment as al
+from recal.core import timebase as tb
+from recal.core.effects import TIME as TIME_COVARIATE
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, StepOutput
@@ -104,6 +113,10 @@ RECV_ROUND = 4096  # most raw messages a remote node takes from its receiver per
 # 0.2 s of 50 sensors, and a node a second behind lost samples (bench/scale_out.py).
 RECV_CAPACITY = 1 << 17
 DEFAULT_RATE_HZ = 100.0  # only when a stream ends before its rate could be measured
+ANOMALY_EVENT_US = 60_000_000  # time_anomalies events at most this often (device time)
+# samples the clock's unit is read from when the rate is configured: the median of 7 steps
+# (a repeated stamp or a wrap among the first two would decide it alone)
+UNIT_SAMPLES = 8
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,10 +377,17 @@ class CalibrationNode:
             None starts one from ``settings`` at the first batch.
         alignment: a known mounting (from a checkpoint).
         start: how the pipeline began: "prior", "bootstrap", "checkpoint", "recording".
+        timebase: the device clock's time base to continue (a checkpoint's or a recording's
+            setup; with a pipeline but none, device time is taken as microseconds).
+
+    Device time goes through :mod:`recal.core.timebase` before ``Pipeline.step`` (unwrapped,
+    units, reboots; never backwards), here where the live node and replay both pass: the raw
+    log keeps the device's values, the calibrated output has the time base's.
     """
 
     def __init__(self, settings: NodeSettings, sink: Sink, *, pipeline: Pipeline | None = None,
-                 alignment: al.Alignment | None = None, start: str | None = None) -> None:
+                 alignment: al.Alignment | None = None, start: str | None = None,
+                 timebase: tb.TimebaseState | None = None) -> None:
         self.settings = settings
         self.sensor_id = settings.sensor_id
         self.sink = sink
@@ -395,8 +415,17 @@ class CalibrationNode:
         self._last_align_request_s: float | None = None  # monotonic time of the last accepted
         self.align_refused = 0  # requests refused by the rate limit, in all
         self._refused_unreported = 0  # ... since the last align_refused event
+        self.timebase = timebase
+        self._anomalies_said_us = -ANOMALY_EVENT_US  # device time of the last time_anomalies
+        #: why this sensor cannot be calibrated at all (a channel the model needs is missing
+        #: from the stream), reported once as an event; None while it can
+        self.failed: str | None = None
+        #: an operator's console line (the gateway sets it): time units and reboots
+        self.on_note: Callable[[str], None] | None = None
         if pipeline is not None:
             self._tracker = self._make_tracker(pipeline.cfg.rate_hz)
+            if timebase is None:  # from before time bases were kept: microseconds, as then
+                self.timebase = tb.TimebaseState(step_us=1e6 / pipeline.cfg.rate_hz)
 
     # -- public -------------------------------------------------------------------------------
 
@@ -413,8 +442,11 @@ class CalibrationNode:
         if len(batch) == 0:
             return None
         with self._lock:
+            if self.failed is not None:
+                self.samples_skipped += len(batch)
+                return None
             if self.pipeline is None:
-                batch = self._hold_until_rate(batch)
+                batch = self._hold_until_rate(batch, log_time_ns)
                 if not len(batch):
                     return None
             if not self._started:
@@ -439,13 +471,15 @@ class CalibrationNode:
                 self.process(*items.pop(0))  # until the rate is known and the pipeline runs
             pipe = self.pipeline
             if (len(items) < 2 or pipe is None or self.settings.rediscovery.enabled
+                    or self.failed is not None
                     or any(b.aux_names != pipe.aux_names for b, _ in items)):
                 for batch, log_ns in items:
                     self.process(batch, log_ns)
                 return
             ends = np.cumsum([len(b) for b, _ in items]).tolist()
             model, estimate = pipe.model, pipe.estimate  # as of before the step
-            out = pipe.step(RawBatch.concat([b for b, _ in items]), marks=ends)
+            joined = self._device_time(RawBatch.concat([b for b, _ in items]), items[0][1])
+            out = pipe.step(joined, marks=ends)
             self._last_names = pipe.aux_names
             todo = list(out.updates)
             lo = 0
@@ -469,7 +503,7 @@ class CalibrationNode:
         """End of stream: calibrate samples still held for rate measurement."""
         with self._lock:
             if self.pipeline is None and self._pending:
-                batch = self._start_pipeline(force=True)
+                batch = self._start_pipeline(True, log_time_ns)
                 if len(batch):
                     self._announce(int(batch.t_us[0]), log_time_ns)
                     self._step(batch, log_time_ns)
@@ -480,7 +514,11 @@ class CalibrationNode:
             state = self._state(self.last_t_us, "status") if self.pipeline is not None else {
                 "sensor_id": self.sensor_id, "t_us": None, "reason": "status",
                 "params": None, "alignment": None}
+            tbs = self.timebase
             state["node"] = {"start": self.start, "rate_hz": self.rate_hz,
+                             "time": None if tbs is None else {"unit": tbs.unit,
+                                                               **tbs.counts()},
+                             "failed": self.failed,
                              "samples": self.samples, "samples_skipped": self.samples_skipped,
                              "accepted_updates": self.accepted_updates,
                              "still_s": self._tracker.duration_s if self._tracker else 0.0,
@@ -563,7 +601,8 @@ class CalibrationNode:
                     "saved_unix_s": time.time(), "t_us": self.last_t_us,
                     "pipeline": self.pipeline.state_dict(),
                     "alignment": self.alignment.to_dict() if self.alignment else None,
-                    "next_discovery_us": due}
+                    "next_discovery_us": due,
+                    "timebase": self.timebase.to_dict() if self.timebase else None}
 
     @classmethod
     def from_checkpoint(cls, settings: NodeSettings, sink: Sink,
@@ -586,7 +625,13 @@ class CalibrationNode:
             alignment = al.Alignment.from_dict(ali) if ali else None
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"checkpoint alignment: {type(exc).__name__}: {exc}") from None
-        node = cls(settings, sink, pipeline=pipe, alignment=alignment, start="checkpoint")
+        tbd = doc.get("timebase")  # absent in checkpoints from before it was kept
+        try:
+            timebase = tb.TimebaseState.from_dict(tbd) if isinstance(tbd, dict) else None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"checkpoint time base: {type(exc).__name__}: {exc}") from None
+        node = cls(settings, sink, pipeline=pipe, alignment=alignment, start="checkpoint",
+                   timebase=timebase)
         due = doc.get("next_discovery_us")  # absent in checkpoints from before it was kept
         every_us = round(settings.rediscovery.every_h * 3.6e9)
         last = pipe.last_t_us or 0
@@ -597,25 +642,41 @@ class CalibrationNode:
 
     # -- starting -----------------------------------------------------------------------------
 
-    def _hold_until_rate(self, batch: RawBatch) -> RawBatch:
-        """Keep samples until the rate is known; then start the pipeline and return them."""
+    def _hold_until_rate(self, batch: RawBatch, log_ns: int) -> RawBatch:
+        """Keep samples until the rate and the clock's unit are known (``infer_samples``,
+        or ``UNIT_SAMPLES`` with a nominal rate); then start the pipeline and return them."""
         self._pending.append(batch)
         self._pending_n += len(batch)
-        if self.settings.rate_hz is None and self._pending_n < self.settings.infer_samples:
+        need = self.settings.infer_samples if self.settings.rate_hz is None else UNIT_SAMPLES
+        if self._pending_n < need:
             return RawBatch.empty(batch.aux_names)
         # time stamps that never advance give no rate: stop waiting (bounded memory)
-        return self._start_pipeline(force=self._pending_n >= 20 * self.settings.infer_samples)
+        return self._start_pipeline(self._pending_n >= 20 * self.settings.infer_samples,
+                                    log_ns)
 
-    def _start_pipeline(self, force: bool) -> RawBatch:
+    def _start_pipeline(self, force: bool, log_ns: int) -> RawBatch:
         names = self._pending[0].aux_names
         parts = [b if b.aux_names == names else _conform(b, names, ()) for b in self._pending]
         batch = RawBatch.concat([b for b in parts if isinstance(b, RawBatch)])
         self._pending, self._pending_n = [], 0
         s = self.settings
-        rate = s.rate_hz or infer_rate_hz(batch.t_us) or (DEFAULT_RATE_HZ if force else None)
+        missing = [c for c in s.model.covariates if c not in names and c != TIME_COVARIATE]
+        if missing:  # no batch of this stream can be calibrated: say so once, not per batch
+            self.failed = (f"the model needs channel {missing[0]!r}, the stream has "
+                           f"{list(names)}")
+            self.samples_skipped += len(batch)
+            self._event("missing_channel", int(batch.t_us[0]), log_ns, {
+                "missing": missing, "stream": list(names), "error": self.failed})
+            return RawBatch.empty(names)
+        tcfg = tb.TimebaseConfig(rate_hz=s.rate_hz)
+        state, _ = tb.start(batch.t_us, tcfg)
+        t_out = tb.step(state, batch.t_us, tcfg)[1]  # a look ahead, for the rate only
+        rate = s.rate_hz or infer_rate_hz(t_out) or (DEFAULT_RATE_HZ if force else None)
         if rate is None:  # time stamps all equal: keep waiting for usable ones
             self._pending, self._pending_n = [batch], len(batch)
             return RawBatch.empty(names)
+        # the step the nominal rate gives, so that wraps and reboots are judged by it
+        self.timebase = replace(state, step_us=1e6 / rate)
         cfg = s.pipeline.pipeline_config(rate, s.full_scale_g)
         self.pipeline = Pipeline(cfg, s.model, s.prior, names)
         self._tracker = self._make_tracker(rate)
@@ -630,6 +691,7 @@ class CalibrationNode:
         self._started = True
         self.sink.json(self.sensor_id, "setup", {
             "t_us": t_us, "sensor_id": self.sensor_id, "start": self.start,
+            "timebase": self.timebase.to_dict() if self.timebase else None,
             "rate_hz": self.pipeline.cfg.rate_hz, "plot_every": self._plot_every(),
             "alignment_settings": asdict(self.settings.alignment),
             "alignment": self.alignment.to_dict() if self.alignment else None,
@@ -652,7 +714,7 @@ class CalibrationNode:
         fitted = self._fit_layout(batch, log_ns)
         if fitted is None:
             return None
-        out = pipe.step(fitted)
+        out = pipe.step(self._device_time(fitted, log_ns))
         self._emit(out, log_ns)
         return out
 
@@ -669,6 +731,46 @@ class CalibrationNode:
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
                                  "body")
+
+    def _device_time(self, batch: RawBatch, log_ns: int) -> RawBatch:
+        """The batch on the time base (recal.core.timebase), its events reported."""
+        assert self.timebase is not None and self.pipeline is not None
+        tcfg = tb.TimebaseConfig(rate_hz=self.pipeline.cfg.rate_hz)
+        unit_events: list[dict[str, Any]] = []
+        if self.timebase.last_dev is None:  # the stream's first batch: say how time is read
+            first, unit_events = tb.start(batch.t_us, tcfg)
+            if first.unit_us != self.timebase.unit_us:
+                unit_events = []
+        self.timebase, t_us, events = tb.step(self.timebase, batch.t_us, tcfg)
+        for ev in [*unit_events, *events]:
+            self._time_event(ev, int(t_us[ev["index"]]), log_ns)
+        if t_us is batch.t_us or np.array_equal(t_us, batch.t_us):
+            return batch
+        return RawBatch(t_us, batch.v, batch.aux, batch.aux_names)
+
+    def _time_event(self, ev: dict[str, Any], t_us: int, log_ns: int) -> None:
+        if ev["kind"] == "time_anomalies":
+            # a millisecond clock above 1 kHz repeats every other stamp: one event a device
+            # minute at most, with the totals (so a replay says the same)
+            if t_us < self._anomalies_said_us + ANOMALY_EVENT_US:
+                return
+            self._anomalies_said_us = t_us
+        self._event(ev["kind"], t_us, log_ns, ev["detail"])
+        d = ev["detail"]
+        note = None
+        if ev["kind"] == "time_units":
+            note = (f"device time is in {d['unit']}, not microseconds (as microseconds it "
+                    f"implies {d['implied_rate_hz_as_us']:.0f} Hz; read as {d['unit']}: "
+                    f"{d['rate_hz']:.4g} Hz)")
+        elif ev["kind"] == "time_implausible":
+            note = (f"device time implies {d['implied_rate_hz']:.4g} Hz, outside "
+                    f"{d['min_rate_hz']:g}-{d['max_rate_hz']:g} Hz in any unit: check the "
+                    "time column")
+        elif ev["kind"] == "time_reboot":
+            note = (f"device time restarted ({d['device_before']} -> {d['device_after']} "
+                    f"{d['unit']}): the device rebooted; output time continues")
+        if note is not None and self.on_note is not None:
+            self.on_note(note)
 
     def _as_of(self) -> tuple[SensorModel, Any]:
         """Model and estimate as of the batch being reported (see ``_view``)."""

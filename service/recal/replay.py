@@ -113,10 +113,13 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
                                 AlignmentConfig(**ali_cfg) if ali_cfg else cfg.alignment,
                                 rediscovery=cfg.discovery)
         from recal.core.alignment import Alignment
+        from recal.core.timebase import TimebaseState
 
         ali = setup.get("alignment")
+        tbd = setup.get("timebase")  # the device clock's time base as the live node began
         node = CalibrationNode(settings, sink, pipeline=pipe, start="recording",
-                               alignment=Alignment.from_dict(ali) if ali else None)
+                               alignment=Alignment.from_dict(ali) if ali else None,
+                               timebase=TimebaseState.from_dict(tbd) if tbd else None)
         return node, "recording"
     m, prior = model_and_prior(sensor, cfg.pipeline)  # no prior known: bootstrap
     settings = NodeSettings(sid, cfg.pipeline, m, prior, sensor.rate_hz, sensor.full_scale_g,

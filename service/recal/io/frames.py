@@ -14,6 +14,11 @@ decimal numbers (integer ADC counts or floats). A header line names the columns,
 ``t_us,x,y,z,temp_c,vdd_v`` or ``#t_us,x,y,z,temp_c,vdd_v``: every field a name (a letter or
 ``_`` first, no spaces), at least four fields. The first four names are ignored (their meaning
 is fixed by position); the rest name the auxiliary channels. Other ``#`` lines are comments.
+Lines without a time column, ``x,y,z[,aux...]`` (a header whose first name is an x axis:
+``x``, ``ax``, ``acc_x``...; or, without a header, three fields), are accepted when the parser
+knows the rate (``rate_hz``): sample i since the last anchor is stamped
+``anchor + round(i * 1e6 / rate_hz)`` (:meth:`AsciiLineParser.anchor_time`: the shell's clock
+at the first arrival).
 
 Which auxiliary channels a stream carries (its layout) comes from, in this order of authority:
   1. the constructor's ``aux_names`` (configuration): fixed for the parser's life; a header that
@@ -50,7 +55,8 @@ COBS, control characters in a line), ``non_utf8``, ``too_long``, ``non_numeric``
 ``wrong_columns``, ``non_finite`` (NaN/inf in any column), ``out_of_range`` (|x|,|y|,|z| above
 ``max_abs_xyz``; t_us negative or beyond int64), ``bad_crc``, ``bad_length``, ``bad_version``,
 ``header_mismatch``, ``truncated`` (a partial line/frame dropped by :meth:`reset`),
-``resync_dropped`` (the possibly partial first line after a reset). ``header_lines``,
+``resync_dropped`` (the first line after a reset, when nothing shows it is whole: see
+:meth:`AsciiLineParser.reset`). ``header_lines``,
 ``comment_lines`` and ``empty_lines`` are informational and not in ``total``.
 
 Speed: clean input takes a vectorized path (numpy over the whole chunk; ``np.fromstring`` for
@@ -174,6 +180,9 @@ class _Layout:
         self.names: tuple[str, ...] | None = None
         self.source: str | None = None  # "config" | "header" | "data" | None
         self.provisional = False
+        # ASCII only: lines carry no time column (x,y,z[,aux]); None until a header or the
+        # first data line says
+        self.timeless: bool | None = None
         if aux_names is not None:
             self.names = tuple(str(n) for n in aux_names)
             self.source = "config"
@@ -191,25 +200,39 @@ class _Layout:
         if self.source in ("header", "data"):
             self.provisional = True
 
-    def on_header(self, names: tuple[str, ...], errors: ParseErrors) -> None:
+    def on_header(self, names: tuple[str, ...], timeless: bool, errors: ParseErrors) -> None:
         if self.source is None or self.provisional:
             self.names, self.source, self.provisional = names, "header", False
-        elif self.source == "data" and len(names) == len(self.names or ()):
+            self.timeless = timeless
+        elif (self.source == "data" and len(names) == len(self.names or ())
+              and timeless == bool(self.timeless)):
             self.names, self.source = names, "header"  # names for positional channels
-        elif names != self.names:
+        elif self.source == "config" and names == self.names and self.timeless is None:
+            self.timeless = timeless
+        elif names != self.names or timeless != bool(self.timeless):
             errors.header_mismatch += 1
             return
         errors.header_lines += 1
 
-    def accept(self, n_aux: int) -> bool:
-        """Whether a valid sample with ``n_aux`` channels fits (learning the layout if open)."""
+    def accept(self, n_aux: int, timeless: bool = False) -> bool:
+        """Whether a valid sample with ``n_aux`` channels (and a time column unless
+        ``timeless``) fits, learning the layout if open."""
         if self.settled:
-            return n_aux == self.n_aux
-        if not (self.provisional and n_aux == self.n_aux):
+            if self.timeless is None:  # configured names: the first line says which
+                self.timeless = timeless
+            return n_aux == self.n_aux and timeless == self.timeless
+        if not (self.provisional and n_aux == self.n_aux and timeless == bool(self.timeless)):
             self.names = tuple(f"aux{i}" for i in range(n_aux))
             self.source = "data"
+        self.timeless = timeless
         self.provisional = False
         return True
+
+    def columns(self) -> int | None:
+        """Fields of an ASCII data line once the layout says (None: not yet)."""
+        if not self.settled or self.timeless is None:
+            return None
+        return (3 if self.timeless else 4) + (self.n_aux or 0)
 
 
 class _Rows:
@@ -272,6 +295,10 @@ _FLOAT_RE = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|[+-]?(?:nan|i
                        re.IGNORECASE)
 _INT_RE = re.compile(r"[+-]?\d+")
 _NAME_RE = re.compile(r"[^\W\d][^\s,]*")
+# a header's first name: a time column, or the x axis (lines without time: x,y,z[,aux])
+_TIME_NAME_RE = re.compile(r"t|ts|time|timestamp|(t|time)_?(us|ms|s)|micros|millis",
+                           re.IGNORECASE)
+_X_NAME_RE = re.compile(r"(a|acc|accel)?_?x(_\w+)?", re.IGNORECASE)
 _CONTROL_RE = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")
 # Bytes the vectorized ASCII path lets through to np.fromstring; a line with any other byte
 # (letters, spaces, '#', non-ASCII, control characters) takes the per-line path.
@@ -281,8 +308,19 @@ _FAST_TABLE[list(_FAST_BYTES)] = False  # True marks a byte the fast path does n
 
 
 def _is_header(fields_: list[str]) -> bool:
-    return len(fields_) >= 4 and all(
+    """Every field a name, at least four (``t,x,y,z``), or three from an x axis (``x,y,z``)."""
+    return (len(fields_) >= 4 or (len(fields_) == 3 and _X_NAME_RE.fullmatch(fields_[0])
+                                  is not None)) and all(
         _NAME_RE.fullmatch(f) and not _FLOAT_RE.fullmatch(f) for f in fields_)
+
+
+def _header_layout(fields_: list[str]) -> tuple[tuple[str, ...], bool]:
+    """(aux names, timeless) of a header: a first name like ``x`` or ``ax`` means no time."""
+    timeless = (_X_NAME_RE.fullmatch(fields_[0]) is not None
+                and _TIME_NAME_RE.fullmatch(fields_[0]) is None)
+    return tuple(fields_[3 if timeless else 4:]), timeless
+
+
 
 
 def _parse_t_us(token: str) -> int | str:
@@ -312,12 +350,16 @@ class AsciiLineParser:
         vectorize_min_lines: a chunk with fewer complete lines than this goes line by line,
             which is cheaper at the read sizes of a sensor handled as it sends (one line per
             read: 10 us against 35 us warm, 90 us against 170 us right after a wake-up).
+        rate_hz: the device's sample rate, if known; then lines without a time column
+            (``x,y,z[,aux]``: a header starting with ``x``, or 3 fields with no header) are
+            accepted and stamped ``origin + round(i * 1e6 / rate_hz)`` (see
+            :meth:`anchor_time`).
     """
 
     def __init__(self, aux_names: Sequence[str] | None = None, *,
                  max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
                  max_abs_xyz: float = DEFAULT_MAX_ABS_XYZ, vectorized: bool = True,
-                 vectorize_min_lines: int = 7) -> None:
+                 vectorize_min_lines: int = 7, rate_hz: float | None = None) -> None:
         self.errors = ParseErrors()
         self.max_line_bytes = int(max_line_bytes)
         self.max_abs_xyz = float(max_abs_xyz)
@@ -327,11 +369,35 @@ class AsciiLineParser:
         self._pending = b""
         self._discarding = False  # inside a too-long line: drop bytes until its end
         self._resync = False  # the next line may be the tail of a line cut by a reconnect
+        self._candidate: bytes | None = None  # that line, until the next one says if whole
+        self.rate_hz = None if rate_hz is None else float(rate_hz)
+        self._origin_us = 0  # time of the first line without time since the last anchor
+        self._since_origin = 0  # such lines since then
+        self._next_timeless_us: int | None = None  # the time the next one would get
+        self._anchor_due = True
+
+    @property
+    def needs_time_anchor(self) -> bool:
+        """Whether lines without time may come and no arrival time anchors them yet."""
+        return self._anchor_due and self.rate_hz is not None
+
+    def anchor_time(self, t_us: int) -> None:
+        """Lines without time from now on count from ``t_us`` (the shell's clock at their
+        arrival; never before a time already given out)."""
+        nxt = self._next_timeless_us
+        self._origin_us = int(t_us) if nxt is None else max(int(t_us), nxt)
+        self._since_origin = 0
+        self._anchor_due = False
 
     @property
     def aux_names(self) -> tuple[str, ...]:
         """Names of the auxiliary channels as currently known (empty until learnt)."""
         return self._layout.names or ()
+
+    @property
+    def partial(self) -> bool:
+        """Whether part of a line is waiting for its end."""
+        return bool(self._pending)
 
     def feed(self, data: bytes) -> RawBatch:
         """Parse the complete lines in ``pending + data``; keep the unfinished tail."""
@@ -357,18 +423,34 @@ class AsciiLineParser:
         """Parse the unfinished last line as if it were ended (end of a file or recording)."""
         tail, self._pending = self._pending, b""
         self._discarding = False
-        return self.feed(tail + b"\n") if tail else RawBatch.empty(self.aux_names)
+        out = self.feed(tail + b"\n") if tail else RawBatch.empty(self.aux_names)
+        self._drop_candidate()  # nothing came after it to vouch for it
+        return out
 
     def reset(self, resync: bool = True) -> None:
         """Forget the partial line (counted ``truncated``) after the byte stream broke.
 
-        With ``resync`` the first line after the break is dropped (``resync_dropped``) unless
-        it starts with ``#``: it may be the tail of a line, which can look like a valid sample.
+        With ``resync`` the first line after the break may be the tail of a line, which can
+        look like a valid sample or header. It is held until the next line, and kept when that
+        line vouches for it: a header (or a ``#`` line, taken at once) when the next line has
+        as many fields; a sample when the next one has as many fields and, with a time column,
+        ``0 < t1 - t0 <= t1 / 2`` (a tail cut in the time field lost its leading digits, so it
+        is at least half of t1 behind; cut anywhere else it has fewer fields). Else it is
+        dropped (``resync_dropped``). A line without time cannot be vouched for. Lines
+        without time are anchored again at the next arrival.
         """
         if self._pending.strip():  # (a too-long line being skipped was counted already)
             self.errors.truncated += 1
+        self._drop_candidate()
         self._pending, self._discarding, self._resync = b"", False, resync
+        self._anchor_due = True
         self._layout.reset()
+
+    def _drop_candidate(self) -> None:
+        if self._candidate is not None:
+            self._candidate = None
+            self._resync = False
+            self.errors.resync_dropped += 1
 
     # -- per-line path (the reference)
 
@@ -387,28 +469,59 @@ class AsciiLineParser:
         first = 0
         # Until the layout is known (and while a resync is due) each line may change how the
         # next ones read, so go line by line; that is a handful of lines per connection.
-        while first < len(ends) and (self._resync or not self._layout.settled):
+        # Lines without time (a slow sensor's few per read) always go line by line.
+        while first < len(ends) and (self._resync or not self._layout.settled
+                                     or self._layout.timeless is not False):
             self._one_line(chunk[starts[first]:ends[first]], rows)
             first += 1
         if first < len(ends):
             self._fast_lines(chunk, arr, starts[first:], ends[first:], rows)
 
     def _one_line(self, line: bytes, rows: _Rows) -> None:
+        if self._resync and len(line) <= self.max_line_bytes and line.strip():
+            if self._candidate is None:
+                if not self._resync_first(line):
+                    return  # held: the next line decides
+            else:
+                candidate, self._candidate, self._resync = self._candidate, None, False
+                if self._whole(candidate, line):
+                    self._one_line(candidate, rows)
+                else:
+                    self.errors.resync_dropped += 1
         result = self._line_result(line)
         if isinstance(result, tuple):
             rows.add_one(*result)
         elif result is not None:
             self.errors.add(result)
 
+    def _resync_first(self, line: bytes) -> bool:
+        """The first line after a break: True to parse it now (a ``#`` header or comment:
+        a tail does not start with ``#``), False when it is held for the next line."""
+        if line.lstrip().startswith(b"#"):
+            self._resync = False
+            return True
+        self._candidate = bytes(line)
+        return False
+
+    def _whole(self, candidate: bytes, nxt: bytes) -> bool:
+        """Whether the line after ``candidate`` shows it whole: a header by the same number
+        of fields (the tail ``x,y,z,vdd`` of ``t_us,x,y,z,vdd`` has one field less than the
+        lines after it; a tail cut inside the first name keeps the channel names right), a
+        sample by :func:`_vouches`; a line without time never."""
+        try:
+            names = [f.strip() for f in candidate.decode("ascii").split(",")]
+        except UnicodeDecodeError:
+            return False
+        if _is_header(names):
+            return len(names) == nxt.count(b",") + 1
+        return self._layout.timeless is not True and _vouches(candidate, nxt)
+
     def _line_result(self, line: bytes) -> tuple[int, list[float]] | str | None:
         """One line (without its newline): a sample, an error name, or None (nothing to count)."""
         if len(line) > self.max_line_bytes:
+            self._drop_candidate()
             self._resync = False
             return "too_long"
-        if self._resync:
-            self._resync = False
-            if not line.lstrip().startswith(b"#"):
-                return "resync_dropped" if line.strip() else None
         try:
             text = line.decode("utf-8")
         except UnicodeDecodeError:
@@ -422,29 +535,57 @@ class AsciiLineParser:
             names = [f.strip() for f in text[1:].split(",")]
             if not _is_header(names):
                 return "comment_lines"
-            self._layout.on_header(tuple(names[4:]), self.errors)
+            self._layout.on_header(*_header_layout(names), errors=self.errors)
             return None
         tokens = [f.strip() for f in text.split(",")]
         if _is_header(tokens):
-            self._layout.on_header(tuple(tokens[4:]), self.errors)
+            self._layout.on_header(*_header_layout(tokens), errors=self.errors)
             return None
         return self._data_tokens(tokens)
 
+    def _timeless(self, n_tokens: int) -> bool:
+        """Whether a data line of ``n_tokens`` fields is read as ``x,y,z[,aux]``."""
+        layout = self._layout
+        if layout.timeless is not None and (layout.settled or layout.provisional):
+            return layout.timeless
+        if self.rate_hz is None:
+            return False
+        if layout.n_aux is not None:  # configured names: their count says
+            return n_tokens == 3 + layout.n_aux
+        return n_tokens == 3  # t,x,y,z or x,y,z,aux? time first, as always
+
     def _data_tokens(self, tokens: list[str]) -> tuple[int, list[float]] | str:
         layout = self._layout
-        if len(tokens) < 4 or (layout.settled and len(tokens) != 4 + (layout.n_aux or 0)):
+        timeless = self._timeless(len(tokens))
+        if timeless and self.rate_hz is None:
+            return "wrong_columns"  # a header said x,y,z but nothing gives the rate
+        first = 0 if timeless else 1
+        if len(tokens) < 3 + first or (layout.settled and len(tokens) != 3 + first
+                                       + (layout.n_aux or 0)):
             return "wrong_columns"
-        t_us = _parse_t_us(tokens[0])
+        if timeless:
+            t_us: int | str = self._timeless_t_us()
+        else:
+            t_us = _parse_t_us(tokens[0])
         if isinstance(t_us, str):
             return t_us
-        if not all(_FLOAT_RE.fullmatch(tok) for tok in tokens[1:]):
+        if not all(_FLOAT_RE.fullmatch(tok) for tok in tokens[first:]):
             return "non_numeric"
-        vals = [float(tok) for tok in tokens[1:]]
+        vals = [float(tok) for tok in tokens[first:]]
         error = _check_values(t_us, vals, self.max_abs_xyz)
         if error is not None:
             return error
-        layout.accept(len(tokens) - 4)
+        if not layout.accept(len(tokens) - 3 - first, timeless):
+            return "wrong_columns"
+        if timeless:
+            self._since_origin += 1
+            self._next_timeless_us = self._timeless_t_us()
         return t_us, vals
+
+    def _timeless_t_us(self) -> int:
+        """The time of the next line without time: origin + i / rate (no drift over days)."""
+        assert self.rate_hz is not None
+        return self._origin_us + round(self._since_origin * 1e6 / self.rate_hz)
 
     # -- vectorized path
 
@@ -484,6 +625,22 @@ class AsciiLineParser:
             elif result is not None:
                 self.errors.add(result)
         rows.add_many(t_us[keep], out[keep])
+
+def _vouches(candidate: bytes, nxt: bytes) -> bool:
+    """Whether ``nxt`` shows that the first line after a break, ``candidate``, is whole (see
+    :meth:`AsciiLineParser.reset`)."""
+    try:
+        a = [f.strip() for f in candidate.decode("ascii").split(",")]
+        b = [f.strip() for f in nxt.decode("ascii").split(",")]
+    except UnicodeDecodeError:
+        return False
+    if len(a) != len(b) or len(a) < 4:
+        return False
+    if not all(_FLOAT_RE.fullmatch(f) for f in a + b):
+        return False
+    t0, t1 = _parse_t_us(a[0]), _parse_t_us(b[0])
+    return isinstance(t0, int) and isinstance(t1, int) and 0 < t1 - t0 <= t1 / 2
+
 
 def _fast_run(chunk: bytes, starts: np.ndarray, ends: np.ndarray, begin: int, end: int,
               parsed: np.ndarray, fast: np.ndarray) -> None:
@@ -613,6 +770,11 @@ class CobsFrameParser:
     @property
     def aux_names(self) -> tuple[str, ...]:
         return self._layout.names or ()
+
+    @property
+    def partial(self) -> bool:
+        """Whether part of a frame is waiting for its delimiter."""
+        return bool(self._pending)
 
     def feed(self, data: bytes) -> RawBatch:
         """Parse the complete frames in ``pending + data``; keep the unfinished tail."""
@@ -772,10 +934,13 @@ def _format_number(x: float) -> str:
     return repr(x)
 
 
-def encode_ascii(batch: RawBatch, header: bool = False, line_ending: str = "\n") -> bytes:
+def encode_ascii(batch: RawBatch, header: bool = False, line_ending: str = "\n", *,
+                 time_column: bool = True, header_prefix: str = "#") -> bytes:
     """Device side of the ASCII format: optional ``#t_us,x,y,z,<aux names>`` header, then lines.
 
     Numbers are written with ``repr`` quality, so parsing gives back exactly the same floats.
+    ``time_column=False`` writes ``x,y,z[,aux]`` lines (and header) as simple firmware does;
+    ``header_prefix=""`` a header without ``#``.
     """
     if line_ending not in ("\n", "\r\n"):
         raise ValueError("line_ending must be '\\n' or '\\r\\n'")
@@ -784,11 +949,15 @@ def encode_ascii(batch: RawBatch, header: bool = False, line_ending: str = "\n")
         bad = [n for n in batch.aux_names if not _NAME_RE.fullmatch(n) or _FLOAT_RE.fullmatch(n)]
         if bad:
             raise ValueError(f"auxiliary names {bad} cannot be written in an ASCII header")
-        out.append(",".join(("#t_us", "x", "y", "z", *batch.aux_names)) + line_ending)
+        names = ("t_us", "x", "y", "z") if time_column else ("x", "y", "z")
+        out.append(header_prefix + ",".join((*names, *batch.aux_names)) + line_ending)
     values = np.hstack((batch.v, batch.aux)).tolist()
     fmt = _format_number
-    out.extend(f"{t},{','.join(map(fmt, row))}{line_ending}"
-               for t, row in zip(batch.t_us.tolist(), values, strict=True))
+    if time_column:
+        out.extend(f"{t},{','.join(map(fmt, row))}{line_ending}"
+                   for t, row in zip(batch.t_us.tolist(), values, strict=True))
+    else:
+        out.extend(f"{','.join(map(fmt, row))}{line_ending}" for row in values)
     return "".join(out).encode("ascii")
 
 

@@ -9,6 +9,12 @@ reads the slave (a real UART drops bytes then too). :meth:`PtyDevice.unplug` clo
 removes the link: the reader's next read fails with EIO and the path is gone, as when a USB
 device is pulled. :meth:`PtyDevice.replug` makes a new pty behind the same link ("boots" again:
 the ASCII header is sent again with the next samples).
+
+The device's clock (``clock``): "us" writes the batch's ``t_us`` as they are; "us32" a 32-bit
+``micros()`` (``t_us mod 2**32``: it wraps every 71.6 min); "ms" a ``millis()`` count
+(``t_us // 1000``, still under a ``t_us`` header, as firmware often does); "none" no time
+column (``x,y,z[,aux]`` lines). A device talks before anyone opens the port when it is
+written to first: the pty keeps the bytes (up to its buffer) for the reader.
 """
 
 from __future__ import annotations
@@ -45,13 +51,20 @@ class PtyDevice:
         write_timeout_s: how long one write waits for the reader to make room.
         line_ending: "\\n" or "\\r\\n" for ASCII.
         xyz: COBS x, y, z encoding, "auto" | "int32" | "float32".
+        clock: the device's time stamps: "us", "us32", "ms" or "none" (ASCII only; see the
+            module docstring).
+        header_prefix: "#" or "" (a header line without the comment mark).
     """
+
+    CLOCKS = ("us", "us32", "ms", "none")
 
     def __init__(self, link_path: str, fmt: str = "ascii", header: bool = True, *,
                  write_timeout_s: float = 1.0, line_ending: str = "\n",
-                 xyz: str = "auto") -> None:
+                 xyz: str = "auto", clock: str = "us", header_prefix: str = "#") -> None:
         if fmt not in ("ascii", "cobs"):
             raise ValueError(f"unknown wire format {fmt!r}; expected 'ascii' or 'cobs'")
+        if clock not in self.CLOCKS or (clock == "none" and fmt != "ascii"):
+            raise ValueError(f"clock must be one of {self.CLOCKS} ('none' for ASCII only)")
         if os.path.exists(link_path) and not os.path.islink(link_path):
             raise FileExistsError(f"{link_path} exists and is not a symlink")
         self.link_path = link_path
@@ -60,6 +73,8 @@ class PtyDevice:
         self.write_timeout_s = write_timeout_s
         self.line_ending = line_ending
         self.xyz = xyz
+        self.clock = clock
+        self.header_prefix = header_prefix
         self._lock = threading.Lock()
         self._master: int | None = None
         self._slave: int | None = None
@@ -182,18 +197,32 @@ class PtyDevice:
         with self._lock:  # the streaming thread and the caller may both write
             header_due, self._header_due = self._header_due, False
         data = b""
+        timed = self.clock != "none"
         if header_due:
-            data = encode_ascii(batch[:0], header=True, line_ending=self.line_ending)
+            data = encode_ascii(batch[:0], header=True, line_ending=self.line_ending,
+                                time_column=timed, header_prefix=self.header_prefix)
+        batch = self.on_wire(batch)
         if self.fmt == "ascii":
-            data += encode_ascii(batch, header=False, line_ending=self.line_ending)
+            data += encode_ascii(batch, header=False, line_ending=self.line_ending,
+                                 time_column=timed)
         else:
             data += encode_cobs(batch, xyz=self.xyz)
         return self.write_bytes(data)
 
+    def on_wire(self, batch: RawBatch) -> RawBatch:
+        """The batch with the time stamps this device's clock writes."""
+        if self.clock == "us32":
+            return RawBatch(batch.t_us % 2**32, batch.v, batch.aux, batch.aux_names)
+        if self.clock == "ms":
+            return RawBatch(batch.t_us // 1000, batch.v, batch.aux, batch.aux_names)
+        return batch
+
     def write_header(self, aux_names: tuple[str, ...]) -> int:
         """Send the ASCII header line now (devices may repeat it)."""
         empty = RawBatch.empty(aux_names)
-        return self.write_bytes(encode_ascii(empty, header=True, line_ending=self.line_ending))
+        return self.write_bytes(encode_ascii(empty, header=True, line_ending=self.line_ending,
+                                             time_column=self.clock != "none",
+                                             header_prefix=self.header_prefix))
 
     def write_garbage(self, data: bytes) -> int:
         """Write arbitrary bytes (line noise, a reset banner, half a frame)."""

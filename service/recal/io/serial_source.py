@@ -11,13 +11,29 @@ directly and exposes it (:meth:`SerialSource.fileno`) so that one selector serve
 nonsense: the port is closed, ``port_lost`` is reported, and opening is retried with
 exponential backoff until ``port_found``.
 
+First contact: the port is opened without pyserial's input flush (its POSIX ``open()`` ends
+with ``tcflush``, which threw away what the device had said before we looked: a header printed
+at boot, the seconds of a daemon restart), so every byte the kernel holds is read; the parser's
+resync decides whether the first line is whole. A device path is opened exclusively: an
+advisory ``flock`` (pyserial's ``exclusive``; a second recal fails at once, and
+:func:`port_holder` names the holder's PID from /proc/locks) and the kernel's ``TIOCEXCL``
+(other non-root processes cannot open the tty at all), released at close. A port that is busy
+is reported as ``port_busy`` (with ``holder_pid``) and retried like a missing one.
+:func:`port_problem` says at start why a ``--port`` can never be a serial port (a regular
+file, a directory, a character device that is no terminal such as /dev/null, a URL scheme
+pyserial does not know); a path that does not exist yet is no problem (it is waited for).
+
 Memory is bounded: one partial line or frame in the parser, at most ``max_batch_bytes`` read
 per call, a handful of events per call.
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import os
+import stat
+import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,10 +45,11 @@ import serial
 from recal.io.frames import FrameParser, ParseErrors
 from recal.samples import RawBatch
 
-__all__ = ["EVENT_KINDS", "SerialSource", "SourceEvent"]
+__all__ = ["EVENT_KINDS", "SerialSource", "SourceEvent", "port_holder", "port_problem"]
 
 EVENT_KINDS = frozenset({"port_opened", "port_lost", "port_found", "open_failed",
-                         "parse_errors"})
+                         "port_busy", "parse_errors"})
+_BUSY_ERRNOS = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EBUSY)
 
 # What a vanished or broken device raises: pyserial wraps most OS errors in SerialException,
 # but in_waiting's ioctl and the path checks raise OSError directly.
@@ -74,6 +91,113 @@ def _descriptor(ser: Any) -> int | None:
 
 class _PortGone(Exception):
     """The device path vanished or now names another device."""
+
+
+def port_holder(path: str) -> int | None:
+    """PID of the process holding an flock on the device ``path`` (Linux /proc/locks), or
+    None (no lock, not Linux, or the lock belongs to another PID namespace's view)."""
+    try:
+        st = os.stat(path)
+        with open("/proc/locks") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return None
+    want = (os.major(st.st_dev), os.minor(st.st_dev), st.st_ino)
+    for line in lines:  # "1: FLOCK  ADVISORY  WRITE 1234 00:19:5 0 EOF" (major:minor in hex)
+        parts = line.split()
+        if len(parts) < 6 or parts[1] != "FLOCK" or "->" in parts:
+            continue
+        try:
+            major, minor, inode = parts[5].split(":")
+            if (int(major, 16), int(minor, 16), int(inode)) == want:
+                return int(parts[4])
+        except ValueError:
+            continue
+    return None
+
+
+def _busy_text(path: str) -> str:
+    pid = port_holder(path)
+    return (f"in use by process {pid}" if pid is not None
+            else "in use by another process (opened exclusively)")
+
+
+def port_problem(port: str) -> str | None:
+    """Why ``port`` can never be read as a serial port, or None when it can (a terminal, a
+    URL scheme pyserial knows, a path that does not exist yet), or is busy now (None too:
+    see :func:`port_busy`)."""
+    if "://" in port:
+        try:
+            serial.serial_for_url(port, do_not_open=True)
+        except (ValueError, serial.SerialException) as exc:
+            return f"{port}: {exc}"
+        return None
+    try:
+        st = os.stat(port)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"{port}: {exc.strerror}"
+    if stat.S_ISDIR(st.st_mode):
+        return f"{port} is a directory, not a serial port"
+    if not stat.S_ISCHR(st.st_mode):
+        return f"{port} is not a character device (a regular file?), not a serial port"
+    if not _is_terminal(port, st):
+        return f"{port} is a character device but not a terminal, not a serial port"
+    return None
+
+
+def _is_terminal(port: str, st: os.stat_result) -> bool:
+    """Whether a character device is a terminal, if possible without opening it (opening a
+    USB serial port raises DTR, which resets many boards): a pty slave by its major number,
+    else the kernel's device class in sysfs; open it only where neither tells."""
+    major, minor = os.major(st.st_rdev), os.minor(st.st_rdev)
+    if 136 <= major <= 143:  # Unix98 pty slaves (/dev/pts/N)
+        return True
+    sysfs = f"/sys/dev/char/{major}:{minor}/subsystem"
+    if os.path.exists(sysfs):
+        return os.path.basename(os.path.realpath(sysfs)) == "tty"
+    try:  # O_NONBLOCK | O_NOCTTY: does not wait for carrier, does not become our terminal
+        fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError as exc:
+        return exc.errno in _BUSY_ERRNOS  # held exclusively: only a tty can be
+    try:
+        return os.isatty(fd)
+    finally:
+        os.close(fd)
+
+
+def port_busy(port: str) -> str | None:
+    """``"in use by process N"`` when another process holds an flock on the device ``port``
+    (another recal: read from /proc/locks, the device is not opened), else None."""
+    if "://" in port or not os.path.exists(port):
+        return None
+    pid = port_holder(port)
+    return None if pid is None else f"in use by process {pid}"
+
+def _open_unflushed(port: str, exclusive: bool, **kwargs: Any) -> Any:
+    """``serial.serial_for_url(port, ...)``, opened without the input flush that pyserial
+    3.5's POSIX ``open()`` ends with: bytes the device sent before the open stay readable."""
+    if exclusive:
+        kwargs["exclusive"] = True
+    ser = serial.serial_for_url(port, do_not_open=True, **kwargs)
+    # 3.5 calls _reset_input_buffer() at the end of open(), earlier releases the public one:
+    # shadowed on the instance during open() only
+    flushes = [n for n in ("_reset_input_buffer", "reset_input_buffer") if hasattr(ser, n)]
+    for name in flushes:
+        setattr(ser, name, lambda: None)
+    try:
+        ser.open()
+    finally:
+        for name in flushes:
+            delattr(ser, name)
+    fd = getattr(ser, "fd", None)
+    if exclusive and isinstance(fd, int):
+        try:  # the kernel's own exclusive open: other (non-root) opens get EBUSY
+            fcntl.ioctl(fd, termios.TIOCEXCL)
+        except OSError:
+            pass  # not a tty that supports it; the flock still guards recal against recal
+    return ser
 
 
 class SerialSource:
@@ -159,7 +283,7 @@ class SerialSource:
                 break
             if data:
                 n_bytes += len(data)
-                batch = self.parser.feed(data)
+                batch = self._feed(data)
                 if len(batch) and batches and batch.aux.shape[1] != batches[-1].aux.shape[1]:
                     self._carry = batch  # new layout: starts the next call's batch
                     break
@@ -205,7 +329,7 @@ class SerialSource:
                 data = b""
                 self._lose(exc, events)
             if data:
-                batch = self.parser.feed(data)
+                batch = self._feed(data)
                 if len(batch) and batches and batch.aux.shape[1] != batches[0].aux.shape[1]:
                     self._carry, batch = batch, RawBatch.empty(batch.aux_names)
                 if len(batch):
@@ -237,6 +361,13 @@ class SerialSource:
             if len(part) < self.max_read_bytes:
                 break  # drained: a further read would only say EAGAIN
         return b"".join(parts)
+
+    def _feed(self, data: bytes) -> RawBatch:
+        """Parse bytes; lines without time are stamped from their first arrival (wall clock,
+        microseconds since the epoch) on."""
+        if getattr(self.parser, "needs_time_anchor", False):
+            self.parser.anchor_time(time.time_ns() // 1000)  # type: ignore[attr-defined]
+        return self.parser.feed(data)
 
     def write(self, data: bytes) -> int:
         """Send bytes to the device (a command); bytes written, 0 if the port is not open.
@@ -277,10 +408,13 @@ class SerialSource:
     def _try_open(self, events: list[SourceEvent]) -> None:
         now_s = self._clock()
         try:
-            ser = serial.serial_for_url(self.port, baudrate=self.baudrate,
-                                        timeout=self.read_timeout_s, **self._serial_kwargs)
+            ser = _open_unflushed(self.port, self._is_path(), baudrate=self.baudrate,
+                                  timeout=self.read_timeout_s, **self._serial_kwargs)
         except (*_PORT_ERRORS, ValueError) as exc:
-            self._open_failed(exc, now_s, events)
+            if self._is_path() and getattr(exc, "errno", None) in _BUSY_ERRNOS:
+                self._open_failed(exc, now_s, events, busy=True)
+            else:
+                self._open_failed(exc, now_s, events)
             return
         try:
             device_id = self._path_device_id()
@@ -303,14 +437,17 @@ class SerialSource:
         self._ever_opened = True
 
     def _open_failed(self, exc: BaseException, now_s: float,
-                     events: list[SourceEvent]) -> None:
+                     events: list[SourceEvent], busy: bool = False) -> None:
         self._attempts += 1
         delay_s = self._backoff_s
         self._next_open_s = now_s + delay_s
         self._backoff_s = min(2.0 * delay_s, self.backoff_max_s)
-        events.append(SourceEvent("open_failed", {
-            "port": self.port, "error": str(exc), "attempt": self._attempts,
-            "retry_in_s": delay_s}, now_s))
+        detail: dict[str, Any] = {"port": self.port, "error": str(exc),
+                                  "attempt": self._attempts, "retry_in_s": delay_s}
+        if busy:
+            holder = port_holder(self.port)
+            detail.update(error=_busy_text(self.port), holder_pid=holder)
+        events.append(SourceEvent("port_busy" if busy else "open_failed", detail, now_s))
 
     def _lose(self, exc: BaseException, events: list[SourceEvent]) -> None:
         now_s = self._clock()
@@ -324,6 +461,12 @@ class SerialSource:
     def _close_port(self) -> None:
         ser, self._ser, self._fd = self._ser, None, None
         if ser is not None:
+            fd = getattr(ser, "fd", None)
+            if self._is_path() and isinstance(fd, int):
+                try:  # TIOCEXCL outlives us while the tty stays open elsewhere (a pty's
+                    fcntl.ioctl(fd, termios.TIOCNXCL)  # device side): clear it
+                except OSError:
+                    pass
             try:
                 ser.close()
             except _PORT_ERRORS:
