@@ -482,8 +482,8 @@ def test_recal_run_says_where_it_keeps_state(tmp_path: Path, state_home: Path,
 # --------------------------------------------------------------------------- real daemons
 
 def _config(tmp: Path, link: str, interval_s: float, after_update_s: float,
-            zenoh: str = "[zenoh]\nenabled = false\n") -> Path:
-    path = tmp / "gateway.toml"
+            zenoh: str = "[zenoh]\nenabled = false\n", name: str = "gateway.toml") -> Path:
+    path = tmp / name
     path.write_text(f"""{zenoh}
 [mcap]
 flush_interval_s = 0.02
@@ -517,12 +517,15 @@ def test_a_second_daemon_for_a_held_sensor_exits_and_the_first_keeps_every_sampl
     raw = sim_raw(1.0, seed=3)
     link = str(tmp_path / "tty0")
     config = _config(tmp_path, link, 0.5, 1.0)
-    with PtyDevice(link, "ascii", header=False, write_timeout_s=5.0) as dev:
+    # the same sensor id on another port: the sensor's lock, not the port's, must stop it
+    other = _config(tmp_path, str(tmp_path / "tty1"), 0.5, 1.0, name="other.toml")
+    with PtyDevice(link, "ascii", header=False, write_timeout_s=5.0) as dev, \
+            PtyDevice(str(tmp_path / "tty1"), "ascii", header=False):
         first = _start(config, tmp_path / "a.mcap", dev, children)
         sent = stream(dev, raw, 1000.0, chunk=10, stop_after_s=1.0)[0]
         t0 = time.monotonic()
         second = subprocess.run(
-            [sys.executable, "-m", "recal", "run", "--config", str(config), "--mcap",
+            [sys.executable, "-m", "recal", "run", "--config", str(other), "--mcap",
              str(tmp_path / "b.mcap")], capture_output=True, text=True, timeout=60,
             env={**os.environ, "PYTHONUNBUFFERED": "1"})
         took = time.monotonic() - t0
