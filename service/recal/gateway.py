@@ -114,6 +114,7 @@ PARSE_NOTE_S = 60.0  # bad input is summed up for the operator at most this ofte
 # a partial line cut at a (re)connect is expected: an event in the log, no line for the operator
 PARSE_NOT_NOTED = frozenset({"resync_dropped", "truncated"})
 STOP_JOIN_S = 10.0
+WRITE_NOTE_S = 60.0  # while the recording cannot be written, a reminder at most this often
 
 
 # ---------------------------------------------------------------------------------------------
@@ -175,7 +176,8 @@ def open_recording(cfg: ServiceConfig, mcap_out: str | Path | None) -> Recording
         flush_interval_s=m.flush_interval_s,
         rotate_bytes=None if m.rotate_mb is None else int(m.rotate_mb * 1e6),
         rotate_s=None if m.rotate_hours is None else m.rotate_hours * 3600.0,
-        compression=m.compression, fsync=m.fsync)  # type: ignore[arg-type]
+        compression=m.compression, fsync=m.fsync,  # type: ignore[arg-type]
+        backlog_bytes=int(m.backlog_mb * 1e6))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -262,6 +264,7 @@ class Gateway:
         self._io_errors = 0
         self._publish_reported = 0
         self._started_s = time.monotonic()
+        self._write_watch = _WriteWatch()
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -292,6 +295,7 @@ class Gateway:
                                 max(0.0, next_report - time.monotonic()))):
             if time.monotonic() >= next_report:
                 self._report_counts(time.time_ns())
+                self._report_recording(time.time_ns())
                 next_report = time.monotonic() + REPORT_INTERVAL_S
             self.checkpoint(schedule.take_due())
 
@@ -315,7 +319,9 @@ class Gateway:
         logged = {sid: p.samples_logged for sid, p in self.ports.items()}
         self._gateway_event("stop", now, {"samples_logged": logged,
                                           "uptime_s": time.monotonic() - self._started_s})
+        self._report_recording(now)
         self.writer.close()
+        self._note_unfinished()
         if self.bus is not None:
             self.bus.close()
         return logged
@@ -510,6 +516,56 @@ class Gateway:
         what = ", ".join(f"{k} {v}" for k, v in sorted(new.items()))
         self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples kept")
 
+    def _report_recording(self, now: int) -> None:
+        """One line (and event) when the recording stops being written, one when it resumes
+        with what was lost, a reminder every WRITE_NOTE_S between; reading, calibrating and
+        publishing never wait for it (the writer keeps what it cannot write, within its
+        budget)."""
+        h = self.writer.health()
+        w = self._write_watch
+        now_s = time.monotonic()
+        if w.failing and (not h.failing or h.failures > w.failures):
+            lost = (h.dropped_samples - w.dropped[1], h.dropped_messages - w.dropped[0])
+            self.out(f"{NOTE_PREFIX} recording: writing again after {now_s - w.since_s:.1f} s "
+                     f"({w.error}); lost {lost[0]} raw samples ({lost[1]} messages)")
+            self._gateway_event("write_resumed", now, {
+                "error": w.error, "failed_s": now_s - w.since_s, "since_ns": w.since_ns,
+                "lost_samples": lost[0], "lost_messages": lost[1]})
+            w.failing = False
+        if not w.failing and h.failures > w.failures:
+            w.failing, w.failures, w.error = True, h.failures, h.error or "write refused"
+            w.since_s = h.failing_since_s if h.failing_since_s is not None else now_s
+            w.since_ns = now - int((now_s - w.since_s) * 1e9)
+            w.dropped, w.noted_s = (h.dropped_messages, h.dropped_samples), now_s
+            self.out(f"{NOTE_PREFIX} recording: cannot write {self.writer.paths[-1]}: "
+                     f"{w.error}; reading, calibrating and publishing go on, up to "
+                     f"{self.cfg.mcap.backlog_mb:g} MB of it wait in memory, then the oldest "
+                     "is dropped")
+            self._gateway_event("write_failed", now, {
+                "error": w.error, "path": str(self.writer.paths[-1]),
+                "backlog_mb": self.cfg.mcap.backlog_mb})
+            if not h.failing:  # over within one report: say so now
+                self._report_recording(now)
+        elif w.failing and now_s >= w.noted_s + WRITE_NOTE_S:
+            w.noted_s = now_s
+            self.out(f"{NOTE_PREFIX} recording: still cannot write ({h.error}) for "
+                     f"{now_s - w.since_s:.0f} s; dropped so far "
+                     f"{h.dropped_samples - w.dropped[1]} raw samples "
+                     f"({h.dropped_messages - w.dropped[0]} messages)")
+        if h.fsync_errors > w.fsync_errors and now_s >= w.fsync_noted_s + WRITE_NOTE_S:
+            self.out(f"{NOTE_PREFIX} recording: fsync failed {h.fsync_errors - w.fsync_errors} "
+                     f"times ({h.error}); the last second may not be on the disk")
+            w.fsync_errors, w.fsync_noted_s = h.fsync_errors, now_s
+
+    def _note_unfinished(self) -> None:
+        """After the close: a part the disk would not take to the end is said, with its
+        repair (the file ends at its last whole record)."""
+        h = self.writer.health()
+        for path in h.unfinished:
+            self.out(f"{NOTE_PREFIX} recording: {path} not finished ({h.error}); "
+                     f"{h.dropped_samples} raw samples ({h.dropped_messages} messages) lost "
+                     f"in all; recover the rest with: recal repair {path} --out FIXED.mcap")
+
     def _publish_dropped(self) -> int:
         if self.bus is None:
             return 0
@@ -576,6 +632,21 @@ class Gateway:
                 save_checkpoint(checkpoint_path(directory, sid), doc)
             except OSError as exc:
                 self._sensor_event(sid, "checkpoint_failed", time.time_ns(), str(exc))
+
+
+@dataclass
+class _WriteWatch:
+    """What the operator was last told about the recording's writes (main thread only)."""
+
+    failing: bool = False
+    failures: int = 0  # the writer's refusal count as of the last line
+    error: str = ""
+    since_s: float = 0.0
+    since_ns: int = 0
+    dropped: tuple[int, int] = (0, 0)  # messages, samples dropped when the refusal began
+    noted_s: float = float("-inf")
+    fsync_errors: int = 0
+    fsync_noted_s: float = float("-inf")
 
 
 def join_by_layout(batches: list[RawBatch]) -> list[RawBatch]:

@@ -292,11 +292,15 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    with open(tmp, "w") as f:
-        json.dump(state, f, separators=(",", ":"))  # NaN allowed: Python reads it back
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, p)
+    try:
+        with open(tmp, "w") as f:
+            json.dump(state, f, separators=(",", ":"))  # NaN allowed: Python reads it back
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, p)
+    except BaseException:  # a full disk: the old checkpoint stays, and no half file with it
+        tmp.unlink(missing_ok=True)
+        raise
     try:  # make the rename itself durable
         fd = os.open(p.parent, os.O_RDONLY)
         try:
