@@ -40,6 +40,13 @@ checkpoint wins over a changed prior in the config; delete ``<checkpoint dir>/<s
 to start from the prior again, and a checkpoint whose model kind differs from the config's is
 ignored with an event).
 
+A full disk never stops reading, calibrating or publishing: the recording writer keeps what the
+disk refuses in memory, compressed, up to ``[mcap] backlog_mb``, drops the oldest beyond that
+(counted), and writes again by itself when space returns. The operator gets one line when
+writing stops, one when it resumes (with the samples and messages lost; also a
+``write_resumed`` event in the log), and a reminder every ``WRITE_NOTE_S`` in between; a part
+the disk would not let the daemon finish at the stop is named with its ``recal repair`` line.
+
 Queries: ``recal/<sensor>/status`` answers the node's calibration state plus a ``gateway``
 section (port, samples logged, parse errors, ...); ``recal/<sensor>/align`` requests a
 mounting alignment.
@@ -615,6 +622,10 @@ class Gateway:
         p = self.ports[sid]
         state = p.node.status() if p.node is not None else {"sensor_id": sid}
         state["gateway"] = p.status()
+        h = self.writer.health()
+        state["gateway"]["recording"] = {
+            "writing": not h.failing, "error": h.error, "waiting_bytes": h.waiting_bytes,
+            "dropped_samples": h.dropped_samples, "dropped_messages": h.dropped_messages}
         return state
 
     def checkpoint(self, sensor_ids: Sequence[str] | None = None) -> None:

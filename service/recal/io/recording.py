@@ -31,6 +31,13 @@ Crash tolerance: chunks are small (32 KiB by default) and the open chunk is clos
 flushed and ``fsync``ed at least every ``flush_interval_s``, so a SIGKILL or power cut loses about
 that much; ``repair`` turns the truncated file into a valid indexed one.
 
+A full disk (``backlog_bytes``, the daemon's setting): a write the file refuses does not raise.
+The file is cut back to the end of its last whole record (readable by ``repair`` as it stands),
+and the refused output waits in memory, each chunk compressed once, until a later flush gets
+it written in the same file; past ``backlog_bytes`` the oldest waiting chunks are dropped and
+counted (``RecordingWriter.health``). Tools that write a file (replay, import) keep the default:
+a refused write raises.
+
 Memory: the writer holds the open chunk and a few counters; the chunk indexes the summary needs
 wait in a temporary file (a week flushed every second is ~600k chunks), so a recording of any
 length is written in constant memory.
@@ -381,7 +388,10 @@ class _McapFile:
 
     def retry(self) -> bool:
         """Try the waiting output again; True once nothing waits."""
-        return self._pump() if self._backlog else True
+        if not self._backlog:  # (all of it may have been dropped)
+            self.failure = None
+            return True
+        return self._pump()
 
     def _cut_back(self, position: int) -> None:
         """End the file at ``position`` (a record boundary): a refused write may have left
@@ -582,6 +592,8 @@ class _McapFile:
     def flush(self) -> None:
         """End the open chunk, wait until it is written (or, with a backlog, try again what
         waits), flush the stream."""
+        if self.failure is not None and not self.retry():
+            return  # still refused: the open chunk keeps filling (fewer, better chunks wait)
         self.end_chunk()
         if self._jobs is None:  # with the thread, it alone writes
             self.retry()
