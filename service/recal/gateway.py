@@ -77,7 +77,7 @@ from recal.cli import add_run_arguments, run_from_args
 from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
 from recal.io import messages
 from recal.io.frames import make_parser
-from recal.io.recording import RecordingWriter, sensor_topic
+from recal.io.recording import RecordingWriter, WriteHealth, sensor_topic
 from recal.io.serial_source import SerialSource, SourceEvent
 from recal.node import (
     CalibrationNode,
@@ -95,6 +95,7 @@ from recal.samples import RawBatch
 __all__ = [
     "READY_PREFIX",
     "Gateway",
+    "RecordingWatch",
     "install_stop_signals",
     "main",
     "open_bus",
@@ -271,7 +272,7 @@ class Gateway:
         self._io_errors = 0
         self._publish_reported = 0
         self._started_s = time.monotonic()
-        self._write_watch = _WriteWatch()
+        self._write_watch = RecordingWatch(writer, out, cfg.mcap.backlog_mb)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -328,7 +329,7 @@ class Gateway:
                                           "uptime_s": time.monotonic() - self._started_s})
         self._report_recording(now)
         self.writer.close()
-        self._note_unfinished()
+        self._write_watch.closed()
         if self.bus is not None:
             self.bus.close()
         return logged
@@ -524,54 +525,8 @@ class Gateway:
         self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples kept")
 
     def _report_recording(self, now: int) -> None:
-        """One line (and event) when the recording stops being written, one when it resumes
-        with what was lost, a reminder every WRITE_NOTE_S between; reading, calibrating and
-        publishing never wait for it (the writer keeps what it cannot write, within its
-        budget)."""
-        h = self.writer.health()
-        w = self._write_watch
-        now_s = time.monotonic()
-        if w.failing and (not h.failing or h.failures > w.failures):
-            lost = (h.dropped_samples - w.dropped[1], h.dropped_messages - w.dropped[0])
-            self.out(f"{NOTE_PREFIX} recording: writing again after {now_s - w.since_s:.1f} s "
-                     f"({w.error}); lost {lost[0]} raw samples ({lost[1]} messages)")
-            self._gateway_event("write_resumed", now, {
-                "error": w.error, "failed_s": now_s - w.since_s, "since_ns": w.since_ns,
-                "lost_samples": lost[0], "lost_messages": lost[1]})
-            w.failing = False
-        if not w.failing and h.failures > w.failures:
-            w.failing, w.failures, w.error = True, h.failures, h.error or "write refused"
-            w.since_s = h.failing_since_s if h.failing_since_s is not None else now_s
-            w.since_ns = now - int((now_s - w.since_s) * 1e9)
-            w.dropped, w.noted_s = (h.dropped_messages, h.dropped_samples), now_s
-            self.out(f"{NOTE_PREFIX} recording: cannot write {self.writer.paths[-1]}: "
-                     f"{w.error}; reading, calibrating and publishing go on, up to "
-                     f"{self.cfg.mcap.backlog_mb:g} MB of it wait in memory, then the oldest "
-                     "is dropped")
-            self._gateway_event("write_failed", now, {
-                "error": w.error, "path": str(self.writer.paths[-1]),
-                "backlog_mb": self.cfg.mcap.backlog_mb})
-            if not h.failing:  # over within one report: say so now
-                self._report_recording(now)
-        elif w.failing and now_s >= w.noted_s + WRITE_NOTE_S:
-            w.noted_s = now_s
-            self.out(f"{NOTE_PREFIX} recording: still cannot write ({h.error}) for "
-                     f"{now_s - w.since_s:.0f} s; dropped so far "
-                     f"{h.dropped_samples - w.dropped[1]} raw samples "
-                     f"({h.dropped_messages - w.dropped[0]} messages)")
-        if h.fsync_errors > w.fsync_errors and now_s >= w.fsync_noted_s + WRITE_NOTE_S:
-            self.out(f"{NOTE_PREFIX} recording: fsync failed {h.fsync_errors - w.fsync_errors} "
-                     f"times ({h.error}); the last second may not be on the disk")
-            w.fsync_errors, w.fsync_noted_s = h.fsync_errors, now_s
-
-    def _note_unfinished(self) -> None:
-        """After the close: a part the disk would not take to the end is said, with its
-        repair (the file ends at its last whole record)."""
-        h = self.writer.health()
-        for path in h.unfinished:
-            self.out(f"{NOTE_PREFIX} recording: {path} not finished ({h.error}); "
-                     f"{h.dropped_samples} raw samples ({h.dropped_messages} messages) lost "
-                     f"in all; recover the rest with: recal repair {path} --out FIXED.mcap")
+        """Lines and events about the recording's writes (see RecordingWatch)."""
+        self._write_watch.check(now, lambda kind, detail: self._gateway_event(kind, now, detail))
 
     def _publish_dropped(self) -> int:
         if self.bus is None:
@@ -645,19 +600,83 @@ class Gateway:
                 self._sensor_event(sid, "checkpoint_failed", time.time_ns(), str(exc))
 
 
-@dataclass
-class _WriteWatch:
-    """What the operator was last told about the recording's writes (main thread only)."""
+class RecordingWatch:
+    """Tells the operator when a RecordingWriter stops being written (a full disk) and when it
+    resumes, with what was lost: one line each (and an event), a reminder every WRITE_NOTE_S
+    between, fsync failures at most as often, and at the close each part left unfinished with
+    its repair command. Call :meth:`check` now and then (the gateway: once a second) and
+    :meth:`closed` after the writer's close. Reading, calibrating and publishing never wait
+    for the recording: the writer keeps what the disk refuses within its budget.
 
-    failing: bool = False
-    failures: int = 0  # the writer's refusal count as of the last line
-    error: str = ""
-    since_s: float = 0.0
-    since_ns: int = 0
-    dropped: tuple[int, int] = (0, 0)  # messages, samples dropped when the refusal began
-    noted_s: float = float("-inf")
-    fsync_errors: int = 0
-    fsync_noted_s: float = float("-inf")
+    Args:
+        writer: the RecordingWriter (its ``health()`` is read).
+        out: where the lines go (``NOTE_PREFIX`` lines).
+        budget_mb: the writer's ``backlog_bytes`` in MB, for the first line.
+    """
+
+    def __init__(self, writer: RecordingWriter, out: Callable[[str], None],
+                 budget_mb: float) -> None:
+        self.writer, self.out, self.budget_mb = writer, out, budget_mb
+        self.failing = False
+        self.failures = 0  # the writer's refusal count as of the last line
+        self.error = ""
+        self.since_s = 0.0
+        self.since_ns = 0
+        self.dropped = (0, 0)  # messages, samples dropped when the refusal began
+        self.noted_s = float("-inf")
+        self.fsync_errors = 0
+        self.fsync_noted_s = float("-inf")
+
+    def check(self, now: int, event: Callable[[str, dict[str, Any]], None]) -> None:
+        """Lines and ``event(kind, detail)`` calls for what changed since the last check."""
+        h = self.writer.health()
+        now_s = time.monotonic()
+        if self.failing and (not h.failing or h.failures > self.failures):
+            lost = (h.dropped_samples - self.dropped[1], h.dropped_messages - self.dropped[0])
+            self.out(f"{NOTE_PREFIX} recording: writing again after "
+                     f"{now_s - self.since_s:.1f} s ({self.error}); lost {lost[0]} raw "
+                     f"samples ({lost[1]} messages)")
+            event("write_resumed", {
+                "error": self.error, "failed_s": now_s - self.since_s,
+                "since_ns": self.since_ns, "lost_samples": lost[0], "lost_messages": lost[1]})
+            self.failing = False
+        if not self.failing and h.failures > self.failures:
+            self._began(h, now, now_s, event)
+            if not h.failing:  # over within one check: say so now
+                self.check(now, event)
+        elif self.failing and now_s >= self.noted_s + WRITE_NOTE_S:
+            self.noted_s = now_s
+            self.out(f"{NOTE_PREFIX} recording: still cannot write ({h.error}) for "
+                     f"{now_s - self.since_s:.0f} s; dropped so far "
+                     f"{h.dropped_samples - self.dropped[1]} raw samples "
+                     f"({h.dropped_messages - self.dropped[0]} messages)")
+        if h.fsync_errors > self.fsync_errors and now_s >= self.fsync_noted_s + WRITE_NOTE_S:
+            self.out(f"{NOTE_PREFIX} recording: fsync failed "
+                     f"{h.fsync_errors - self.fsync_errors} times ({h.error}); the last "
+                     "second may not be on the disk")
+            self.fsync_errors, self.fsync_noted_s = h.fsync_errors, now_s
+
+    def _began(self, h: WriteHealth, now: int, now_s: float,
+               event: Callable[[str, dict[str, Any]], None]) -> None:
+        self.failing, self.failures, self.error = True, h.failures, h.error or "write refused"
+        self.since_s = h.failing_since_s if h.failing_since_s is not None else now_s
+        self.since_ns = now - int((now_s - self.since_s) * 1e9)
+        self.dropped, self.noted_s = (h.dropped_messages, h.dropped_samples), now_s
+        path = self.writer.paths[-1]
+        self.out(f"{NOTE_PREFIX} recording: cannot write {path}: {self.error}; reading, "
+                 f"calibrating and publishing go on, up to {self.budget_mb:g} MB of it wait "
+                 "in memory, then the oldest is dropped")
+        event("write_failed", {"error": self.error, "path": str(path),
+                               "backlog_mb": self.budget_mb})
+
+    def closed(self) -> None:
+        """After the writer's close: each part the disk would not let it finish, with its
+        repair (the file ends at its last whole record)."""
+        h = self.writer.health()
+        for path in h.unfinished:
+            self.out(f"{NOTE_PREFIX} recording: {path} not finished ({h.error}); "
+                     f"{h.dropped_samples} raw samples ({h.dropped_messages} messages) lost "
+                     f"in all; recover the rest with: recal repair {path} --out FIXED.mcap")
 
 
 def join_by_layout(batches: list[RawBatch]) -> list[RawBatch]:
