@@ -27,7 +27,9 @@ import pytest
 from gateway_process import GatewayProcess
 from polling import wait_for
 from recal.cli import main as recal_main
+from recal.config import ConfigError, parse_config
 from recal.demo import free_port
+from recal.gateway import open_recording
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_calibrated
@@ -316,6 +318,17 @@ def test_a_checkpoint_the_disk_refuses_leaves_the_old_one_and_no_temporary_file(
         save_checkpoint(path, {"n": 2, "pad": "x" * 100_000})
     assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
     assert json.loads(path.read_text()) == {"n": 1}
+
+
+def test_the_budget_is_the_mcap_backlog_mb_key(tmp_path: Path) -> None:
+    assert parse_config({}, tmp_path, "test").mcap.backlog_mb == 4.0
+    cfg = parse_config({"mcap": {"backlog_mb": 2.5}}, tmp_path, "test")
+    writer = open_recording(cfg, tmp_path / "b.mcap")
+    writer.close()
+    assert writer.backlog_bytes == 2_500_000
+    for bad in (0, -1, "big"):
+        with pytest.raises(ConfigError, match="backlog_mb"):
+            parse_config({"mcap": {"backlog_mb": bad}}, tmp_path, "test")
 
 
 # --------------------------------------------------------------------------- the daemon

@@ -35,6 +35,7 @@ a query on ``recal/<sensor>/align`` aligns at once on the current still run (if 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -946,16 +947,40 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     restore = install_stop_signals(stop)
     runner = _NodeRunner(cfg, bus, writer, set(sensor_ids), model_path, emit)
     emit(f"{NODE_READY_PREFIX} mcap={writer.paths[0] if writer is not None else None}")
+    watch = None if writer is None else _watch_recording(writer, emit, cfg.mcap.backlog_mb,
+                                                         stop)
     try:
         runner.run(stop)
     finally:
         runner.close()
         if writer is not None:
             writer.close()
+        if watch is not None:
+            watch.closed()
         if own_bus:
             bus.close()
         restore()
     return 0
+
+
+def _watch_recording(writer: Any, emit: Callable[[str], None], budget_mb: float,
+                     stop: threading.Event) -> Any:
+    """A thread that tells the operator, once a second at most, when the node's recording
+    stops being written (a full disk) and when it resumes (see gateway.RecordingWatch)."""
+    from recal.gateway import RecordingWatch  # the gateway imports this module
+
+    watch = RecordingWatch(writer, emit, budget_mb)
+
+    def event(kind: str, detail: dict[str, Any]) -> None:
+        with contextlib.suppress(ValueError):  # the writer closed under us (the stop)
+            writer.write_event(kind, time.time_ns(), detail=detail)
+
+    def loop() -> None:
+        while not stop.wait(1.0):
+            watch.check(time.time_ns(), event)
+
+    threading.Thread(target=loop, name="recal-recording-watch", daemon=True).start()
+    return watch
 
 
 class _NodeRunner:

@@ -842,6 +842,11 @@ class RecordingWriter:
     def flush_count(self) -> int:
         return self._flush_count
 
+    @property
+    def backlog_bytes(self) -> int | None:
+        """How much may wait in memory while the file refuses writes (None: refusals raise)."""
+        return self._backlog_bytes
+
     def write_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> bytes:
         """Log a raw batch on ``/<sensor>/raw``; returns the encoded bytes (for the bus)."""
         data = messages.encode_raw(sensor_id, batch)
