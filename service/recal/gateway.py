@@ -391,8 +391,9 @@ class Gateway:
 
     def _guarded_round(self, sel: selectors.BaseSelector, ready: list[_Port],
                        final: bool = False) -> None:
-        """A round whose failure (a full disk, a bug) is reported and survived: the loop
-        serves every sensor, so it must not end, or all of them would go quiet."""
+        """A round whose failure (a bug; a full disk does not fail a round, the writer keeps
+        what the disk refuses) is reported and survived: the loop serves every sensor, so it
+        must not end, or all of them would go quiet."""
         try:
             self._read_round(sel, ready, final)
         except Exception as exc:
