@@ -461,6 +461,7 @@ def test_sigterm_while_the_disk_is_full_exits_0_and_leaves_no_temporary_file(
         assert gw.proc.wait(60) == 0, gw.lines
     print("\n" + "\n".join(gw.lines))
     assert any("not finished" in ln and "recal repair" in ln for ln in gw.lines), gw.lines
+    assert sum("checkpoint not written" in ln for ln in gw.lines) == 1, gw.lines  # rate-limited
     assert leftovers(small_disk, gw.mcap) == ["filler"]
     assert load_checkpoint(small_disk / "ck" / f"{SID}.json") is not None
     got = logged_raw(gw.mcap, tmp_path)

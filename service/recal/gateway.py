@@ -273,6 +273,7 @@ class Gateway:
         self._publish_reported = 0
         self._started_s = time.monotonic()
         self._write_watch = RecordingWatch(writer, out, cfg.mcap.backlog_mb)
+        self._checkpoint_noted_s = float("-inf")  # checkpoint failures: a line at most this often
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -597,8 +598,13 @@ class Gateway:
                 continue
             try:
                 save_checkpoint(checkpoint_path(directory, sid), doc)
-            except OSError as exc:
+            except OSError as exc:  # the old checkpoint stays (and no temporary file)
                 self._sensor_event(sid, "checkpoint_failed", time.time_ns(), str(exc))
+                now_s = time.monotonic()
+                if now_s >= self._checkpoint_noted_s + WRITE_NOTE_S:
+                    self._checkpoint_noted_s = now_s
+                    self.out(f"{NOTE_PREFIX} {sid}: checkpoint not written ({exc}); the last "
+                             "one written stays")
 
 
 class RecordingWatch:
