@@ -26,6 +26,7 @@ import pytest
 
 from gateway_process import GatewayProcess
 from polling import wait_for
+from recal import gateway
 from recal.cli import main as recal_main
 from recal.config import ConfigError, parse_config
 from recal.demo import free_port
@@ -318,6 +319,62 @@ def test_a_checkpoint_the_disk_refuses_leaves_the_old_one_and_no_temporary_file(
         save_checkpoint(path, {"n": 2, "pad": "x" * 100_000})
     assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
     assert json.loads(path.read_text()) == {"n": 1}
+
+
+def test_the_operator_hears_of_each_outage_once_with_what_it_lost(
+        small_disk: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    w = rec.RecordingWriter(small_disk / "o.mcap", background_flush=False,
+                            flush_interval_s=1000.0, backlog_bytes=30_000)
+    lines: list[str] = []
+    events: list[tuple[str, dict]] = []
+    watch = gateway.RecordingWatch(w, lines.append, 0.03)
+
+    def check() -> None:
+        watch.check(time.time_ns(), lambda kind, detail: events.append((kind, detail)))
+
+    sent = batches(400)
+    for b in sent[:20]:
+        w.write_raw(SID, b, int(b.t_us[0]) * 1000)
+    w.flush()
+    check()
+    assert lines == [] and events == []
+    # an outage that lasts: a line when it begins, a reminder, a line when it ends
+    filler = fill(small_disk)
+    for b in sent[20:200]:
+        w.write_raw(SID, b, int(b.t_us[0]) * 1000)
+    w.flush()
+    check()
+    check()  # nothing new to say
+    assert len(lines) == 1 and "cannot write" in lines[0] and "No space left" in lines[0]
+    monkeypatch.setattr(gateway, "WRITE_NOTE_S", 0.0)
+    check()
+    assert len(lines) == 2 and "still cannot write" in lines[1], lines
+    monkeypatch.setattr(gateway, "WRITE_NOTE_S", 60.0)
+    os.unlink(filler)
+    w.flush()
+    check()
+    check()
+    h = w.health()
+    assert h.dropped_samples > 0 and len(lines) == 3, lines
+    assert lines[2].endswith(f"lost {h.dropped_samples} raw samples "
+                             f"({h.dropped_messages} messages)"), lines[2]
+    assert [k for k, _ in events] == ["write_failed", "write_resumed"]
+    assert events[1][1]["lost_samples"] == h.dropped_samples
+    # one over before anyone looked: both lines at once, with only its own loss
+    filler = fill(small_disk)
+    for b in sent[200:400]:
+        w.write_raw(SID, b, int(b.t_us[0]) * 1000)
+    w.flush()
+    os.unlink(filler)
+    w.flush()
+    check()
+    second = w.health().dropped_samples - h.dropped_samples
+    assert second > 0 and len(lines) == 5 and "cannot write" in lines[3], lines
+    assert lines[4].endswith(f"lost {second} raw samples "
+                             f"({w.health().dropped_messages - h.dropped_messages} messages)")
+    w.close()
+    watch.closed()  # finished: nothing to say
+    assert len(lines) == 5 and w.health().unfinished == ()
 
 
 def test_the_budget_is_the_mcap_backlog_mb_key(tmp_path: Path) -> None:

@@ -629,7 +629,7 @@ class RecordingWatch:
         self.error = ""
         self.since_s = 0.0
         self.since_ns = 0
-        self.dropped = (0, 0)  # messages, samples dropped when the refusal began
+        self.dropped = (0, 0)  # messages, samples dropped as of the last resume line
         self.noted_s = float("-inf")
         self.fsync_errors = 0
         self.fsync_noted_s = float("-inf")
@@ -646,7 +646,8 @@ class RecordingWatch:
             event("write_resumed", {
                 "error": self.error, "failed_s": now_s - self.since_s,
                 "since_ns": self.since_ns, "lost_samples": lost[0], "lost_messages": lost[1]})
-            self.failing = False
+            # drops happen only while writing is refused: all since the last line are this one's
+            self.failing, self.dropped = False, (h.dropped_messages, h.dropped_samples)
         if not self.failing and h.failures > self.failures:
             self._began(h, now, now_s, event)
             if not h.failing:  # over within one check: say so now
@@ -668,7 +669,7 @@ class RecordingWatch:
         self.failing, self.failures, self.error = True, h.failures, h.error or "write refused"
         self.since_s = h.failing_since_s if h.failing_since_s is not None else now_s
         self.since_ns = now - int((now_s - self.since_s) * 1e9)
-        self.dropped, self.noted_s = (h.dropped_messages, h.dropped_samples), now_s
+        self.noted_s = now_s
         path = self.writer.paths[-1]
         self.out(f"{NOTE_PREFIX} recording: cannot write {path}: {self.error}; reading, "
                  f"calibrating and publishing go on, up to {self.budget_mb:g} MB of it wait "
