@@ -85,6 +85,7 @@ from recal.node import (
     LoggedBusSink,
     RecordingSink,
     Sink,
+    align_handler,
     checkpoint_path,
     make_node,
     node_settings,
@@ -570,9 +571,7 @@ class Gateway:
         self.bus.queryable(key(sid, "status"),
                            lambda _k, _pl: messages.encode_json(self.status(sid)))
         if p.node is not None:
-            node = p.node
-            self.bus.queryable(key(sid, "align"),
-                               lambda _k, _pl: messages.encode_json(node.request_alignment()))
+            self.bus.queryable(key(sid, "align"), align_handler(p.node, self.out, NOTE_PREFIX))
 
     def status(self, sid: str) -> dict[str, Any]:
         """The sensor's calibration state (if calibrated here) plus the gateway's counters."""
@@ -619,11 +618,12 @@ class RecordingWatch:
         writer: the RecordingWriter (its ``health()`` is read).
         out: where the lines go (``NOTE_PREFIX`` lines).
         budget_mb: the writer's ``backlog_bytes`` in MB, for the first line.
+        prefix: what each line starts with (the gateway's ``NOTE_PREFIX``; a node has its own).
     """
 
     def __init__(self, writer: RecordingWriter, out: Callable[[str], None],
-                 budget_mb: float) -> None:
-        self.writer, self.out, self.budget_mb = writer, out, budget_mb
+                 budget_mb: float, prefix: str = NOTE_PREFIX) -> None:
+        self.writer, self.out, self.budget_mb, self.prefix = writer, out, budget_mb, prefix
         self.failing = False
         self.failures = 0  # the writer's refusal count as of the last line
         self.error = ""
@@ -640,7 +640,7 @@ class RecordingWatch:
         now_s = time.monotonic()
         if self.failing and (not h.failing or h.failures > self.failures):
             lost = (h.dropped_samples - self.dropped[1], h.dropped_messages - self.dropped[0])
-            self.out(f"{NOTE_PREFIX} recording: writing again after "
+            self.out(f"{self.prefix} recording: writing again after "
                      f"{now_s - self.since_s:.1f} s ({self.error}); lost {lost[0]} raw "
                      f"samples ({lost[1]} messages)")
             event("write_resumed", {
@@ -654,12 +654,12 @@ class RecordingWatch:
                 self.check(now, event)
         elif self.failing and now_s >= self.noted_s + WRITE_NOTE_S:
             self.noted_s = now_s
-            self.out(f"{NOTE_PREFIX} recording: still cannot write ({h.error}) for "
+            self.out(f"{self.prefix} recording: still cannot write ({h.error}) for "
                      f"{now_s - self.since_s:.0f} s; dropped so far "
                      f"{h.dropped_samples - self.dropped[1]} raw samples "
                      f"({h.dropped_messages - self.dropped[0]} messages)")
         if h.fsync_errors > self.fsync_errors and now_s >= self.fsync_noted_s + WRITE_NOTE_S:
-            self.out(f"{NOTE_PREFIX} recording: fsync failed "
+            self.out(f"{self.prefix} recording: fsync failed "
                      f"{h.fsync_errors - self.fsync_errors} times ({h.error}); the last "
                      "second may not be on the disk")
             self.fsync_errors, self.fsync_noted_s = h.fsync_errors, now_s
@@ -671,7 +671,7 @@ class RecordingWatch:
         self.since_ns = now - int((now_s - self.since_s) * 1e9)
         self.noted_s = now_s
         path = self.writer.paths[-1]
-        self.out(f"{NOTE_PREFIX} recording: cannot write {path}: {self.error}; reading, "
+        self.out(f"{self.prefix} recording: cannot write {path}: {self.error}; reading, "
                  f"calibrating and publishing go on, up to {self.budget_mb:g} MB of it wait "
                  "in memory, then the oldest is dropped")
         event("write_failed", {"error": self.error, "path": str(path),
@@ -682,7 +682,7 @@ class RecordingWatch:
         repair (the file ends at its last whole record)."""
         h = self.writer.health()
         for path in h.unfinished:
-            self.out(f"{NOTE_PREFIX} recording: {path} not finished ({h.error}); "
+            self.out(f"{self.prefix} recording: {path} not finished ({h.error}); "
                      f"{h.dropped_samples} raw samples ({h.dropped_messages} messages) lost "
                      f"in all; recover the rest with: recal repair {path} --out FIXED.mcap")
 
