@@ -162,6 +162,9 @@ class McapConfig:
         rotate_mb, rotate_hours: start a new part after this size / this time (None: never).
         compression: "zstd", "lz4" or "none".
         fsync: fsync at every flush.
+        backlog_mb: while the disk refuses writes (full), up to this much of the recording
+            (compressed) waits in memory for it; beyond it the oldest is dropped and counted.
+            Reading, calibrating and publishing go on either way.
     """
 
     path: Path | None = None
@@ -172,6 +175,7 @@ class McapConfig:
     rotate_hours: float | None = None
     compression: str = "zstd"
     fsync: bool = True
+    backlog_mb: float = 4.0
 
 
 def default_state_dir() -> Path:
@@ -501,7 +505,7 @@ def _zenoh(ctx: _Ctx, d: Any) -> ZenohSettings:
 
 def _mcap(ctx: _Ctx, d: Any) -> McapConfig:
     d = _table(ctx, d, ("path", "dir", "chunk_size", "flush_interval_s", "rotate_mb",
-                        "rotate_hours", "compression", "fsync"))
+                        "rotate_hours", "compression", "fsync", "backlog_mb"))
     return McapConfig(
         path=_path(ctx, d, "path", None), dir=_path(ctx, d, "dir", ctx.base / "recordings")
         or ctx.base, chunk_size=_int(ctx, d, "chunk_size", 32 * 1024, 1024),
@@ -509,7 +513,8 @@ def _mcap(ctx: _Ctx, d: Any) -> McapConfig:
         rotate_mb=_num(ctx, d, "rotate_mb", None, positive=True),
         rotate_hours=_num(ctx, d, "rotate_hours", None, positive=True),
         compression=_str(ctx, d, "compression", "zstd", COMPRESSIONS) or "zstd",
-        fsync=_bool(ctx, d, "fsync", True))
+        fsync=_bool(ctx, d, "fsync", True),
+        backlog_mb=_num(ctx, d, "backlog_mb", 4.0, positive=True))
 
 
 def _checkpoint(ctx: _Ctx, d: Any) -> CheckpointConfig:

@@ -43,6 +43,13 @@ a console line and an event, and the previous generation or the prior is used). 
 anything is opened, each calibrated sensor's lock in the state folder is taken: a second
 daemon for the same sensor id exits with one line naming the holder.
 
+A full disk never stops reading, calibrating or publishing: the recording writer keeps what the
+disk refuses in memory, compressed, up to ``[mcap] backlog_mb``, drops the oldest beyond that
+(counted), and writes again by itself when space returns. The operator gets one line when
+writing stops, one when it resumes (with the samples and messages lost; also a
+``write_resumed`` event in the log), and a reminder every ``WRITE_NOTE_S`` in between; a part
+the disk would not let the daemon finish at the stop is named with its ``recal repair`` line.
+
 Queries: ``recal/<sensor>/status`` answers the node's calibration state plus a ``gateway``
 section (port, samples logged, parse errors, ...); ``recal/<sensor>/align`` requests a
 mounting alignment.
@@ -82,7 +89,7 @@ from recal.config import (
 from recal.core.effects import TIME as TIME_COVARIATE
 from recal.io import messages
 from recal.io.frames import make_parser
-from recal.io.recording import RecordingWriter, sensor_topic
+from recal.io.recording import RecordingWriter, WriteHealth, sensor_topic
 from recal.io.serial_source import SerialSource, SourceEvent, port_busy, port_problem
 from recal.node import (
     CalibrationNode,
@@ -98,6 +105,7 @@ from recal.samples import RawBatch
 __all__ = [
     "READY_PREFIX",
     "Gateway",
+    "RecordingWatch",
     "install_stop_signals",
     "main",
     "open_bus",
@@ -127,6 +135,7 @@ PARSE_NOTE_S = 60.0  # bad input is summed up for the operator at most this ofte
 PARSE_NOT_NOTED = frozenset({"resync_dropped", "truncated"})
 STOP_JOIN_S = 10.0
 FINAL_LINE_S = 0.1  # at stop, how long a partial line may take to end
+WRITE_NOTE_S = 60.0  # while the recording cannot be written, a reminder at most this often
 
 
 # ---------------------------------------------------------------------------------------------
@@ -188,7 +197,8 @@ def open_recording(cfg: ServiceConfig, mcap_out: str | Path | None) -> Recording
         flush_interval_s=m.flush_interval_s,
         rotate_bytes=None if m.rotate_mb is None else int(m.rotate_mb * 1e6),
         rotate_s=None if m.rotate_hours is None else m.rotate_hours * 3600.0,
-        compression=m.compression, fsync=m.fsync)  # type: ignore[arg-type]
+        compression=m.compression, fsync=m.fsync,  # type: ignore[arg-type]
+        backlog_bytes=int(m.backlog_mb * 1e6))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -291,6 +301,7 @@ class Gateway:
         for sid, p in self.ports.items():
             if p.node is not None:
                 self.checkpoints.add(sid, p.node.accepted_updates)
+        self._write_watch = RecordingWatch(writer, out, cfg.mcap.backlog_mb)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -322,6 +333,7 @@ class Gateway:
                                 max(0.0, next_report - time.monotonic()))):
             if time.monotonic() >= next_report:
                 self._report_counts(time.time_ns())
+                self._report_recording(time.time_ns())
                 next_report = time.monotonic() + REPORT_INTERVAL_S
             self.checkpoints.save_due(nodes)
 
@@ -348,7 +360,9 @@ class Gateway:
         logged = {sid: p.samples_logged for sid, p in self.ports.items()}
         self._gateway_event("stop", now, {"samples_logged": logged,
                                           "uptime_s": time.monotonic() - self._started_s})
+        self._report_recording(now)
         self.writer.close()
+        self._write_watch.closed()
         if self.bus is not None:
             self.bus.close()
         return logged
@@ -418,8 +432,9 @@ class Gateway:
 
     def _guarded_round(self, sel: selectors.BaseSelector, ready: list[_Port],
                        final: bool = False) -> None:
-        """A round whose failure (a full disk, a bug) is reported and survived: the loop
-        serves every sensor, so it must not end, or all of them would go quiet."""
+        """A round whose failure (a bug; a full disk does not fail a round, the writer keeps
+        what the disk refuses) is reported and survived: the loop serves every sensor, so it
+        must not end, or all of them would go quiet."""
         try:
             self._read_round(sel, ready, final)
         except Exception as exc:
@@ -563,6 +578,10 @@ class Gateway:
         self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples "
                  f"kept{hint}")
 
+    def _report_recording(self, now: int) -> None:
+        """Lines and events about the recording's writes (see RecordingWatch)."""
+        self._write_watch.check(now, lambda kind, detail: self._gateway_event(kind, now, detail))
+
     def _publish_dropped(self) -> int:
         if self.bus is None:
             return 0
@@ -611,6 +630,10 @@ class Gateway:
         p = self.ports[sid]
         state = p.node.status() if p.node is not None else {"sensor_id": sid}
         state["gateway"] = p.status()
+        h = self.writer.health()
+        state["gateway"]["recording"] = {
+            "writing": not h.failing, "error": h.error, "waiting_bytes": h.waiting_bytes,
+            "dropped_samples": h.dropped_samples, "dropped_messages": h.dropped_messages}
         return state
 
     def checkpoint(self, sensor_ids: Sequence[str] | None = None) -> None:
@@ -618,6 +641,87 @@ class Gateway:
         checkpoint dir); a failure is an event and a console line (rate-limited), never
         raised."""
         self.checkpoints.save(self._nodes(), sensor_ids)
+
+
+class RecordingWatch:
+    """Tells the operator when a RecordingWriter stops being written (a full disk) and when it
+    resumes, with what was lost: one line each (and an event), a reminder every WRITE_NOTE_S
+    between, fsync failures at most as often, and at the close each part left unfinished with
+    its repair command. Call :meth:`check` now and then (the gateway: once a second) and
+    :meth:`closed` after the writer's close. Reading, calibrating and publishing never wait
+    for the recording: the writer keeps what the disk refuses within its budget.
+
+    Args:
+        writer: the RecordingWriter (its ``health()`` is read).
+        out: where the lines go (``NOTE_PREFIX`` lines).
+        budget_mb: the writer's ``backlog_bytes`` in MB, for the first line.
+        prefix: what each line starts with (the gateway's ``NOTE_PREFIX``; a node has its own).
+    """
+
+    def __init__(self, writer: RecordingWriter, out: Callable[[str], None],
+                 budget_mb: float, prefix: str = NOTE_PREFIX) -> None:
+        self.writer, self.out, self.budget_mb, self.prefix = writer, out, budget_mb, prefix
+        self.failing = False
+        self.failures = 0  # the writer's refusal count as of the last line
+        self.error = ""
+        self.since_s = 0.0
+        self.since_ns = 0
+        self.dropped = (0, 0)  # messages, samples dropped as of the last resume line
+        self.noted_s = float("-inf")
+        self.fsync_errors = 0
+        self.fsync_noted_s = float("-inf")
+
+    def check(self, now: int, event: Callable[[str, dict[str, Any]], None]) -> None:
+        """Lines and ``event(kind, detail)`` calls for what changed since the last check."""
+        h = self.writer.health()
+        now_s = time.monotonic()
+        if self.failing and (not h.failing or h.failures > self.failures):
+            lost = (h.dropped_samples - self.dropped[1], h.dropped_messages - self.dropped[0])
+            self.out(f"{self.prefix} recording: writing again after "
+                     f"{now_s - self.since_s:.1f} s ({self.error}); lost {lost[0]} raw "
+                     f"samples ({lost[1]} messages)")
+            event("write_resumed", {
+                "error": self.error, "failed_s": now_s - self.since_s,
+                "since_ns": self.since_ns, "lost_samples": lost[0], "lost_messages": lost[1]})
+            # drops happen only while writing is refused: all since the last line are this one's
+            self.failing, self.dropped = False, (h.dropped_messages, h.dropped_samples)
+        if not self.failing and h.failures > self.failures:
+            self._began(h, now, now_s, event)
+            if not h.failing:  # over within one check: say so now
+                self.check(now, event)
+        elif self.failing and now_s >= self.noted_s + WRITE_NOTE_S:
+            self.noted_s = now_s
+            self.out(f"{self.prefix} recording: still cannot write ({h.error}) for "
+                     f"{now_s - self.since_s:.0f} s; dropped so far "
+                     f"{h.dropped_samples - self.dropped[1]} raw samples "
+                     f"({h.dropped_messages - self.dropped[0]} messages)")
+        if h.fsync_errors > self.fsync_errors and now_s >= self.fsync_noted_s + WRITE_NOTE_S:
+            self.out(f"{self.prefix} recording: fsync failed "
+                     f"{h.fsync_errors - self.fsync_errors} times ({h.error}); the last "
+                     "second may not be on the disk")
+            self.fsync_errors, self.fsync_noted_s = h.fsync_errors, now_s
+
+    def _began(self, h: WriteHealth, now: int, now_s: float,
+               event: Callable[[str, dict[str, Any]], None]) -> None:
+        self.failing, self.failures, self.error = True, h.failures, h.error or "write refused"
+        self.since_s = h.failing_since_s if h.failing_since_s is not None else now_s
+        self.since_ns = now - int((now_s - self.since_s) * 1e9)
+        self.noted_s = now_s
+        path = self.writer.paths[-1]
+        self.out(f"{self.prefix} recording: cannot write {path}: {self.error}; reading, "
+                 f"calibrating and publishing go on, up to {self.budget_mb:g} MB of it wait "
+                 "in memory, then the oldest is dropped")
+        event("write_failed", {"error": self.error, "path": str(path),
+                               "backlog_mb": self.budget_mb})
+
+    def closed(self) -> None:
+        """After the writer's close: each part the disk would not let it finish, with its
+        repair (the file ends at its last whole record)."""
+        h = self.writer.health()
+        for path in h.unfinished:
+            self.out(f"{self.prefix} recording: {path} not finished ({h.error}); "
+                     f"{h.dropped_samples} raw samples ({h.dropped_messages} messages) lost "
+                     f"in all; recover the rest with: recal repair {path} --out FIXED.mcap")
 
 
 def join_by_layout(batches: list[RawBatch]) -> list[RawBatch]:

@@ -42,6 +42,7 @@ a query on ``recal/<sensor>/align`` aligns at once on the current still run (if 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import sys
@@ -1121,12 +1122,16 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     emit(f"{NOTE_PREFIX} checkpoints in {cfg.checkpoint.dir or '(none)'}")
     emit(f"{NODE_READY_PREFIX} mcap={writer.paths[0] if writer is not None else None}")
     emit(f"{NOTE_PREFIX} serving {gate.describe()}")
+    watch = None if writer is None else _watch_recording(writer, emit, cfg.mcap.backlog_mb,
+                                                         stop)
     try:
         runner.run(stop)
     finally:
         runner.close()
         if writer is not None:
             writer.close()
+        if watch is not None:
+            watch.closed()
         if own_bus:
             bus.close()
         restore()
@@ -1154,6 +1159,26 @@ def _gate(cfg: ServiceConfig, sensor_ids: Sequence[str], accept_any: bool | None
                           "them in [[sensors]] or with --sensor-id, or serve any that "
                           "publishes with [node] accept_any = true (or --accept-any)")
     return SensorGate(named, any_, cap)
+
+
+def _watch_recording(writer: Any, emit: Callable[[str], None], budget_mb: float,
+                     stop: threading.Event) -> Any:
+    """A thread that tells the operator, once a second at most, when the node's recording
+    stops being written (a full disk) and when it resumes (see gateway.RecordingWatch)."""
+    from recal.gateway import RecordingWatch  # the gateway imports this module
+
+    watch = RecordingWatch(writer, emit, budget_mb, prefix=NOTE_PREFIX)
+
+    def event(kind: str, detail: dict[str, Any]) -> None:
+        with contextlib.suppress(ValueError):  # the writer closed under us (the stop)
+            writer.write_event(kind, time.time_ns(), detail=detail)
+
+    def loop() -> None:
+        while not stop.wait(1.0):
+            watch.check(time.time_ns(), event)
+
+    threading.Thread(target=loop, name="recal-recording-watch", daemon=True).start()
+    return watch
 
 
 class _NodeRunner:

@@ -31,6 +31,13 @@ Crash tolerance: chunks are small (32 KiB by default) and the open chunk is clos
 flushed and ``fsync``ed at least every ``flush_interval_s``, so a SIGKILL or power cut loses about
 that much; ``repair`` turns the truncated file into a valid indexed one.
 
+A full disk (``backlog_bytes``, the daemon's setting): a write the file refuses does not raise.
+The file is cut back to the end of its last whole record (readable by ``repair`` as it stands),
+and the refused output waits in memory, each chunk compressed once, until a later flush gets
+it written in the same file; past ``backlog_bytes`` the oldest waiting chunks are dropped and
+counted (``RecordingWriter.health``). Tools that write a file (replay, import) keep the default:
+a refused write raises.
+
 Memory: the writer holds the open chunk and a few counters; the chunk indexes the summary needs
 wait in a temporary file (a week flushed every second is ~600k chunks), so a recording of any
 length is written in constant memory.
@@ -38,6 +45,8 @@ length is written in constant memory.
 
 from __future__ import annotations
 
+import collections
+import errno
 import fnmatch
 import functools
 import os
@@ -92,6 +101,7 @@ __all__ = [
     "RecordingWriter",
     "RepairReport",
     "TopicSummary",
+    "WriteHealth",
     "iter_calibrated",
     "iter_json",
     "iter_messages",
@@ -198,6 +208,30 @@ _CHUNK_INDEX_SPILL = struct.Struct("<QQQQQQQH")
 _CHANNEL_OFFSET = struct.Struct("<HQ")  # channel id, its message index record's offset
 
 
+class _ChunkInfo(NamedTuple):
+    """What a chunk's index needs besides its position in the file."""
+
+    start_ns: int
+    end_ns: int
+    length: int  # the chunk record, without its message indexes
+    packed: int  # compressed size
+    size: int  # uncompressed size
+    index_offsets: dict[int, int]  # channel id -> its message index, from the chunk's start
+
+
+@dataclass
+class _Pending:
+    """Bytes for the file, in order: loose records (header, metadata, schema and channel
+    definitions), or a compressed chunk followed by its message indexes."""
+
+    data: bytes
+    chunk: _ChunkInfo | None = None
+    metadata_name: str | None = None
+    messages: int = 0
+    samples: int = 0  # raw samples in those messages
+    defs: bytes = b""  # schema and channel records inside the chunk
+
+
 class _McapFile:
     """MCAP records, laid out as ``mcap.writer.Writer`` lays them out: schemas, channels and
     messages in chunks, a message index per channel after each chunk, then a summary
@@ -213,12 +247,21 @@ class _McapFile:
     the caller on another core). At most ``_QUEUED_CHUNKS`` chunks wait, so memory stays
     bounded; ``flush`` and ``finish`` wait until the thread has written everything, and an
     error in the thread is raised by the next call.
+
+    With ``backlog_bytes`` (not with ``background``), a write the file refuses (a full disk)
+    does not raise: the file is cut back to the end of its last whole record, so it stays
+    readable and repairable, and what was refused waits, in order and compressed once, until
+    :meth:`retry` gets it written. Beyond ``backlog_bytes`` the oldest waiting chunks are
+    dropped and counted (``dropped_messages``, ``dropped_samples``). ``stream`` must then be
+    unbuffered (a buffered writer keeps refused bytes and cannot be cut back).
     """
 
     _QUEUED_CHUNKS = 4
 
     def __init__(self, stream: IO[bytes], chunk_size: int, compression: Compression,
-                 background: bool = False) -> None:
+                 background: bool = False, backlog_bytes: int | None = None) -> None:
+        if background and backlog_bytes is not None:
+            raise ValueError("a write backlog needs the writes on the caller's thread")
         self._out = stream
         self._chunk_size = chunk_size
         self._compression = _COMPRESSION_NAMES[compression]
@@ -240,6 +283,16 @@ class _McapFile:
         self._messages = 0
         self._start_ns = self._end_ns = 0
         self._error: BaseException | None = None
+        # Output waiting for the file, in order; empty except while the file refuses writes.
+        self._backlog: collections.deque[_Pending] = collections.deque()
+        self._backlog_size = 0
+        self._backlog_limit = backlog_bytes
+        self.failure: OSError | None = None  # the refusal that writing waits on, if any
+        self.dropped_messages = 0  # dropped from the backlog (over its budget, or at finish)
+        self.dropped_samples = 0  # raw samples in those messages
+        self.messages_out = 0  # messages in the file
+        self.open_samples = 0  # raw samples in the open chunk (the owner adds them)
+        self._open_defs: list[bytes] = []  # schema and channel records in the open chunk
         self._jobs: queue.Queue[tuple[Callable[..., None], tuple] | None] | None = None
         self._thread: threading.Thread | None = None
         if background:
@@ -281,8 +334,90 @@ class _McapFile:
             raise RuntimeError("writing the recording failed") from self._error
 
     def _write(self, data: bytes) -> None:
-        self._out.write(data)
+        view = memoryview(data)
+        while view:  # an unbuffered file may take part of it (the last room on a disk)
+            n = self._out.write(view)
+            if not n:
+                raise OSError(errno.EIO, "the file took no bytes")
+            view = view[n:]
         self.position += len(data)
+
+    # -- output that waits (a full disk) ------------------------------------------------------
+    @property
+    def waiting_bytes(self) -> int:
+        """Bytes refused by the file and waiting for it."""
+        return self._backlog_size
+
+    @property
+    def waiting_messages(self) -> int:
+        return sum(e.messages for e in self._backlog)
+
+    def _queue(self, entry: _Pending) -> None:
+        """Output in order: written now, unless earlier output still waits."""
+        self._backlog.append(entry)
+        self._backlog_size += len(entry.data)
+        if self.failure is None:
+            self._pump()
+        if self._backlog_limit is not None:
+            self._trim(self._backlog_limit)
+
+    def _pump(self) -> bool:
+        """Write what waits, in order; False if the file refused (it is cut back to its last
+        whole record, and the rest keeps waiting). Raises without a backlog budget."""
+        while self._backlog:
+            entry = self._backlog[0]
+            start = self.position
+            try:
+                self._write(entry.data)
+                if entry.chunk is not None:
+                    self._index_chunk(start, entry)
+            except OSError as exc:
+                if self._backlog_limit is None:
+                    raise
+                self._cut_back(start)
+                self.failure = exc
+                return False
+            if entry.metadata_name is not None:
+                self._metadata_indexes.append(MetadataIndex(
+                    offset=start, length=len(entry.data), name=entry.metadata_name))
+            self._backlog.popleft()
+            self._backlog_size -= len(entry.data)
+            self.messages_out += entry.messages
+        self.failure = None
+        return True
+
+    def retry(self) -> bool:
+        """Try the waiting output again; True once nothing waits."""
+        if not self._backlog:  # (all of it may have been dropped)
+            self.failure = None
+            return True
+        return self._pump()
+
+    def _cut_back(self, position: int) -> None:
+        """End the file at ``position`` (a record boundary): a refused write may have left
+        part of a record, which would make everything after it unreadable."""
+        self.position = position
+        self._out.seek(position)
+        self._out.truncate(position)
+
+    def _trim(self, limit: int) -> None:
+        """Drop the oldest waiting chunks until at most ``limit`` bytes wait. Schema and channel
+        records a dropped chunk carried stay, as records of their own: later chunks need them."""
+        i = 0
+        while self._backlog_size > limit and i < len(self._backlog):
+            entry = self._backlog[i]
+            if not entry.messages:
+                i += 1
+                continue
+            self.dropped_messages += entry.messages
+            self.dropped_samples += entry.samples
+            self._backlog_size -= len(entry.data)
+            if entry.defs:
+                self._backlog[i] = _Pending(entry.defs)
+                self._backlog_size += len(entry.defs)
+                i += 1
+            else:
+                del self._backlog[i]
 
     @staticmethod
     def _record(rec: Any) -> bytes:
@@ -292,27 +427,26 @@ class _McapFile:
 
     # -- records outside chunks ---------------------------------------------------------------
     def start(self, profile: str, library: str) -> None:
-        self._submit(self._write, MCAP0_MAGIC + self._record(Header(profile=profile,
-                                                                     library=library)))
+        self._submit(self._queue, _Pending(MCAP0_MAGIC + self._record(Header(
+            profile=profile, library=library))))
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
-        self._submit(self._write_metadata, name, self._record(Metadata(name=name,
-                                                                        metadata=dict(data))))
-
-    def _write_metadata(self, name: str, record: bytes) -> None:
-        self._metadata_indexes.append(MetadataIndex(offset=self.position, length=len(record),
-                                                    name=name))
-        self._write(record)
+        self._submit(self._queue, _Pending(self._record(Metadata(name=name, metadata=dict(
+            data))), metadata_name=name))
 
     # -- records inside chunks ----------------------------------------------------------------
     def _append(self, data: bytes) -> None:
         self._pieces.append(data)
         self._size += len(data)
 
+    def _append_definition(self, record: bytes) -> None:
+        self._append(record)
+        self._open_defs.append(record)
+
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas.append(schema)
-        self._append(self._record(schema))
+        self._append_definition(self._record(schema))
         return schema.id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
@@ -320,7 +454,7 @@ class _McapFile:
                           message_encoding=message_encoding, schema_id=schema_id, metadata={})
         self._channels.append(channel)
         self._counts[channel.id] = 0
-        self._append(self._record(channel))
+        self._append_definition(self._record(channel))
         return channel.id
 
     def _note(self, channel_id: int, log_times: list[int], offsets: list[int]) -> None:
@@ -388,12 +522,17 @@ class _McapFile:
         if not self._times:  # schema and channel records alone wait for the next chunk,
             return  # as in mcap's Writer (a chunk without messages is not written)
         self._submit(self._write_chunk, b"".join(self._pieces), self._chunk_start,
-                     self._chunk_end, self._times, self._offsets)
+                     self._chunk_end, self._times, self._offsets, self.open_samples,
+                     b"".join(self._open_defs))
         self._pieces, self._size = [], 0
         self._times, self._offsets = {}, {}
+        self.open_samples, self._open_defs = 0, []
 
     def _write_chunk(self, data: bytes, start_ns: int, end_ns: int,
-                     times: dict[int, list[int]], offsets: dict[int, list[int]]) -> None:
+                     times: dict[int, list[int]], offsets: dict[int, list[int]],
+                     samples: int, defs: bytes) -> None:
+        """Compress the chunk (once, whatever happens to the write) and queue it with its
+        message indexes; their file offsets are known when it is written."""
         if self._zstd is not None:
             packed = self._zstd.compress(data)
         elif self._compression == "lz4":
@@ -402,27 +541,34 @@ class _McapFile:
             packed = data
         name = self._compression.encode()
         body_len = 8 + 8 + 8 + 4 + 4 + len(name) + 8 + len(packed)
-        chunk_start = self.position
-        self._write(b"".join((
-            _CHUNK_FIXED.pack(Opcode.CHUNK, body_len, start_ns, end_ns, len(data),
-                              zlib.crc32(data)),
-            struct.pack("<I", len(name)), name, struct.pack("<Q", len(packed)), packed)))
-        chunk_length = self.position - chunk_start
-        index_start = self.position
-        index_offsets = {}
+        pieces = [_CHUNK_FIXED.pack(Opcode.CHUNK, body_len, start_ns, end_ns, len(data),
+                                    zlib.crc32(data)),
+                  struct.pack("<I", len(name)), name, struct.pack("<Q", len(packed)), packed]
+        chunk_length = 1 + 8 + body_len
+        index_offsets = {}  # channel id -> its message index, relative to the chunk's start
+        at = chunk_length
         for channel_id, log_times in times.items():
             pairs = np.empty((len(log_times), 2), "<u8")
             pairs[:, 0] = log_times
             pairs[:, 1] = offsets[channel_id]
-            index_offsets[channel_id] = self.position
-            self._write(_MESSAGE_INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + pairs.nbytes,
-                                                 channel_id, pairs.nbytes) + pairs.tobytes())
+            index_offsets[channel_id] = at
+            pieces.append(_MESSAGE_INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + pairs.nbytes,
+                                                   channel_id, pairs.nbytes) + pairs.tobytes())
+            at += _MESSAGE_INDEX_HEAD.size + pairs.nbytes
+        self._queue(_Pending(b"".join(pieces), _ChunkInfo(
+            start_ns, end_ns, chunk_length, len(packed), len(data), index_offsets),
+            messages=sum(len(t) for t in times.values()), samples=samples, defs=defs))
+
+    def _index_chunk(self, start: int, entry: _Pending) -> None:
+        """The chunk index of a chunk just written at ``start``, to the spill file."""
+        info = entry.chunk
+        assert info is not None
         if self._chunk_spill is None:
             self._chunk_spill = tempfile.TemporaryFile(prefix="recal-chunk-index-")
         self._chunk_spill.write(_CHUNK_INDEX_SPILL.pack(
-            start_ns, end_ns, chunk_start, chunk_length, self.position - index_start,
-            len(packed), len(data), len(index_offsets)) + b"".join(
-                _CHANNEL_OFFSET.pack(c, o) for c, o in index_offsets.items()))
+            info.start_ns, info.end_ns, start, info.length, len(entry.data) - info.length,
+            info.packed, info.size, len(info.index_offsets)) + b"".join(
+                _CHANNEL_OFFSET.pack(c, start + o) for c, o in info.index_offsets.items()))
         self._chunks += 1
 
     def _chunk_indexes(self) -> Iterator[ChunkIndex]:
@@ -444,13 +590,23 @@ class _McapFile:
                 compressed_size=packed, uncompressed_size=size)
 
     def flush(self) -> None:
-        """End the open chunk, wait until it is written, flush the stream."""
+        """End the open chunk, wait until it is written (or, with a backlog, try again what
+        waits), flush the stream."""
+        if self.failure is not None and not self.retry():
+            return  # still refused: the open chunk keeps filling (fewer, better chunks wait)
         self.end_chunk()
+        if self._jobs is None:  # with the thread, it alone writes
+            self.retry()
         self._drain()
         self._out.flush()
 
-    def finish(self) -> None:
-        """The last chunk, data end, summary, footer and closing magic; stops the thread."""
+    def finish(self) -> bool:
+        """The last chunk, data end, summary, footer and closing magic; stops the thread.
+
+        Returns False, with a backlog budget, when the file refused to take it all: what still
+        waited is dropped (counted), and the file ends at its last whole record, without a
+        summary (``repair`` reads it).
+        """
         try:
             self.end_chunk()
             self._drain()
@@ -459,6 +615,25 @@ class _McapFile:
                 self._jobs.put(None)
                 self._thread.join()
                 self._jobs = None
+        try:
+            if not self.retry():
+                self._trim(0)
+                return False
+            data_end = self.position
+            try:
+                self._write_summary_section()
+            except OSError as exc:
+                if self._backlog_limit is None:
+                    raise
+                self._cut_back(data_end)
+                self.failure = exc
+                return False
+            return True
+        finally:
+            if self._chunk_spill is not None:
+                self._chunk_spill.close()
+
+    def _write_summary_section(self) -> None:
         self._write(self._record(DataEnd(data_section_crc=0)))
         summary_start = self.position
         groups: list[tuple[int, Iterable[Any]]] = [
@@ -495,8 +670,6 @@ class _McapFile:
                         summary_crc=crc)
         self._write(self._record(footer) + MCAP0_MAGIC)
         self._out.flush()
-        if self._chunk_spill is not None:
-            self._chunk_spill.close()
 
     def _write_summary(self, data: bytes, crc: int) -> int:
         self._write(data)
@@ -530,6 +703,34 @@ def _check_log_time(log_time_ns: int) -> int:
     return value
 
 
+@dataclass(frozen=True)
+class WriteHealth:
+    """Whether the recording is being written, and what a refusing file cost so far.
+
+    Attributes:
+        failing: the file refuses writes (a full disk); messages wait in memory meanwhile.
+        error: the last write or fsync error, as text (None if there was none).
+        failing_since_s: when the current refusal began (the writer's clock), or None.
+        failures: refusals so far (a refusal lasts until everything waiting is written).
+        waiting_bytes: compressed bytes waiting for the file.
+        dropped_messages, dropped_samples: dropped so far, oldest first, because more waited
+            than ``backlog_bytes`` or because the file still refused at a close (raw samples
+            in the dropped messages).
+        fsync_errors: fsyncs that failed (the data may not be on the disk yet).
+        unfinished: parts closed without their index (``recal repair`` reads them).
+    """
+
+    failing: bool
+    error: str | None
+    failing_since_s: float | None
+    failures: int
+    waiting_bytes: int
+    dropped_messages: int
+    dropped_samples: int
+    fsync_errors: int
+    unfinished: tuple[Path, ...]
+
+
 class RecordingWriter:
     """Writes the topic layout above to MCAP, flushing and rotating as it goes.
 
@@ -558,6 +759,11 @@ class RecordingWriter:
         background_compression: compress and write finished chunks on a thread, beside the
             caller (replay: the calibration runs while the previous chunk is compressed). A
             flush still returns only once everything is in the file.
+        backlog_bytes: None: a write the file refuses raises (a tool writing a file). A number
+            (the daemon): it does not; the file is cut back to its last whole record, and what
+            it refused waits in memory, compressed, and is written when the file takes it
+            again (tried at every flush). Beyond this many bytes the oldest waiting chunks are
+            dropped and counted; see :meth:`health`. Not with background_compression.
     """
 
     def __init__(self, path: PathLike, *, chunk_size: int = 32 * 1024,
@@ -565,7 +771,8 @@ class RecordingWriter:
                  rotate_s: float | None = None, compression: Compression = "zstd",
                  clock: Callable[[], float] = time.monotonic, background_flush: bool = True,
                  fsync: bool = True, metadata: Mapping[str, str] | None = None,
-                 overwrite: bool = False, background_compression: bool = False) -> None:
+                 overwrite: bool = False, background_compression: bool = False,
+                 backlog_bytes: int | None = None) -> None:
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
         if chunk_size <= 0 or flush_interval_s <= 0:
@@ -573,6 +780,8 @@ class RecordingWriter:
         if (rotate_bytes is not None and rotate_bytes <= 0) or (rotate_s is not None
                                                                and rotate_s <= 0):
             raise ValueError("rotate_bytes and rotate_s must be positive (or None)")
+        if backlog_bytes is not None and (backlog_bytes < 0 or background_compression):
+            raise ValueError("backlog_bytes must be >= 0, and not with background_compression")
         self._base = Path(path)
         self._base.parent.mkdir(parents=True, exist_ok=True)
         self._prepare_target(overwrite)
@@ -597,6 +806,14 @@ class RecordingWriter:
         self._flush_count = 0
         self._closed = False
         self._background_error: BaseException | None = None
+        self._backlog_bytes = backlog_bytes
+        self._parts_out = 0  # messages in the files of finished parts
+        self._parts_dropped = (0, 0)  # messages, samples dropped in finished parts
+        self._unfinished: list[Path] = []
+        self._failures = 0
+        self._failing_since_s: float | None = None
+        self._last_error: str | None = None
+        self._fsync_errors = 0
         self._open_part()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -625,12 +842,19 @@ class RecordingWriter:
     def flush_count(self) -> int:
         return self._flush_count
 
+    @property
+    def backlog_bytes(self) -> int | None:
+        """How much may wait in memory while the file refuses writes (None: refusals raise)."""
+        return self._backlog_bytes
+
     def write_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> bytes:
         """Log a raw batch on ``/<sensor>/raw``; returns the encoded bytes (for the bus)."""
         data = messages.encode_raw(sensor_id, batch)
         first = int(batch.t_us[0]) if len(batch) else None
-        self.write_encoded(self._sensor_topic(sensor_id, "raw"), data, log_time_ns,
-                           _publish_ns(first, int(log_time_ns)), schema=messages.RAW_SCHEMA)
+        log_ns = _check_log_time(log_time_ns)
+        self._write_many(self._sensor_topic(sensor_id, "raw"), messages.RAW_SCHEMA,
+                         [(data, log_ns, _publish_ns(first, log_ns))], log_ns,
+                         samples=len(batch))
         return data
 
     def write_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
@@ -731,7 +955,11 @@ class RecordingWriter:
         _fsync_and_close(fd)
 
     def close(self) -> None:
-        """Flush, write the index (summary) and close the file. Idempotent."""
+        """Flush, write the index (summary) and close the file. Idempotent.
+
+        With ``backlog_bytes``, a file that still refuses writes does not raise: what waited is
+        dropped (counted) and the part is left without its index (``health().unfinished``).
+        """
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=10.0)
@@ -741,6 +969,20 @@ class RecordingWriter:
             self._closed = True
             self._finish_part()
         self._raise_background_error()
+
+    def health(self) -> WriteHealth:
+        """Whether writing works now, and what refusals cost so far (for the console)."""
+        with self._lock:
+            m = self._mcap
+            # a finished part's drops are in _parts_dropped already
+            open_dropped = (0, 0) if self._closed else (m.dropped_messages, m.dropped_samples)
+            return WriteHealth(
+                failing=m.failure is not None, error=self._last_error,
+                failing_since_s=self._failing_since_s, failures=self._failures,
+                waiting_bytes=m.waiting_bytes,
+                dropped_messages=self._parts_dropped[0] + open_dropped[0],
+                dropped_samples=self._parts_dropped[1] + open_dropped[1],
+                fsync_errors=self._fsync_errors, unfinished=tuple(self._unfinished))
 
     def __enter__(self) -> RecordingWriter:
         return self
@@ -769,9 +1011,11 @@ class RecordingWriter:
 
     def _open_part(self) -> None:
         path = _part_path(self._base, len(self._paths))
-        self._file: IO[bytes] = open(path, "wb")  # closed in _finish_part
+        # Unbuffered: _McapFile joins each chunk into one write itself, and a write the disk
+        # refuses must leave nothing behind in a buffer (the file is cut back instead).
+        self._file: IO[bytes] = open(path, "wb", buffering=0)  # closed in _finish_part
         self._mcap = _McapFile(self._file, self._chunk_size, self._compression,
-                               self._background_compression)
+                               self._background_compression, self._backlog_bytes)
         self._mcap.start(profile="", library=_LIBRARY)
         self._mcap.add_metadata("recal", {"version": __version__,
                                           "part": str(len(self._paths)), **self._metadata})
@@ -783,18 +1027,39 @@ class RecordingWriter:
         self._last_flush_s = self._clock()
 
     def _finish_part(self) -> None:
+        m = self._mcap
         try:
-            self._mcap.finish()
+            finished = m.finish()
             self._file.flush()
             if self._fsync:
-                os.fsync(self._file.fileno())
+                self._fsync_checked(self._file.fileno())
         finally:
             self._file.close()
-        self._messages_flushed = self._messages_written
+            self._parts_out += m.messages_out
+            self._parts_dropped = (self._parts_dropped[0] + m.dropped_messages,
+                                   self._parts_dropped[1] + m.dropped_samples)
+        if not finished:
+            self._unfinished.append(self._paths[-1])
+            self._note_failure(m.failure)
+        self._messages_flushed = self._parts_out
+
+    def _fsync_checked(self, fd: int) -> None:
+        """fsync; with a backlog budget a failure is counted, not raised."""
+        try:
+            os.fsync(fd)
+        except OSError as exc:
+            if self._backlog_bytes is None:
+                raise
+            self._fsync_errors += 1
+            self._last_error = _describe(exc)
+
+    def _note_failure(self, exc: OSError | None) -> None:
+        if exc is not None:
+            self._last_error = _describe(exc)
 
     def _rotation_due(self, log_ns: int) -> bool:
-        if self._part_messages == 0:
-            return False  # never leave an empty part behind
+        if self._part_messages == 0 or self._mcap.failure is not None:
+            return False  # never leave an empty part behind, nor finish one the disk refuses
         if self._rotate_bytes is not None and self._mcap.position >= self._rotate_bytes:
             return True
         return self._rotate_ns is not None and log_ns - self._part_start_ns >= self._rotate_ns
@@ -814,10 +1079,13 @@ class RecordingWriter:
         return channel_id
 
     def _write_many(self, topic: str, spec: SchemaSpec,
-                    items: Sequence[tuple[bytes, int, int]], call_log_ns: int) -> None:
-        """Append (data, log_time_ns, publish_time_ns) messages to one topic, in order."""
+                    items: Sequence[tuple[bytes, int, int]], call_log_ns: int,
+                    samples: int = 0) -> None:
+        """Append (data, log_time_ns, publish_time_ns) messages to one topic, in order;
+        ``samples``: raw samples they hold (counted if they are dropped)."""
         self._append(topic, spec, call_log_ns, len(items),
-                     lambda channel_id, seq: self._mcap.add_messages(channel_id, items, seq))
+                     lambda channel_id, seq: self._mcap.add_messages(channel_id, items, seq),
+                     samples)
 
     def _write_fixed(self, topic: str, spec: SchemaSpec, payloads: np.ndarray,
                      log_times: np.ndarray, publish_times: np.ndarray, call_log_ns: int) -> None:
@@ -827,7 +1095,7 @@ class RecordingWriter:
                          channel_id, payloads, log_times, publish_times, seq))
 
     def _append(self, topic: str, spec: SchemaSpec, call_log_ns: int, count: int,
-                add: Callable[[int, int], int]) -> None:
+                add: Callable[[int, int], int], samples: int = 0) -> None:
         """Rotate if due, then ``add(channel_id, first_sequence)`` -> next sequence; ``add``
         reads ``self._mcap`` when called, i.e. the part open after any rotation."""
         with self._lock:
@@ -840,26 +1108,44 @@ class RecordingWriter:
             if self._part_messages == 0:
                 self._part_start_ns = call_log_ns
             channel_id = self._channel_id(topic, spec)
+            self._mcap.open_samples += samples  # before add: it may end the chunk
             self._sequence[topic] = add(channel_id, self._sequence.get(topic, 0))
             self._part_messages += count
             self._messages_written += count
+            if self._mcap.failure is not None and self._failing_since_s is None:
+                self._track_failure(self._clock())  # a chunk just ended was refused
             self._maybe_flush()
+
+    def _track_failure(self, now_s: float) -> None:
+        """Note when the file began or stopped refusing writes (lock held)."""
+        failure = self._mcap.failure
+        if failure is None:
+            self._failing_since_s = None
+        else:
+            if self._failing_since_s is None:
+                self._failures += 1
+                self._failing_since_s = now_s
+            self._last_error = _describe(failure)
 
     def _maybe_flush(self) -> None:
         if self._clock() - self._last_flush_s >= self._flush_interval_s:
             self._flush_locked()
 
     def _flush_locked(self) -> None:
-        self._last_flush_s = self._clock()
-        if self._messages_flushed == self._messages_written:
+        self._last_flush_s = now_s = self._clock()
+        m = self._mcap
+        if self._messages_flushed == self._messages_written and not m.waiting_bytes:
             return  # nothing new: skip the fsync
-        self._mcap.flush()  # ends the open chunk and flushes the Python buffer
+        m.flush()  # ends the open chunk (and tries again what the disk refused)
+        self._track_failure(now_s)
+        if m.failure is not None:
+            return  # nothing new in the file: no fsync
         # The fsync itself (~6 ms here) happens outside the lock, on the flush thread: a
         # writer calling in to log a sample must not wait for the disk (the gateway's
         # latency p99 showed it). The data is with the OS already, so a killed process
         # loses nothing by this; a power cut may lose up to a quarter interval more.
         self._fsync_due = self._fsync
-        self._messages_flushed = self._messages_written
+        self._messages_flushed = self._parts_out + m.messages_out
         self._flush_count += 1
 
     def _take_fsync(self) -> int | None:
@@ -871,27 +1157,43 @@ class RecordingWriter:
         return os.dup(self._file.fileno())
 
     def _flush_loop(self) -> None:
-        # Wakes several times per interval so a quiet writer is still flushed on time.
+        # Wakes several times per interval so a quiet writer is still flushed on time. It
+        # outlives errors: a disk that was full takes data again, and fsync is still wanted.
         while not self._stop.wait(self._flush_interval_s / 4):
+            fd = None
             with self._lock:
                 if self._closed:
                     return
                 try:
                     self._maybe_flush()
                     fd = self._take_fsync()
-                except Exception as exc:  # surfaced to the owner on its next call
-                    self._background_error = exc
-                    return
+                except Exception as exc:
+                    self._background_failed(exc)
+                    continue
             try:
                 _fsync_and_close(fd)
             except OSError as exc:
-                self._background_error = exc
-                return
+                with self._lock:
+                    self._background_failed(exc)
+
+    def _background_failed(self, exc: Exception) -> None:
+        """An error on the flush thread (lock held): kept for the owner's next call, or with a
+        backlog budget (where write refusals never raise) counted in ``health``."""
+        if self._backlog_bytes is None:
+            self._background_error = exc
+            return
+        if isinstance(exc, OSError):
+            self._fsync_errors += 1
+        self._last_error = _describe(exc) if isinstance(exc, OSError) else repr(exc)
 
     def _raise_background_error(self) -> None:
         if self._background_error is not None:
             error, self._background_error = self._background_error, None
             raise RuntimeError("background flush of the recording failed") from error
+
+
+def _describe(exc: OSError) -> str:
+    return exc.strerror or str(exc)
 
 
 def _fsync_and_close(fd: int | None) -> None:
