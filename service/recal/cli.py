@@ -350,8 +350,11 @@ def replay_lines(summary: dict) -> list[str]:
                                                         values.items()))
         al = info.get("alignment")
         if al:
-            lines.append(f"    mounting tilt {al['tilt_deg']:.1f} deg (Zheng's alarm above "
-                         f"{al['limit_deg']:g} deg" + (": raised)" if al["alarm"] else ")"))
+            moved = al.get("moved_deg")
+            lines.append(f"    mounting tilt {al['tilt_deg']:.1f} deg at the reference; "
+                         + (f"tilt alarm: moved {moved:.1f} deg since (limit {al['limit_deg']:g} "
+                            "deg)" if moved is not None else "no slip beyond "
+                            f"{al['limit_deg']:g} deg"))
     return lines
 
 
