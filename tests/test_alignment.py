@@ -332,3 +332,40 @@ def test_sim_mount_slip_turns_only_what_follows_it() -> None:
     assert al.angle_deg(half, Z) == pytest.approx(4.5)
     assert np.all(np.isfinite(a1[ramp]))
     np.testing.assert_array_equal(slipped.raw.v[before], plain.raw.v[before])
+
+
+def test_the_alarm_stands_in_the_state_and_clears_when_the_sensor_is_reseated() -> None:
+    seed, minutes = 1, 40.0
+    ref_s = _wear(seed, 8.0, STANDING).of("alignment")[0]["t_us"] / 1e6
+    slip = sim.MountSlip(10.0, ref_s + 120.0, azimuth_deg=40.0)
+    spec = sim.SensorSpec.random(np.random.default_rng(seed), offset_mg=50.0, gain_pct=3.0)
+    plain = sim.simulate(minutes / 60, RATE_HZ, seed, spec, STANDING)
+    slipped = sim.simulate(minutes / 60, RATE_HZ, seed, spec, STANDING, slip=slip)
+    # re-seated 15 min after the slip: the sensor reads as it did before it
+    t_s = plain.raw.t_us / 1e6
+    a = np.where((t_s >= slip.at_s + 900.0)[:, None], plain.truth.a_true_g,
+                 slipped.truth.a_true_g)
+    v = sim.forward_model(a, spec, rng=np.random.default_rng(seed + 100))
+    raw = replace(plain.raw, v=v)
+    sensor = SensorConfig("s", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
+    settings = PipelineSettings()
+    model, prior = model_and_prior(sensor, settings)
+    sink = EventSink()
+    node = CalibrationNode(NodeSettings("s", settings, model, prior, RATE_HZ, None,
+                                        AlignmentConfig()), sink)
+    standing: list[bool] = []
+    for i in range(0, len(raw), 250):
+        b = raw[i:i + 250]
+        node.process(b, int(b.t_us[0]) * 1000)
+        standing.append(node.status()["alignment"]["alarm"] if node.alignment else False)
+    kinds = [e["kind"] for e in sink.events if e["kind"].startswith("tilt_")]
+    assert kinds == ["tilt_alarm", "tilt_cleared"]
+    raised, cleared = sink.of("tilt_alarm")[0], sink.of("tilt_cleared")[0]
+    assert slip.at_s < raised["t_us"] / 1e6 < slip.at_s + 900.0 < cleared["t_us"] / 1e6
+    assert cleared["detail"]["moved_deg"] < 7.0
+    # the alarm stood in the published state from the one event to the other
+    at = np.array([int(b.t_us[-1]) for b in (raw[i:i + 250] for i in range(0, len(raw), 250))])
+    on = np.array(standing)
+    assert on[(at >= raised["t_us"]) & (at < cleared["t_us"])].all()
+    assert not on[(at < raised["t_us"]) | (at >= cleared["t_us"])].any()
+    assert len(sink.of("alignment")) == 1  # neither event replaced the reference
