@@ -2,6 +2,7 @@
 
     python bench/tilt_alarm.py               # 20 seeds per case, 1.5 h at 25 Hz each
     python bench/tilt_alarm.py --seeds 5     # quicker
+    python bench/tilt_alarm.py --case "all orientations, no" --seeds 30 --first-seed 101 --hours 4
 
 Every case runs a `CalibrationNode` (default alignment settings: reference after the first
 accepted update, 10 s still periods, 7 deg limit) on a simulated wearer (`recal.sim`: offsets
@@ -141,10 +142,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="wearers per case (default 20)")
     ap.add_argument("--hours", type=float, default=1.5, help="length of each (default 1.5)")
+    ap.add_argument("--first-seed", type=int, default=1, help="seeds from here on (default 1)")
+    ap.add_argument("--case", default="", help="only the cases whose name contains this")
     a = ap.parse_args()
     t0 = time.perf_counter()
-    for case in CASES:
-        runs = [run_case(case, seed, a.hours) for seed in range(1, a.seeds + 1)]
+    for case in (c for c in CASES if a.case in c.name):
+        seeds = range(a.first_seed, a.first_seed + a.seeds)
+        runs = [run_case(case, seed, a.hours) for seed in seeds]
         print(summarize(case, runs), flush=True)
     print(f"({time.perf_counter() - t0:.0f} s)")
 
