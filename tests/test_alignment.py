@@ -1,11 +1,25 @@
-"""Mounting alignment (Zheng et al. sec. II.B/C): the pure tilt math and the still tracker."""
+"""Mounting alignment (Zheng et al. sec. II.B/C): the pure tilt math, the still tracker, and
+the tilt alarm (a slip of the mounting, not a tilted reference) on simulated wear end to end."""
 
 from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
 
+from recal import sim
+from recal.config import (
+    AlignmentConfig,
+    PipelineSettings,
+    PriorConfig,
+    SensorConfig,
+    model_and_prior,
+)
 from recal.core import alignment as al
+from recal.node import CalibrationNode, NodeSettings, NullSink
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -52,19 +66,22 @@ def test_known_rotation_is_recovered(seed: int) -> None:
     np.testing.assert_allclose(al.to_body(ali.rotation, a), a @ R_true.T, atol=1e-12)
 
 
-def test_alarm_above_the_limit_and_not_below() -> None:
+def test_a_tilted_reference_alone_is_no_alarm_a_confirmed_slip_is() -> None:
     def at(deg_x: float, deg_y: float, limit: float = al.DEFAULT_TILT_LIMIT_DEG) -> al.Alignment:
         g = np.array([np.sin(np.radians(deg_x)), np.sin(np.radians(deg_y)), 0.0])
         g[2] = np.sqrt(1 - g[0] ** 2 - g[1] ** 2)
         return al.estimate_alignment(g, limit)
 
     assert al.DEFAULT_TILT_LIMIT_DEG == 7.0
-    assert not at(6.9, 0.0).alarm
-    assert not at(-5.0, 6.5).alarm
-    assert at(7.1, 0.0).alarm
-    assert at(0.0, -7.5).alarm
-    assert at(3.0, 3.0, limit=2.0).alarm  # configurable
-    assert not at(8.0, 0.0, limit=10.0).alarm
+    # Zheng alarmed beyond 7 deg on the reference itself; the rotation here is exact at any
+    # tilt (test_known_rotation_is_recovered), so a tilted mounting is aligned, not alarmed
+    for deg in [(6.9, 0.0), (7.1, 0.0), (0.0, -7.5), (25.0, 10.0)]:
+        ali = at(*deg)
+        assert not ali.alarm and ali.moved_deg is None
+        assert ali.tilt_deg == pytest.approx(np.hypot(*deg), abs=0.6)
+    slipped = replace(at(3.0, 0.0), moved_deg=9.5)  # what the node records on a slip
+    assert slipped.alarm and slipped.to_dict()["alarm"] is True
+    assert slipped.to_dict()["moved_deg"] == 9.5
 
 
 def test_alignment_round_trips_through_dict() -> None:
@@ -73,6 +90,11 @@ def test_alignment_round_trips_through_dict() -> None:
     np.testing.assert_array_equal(back.rotation, ali.rotation)
     assert (back.theta_x_deg, back.alarm, back.n, back.t_us) == (ali.theta_x_deg, ali.alarm,
                                                                  500, 123)
+    moved = al.Alignment.from_dict(replace(ali, moved_deg=8.25).to_dict())
+    assert moved.alarm and moved.moved_deg == 8.25
+    # a checkpoint written before slips were tracked (Zheng's "alarm" key, no moved_deg)
+    old = {k: v for k, v in ali.to_dict().items() if k != "moved_deg"} | {"alarm": True}
+    assert not al.Alignment.from_dict(old).alarm
 
 
 def test_bad_gravity_is_rejected() -> None:
@@ -86,9 +108,7 @@ def _feed_in_batches(tr: al.StillTracker, t: np.ndarray, a: np.ndarray, gate: np
                      size: int, armed: bool = True) -> list[tuple]:
     hits = []
     for i in range(0, len(t), size):
-        hit = tr.feed(t[i:i + size], a[i:i + size], gate[i:i + size], armed)
-        if hit is not None:
-            hits.append(hit)
+        hits += tr.feed(t[i:i + size], a[i:i + size], gate[i:i + size], armed)
     return hits
 
 
@@ -104,10 +124,31 @@ def test_still_tracker_fires_once_when_a_run_reaches_min_s(size: int) -> None:
     tr = al.StillTracker(10.0, round(3e6 / rate))
     hits = _feed_in_batches(tr, t, a, gate, size)
     assert len(hits) == 1
-    mean, count, t_hit = hits[0]
+    mean, count, t_hit, gap_s = hits[0]
     assert t_hit == t[520 + 1000]  # exactly 10 s after the run began
     assert count == 1001
     np.testing.assert_allclose(mean, [0.0, 0.2, 0.98])
+    assert gap_s == pytest.approx(0.21)  # from sample 499 to sample 520
+
+
+@pytest.mark.parametrize("size", [1, 13, 700, 20000])
+def test_still_tracker_reports_every_run_whatever_the_batches(size: int) -> None:
+    # three runs of 12 s in one batch (when size is large): each is reported, with the
+    # stillness gap before it, exactly as when the samples come one at a time
+    rate = 50.0
+    gate = np.zeros(3000, bool)
+    runs = [(100, 700), (760, 1360), (1900, 2500)]  # gaps 1.2 s and 10.8 s
+    for i0, i1 in runs:
+        gate[i0:i1] = True
+    t = (np.arange(3000) * 1e6 / rate).astype(np.int64)
+    a = np.tile(Z, (3000, 1))
+    for k, (i0, i1) in enumerate(runs):
+        a[i0:i1] = [0.01 * (k + 1), 0.0, 1.0]
+    hits = _feed_in_batches(al.StillTracker(10.0, round(3e6 / rate)), t, a, gate, size)
+    assert [h.t_us for h in hits] == [t[i0 + 500] for i0, _ in runs]
+    assert hits[0].gap_s is None  # no run before the first
+    assert [h.gap_s for h in hits[1:]] == pytest.approx([1.22, 10.82])
+    np.testing.assert_allclose([h.mean_g[0] for h in hits], [0.01, 0.02, 0.03])
 
 
 def test_still_tracker_breaks_runs_at_time_gaps_and_waits_until_armed() -> None:
@@ -122,6 +163,212 @@ def test_still_tracker_breaks_runs_at_time_gaps_and_waits_until_armed() -> None:
     assert _feed_in_batches(tr2, t[:800], a[:800], gate[:800], 50, armed=False) == []
     assert tr2.duration_s == pytest.approx(7.99)
     hits = _feed_in_batches(tr2, t[800:900], a[800:900], gate[800:900], 50, armed=True)
-    assert len(hits) == 1 and hits[0][2] == t[800]  # fires as soon as it is armed
+    assert len(hits) == 1 and hits[0].t_us == t[800]  # fires as soon as it is armed
     tr2.rearm()
     assert len(_feed_in_batches(tr2, t[900:950], a[900:950], gate[900:950], 50)) == 1
+
+
+# -- the tilt alarm: SlipWatch on its own ---------------------------------------------------------
+
+def _tilted(deg: float, azimuth_deg: float = 0.0) -> np.ndarray:
+    th, az = np.radians(deg), np.radians(azimuth_deg)
+    return np.array([np.sin(th) * np.cos(az), np.sin(th) * np.sin(az), np.cos(th)])
+
+
+def test_slip_watch_alarms_on_agreeing_periods_beyond_the_limit_and_clears_on_reseat() -> None:
+    w = al.SlipWatch(_tilted(2.0), 7.0, periods=3)
+    t = itertools.count(0, 60_000_000)
+    # the reference's own posture again and again: nothing
+    assert [w.observe(_tilted(2.3, 10), next(t), 20.0) for _ in range(4)] == [None] * 4
+    # the mounting turns by 10 deg: three upright periods agree -> slipped, once
+    got = [w.observe(_tilted(12.0 + 0.5 * k, 2 * k), next(t), 20.0) for k in range(5)]
+    assert got[:2] == [None, None] and got[3:] == [None, None]
+    s = got[2]
+    assert s is not None and s.kind == "slipped" and w.alarmed
+    assert s.moved_deg == pytest.approx(10.5, abs=0.3) and s.periods == 3
+    assert s.spread_deg < 1.0 and s.first_t_us < s.t_us
+    assert s.theta_x_deg == pytest.approx(12.5, abs=0.3)
+    # lying down in between says nothing either way
+    assert w.observe(_tilted(85.0), next(t), 20.0) is None and w.alarmed
+    # re-seated: three upright periods back within the limit -> cleared
+    back = [w.observe(_tilted(2.0 + k, 40 * k), next(t), 20.0) for k in range(3)]
+    assert back[:2] == [None, None] and back[2] is not None and back[2].kind == "reseated"
+    assert not w.alarmed
+
+
+def test_slip_watch_ignores_postures_that_scatter_or_come_back() -> None:
+    w = al.SlipWatch(Z, 7.0, periods=3)
+    t = itertools.count(0, 60_000_000)
+    # leaning 15-25 deg every which way (a wearer, not a slip): beyond the limit, no agreement
+    for k in range(30):
+        assert w.observe(_tilted(15.0 + (k % 3) * 5, 137.5 * k), next(t), 20.0) is None
+    # two agreeing periods beyond the limit, one near the reference, two more: no streak of 3
+    for deg in (10.0, 10.2, 1.0, 10.1, 10.3):
+        assert w.observe(_tilted(deg), next(t), 20.0) is None
+    assert w.observe(_tilted(10.0), next(t), 20.0) is not None  # the third in a row
+    default = al.SlipWatch(Z, 7.0)  # the node's: four in a row
+    assert [default.observe(_tilted(10.0), 10**8 * k) is not None for k in range(4)] == [
+        False, False, False, True]
+
+
+def test_slip_watch_needs_movement_between_periods() -> None:
+    w = al.SlipWatch(Z, 7.0, periods=3, min_move_s=3.0)
+    # one posture whose still run the detector broke twice for a second: one period, not three
+    got = [w.observe(_tilted(11.0), 10**7 * k, gap) for k, gap in enumerate((9.0, 1.0, 0.5))]
+    assert got == [None, None, None] and not w.alarmed
+    assert w.observe(_tilted(11.2), 10**8, 6.0) is None  # the second separate period
+    assert w.observe(_tilted(10.8), 2 * 10**8, None) is not None  # gap unknown: counted
+
+
+# -- the tilt alarm end to end: CalibrationNode on simulated wear -----------------------------
+
+RATE_HZ = 25.0
+
+
+class EventSink(NullSink):
+    """The node's events in a list; everything else discarded (a real sink)."""
+
+    def __init__(self) -> None:
+        self.events: list[dict[str, Any]] = []
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        if suffix == "events":
+            self.events.append(obj)
+
+    def of(self, kind: str) -> list[dict[str, Any]]:
+        return [e for e in self.events if e["kind"] == kind]
+
+
+def _wear(seed: int, minutes: float, wearer: sim.WearerSpec, slip: sim.MountSlip | None = None,
+          batch: int = 250) -> EventSink:
+    """A sensor with offsets +-50 mg and gains +-3 % on a simulated wearer, through a node with
+    the default alignment settings (reference after an accepted update, 7 deg limit)."""
+    spec = sim.SensorSpec.random(np.random.default_rng(seed), offset_mg=50.0, gain_pct=3.0)
+    raw = sim.simulate(minutes / 60, RATE_HZ, seed, spec, wearer, slip=slip).raw
+    sensor = SensorConfig("s", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
+    settings = PipelineSettings()
+    model, prior = model_and_prior(sensor, settings)
+    sink = EventSink()
+    node = CalibrationNode(NodeSettings("s", settings, model, prior, RATE_HZ, None,
+                                        AlignmentConfig()), sink)
+    for i in range(0, len(raw), batch):
+        b = raw[i:i + batch]
+        node.process(b, int(b.t_us[0]) * 1000)
+    return sink
+
+
+STANDING = sim.WearerSpec(upright_tilt_deg=2.0, still_s=(20.0, 60.0))
+
+
+@pytest.mark.parametrize("seed", [1, 5, 6])
+def test_a_wearer_moving_through_all_orientations_raises_no_alarm(seed: int) -> None:
+    sink = _wear(seed, 40.0, sim.WearerSpec())
+    refs = sink.of("alignment")
+    assert refs, "no reference posture in 40 min"
+    d = refs[0]["detail"]
+    # the reference was a posture leaning beyond 7 deg: Zheng's rule alarmed here
+    assert max(abs(d["theta_x_deg"]), abs(d["theta_y_deg"])) > 7.0
+    assert sink.of("tilt_alarm") == []
+
+
+@pytest.mark.parametrize(("seed", "deg", "over_s"), [(1, 10.0, 0.0), (6, 12.0, 0.0),
+                                                     (6, 10.0, 300.0)])
+def test_a_mounting_that_slips_beyond_the_limit_is_alarmed_within_minutes(
+        seed: int, deg: float, over_s: float) -> None:
+    before = _wear(seed, 8.0, STANDING)  # the same wearer until the slip begins
+    ref_s = before.of("alignment")[0]["t_us"] / 1e6
+    slip = sim.MountSlip(deg, ref_s + 120.0, over_s, azimuth_deg=40.0 * seed)
+    sink = _wear(seed, 30.0, STANDING, slip)
+    assert sink.of("alignment")[0]["t_us"] / 1e6 == ref_s
+    alarms = sink.of("tilt_alarm")
+    assert len(alarms) == 1, [(e["kind"], e["t_us"]) for e in sink.events]
+    a = alarms[0]
+    delay_s = a["t_us"] / 1e6 - (slip.at_s + over_s)
+    assert 0 < delay_s < 15 * 60  # four upright periods after the slip
+    assert a["detail"]["first_t_us"] / 1e6 >= slip.at_s  # all of its evidence is after it
+    # upright postures scatter within 2 deg, the reference's one too
+    assert a["detail"]["moved_deg"] == pytest.approx(deg, abs=2.5)
+    assert "re-seat" in a["detail"]["detail"]
+
+
+def test_a_slip_within_the_limit_raises_no_alarm() -> None:
+    before = _wear(1, 8.0, STANDING)
+    ref_s = before.of("alignment")[0]["t_us"] / 1e6
+    sink = _wear(1, 30.0, STANDING, sim.MountSlip(4.0, ref_s + 120.0, azimuth_deg=40.0))
+    assert sink.of("alignment") and sink.of("tilt_alarm") == []
+
+
+def test_the_alarm_does_not_depend_on_the_batch_size() -> None:
+    slip = sim.MountSlip(10.0, 240.0, azimuth_deg=40.0)
+    runs = [_wear(1, 20.0, STANDING, slip, batch) for batch in (7, 250, 30_000)]
+    kinds = ("alignment", "tilt_alarm", "tilt_cleared")
+    got = [[(e["kind"], e["t_us"]) for e in s.events if e["kind"] in kinds] for s in runs]
+    assert any(k == "tilt_alarm" for k, _ in got[0])
+    assert got[1] == got[0] and got[2] == got[0]
+
+
+def test_sim_mount_slip_turns_only_what_follows_it() -> None:
+    w = sim.WearerSpec(still_s=(10.0, 20.0))
+    spec = sim.SensorSpec(noise_g=0.0, counts_per_g=None)
+    plain = sim.simulate(0.1, RATE_HZ, 3, spec, w)
+    slip = sim.MountSlip(9.0, 120.0, 60.0, azimuth_deg=30.0)
+    slipped = sim.simulate(0.1, RATE_HZ, 3, spec, w, slip=slip)
+    assert "slip" not in plain.truth.params and slipped.truth.params["slip"]["deg"] == 9.0
+    t_s = (plain.raw.t_us / 1e6)
+    before, ramp, after = t_s < 120.0, (t_s >= 120.0) & (t_s < 180.0), t_s >= 180.0
+    a0, a1 = plain.truth.a_true_g, slipped.truth.a_true_g
+    np.testing.assert_array_equal(a1[before], a0[before])  # bit for bit until the slip
+    np.testing.assert_array_equal(slipped.truth.posture_up, plain.truth.posture_up)
+    np.testing.assert_allclose(np.linalg.norm(a1, axis=1), np.linalg.norm(a0, axis=1),
+                               rtol=1e-12)  # a rotation: lengths unchanged
+    # a turn by θ about the unit axis k moves v by φ with cos φ = cos θ + (1 - cos θ)(k·v/|v|)²;
+    # the axis lies at 30 deg in the sensor's x-y plane
+    ax = np.array([np.cos(np.radians(30.0)), np.sin(np.radians(30.0)), 0.0])
+    v0, v1 = a0[after][::97], a1[after][::97]
+    kv = (v0 @ ax) / np.linalg.norm(v0, axis=1)
+    c = np.cos(np.radians(9.0))
+    want = np.degrees(np.arccos(c + (1 - c) * kv ** 2))
+    got = [al.angle_deg(x, y) for x, y in zip(v0, v1, strict=True)]
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    assert slip.apply(ax[None, :].copy(), np.array([500.0]))[0] == pytest.approx(ax)
+    half = slip.apply(Z[None, :].copy(), np.array([150.0]))[0]  # half way through the ramp
+    assert al.angle_deg(half, Z) == pytest.approx(4.5)
+    assert np.all(np.isfinite(a1[ramp]))
+    np.testing.assert_array_equal(slipped.raw.v[before], plain.raw.v[before])
+
+
+def test_the_alarm_stands_in_the_state_and_clears_when_the_sensor_is_reseated() -> None:
+    seed, minutes = 1, 40.0
+    ref_s = _wear(seed, 8.0, STANDING).of("alignment")[0]["t_us"] / 1e6
+    slip = sim.MountSlip(10.0, ref_s + 120.0, azimuth_deg=40.0)
+    spec = sim.SensorSpec.random(np.random.default_rng(seed), offset_mg=50.0, gain_pct=3.0)
+    plain = sim.simulate(minutes / 60, RATE_HZ, seed, spec, STANDING)
+    slipped = sim.simulate(minutes / 60, RATE_HZ, seed, spec, STANDING, slip=slip)
+    # re-seated 15 min after the slip: the sensor reads as it did before it
+    t_s = plain.raw.t_us / 1e6
+    a = np.where((t_s >= slip.at_s + 900.0)[:, None], plain.truth.a_true_g,
+                 slipped.truth.a_true_g)
+    v = sim.forward_model(a, spec, rng=np.random.default_rng(seed + 100))
+    raw = replace(plain.raw, v=v)
+    sensor = SensorConfig("s", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
+    settings = PipelineSettings()
+    model, prior = model_and_prior(sensor, settings)
+    sink = EventSink()
+    node = CalibrationNode(NodeSettings("s", settings, model, prior, RATE_HZ, None,
+                                        AlignmentConfig()), sink)
+    standing: list[bool] = []
+    for i in range(0, len(raw), 250):
+        b = raw[i:i + 250]
+        node.process(b, int(b.t_us[0]) * 1000)
+        standing.append(node.status()["alignment"]["alarm"] if node.alignment else False)
+    kinds = [e["kind"] for e in sink.events if e["kind"].startswith("tilt_")]
+    assert kinds == ["tilt_alarm", "tilt_cleared"]
+    raised, cleared = sink.of("tilt_alarm")[0], sink.of("tilt_cleared")[0]
+    assert slip.at_s < raised["t_us"] / 1e6 < slip.at_s + 900.0 < cleared["t_us"] / 1e6
+    assert cleared["detail"]["moved_deg"] < 7.0
+    # the alarm stood in the published state from the one event to the other
+    at = np.array([int(b.t_us[-1]) for b in (raw[i:i + 250] for i in range(0, len(raw), 250))])
+    on = np.array(standing)
+    assert on[(at >= raised["t_us"]) & (at < cleared["t_us"])].all()
+    assert not on[(at < raised["t_us"]) | (at >= cleared["t_us"])].any()
+    assert len(sink.of("alignment")) == 1  # neither event replaced the reference

@@ -1,9 +1,10 @@
 """The calibration node's mounting alignment (Zheng et al.) end to end on simulated wear.
 
 The sensor is strapped on tilted by a known rotation; the node must find the first long upright
-still period, estimate the tilt from the calibrated gravity vector, raise ``tilt_alarm`` only
-beyond the configured limit, publish body-frame acceleration in which upright gravity is +z, and
-answer an alignment request on the current still run.
+still period, estimate the tilt from the calibrated gravity vector, raise no ``tilt_alarm`` for a
+mounting that stays where it was (the alarm is for a slip: test_alignment.py), publish body-frame
+acceleration in which upright gravity is +z, and answer an alignment request on the current still
+run.
 """
 
 from __future__ import annotations
@@ -89,8 +90,9 @@ def feed(node: CalibrationNode, raw: RawBatch, batch: int = 500) -> None:
     node.flush(int(raw.t_us[-1]) * 1000)
 
 
-@pytest.mark.parametrize(("tilt", "alarm"), [((10.0, 0.0), True), ((3.0, -2.0), False)])
-def test_mounting_tilt_is_estimated_and_alarmed_only_beyond_the_limit(
+# a mounting tilted beyond Zheng's 7 deg is aligned exactly, not alarmed: it has not slipped
+@pytest.mark.parametrize(("tilt", "alarm"), [((10.0, 0.0), False), ((3.0, -2.0), False)])
+def test_mounting_tilt_is_estimated_and_not_alarmed_while_it_stays_put(
         tilt: tuple[float, float], alarm: bool) -> None:
     raw, r_mount = worn_tilted(*tilt)
     sink = MemorySink()

@@ -403,8 +403,11 @@ def replay_lines(summary: dict) -> list[str]:
                                                         values.items()))
         al = info.get("alignment")
         if al:
-            lines.append(f"    mounting tilt {al['tilt_deg']:.1f} deg (Zheng's alarm above "
-                         f"{al['limit_deg']:g} deg" + (": raised)" if al["alarm"] else ")"))
+            moved = al.get("moved_deg")
+            lines.append(f"    mounting tilt {al['tilt_deg']:.1f} deg at the reference; "
+                         + (f"tilt alarm: moved {moved:.1f} deg since (limit {al['limit_deg']:g} "
+                            "deg)" if moved is not None else "no slip beyond "
+                            f"{al['limit_deg']:g} deg"))
     return lines
 
 
@@ -487,7 +490,7 @@ def _cmd_node(a: argparse.Namespace) -> int:
 def _cmd_demo(a: argparse.Namespace) -> int:
     from recal.demo import run_demo
 
-    return run_demo(a.seconds, a.out_dir)
+    return run_demo(a.seconds, a.out, seed=a.seed)
 
 
 def _cmd_router(a: argparse.Namespace) -> int:
@@ -509,9 +512,12 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
              "and gains writes ASCII lines to a pseudo-terminal faster than real time, the "
              "daemon reads it, logs it to MCAP and publishes it calibrated on Zenoh (a peer on "
              "127.0.0.1), the demo's own Zenoh session times the calibrated batches, and a "
-             "summary compares the estimate with the truth. Stops by itself; the MCAP and "
-             "summary.json stay in --out-dir.",
-             ("recal demo", "recal demo --seconds 20 --out-dir /tmp/demo")),
+             "summary compares the estimate with the truth. Stops by itself. Every run starts "
+             "fresh from the prior in a new folder of its own (a temporary one, or "
+             "run-<UTC time> inside --out DIR), never resumes an earlier run's checkpoint and "
+             "writes nothing else; the MCAP, summary.json and the checkpoint stay there. The "
+             "progress line is redrawn in place on a terminal, a plain line every 5 s otherwise.",
+             ("recal demo", "recal demo --seconds 20 --out /tmp/demo")),
     "run": ("The daemon: reads every serial port, publishes raw and calibrated samples on "
             "Zenoh (recal/<sensor>/...), logs everything to MCAP (default: an auto-named file "
             "in recordings/; an existing file is never overwritten) and checkpoints each "
@@ -610,7 +616,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = _add_command(sub, "demo", "the main job on an embedded default: a simulated sensor "
                        "on a pseudo-terminal, the daemon, Zenoh on loopback, a summary")
     s.add_argument("--seconds", type=_positive, default=45.0, help="how long to run (default 45)")
-    s.add_argument("--out-dir", default="recal-demo", help="where the MCAP and summary go")
+    s.add_argument("--out", "--out-dir", metavar="DIR", default=None,
+                   help="make this run's folder (run-<UTC time>) inside DIR, created if need be "
+                        "(default: a new temporary folder)")
+    s.add_argument("--seed", type=int, default=7,
+                   help="simulator seed: the sensor's errors and the wearer (default 7)")
     s.set_defaults(func=_cmd_demo)
 
     s = _add_command(sub, "run", "the daemon: serial ports -> Zenoh -> calibration -> MCAP")

@@ -247,7 +247,8 @@ class AlignmentConfig:
     Attributes:
         enabled: look for a reference posture at all.
         min_still_s: a quasi-static run this long is a reference posture, seconds.
-        tilt_limit_deg: alarm when θx or θy exceeds this, degrees (Zheng: 7°).
+        tilt_limit_deg: alarm when the mounting slips farther than this from the reference,
+            degrees (Zheng's 7°; the rule is recal.core.alignment.SlipWatch's).
         upright_max_deg: an automatic reference must be within this angle of the sensor's +z
             (otherwise the wearer is lying, not upright), degrees.
         require_update: wait for one accepted calibration update before the reference.

@@ -8,9 +8,12 @@ to the gateway, queries ``recal/demo/status`` for a live progress line and times
 batches it receives. After ``seconds`` (or when the simulated recording is used up) it stops the
 daemon and prints a summary with the error against the simulator's truth.
 
-Files in ``out_dir``: the recording (``demo.mcap``, or a time-stamped name if it exists) and
-``summary.json`` (the truth is not stored: the seed recreates it). The demo's checkpoint
-(``checkpoints/demo.json``) is removed at start, so every demo begins from the prior.
+Every run starts fresh in a folder of its own, made new: ``run-<UTC time>`` inside ``--out DIR``,
+or a new temporary folder without it. Nothing else is written (the current directory is left
+alone), and a run never sees an earlier run's checkpoint, so its figures are its own. The
+folder holds the recording (``demo.mcap``), ``summary.json`` (the truth is not stored: the seed
+recreates it) and the checkpoint the daemon wrote (``checkpoints/demo.json``). The progress line
+is redrawn in place only on a terminal; piped or logged, it is a plain line every 5 s.
 """
 
 from __future__ import annotations
@@ -18,10 +21,12 @@ from __future__ import annotations
 import json
 import socket
 import sys
+import tempfile
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +38,7 @@ from recal.io import recording as rec
 from recal.io.pty_device import PtyDevice
 from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
 
-__all__ = ["free_port", "run_demo"]
+__all__ = ["free_port", "new_run_dir", "run_demo"]
 
 SENSOR_ID = "demo"
 COUNTS_PER_G = 1024.0
@@ -44,6 +49,24 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def new_run_dir(parent: str | Path | None) -> Path:
+    """A folder that did not exist before (absolute): ``parent/run-<UTC time>[-k]``, made with
+    ``parent`` if need be, or a new temporary folder when ``parent`` is None."""
+    if parent is None:
+        return Path(tempfile.mkdtemp(prefix="recal-demo-")).resolve()
+    base = Path(parent)
+    base.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    for k in range(1, 1000):  # two runs in one second get -2, -3, ...
+        path = base / (f"run-{stamp}" if k == 1 else f"run-{stamp}-{k}")
+        try:
+            path.mkdir()  # exclusive: never a folder an earlier run wrote
+        except FileExistsError:
+            continue
+        return path.resolve()
+    raise FileExistsError(f"no free run folder for {stamp} in {base}")
 
 
 def _simulate(minutes: float, rate_hz: float, seed: int) -> SimResult:
@@ -122,29 +145,31 @@ class _Latency:
         return float(np.percentile(np.asarray(self.ms), q)) if self.ms else None
 
 
-def run_demo(seconds: float = 45.0, out_dir: str | Path = "recal-demo", *,
+def run_demo(seconds: float = 45.0, out_dir: str | Path | None = None, *,
              minutes: float = 6.0, speedup: float | None = None, rate_hz: float = 100.0,
              seed: int = 7, out: Callable[[str], None] | None = None,
-             live: bool = True) -> int:
+             live: bool | None = None) -> int:
     """Simulate, stream on a pty, run the gateway on loopback Zenoh, report; returns 0.
 
     Args:
         seconds: wall-clock budget of the live part (the demo stops then, or earlier when the
             simulated data has been streamed and calibrated).
-        out_dir: where the recording and summary.json go.
+        out_dir: the run's own new folder is made in here (``run-<UTC time>``); None: a new
+            temporary folder. Either way the run starts from the prior.
         minutes: simulated recording length.
         speedup: how much faster than real time to stream (default: the recording fits into
             about 80 % of ``seconds``).
         rate_hz: simulated sample rate, Hz.
         seed: simulator seed (sensor errors and wearer).
-        out: where lines go (default: stdout; the live line is redrawn with ``\\r``).
-        live: redraw the progress line (False: print one every few seconds, for logs).
+        out: where lines go (default: stdout).
+        live: redraw the progress line on stdout with ``\\r`` (default: when stdout is a
+            terminal and ``out`` is not given; otherwise a plain line every 5 s).
     """
     emit = out or (lambda s: print(s, flush=True))
-    out_path = Path(out_dir)
-    out_path.mkdir(parents=True, exist_ok=True)
+    if live is None:
+        live = out is None and sys.stdout.isatty()
+    out_path = new_run_dir(out_dir)
     ckpt_dir = out_path / "checkpoints"
-    (ckpt_dir / f"{SENSOR_ID}.json").unlink(missing_ok=True)
     sim = _simulate(minutes, rate_hz, seed)
     sim_s = len(sim.raw) / rate_hz
     speed = speedup if speedup is not None else max(1.0, sim_s / max(1.0, 0.8 * seconds))
@@ -159,7 +184,8 @@ def run_demo(seconds: float = 45.0, out_dir: str | Path = "recal-demo", *,
                      "rate_hz": rate_hz, "prior": {"counts_per_g": COUNTS_PER_G}}],
     }, out_path, "demo")
     emit(f"recal demo: {minutes:g} min of simulated wear at {rate_hz:g} Hz, streamed "
-         f"x{speed:.1f} on {link} -> gateway (Zenoh peer {endpoint})")
+         f"x{speed:.1f} on {link} -> gateway (Zenoh peer {endpoint}); a fresh run in "
+         f"{out_path}")
     stop = threading.Event()
     ready: list[Gateway] = []
     lines: list[str] = []
@@ -180,6 +206,7 @@ def run_demo(seconds: float = 45.0, out_dir: str | Path = "recal-demo", *,
         return 1
     path = ready[0].writer.paths[0]
     summary.update(_report(path, sim, summary))
+    summary["run_dir"] = str(out_path)
     (out_path / "summary.json").write_text(json.dumps(summary, indent=2))
     _print_summary(summary, emit)
     return 0
@@ -241,10 +268,12 @@ def _live(dev: PtyDevice, sim: SimResult, speed: float, seconds: float, endpoint
 def _report(path: Path, sim: SimResult, live: dict[str, Any]) -> dict[str, Any]:
     cal = rec.read_all_calibrated(path, SENSOR_ID)
     states = [obj for _, obj, _ in rec.iter_json(path, f"/{SENSOR_ID}/calibration")]
+    setups = [obj for _, obj, _ in rec.iter_json(path, f"/{SENSOR_ID}/setup")]
     raw_n = sum(len(b) for _, b, _ in rec.iter_raw(path, SENSOR_ID))
     final = states[-1] if states else None
     out: dict[str, Any] = {"mcap": str(path), "samples_logged": raw_n,
-                           "calibration_states": len(states)}
+                           "calibration_states": len(states),
+                           "started_from": setups[0].get("start") if setups else None}
     if final is not None:
         out["final_state"] = {k: final.get(k) for k in ("described", "residual_rms_mg",
                                                          "update_count", "alignment")}
@@ -255,6 +284,12 @@ def _report(path: Path, sim: SimResult, live: dict[str, Any]) -> dict[str, Any]:
 def _print_summary(s: dict[str, Any], emit: Callable[[str], None]) -> None:
     emit(f"recording: {s.get('mcap')}  ({s.get('samples_logged', 0)} samples, "
          f"{s.get('calibration_states', 0)} calibration states)")
+    final = s.get("final_state") or {}
+    start = s.get("started_from")
+    emit(f"calibration: started from {start or 'nothing (no setup logged)'}, "
+         f"{final.get('update_count', 0)} updates in this run"
+         + ("" if start == "prior" else " (not a fresh start: these figures are not this run's "
+                                        "alone)"))
     if s.get("throughput_samples_per_s"):
         p50, p95 = s.get("latency_ms_p50"), s.get("latency_ms_p95")
         emit(f"throughput {s['throughput_samples_per_s']:.0f} samples/s (x{s['speedup']:.1f} "
@@ -276,3 +311,4 @@ def _print_summary(s: dict[str, Any], emit: Callable[[str], None]) -> None:
                  f"{e['noise_floor_rms_mg']:.1f} mg)")
     else:
         emit("no calibration state was logged")
+    emit(f"files: {s.get('run_dir')}")

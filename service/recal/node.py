@@ -37,7 +37,9 @@ every batch.
 Alignment (Zheng et al. sec. II.B): the reference posture is the first quasi-static run of
 ``min_still_s`` (10 s) within ``upright_max_deg`` of +z, after at least one accepted update;
 a query on ``recal/<sensor>/align`` aligns at once on the current still run (if it lasted
-``request_min_s``) or arms the next run of ``min_still_s`` as the reference.
+``request_min_s``) or arms the next run of ``min_still_s`` as the reference. Every later
+still run of ``min_still_s`` is checked for a slip of the mounting (``tilt_alarm`` and
+``tilt_cleared`` events; the rule is ``recal.core.alignment.SlipWatch``'s).
 """
 
 from __future__ import annotations
@@ -399,6 +401,7 @@ class CalibrationNode:
         self._pending: list[RawBatch] = []  # held until the rate is known (bounded)
         self._pending_n = 0
         self._tracker: al.StillTracker | None = None
+        self._slip: al.SlipWatch | None = None  # the tilt alarm's check of later periods
         self._align_requested = False
         self._last_names: tuple[str, ...] | None = None
         self._started = False
@@ -861,20 +864,51 @@ class CalibrationNode:
         cfg = self.settings.alignment
         if self._tracker is None or not (cfg.enabled or self._align_requested):
             return
-        wanted = self._align_requested or self.alignment is None
-        armed = wanted and (self._align_requested or not cfg.require_update
-                            or (self.accepted_updates > 0 and self._tilt_offsets_known()))
-        hit = self._tracker.feed(cal.t_us, cal.a_g, cal.quasi_static, armed)
-        if hit is None:
-            return
-        mean, n, t_us = hit
-        if not self._align_requested and al.tilt_from_z_deg(mean) > cfg.upright_max_deg:
+        if self._align_requested or self.alignment is None:
+            armed = (self._align_requested or not cfg.require_update
+                     or (self.accepted_updates > 0 and self._tilt_offsets_known()))
+        else:
+            armed = cfg.enabled  # aligned: every later still period is checked for a slip
+        for hit in self._tracker.feed(cal.t_us, cal.a_g, cal.quasi_static, armed):
+            if self._align_requested or self.alignment is None:
+                self._take_reference(hit, log_ns)
+            elif cfg.enabled:
+                self._watch_slip(hit, log_ns)
+
+    def _take_reference(self, hit: al.StillHit, log_ns: int) -> None:
+        cfg = self.settings.alignment
+        if not self._align_requested and al.tilt_from_z_deg(hit.mean_g) > cfg.upright_max_deg:
             # not upright (lying, or the sensor worn sideways): not a reference posture
-            self._event("reference_skipped", t_us, log_ns, {
-                "tilt_deg": al.tilt_from_z_deg(mean), "upright_max_deg": cfg.upright_max_deg})
+            self._event("reference_skipped", hit.t_us, log_ns, {
+                "tilt_deg": al.tilt_from_z_deg(hit.mean_g),
+                "upright_max_deg": cfg.upright_max_deg})
             return
         source = "request" if self._align_requested else "reference"
-        self._set_alignment(mean, n, t_us, source, log_ns)
+        self._set_alignment(hit.mean_g, hit.n, hit.t_us, source, log_ns)
+
+    def _watch_slip(self, hit: al.StillHit, log_ns: int) -> None:
+        """The tilt alarm (rule and reason in ``recal.core.alignment``): raised when later
+        upright still periods agree that the mounting moved beyond the limit, cleared when
+        they agree it is back."""
+        ali = self.alignment
+        assert ali is not None
+        if self._slip is None:  # a new reference, or one restored from a checkpoint
+            self._slip = al.SlipWatch(ali.gravity_g, ali.limit_deg, alarmed=ali.alarm,
+                                      upright_max_deg=self.settings.alignment.upright_max_deg)
+        change = self._slip.observe(hit.mean_g, hit.t_us, hit.gap_s)
+        if change is None:
+            return
+        detail = {**change.to_dict(), "limit_deg": ali.limit_deg}
+        if change.kind == "slipped":
+            self.alignment = replace(ali, moved_deg=change.moved_deg)
+            self._event("tilt_alarm", change.t_us, log_ns, {**detail, "detail": (
+                f"the mounting moved {change.moved_deg:.1f} deg since the reference (limit "
+                f"{ali.limit_deg:g} deg; {change.periods} still periods agree): re-seat the "
+                f"sensor, or query recal/{self.sensor_id}/align to make this the reference")})
+        else:
+            self.alignment = replace(ali, moved_deg=None)
+            self._event("tilt_cleared", change.t_us, log_ns, {**detail, "detail": (
+                f"the mounting is back within {ali.limit_deg:g} deg of the reference")})
 
     def _tilt_offsets_known(self) -> bool:
         """Whether the x/y offsets' posterior sd is below ``max_offset_sd_mg`` (tilt error)."""
@@ -897,13 +931,9 @@ class CalibrationNode:
                        log_ns: int) -> al.Alignment:
         ali = al.estimate_alignment(mean, self.settings.alignment.tilt_limit_deg, n, t_us)
         self.alignment = ali
+        self._slip = None  # later periods are checked against this reference
         self._align_requested = False
         self._event("alignment", t_us, log_ns, {**ali.to_dict(), "source": source})
-        if ali.alarm:
-            self._event("tilt_alarm", t_us, log_ns, {
-                "theta_x_deg": ali.theta_x_deg, "theta_y_deg": ali.theta_y_deg,
-                "limit_deg": ali.limit_deg,
-                "detail": "mounting tilt beyond the limit: re-seat the sensor"})
         return ali
 
     @staticmethod

@@ -50,6 +50,13 @@ posture the reading is g_k tilted by a slow sway plus a tiny bounded vertical pa
 within 1 mg of 1 g for the default `sway_g`. A movement from posture k to k+1 has orientation
 R(t) = W(t) · slerp(A_k, A_k+1; smoothstep(t/D)) with a step-locked wobble W, and linear
 acceleration of walking at 1.6-2.2 Hz; the reading is R(t)ᵀ (ẑ + a_lin(t)) in g.
+
+Mounting slip (optional, `MountSlip`): the sensor turns on the body by Q(t), a tilt of
+deg · ramp(t) about a horizontal axis of the sensor frame (at azimuth_deg from +x), where ramp
+goes 0 -> 1 linearly over over_s from at_s (a step when over_s = 0). The wearer's motion is
+unchanged; the sensor reads Q(t)ᵀ a, so `a_true_g` (the ideal sensor frame, what a perfect
+calibration outputs) includes the slip, while `posture_up` stays the postures' directions as
+the sensor was first worn. Without a slip nothing of the above changes (same draws, same bits).
 """
 
 from __future__ import annotations
@@ -69,6 +76,7 @@ from recal.samples import RawBatch
 __all__ = [
     "POSTURE_KINDS",
     "SENSOR_TYPES",
+    "MountSlip",
     "SensorSpec",
     "SimResult",
     "Truth",
@@ -683,6 +691,52 @@ def _wearer_motion(segments: list[_Segment], ups: np.ndarray, n: int, rate_hz: f
     return a, still, posture_id
 
 
+@dataclass(frozen=True)
+class MountSlip:
+    """The sensor turning on the body after it was put on (see the module docstring).
+
+    Attributes:
+        deg: how far it tilts in the end, degrees.
+        at_s: when it starts to move, seconds after the first sample.
+        over_s: how long the move takes, seconds (0: at once, a strap knocked loose; minutes
+            or hours: one sliding slowly).
+        azimuth_deg: direction of the tilt axis in the sensor's x-y plane, degrees from +x.
+    """
+
+    deg: float
+    at_s: float
+    over_s: float = 0.0
+    azimuth_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.deg) and math.isfinite(self.at_s) and self.at_s >= 0
+                and math.isfinite(self.over_s) and self.over_s >= 0
+                and math.isfinite(self.azimuth_deg)):
+            raise ValueError("slip: deg, azimuth_deg finite; at_s, over_s finite and >= 0")
+
+    def angle_deg(self, t_s: np.ndarray) -> np.ndarray:
+        """The tilt at times t_s (seconds after the first sample), degrees."""
+        t = np.asarray(t_s, np.float64)
+        if self.over_s == 0:
+            return np.where(t >= self.at_s, self.deg, 0.0)
+        return self.deg * np.clip((t - self.at_s) / self.over_s, 0.0, 1.0)
+
+    def rotvec(self, t_s: np.ndarray) -> np.ndarray:
+        """Q(t) as rotation vectors (n,3), radians: the sensor axes turned in the body frame."""
+        az = math.radians(self.azimuth_deg)
+        axis = np.array([math.cos(az), math.sin(az), 0.0])
+        return np.radians(self.angle_deg(t_s))[:, None] * axis
+
+    def apply(self, a_g: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        """Q(t)ᵀ a for each row: the body-frame force as the turned sensor reads it, in place
+        from at_s on (samples before are untouched)."""
+        i0 = int(np.searchsorted(t_s, self.at_s))
+        if i0 < len(a_g):
+            q = Rotation.from_rotvec(self.rotvec(t_s[i0:]))
+            a_g[i0:] = q.inv().apply(a_g[i0:])
+        return a_g
+
+
 # --- aux channels ----------------------------------------------------------------------------
 
 def _ou(n: int, dt_s: float, tau_s: float, sd: float, rng: np.random.Generator) -> np.ndarray:
@@ -766,12 +820,15 @@ def _streams(seed: int) -> list[np.random.Generator]:
 
 
 def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None = None,
-             wearer: WearerSpec | None = None, *, start_us: int = 0) -> SimResult:
+             wearer: WearerSpec | None = None, *, start_us: int = 0,
+             slip: MountSlip | None = None) -> SimResult:
     """Simulate `hours` of a wearer at `rate_hz`, sensed by `sensor`. Deterministic in seed.
 
     Independent random streams (numpy SeedSequence children) drive the schedule, the motion,
     the temperature, the supply and the sensor noise, so e.g. changing the sensor does not
-    change a_true_g, and enabling aux channels does not change the postures.
+    change a_true_g, and enabling aux channels does not change the postures. A `slip` turns
+    the sensor on the body (module docstring) and draws nothing: the same seed gives the same
+    wearer and noise with or without it; params["slip"] records it.
     """
     sensor = SensorSpec() if sensor is None else sensor
     wearer = WearerSpec() if wearer is None else wearer
@@ -787,6 +844,8 @@ def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None 
     t_us += np.int64(start_us)
     segments, kinds, ups = _schedule(n / rate_hz, wearer, r_sched)
     a_true, still, posture_id = _wearer_motion(segments, ups, n, rate_hz, wearer, r_motion)
+    if slip is not None:
+        slip.apply(a_true, t_s)
 
     aux_names: list[str] = []
     if sensor.needs_temp or wearer.always_aux:
@@ -822,6 +881,8 @@ def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None 
         "aux_names": aux_names,
         "v_unit": "counts" if sensor.counts_per_g is not None else "g",
     }
+    if slip is not None:
+        params["slip"] = asdict(slip)
     truth = Truth(a_true, still, posture_id, tuple(kinds), ups, params)
     return SimResult(raw, truth)
 
