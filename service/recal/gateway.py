@@ -257,6 +257,9 @@ class Gateway:
             parser = make_parser(s.format, s.aux_names)
             src = SerialSource(s.port, parser, s.baudrate, read_timeout_s=0.02)
             self.ports[s.id] = _Port(s, src, nodes.get(s.id))
+            node = nodes.get(s.id)
+            if node is not None:  # status lines (suspect, back, first calibrated)
+                node.say = lambda line: out(f"recal gateway: {line}")
         self._io_thread: threading.Thread | None = None
         self._next_sweep_s = 0.0
         self._io_errors = 0

@@ -40,10 +40,11 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
+from recal.core.status import JUMP_REPEAT_S, Status, Watch, predicted_sigma_mg, sigma_form
 from recal.core.triaxial import norm3
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WindowSums",
+__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent", "WindowSums",
            "check_channels", "from_state_dict", "run_starts", "state_dict", "usable"]
 
 
@@ -147,16 +148,30 @@ class UpdateEvent:
     model: SensorModel | None = field(default=None, compare=False)
 
 
+@dataclass(frozen=True)
+class WatchEvent:
+    """The self-watch at sample `index` of the batch (device time t_us): ``suspect`` (the
+    still windows contradicted the estimate for a sustained time: the output is suspect and
+    the estimate was reset toward the prior and re-fitted on the recent windows), ``agrees``
+    (the windows agree again: suspect no more) or ``reset`` (the estimate was not finite)."""
+
+    index: int
+    t_us: int
+    kind: str
+    detail: dict = field(default_factory=dict, compare=False)
+
+
 @dataclass(frozen=True, eq=False)
 class StepOutput:
     """What one step produced. ``states``: for each mark given to `Pipeline.step` whose
     stretch since the previous mark holds an update, the model and `Pipeline.summary()` as
-    they were after that many samples."""
+    they were after that many samples. ``watch``: the self-watch's events, in order."""
 
     calibrated: CalibratedBatch
     updates: tuple[UpdateEvent, ...]
     windows_committed: int
     states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
+    watch: tuple[WatchEvent, ...] = ()
 
 
 @dataclass(eq=False)
@@ -216,6 +231,20 @@ class _Event:
     index: int
     model: SensorModel
     p: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _Segment:
+    """From sample `index` of the batch on: the model and parameters in force, the status and
+    how to predict each sample's error (`core.status.sigma_form`, or None: the covariance
+    sample by sample)."""
+
+    index: int
+    model: SensorModel
+    p: np.ndarray
+    cov: np.ndarray
+    form: np.ndarray | None
+    status: Status
 
 
 @dataclass(frozen=True, eq=False)
@@ -400,6 +429,13 @@ class Pipeline:
         # fresh windows tested so far, and the sums of their normalized innovations
         self.tested = (0, 0.0, 0.0)
         self._marks: _Marks | None = None  # only during a step with marks
+        # data informed the estimate (an accepted update observed a parameter): `status`
+        self.informed = False
+        self.watch = Watch()
+        self._segs: list[_Segment] = []  # during a step: what is in force from where
+        self._watch_events: list[WatchEvent] = []
+        self._reset_due: str | None = None  # why the self-watch resets at the next update point
+        self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -407,6 +443,15 @@ class Pipeline:
         if self.estimate is not None:
             return self.estimate.p
         return self.model.nominal()
+
+    @property
+    def status(self) -> Status:
+        """The status of output calibrated now (`core.status` defines each)."""
+        if self.estimate is None:
+            return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
+        if self.watch.suspect:
+            return Status.SUSPECT
+        return Status.CALIBRATED if self.informed else Status.HELD
 
     def step(self, batch: RawBatch, marks: Sequence[int] = ()) -> StepOutput:
         """Process one batch of raw samples (any size, in time order).
@@ -434,9 +479,11 @@ class Pipeline:
             s0 = float(good[0]) if len(good) else 1.0
             self.model = SensorModel(self.model.effects, s0, self.model.spreads)
             self._start_detector(s0)
+        self._watch_events = []
+        self._heal_if_not_finite(int(batch.t_us[0]))
         self.det_state, d = det.detect(self.det_cfg, self.det_state, batch.v)
         gate = usable(d.gate, batch, self.model)
-        start = (self.model, self.params.copy())
+        self._segs = [self._segment(0)]
         if marks:
             self._marks = _Marks(marks, gate, self.counts["samples"],
                                  self.counts["quasi_static"])
@@ -445,14 +492,15 @@ class Pipeline:
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._marks = self._marks, None
-        cal = self._calibrate(batch, start, events)
+        cal, status, sigma = self._calibrate(batch)
+        self._segs = []
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
         self.last_t_us = int(batch.t_us[-1])
         self.last_gate = bool(gate[-1])
-        return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g),
+        return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
                           tuple(e.update for e in events), committed,
-                          done.states if done is not None else {})
+                          done.states if done is not None else {}, tuple(self._watch_events))
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""
@@ -652,10 +700,18 @@ class Pipeline:
                 if e is None:
                     continue
                 idx = at[e]
-                ev = (self._try_bootstrap(idx, int(b.t_us[idx])) if not self.bootstrapped
-                      else self._update(idx, int(b.t_us[idx])))
+                now = int(b.t_us[idx])
+                if self._reset_due is not None:  # the self-watch fired at this window
+                    ev = self._reset(idx, now)
+                else:
+                    ev = (self._try_bootstrap(idx, now) if not self.bootstrapped
+                          else self._update(idx, now))
+                if self._reset_due is not None and ev is not None:  # it found a jump again
+                    events.append(_Event(ev, idx, self.model, self.params.copy()))
+                    ev = self._reset(idx, now)
                 if ev is not None:
                     events.append(_Event(ev, idx, self.model, self.params.copy()))
+                    self._segs.append(self._segment(idx))
                     if self._marks is not None:
                         self._marks.dirty = True
                     chunk, size = None, 0  # the parameters changed: a new first chunk
@@ -677,16 +733,126 @@ class Pipeline:
                 self._reach(due[slot[c]][0])
             ok, v, aux, t_mid, n, var, direction, run, cell = row
             done = slot[c] + 1
+            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), due[slot[c]][0]):
+                if ok:  # in the buffer it is about to replace: counted as the others
+                    counts["windows"] += 1
+                else:
+                    counts["windows_rejected"] += 1
+                return done, c  # a reset (`_reset`) at this window
             if not ok:
                 counts["windows_rejected"] += 1
                 continue
             add(v, aux, t_mid, n, var, direction, run, cell)
             fresh.append((v, aux, t_mid, n, var))
             counts["windows"] += 1
+            if not watch and self._segs and self._segs[-1].status is Status.UNCALIBRATED:
+                self._segs.append(self._segment(due[slot[c]][0]))  # now bootstrapping
             if (watch and counts["windows"] % ue == 0
                     and buf.cells_opened != self.coverage_at_update):
                 return done, c
         return done, None
+
+    # --- self-watch --------------------------------------------------------------------------
+    def _watch_window(self, bad: bool, window: tuple, idx: int) -> bool:
+        """One committed window through the self-watch (`core.status.Watch`; bad: it failed
+        the norm gate, its calibrated norm more than norm_tol_g from 1 g or not finite): True
+        when that became sustained (a reset runs at this window); an end of suspicion changes
+        the status from sample idx on."""
+        seen = self.watch.see(bad, window)
+        if seen == "clear":
+            self._watch_events.append(WatchEvent(idx, int(window[2]), "agrees", {
+                "status": self.status.label}))
+            self._segs.append(self._segment(idx))
+        if seen == "trigger":
+            self._reset_due = "still windows fail the norm gate under the estimate"
+            return True
+        return False
+
+    def _watch_jump(self, before: Estimate, idx: int, now_us: int) -> None:
+        """An accepted update that fitted a new offset jump (`estimator._jump`): suspect. A
+        knock fits one and the windows agree again; a sensor whose gains differ too (another
+        sensor under this id, another sensor's checkpoint) jumps again at each new posture:
+        a second jump within JUMP_REPEAT_S of the first resets at once."""
+        step_us = self.estimate.step_us if self.estimate is not None else None
+        if step_us is None or step_us == before.step_us:
+            return
+        first = self.watch.jump_us
+        if first is not None and step_us - first <= JUMP_REPEAT_S * 1e6:
+            self._reset_due = "the offsets jumped again"
+            return
+        self.watch.jump_us = step_us
+        if self.watch.alarm(now_us):
+            self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
+                "reason": "the offsets jumped", "jump_t_us": step_us}))
+
+    def _reset(self, idx: int, now_us: int) -> UpdateEvent:
+        """The windows contradict the estimate beyond what the estimator absorbs: it is not
+        this sensor's (another sensor under the same id, another sensor's checkpoint) or the
+        sensor changed too much. Back to the prior, with a buffer of the recent windows only
+        (the older ones are another sensor's, or the old one's), re-fitted at once."""
+        reason, self._reset_due = self._reset_due, None
+        since = self.watch.jump_us
+        recent = self.watch.fired(now_us)
+        old = self.buffer.windows()
+        if since is not None:  # the buffer's windows since the first jump, and the watch's
+            keep = old.t_us >= since
+            recent = [(old.v[i], old.aux[i], int(old.t_us[i]), int(old.n[i]), float(old.var[i]))
+                      for i in np.flatnonzero(keep).tolist()] + recent
+        before = self.estimate
+        assert self.prior is not None
+        self.estimate = Estimate.from_prior(self.prior)
+        self.informed = False
+        self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+        kept = self._refill(recent)
+        self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
+            "reason": reason, "windows": len(recent), "refitted": kept,
+            "resets": self.watch.triggers,
+            "params_before": self.model.params_dict(before.p) if before is not None else None}))
+        return self._update(idx, now_us)
+
+    def _refill(self, recent: list[tuple]) -> int:
+        """The recent windows that pass the norm gate under the estimate now, into the buffer
+        (each a slot of its own, oldest first); returns how many."""
+        if not recent:
+            return 0
+        recent = sorted(recent, key=lambda r: r[2])
+        m, k = len(recent), len(self.aux_names)
+        w = Windows(np.array([r[0] for r in recent], float).reshape(m, 3),
+                    np.array([r[1] for r in recent], float).reshape(m, k),
+                    np.array([r[2] for r in recent], np.int64),
+                    np.array([r[3] for r in recent], np.int64),
+                    np.array([r[4] for r in recent], float))
+        a = self.model.correct(self.params, w.v, self.covariates(w.t_us, w.aux))
+        norm = norm3(a)
+        ok = np.abs(norm - 1.0) <= self.cfg.norm_tol_g
+        dirs = a / np.where(norm > 0, norm, 1.0)[:, None]
+        cells = cell_of(dirs, self.cfg.buffer.grid)
+        for i in np.flatnonzero(ok).tolist():
+            self.buffer.add(w.v[i].tolist(), w.aux[i].tolist(), int(w.t_us[i]), int(w.n[i]),
+                            float(w.var[i]), dirs[i].tolist(), None, int(cells[i]))
+        return int(ok.sum())
+
+    def _heal_if_not_finite(self, t_us: int) -> None:
+        """An estimate that is not finite (a damaged checkpoint) would make every sample NaN
+        and every window fail the norm gate, for good: back to the prior if it is finite
+        (status held), else to no estimate at all (a bootstrap from the data)."""
+        est = self.estimate
+        if est is None or (np.isfinite(est.p).all() and np.isfinite(est.cov).all()):
+            return
+        prior = self.prior
+        usable_prior = (prior is not None and np.isfinite(prior.mean).all()
+                        and np.isfinite(prior.info).all())
+        self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        self.informed, self.watch = False, Watch()
+        if usable_prior:
+            assert prior is not None
+            self.estimate = Estimate.from_prior(prior)
+        else:
+            self.estimate, self.prior, self.bootstrapped = None, None, False
+        self._watch_events.append(WatchEvent(0, t_us, "reset", {
+            "reason": "estimate not finite",
+            "to": "prior" if usable_prior else "bootstrap"}))
 
     def _reject_short(self, due: list[tuple[int, bool]], done: int, stop: int) -> int:
         """Due entries done..stop are windows too short to keep (`_finish`): counted."""
@@ -779,6 +945,10 @@ class Pipeline:
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
                                     self.cfg.estimator)
         self.settled = rep.accepted and _settled(before, self.estimate)
+        if rep.accepted:
+            self._watch_jump(before, idx, now_us)
+        if rep.accepted and any(rep.observable):
+            self.informed = True
         self.coverage_at_update = self.buffer.cells_opened
         self.tested = (0, 0.0, 0.0)
         self.counts["updates"] += 1
@@ -831,16 +1001,33 @@ class Pipeline:
                        np.array([f[4] for f in fresh], float))
 
     # --- correction --------------------------------------------------------------------------
-    def _calibrate(self, b: RawBatch, start: tuple[SensorModel, np.ndarray],
-                   events: list[_Event]) -> np.ndarray:
-        """Correct each sample with the parameters in force when it arrived."""
+    def _segment(self, idx: int) -> _Segment:
+        """What is in force from sample idx on (now): model, parameters, covariance (no
+        estimate: the model's default prior spread around the provisional scale), status."""
+        est, model = self.estimate, self.model
+        cache = self._form_cache
+        if cache is None or cache[0] is not model or cache[1] is not est:
+            p = self.params.copy()
+            cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
+            form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
+            cache = self._form_cache = (model, est, p, cov, form)
+        return _Segment(idx, model, cache[2], cache[3], cache[4], self.status)
+
+    def _calibrate(self, b: RawBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Correct each sample with the parameters in force when it arrived; its status and
+        predicted error (`core.status.predicted_sigma_mg`) as they were then."""
         out = np.empty_like(b.v)
-        cuts = [0, *[e.index for e in events], len(b)]
-        params = [start, *[(e.model, e.p) for e in events]]
-        for s, e, (model, p) in zip(cuts[:-1], cuts[1:], params, strict=True):
+        status = np.empty(len(b), np.uint8)
+        sigma = np.empty(len(b))
+        segs = self._segs
+        cuts = [*[g.index for g in segs], len(b)]
+        for s, e, g in zip(cuts[:-1], cuts[1:], segs, strict=True):
             if e > s:
-                out[s:e] = model.correct(p, b.v[s:e], self.covariates(b.t_us[s:e], b.aux[s:e]))
-        return out
+                cov = self.covariates(b.t_us[s:e], b.aux[s:e])
+                out[s:e] = g.model.correct(g.p, b.v[s:e], cov)
+                status[s:e] = g.status
+                sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
+        return out, status, sigma
 
     def _start_detector(self, s0: float) -> None:
         self.det_cfg = self.cfg.detector(s0)
@@ -927,6 +1114,8 @@ def state_dict(pipe: Pipeline) -> dict:
         "settled": pipe.settled,
         "coverage_at_update": pipe.coverage_at_update,
         "tested": list(pipe.tested),
+        "informed": pipe.informed,
+        "watch": pipe.watch.to_dict(),
     }
 
 
@@ -964,6 +1153,10 @@ def from_state_dict(d: dict) -> Pipeline:
     pipe.coverage_at_update = int(cov_key) if cov_key is not None else None
     m, s2, s1 = d.get("tested", (0, 0.0, 0.0))
     pipe.tested = (int(m), float(s2), float(s1))
+    informed = d.get("informed")  # absent in checkpoints from before statuses
+    pipe.informed = (bool(informed) if informed is not None
+                     else pipe.estimate is not None and pipe.estimate.t_us is not None)
+    pipe.watch = Watch.from_dict(d.get("watch"))
     rep = d.get("last_report")
     pipe.last_report = (UpdateReport(**{**rep, "observable": tuple(rep["observable"]),
                                         "free": tuple(rep["free"])}) if rep else None)
