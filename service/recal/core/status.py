@@ -119,13 +119,14 @@ def predicted_sigma_mg(model: SensorModel, p: np.ndarray, cov_p: np.ndarray, v: 
     v = np.asarray(v, np.float64)
     if form is None:
         form = sigma_form(model, p, cov_p)
-    if form is not None:
-        s2 = (form[0, 0] + 2.0 * (v @ form[0, 1:])
-              + np.einsum("ni,ij,nj->n", v, form[1:, 1:], v))
-    else:
-        J = correction_jacobian(model, p, v, cov)
-        s2 = np.einsum("nip,pq,niq->n", J, cov_p, J)
-    return 1e3 * np.sqrt(np.maximum(s2, 0.0))
+    with np.errstate(invalid="ignore", over="ignore"):  # a NaN reading: NaN (the shell's)
+        if form is not None:
+            s2 = (form[0, 0] + 2.0 * (v @ form[0, 1:])
+                  + np.einsum("ni,ij,nj->n", v, form[1:, 1:], v))
+        else:
+            J = correction_jacobian(model, p, v, cov)
+            s2 = np.einsum("nip,pq,niq->n", J, cov_p, J)
+        return 1e3 * np.sqrt(np.maximum(s2, 0.0))
 
 
 def sigma_form(model: SensorModel, p: np.ndarray, cov_p: np.ndarray) -> np.ndarray | None:
