@@ -559,6 +559,8 @@ class Pipeline:
             "last_update": rep.to_dict(self.model.names) if rep else None,
             "coverage": self.coverage().to_dict(),
             "counts": dict(self.counts),
+            "status": self.status.label,  # of output calibrated now (core/status.py)
+            "watch": {"suspect": self.watch.suspect, "resets": self.watch.triggers},
         }
 
     # --- windows -----------------------------------------------------------------------------

@@ -121,11 +121,16 @@ def predicted_sigma_mg(model: SensorModel, p: np.ndarray, cov_p: np.ndarray, v: 
         form = sigma_form(model, p, cov_p)
     with np.errstate(invalid="ignore", over="ignore"):  # a NaN reading: NaN (the shell's)
         if form is not None:
-            s2 = (form[0, 0] + 2.0 * (v @ form[0, 1:])
-                  + np.einsum("ni,ij,nj->n", v, form[1:, 1:], v))
+            # element by element, in a fixed order: each sample's sigma is the same bits
+            # whatever batch it came in (a matrix product's rounding depends on its size)
+            q = form.tolist()
+            x, y, z = v[:, 0], v[:, 1], v[:, 2]
+            s2 = (q[0][0] + 2.0 * (x * q[0][1] + y * q[0][2] + z * q[0][3])
+                  + x * x * q[1][1] + y * y * q[2][2] + z * z * q[3][3]
+                  + 2.0 * (x * y * q[1][2] + x * z * q[1][3] + y * z * q[2][3]))
         else:
             J = correction_jacobian(model, p, v, cov)
-            s2 = np.einsum("nip,pq,niq->n", J, cov_p, J)
+            s2 = np.einsum("nip,nip->n", np.matmul(J, cov_p), J)
         return 1e3 * np.sqrt(np.maximum(s2, 0.0))
 
 
