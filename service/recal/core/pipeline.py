@@ -40,7 +40,13 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
-from recal.core.status import JUMP_REPEAT_S, Status, Watch, predicted_sigma_mg, sigma_form
+from recal.core.status import (
+    JUMP_REPEAT_S,
+    Status,
+    Watch,
+    predicted_sigma_mg,
+    sigma_form,
+)
 from recal.core.triaxial import norm3
 from recal.samples import CalibratedBatch, RawBatch
 
@@ -771,10 +777,10 @@ class Pipeline:
         return False
 
     def _watch_jump(self, before: Estimate, idx: int, now_us: int) -> None:
-        """An accepted update that fitted a new offset jump (`estimator._jump`): suspect. A
-        knock fits one and the windows agree again; a sensor whose gains differ too (another
-        sensor under this id, another sensor's checkpoint) jumps again at each new posture:
-        a second jump within JUMP_REPEAT_S of the first resets at once."""
+        """An accepted update that fitted a new offset jump (`estimator._jump`): suspect for
+        JUMP_REPEAT_S at least. A knock fits one and the windows agree again; a sensor whose
+        gains differ too (another sensor under this id, another sensor's checkpoint) jumps
+        again at a new posture: a second jump within JUMP_REPEAT_S of the first resets."""
         step_us = self.estimate.step_us if self.estimate is not None else None
         if step_us is None or step_us == before.step_us:
             return
@@ -783,7 +789,7 @@ class Pipeline:
             self._reset_due = "the offsets jumped again"
             return
         self.watch.jump_us = step_us
-        if self.watch.alarm(now_us):
+        if self.watch.alarm(now_us, JUMP_REPEAT_S):
             self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
                 "reason": "the offsets jumped", "jump_t_us": step_us}))
 
