@@ -397,3 +397,27 @@ def test_a_knock_is_suspect_for_a_while_but_keeps_the_gains() -> None:
     assert pipe.watch.triggers == 0  # no reset
     s_true = S0 * (1 + np.array(spec.gain))
     assert np.all(np.abs(pipe.params[3:] - s_true) / s_true < 0.005)
+
+
+def test_a_sensor_far_from_the_calibration_and_the_datasheet_bootstraps_again() -> None:
+    """Sensor B's offsets are 250-300 mg: under A's calibration (and the datasheet's) every
+    window fails the norm gate, so the estimator never saw them. Was: A's calibration for
+    good. Now: suspect after 3 min of it, a bootstrap from B's own windows, calibrated."""
+    res = sim.simulate(70 / 60, RATE_HZ, 9, _spec(9))
+    spec_b = replace(_spec(10), offset_g=(0.25, -0.3, 0.28))
+    b = sim.with_sensor(res, spec_b)
+    k = int(20 * 60 * RATE_HZ)
+    raw = RawBatch(res.raw.t_us, np.concatenate([res.raw.v[:k], b.raw.v[k:]]), res.raw.aux,
+                   res.raw.aux_names)
+    sink = MemorySink()
+    node = _node(sink)
+    _feed(node, raw)
+    out = sink.all()
+    minute = (out.t_us - out.t_us[k]) / 60e6
+    suspect = [e for e in sink.events if e["kind"] == "suspect"]
+    assert suspect and (suspect[0]["t_us"] - out.t_us[k]) / 60e6 < 10.0
+    assert np.any(out.status[minute > 0] == Status.BOOTSTRAPPING)
+    err = _err_1s_mg(out.a_g, res.truth.a_true_g, res.truth.still)
+    sec = np.arange(len(err)) / 60.0 - 20.0
+    assert _rms(err[sec >= 40]) <= 2.0, _rms(err[sec >= 40])
+    assert out.status[-1] == Status.CALIBRATED

@@ -709,16 +709,16 @@ class Pipeline:
                     continue
                 idx = at[e]
                 now = int(b.t_us[idx])
-                if self._reset_due is not None:  # the self-watch fired at this window
-                    ev = self._reset(idx, now)
-                else:
-                    ev = (self._try_bootstrap(idx, now) if not self.bootstrapped
-                          else self._update(idx, now))
-                if self._reset_due is not None and ev is not None:  # it found a jump again
-                    events.append(_Event(ev, idx, self.model, self.params.copy()))
-                    ev = self._reset(idx, now)
-                if ev is not None:
-                    events.append(_Event(ev, idx, self.model, self.params.copy()))
+                evs: list[UpdateEvent | None] = []
+                if self._reset_due is None:  # (else the self-watch fired at this window)
+                    evs.append(self._try_bootstrap(idx, now) if not self.bootstrapped
+                               else self._update(idx, now))
+                reset = self._reset_due is not None  # fired, or the update found a jump again
+                if reset:
+                    evs.append(self._reset(idx, now))
+                events += [_Event(ev, idx, self.model, self.params.copy())
+                           for ev in evs if ev is not None]
+                if reset or evs[-1] is not None:
                     self._segs.append(self._segment(idx))
                     if self._marks is not None:
                         self._marks.dirty = True
@@ -793,7 +793,7 @@ class Pipeline:
             self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
                 "reason": "the offsets jumped", "jump_t_us": step_us}))
 
-    def _reset(self, idx: int, now_us: int) -> UpdateEvent:
+    def _reset(self, idx: int, now_us: int) -> UpdateEvent | None:
         """The windows contradict the estimate beyond what the estimator absorbs: it is not
         this sensor's (another sensor under the same id, another sensor's checkpoint) or the
         sensor changed too much. Back to the prior, with a buffer of the recent windows only
@@ -816,11 +816,19 @@ class Pipeline:
             "reason": reason, "windows": len(recent), "refitted": kept,
             "resets": self.watch.triggers,
             "params_before": self.model.params_dict(before.p) if before is not None else None}))
+        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        if kept < self.cfg.estimator.min_windows:
+            # the prior does not fit them either (a sensor far from the datasheet): no
+            # estimate, a bootstrap from the data (`_try_bootstrap`), these windows first
+            self.estimate, self.bootstrapped = None, False
+            self._refill(recent, gate=False)
+            return None
         return self._update(idx, now_us)
 
-    def _refill(self, recent: list[tuple]) -> int:
-        """The recent windows that pass the norm gate under the estimate now, into the buffer
-        (each a slot of its own, oldest first); returns how many."""
+    def _refill(self, recent: list[tuple], gate: bool = True) -> int:
+        """The recent windows that pass the norm gate under the estimate now (all of them
+        without ``gate``), into the buffer (each a slot of its own, oldest first); returns
+        how many."""
         if not recent:
             return 0
         recent = sorted(recent, key=lambda r: r[2])
@@ -832,7 +840,7 @@ class Pipeline:
                     np.array([r[4] for r in recent], float))
         a = self.model.correct(self.params, w.v, self.covariates(w.t_us, w.aux))
         norm = norm3(a)
-        ok = np.abs(norm - 1.0) <= self.cfg.norm_tol_g
+        ok = np.abs(norm - 1.0) <= self.cfg.norm_tol_g if gate else np.isfinite(norm)
         dirs = a / np.where(norm > 0, norm, 1.0)[:, None]
         cells = cell_of(dirs, self.cfg.buffer.grid)
         for i in np.flatnonzero(ok).tolist():
