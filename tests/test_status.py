@@ -421,3 +421,20 @@ def test_a_sensor_far_from_the_calibration_and_the_datasheet_bootstraps_again() 
     sec = np.arange(len(err)) / 60.0 - 20.0
     assert _rms(err[sec >= 40]) <= 2.0, _rms(err[sec >= 40])
     assert out.status[-1] == Status.CALIBRATED
+
+
+def test_joined_messages_report_the_watch_as_message_by_message() -> None:
+    """Replay joins messages into one pipeline step (`CalibrationNode.process_many`): the
+    self-watch's events and the statuses come out as when each message goes alone."""
+    _, raw, k = swapped()
+    part = raw[:k + int(15 * 60 * RATE_HZ)]
+    items = [(part[i:i + 100], int(part.t_us[i]) * 1000) for i in range(0, len(part), 100)]
+    one, joined = MemorySink(), MemorySink()
+    a, b = _node(one), _node(joined)
+    for batch, log_ns in items:
+        a.process(batch, log_ns)
+    for i in range(0, len(items), 37):
+        b.process_many(items[i:i + 37])
+    assert "suspect" in one.kinds() and one.kinds() == joined.kinds()
+    assert [e["t_us"] for e in one.events] == [e["t_us"] for e in joined.events]
+    assert np.array_equal(one.all().status, joined.all().status)

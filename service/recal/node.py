@@ -531,6 +531,7 @@ class CalibrationNode:
             out = pipe.step(RawBatch.concat([b for b, _ in items]), marks=ends)
             self._last_names = pipe.aux_names
             todo = list(out.updates)
+            watch = list(out.watch)
             lo = 0
             try:
                 for (_, log_ns), hi in zip(items, ends, strict=True):
@@ -542,8 +543,12 @@ class CalibrationNode:
                         model, estimate = mine[-1].model or model, mine[-1].estimate
                     state = out.states.get(hi)  # (model, summary) after this batch
                     self._view = (model, estimate, state[1] if state else None)
+                    seen = []
+                    while watch and watch[0].index < hi:
+                        w = watch.pop(0)
+                        seen.append(replace(w, index=w.index - lo))
                     cal = out.calibrated[lo:hi]
-                    self._emit(StepOutput(cal, tuple(mine), 0), log_ns)
+                    self._emit(StepOutput(cal, tuple(mine), 0, watch=tuple(seen)), log_ns)
                     lo = hi
             finally:
                 self._view = None
