@@ -438,3 +438,51 @@ def test_joined_messages_report_the_watch_as_message_by_message() -> None:
     assert "suspect" in one.kinds() and one.kinds() == joined.kinds()
     assert [e["t_us"] for e in one.events] == [e["t_us"] for e in joined.events]
     assert np.array_equal(one.all().status, joined.all().status)
+
+
+def test_the_gateway_says_when_a_sensor_is_first_calibrated(tmp_path: Path) -> None:
+    """The daemon (in this process, Zenoh off, a real pty): one console line when the sensor
+    is first calibrated, and the calibrated topic of its MCAP carries the statuses: held
+    (the datasheet prior) before that line's sample, calibrated from it on."""
+    import threading
+    import time
+
+    from polling import wait_for
+    from recal.config import parse_config
+    from recal.gateway import Gateway, run_gateway
+    from recal.io.pty_device import PtyDevice
+
+    res = sim.simulate(3 / 60, 50.0, 11, _spec(11), sim.WearerSpec(still_s=(8.0, 20.0),
+                                                                    move_s=(2.0, 5.0)))
+    link, mcap = str(tmp_path / "tty0"), tmp_path / "live.mcap"
+    cfg = parse_config({
+        "zenoh": {"enabled": False}, "mcap": {"flush_interval_s": 0.2},
+        "sensors": [{"id": SID, "port": link, "aux_names": [], "rate_hz": 50.0,
+                     "prior": {"counts_per_g": S0}}]}, tmp_path, "test")
+    stop, ready, lines = threading.Event(), [], []
+    with PtyDevice(link) as dev:
+        th = threading.Thread(target=run_gateway, args=(cfg,), daemon=True, kwargs={
+            "mcap_out": mcap, "stop_event": stop, "on_ready": ready.append,
+            "out": lines.append})
+        th.start()
+        assert wait_for(lambda: bool(ready), 20)
+        port = ready[0].ports[SID]
+        assert wait_for(lambda: port.is_open, 10)
+        for i in range(0, len(res.raw), 100):  # bounded: one pass over the data
+            dev.write_batch(res.raw[i:i + 100])
+            time.sleep(0.02)
+        assert wait_for(lambda: port.samples_logged == len(res.raw) and not port.pending, 20)
+        stop.set()
+        th.join(30)
+        assert not th.is_alive()
+    assert isinstance(ready[0], Gateway)
+    said = [line for line in lines if line.startswith(f"recal gateway: {SID}: ")
+            and "port" not in line]
+    assert said == [f"recal gateway: {SID}: calibrated"], lines
+    cal = CalibratedBatch.concat([b for _, b, _ in rec.iter_calibrated(mcap, SID)])
+    assert len(cal) == len(res.raw)
+    first = int(np.argmax(cal.status == Status.CALIBRATED))
+    assert first > 0 and np.all(cal.status[:first] == Status.HELD)
+    assert np.all(cal.status[first:] == Status.CALIBRATED)
+    # the datasheet's spread before; falling as the postures inform the parameters
+    assert np.all(cal.sigma_mg[:first] > 50.0) and np.all(cal.sigma_mg[-500:] < 5.0)
