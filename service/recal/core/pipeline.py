@@ -442,6 +442,7 @@ class Pipeline:
         self._watch_events: list[WatchEvent] = []
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
         self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
+        self._finite_estimate: Estimate | None = None
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -853,7 +854,10 @@ class Pipeline:
         and every window fail the norm gate, for good: back to the prior if it is finite
         (status held), else to no estimate at all (a bootstrap from the data)."""
         est = self.estimate
-        if est is None or (np.isfinite(est.p).all() and np.isfinite(est.cov).all()):
+        if est is None or est is self._finite_estimate:
+            return
+        if np.isfinite(est.p).all() and np.isfinite(est.cov).all():
+            self._finite_estimate = est  # asked at every step: once per estimate
             return
         prior = self.prior
         usable_prior = (prior is not None and np.isfinite(prior.mean).all()

@@ -86,29 +86,34 @@ def correction_jacobian(model: SensorModel, p: np.ndarray, v: np.ndarray,
                         cov: Covariates) -> np.ndarray:
     """J = da/dp (N, 3, P) of the corrected readings a = f(v; p), by the chain rule through
     the model's stages (each stage's vector-Jacobian product with the unit rows of da/da)."""
+    stages = [(e, model.slice(e)) for e in model.effects]
     xs = [np.asarray(v, np.float64)]
-    for e in model.effects:
-        xs.append(e.apply(xs[-1], cov, p[model.slice(e)]))
+    for e, sl in stages:
+        xs.append(e.apply(xs[-1], cov, p[sl]))
     n = len(xs[0])
     J = np.empty((n, 3, model.size))
     for j in range(3):
         g = np.zeros((n, 3))
         g[:, j] = 1.0
-        for k in range(len(model.effects) - 1, -1, -1):
-            e = model.effects[k]
-            J[:, j, model.slice(e)], g_in = e.vjp(g, xs[k], cov, p[model.slice(e)], k > 0)
+        for k in range(len(stages) - 1, -1, -1):
+            e, sl = stages[k]
+            J[:, j, sl], g_in = e.vjp(g, xs[k], cov, p[sl], k > 0)
             g = g_in if k else g
     return J
+
+
+_BASIS = np.vstack([np.zeros(3), np.eye(3)])  # v = 0, then each axis
+_NO_COVARIATES = Covariates(np.zeros(4), np.zeros((4, 0)))
 
 
 def _quadratic_form(model: SensorModel, p: np.ndarray, cov_p: np.ndarray) -> np.ndarray:
     """Q (4, 4) with sigma^2(v) = [1, v] Q [1, v]^T, for a model whose correction is affine in
     v and reads no covariate: J(v) = G_0 + sum_k v_k G_k then, exactly."""
-    pts = np.vstack([np.zeros(3), np.eye(3)])
-    J = correction_jacobian(model, p, pts, Covariates(np.zeros(4), np.zeros((4, 0))))
-    G = np.concatenate([J[:1], J[1:] - J[:1]])  # G_0, G_1..G_3
-    # Q_mn = trace(G_m C G_n^T)
-    return np.einsum("mjp,pq,njq->mn", G, cov_p, G)
+    J = correction_jacobian(model, p, _BASIS, _NO_COVARIATES)
+    G = np.concatenate([J[:1], J[1:] - J[:1]]).reshape(4, -1)  # G_0, G_1..G_3, flattened
+    # Q_mn = trace(G_m C G_n^T): the (3, P) blocks' rows against C
+    C = np.kron(np.eye(3), cov_p)
+    return G @ C @ G.T
 
 
 def predicted_sigma_mg(model: SensorModel, p: np.ndarray, cov_p: np.ndarray, v: np.ndarray,
@@ -141,8 +146,8 @@ def sigma_form(model: SensorModel, p: np.ndarray, cov_p: np.ndarray) -> np.ndarr
     """`_quadratic_form` when the model's correction is affine in v without covariates
     (offsets, scales, cross-axis terms), else None (`predicted_sigma_mg` then goes sample by
     sample)."""
-    aff = model.affine(p)
-    if aff is None or aff.divisors or model.covariates:
+    # what `SensorModel.affine` accepts without divisors, asked of the stages (cheaper)
+    if model.covariates or not all(e.affine and not e.divides_rows for e in model.effects):
         return None
     return _quadratic_form(model, p, cov_p)
 
