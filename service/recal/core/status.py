@@ -26,9 +26,11 @@ sigma^2 = trace(J C_e J^T). The sensor's own noise on the sample is not in it.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 
@@ -130,16 +132,28 @@ def predicted_sigma_mg(model: SensorModel, p: np.ndarray, cov_p: np.ndarray, v: 
     with np.errstate(invalid="ignore", over="ignore"):  # a NaN reading: NaN (the shell's)
         if form is not None:
             # element by element, in a fixed order: each sample's sigma is the same bits
-            # whatever batch it came in (a matrix product's rounding depends on its size)
+            # whatever batch it came in (a matrix product's rounding depends on its size);
+            # a few samples (a live sensor's) as Python floats, the same operations
             q = form.tolist()
-            x, y, z = v[:, 0], v[:, 1], v[:, 2]
-            s2 = (q[0][0] + 2.0 * (x * q[0][1] + y * q[0][2] + z * q[0][3])
-                  + x * x * q[1][1] + y * y * q[2][2] + z * z * q[3][3]
-                  + 2.0 * (x * y * q[1][2] + x * z * q[1][3] + y * z * q[2][3]))
+            if len(v) <= SMALL_BATCH:
+                return np.array([1e3 * math.sqrt(max(_s2(q, x, y, z), 0.0))
+                                 for x, y, z in v.tolist()], np.float64).reshape(-1)
+            s2 = _s2(q, v[:, 0], v[:, 1], v[:, 2])
         else:
             J = correction_jacobian(model, p, v, cov)
             s2 = np.einsum("nip,nip->n", np.matmul(J, cov_p), J)
         return 1e3 * np.sqrt(np.maximum(s2, 0.0))
+
+
+#: Up to this many samples `predicted_sigma_mg` works in Python floats (fewer calls).
+SMALL_BATCH = 32
+
+
+def _s2(q: list[list[float]], x: Any, y: Any, z: Any) -> Any:
+    """[1, v] Q [1, v]^T for floats or arrays alike (the same operations in the same order)."""
+    return (q[0][0] + 2.0 * (x * q[0][1] + y * q[0][2] + z * q[0][3])
+            + x * x * q[1][1] + y * y * q[2][2] + z * z * q[3][3]
+            + 2.0 * (x * y * q[1][2] + x * z * q[1][3] + y * z * q[2][3]))
 
 
 def sigma_form(model: SensorModel, p: np.ndarray, cov_p: np.ndarray) -> np.ndarray | None:
