@@ -11,7 +11,14 @@ Per batch:
    settled, no new orientation cell arrived and less than `max_update_interval_s` of device
    time passed: on a 24 h wearer that skips ~9 of 10 re-fits, the core's main cost;
 4. samples are calibrated with the parameters in force when they arrived: an update that
-   happens at sample j applies from sample j on.
+   happens at sample j applies from sample j on; so are their status and predicted error
+   (`core.status`: uncalibrated, bootstrapping, calibrated, held, suspect; sigma from the
+   estimate's covariance);
+5. the self-watch (`core.status.Watch`) marks the output suspect when the estimator fits an
+   offset jump, and resets the estimate when the windows keep contradicting it (a second jump
+   soon after, or windows failing the norm gate for minutes): another sensor under the same
+   id, another sensor's checkpoint. A checkpoint whose estimate is not finite goes back to
+   the prior (or to a bootstrap) at the next step.
 
 Everything is driven by the sample sequence alone (never by batch boundaries or clocks), so
 feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
@@ -807,6 +814,7 @@ class Pipeline:
             keep = old.t_us >= since
             recent = [(old.v[i], old.aux[i], int(old.t_us[i]), int(old.n[i]), float(old.var[i]))
                       for i in np.flatnonzero(keep).tolist()] + recent
+            recent = list({int(r[2]): r for r in recent}.values())  # each window once
         before = self.estimate
         assert self.prior is not None
         self.estimate = Estimate.from_prior(self.prior)
@@ -822,6 +830,7 @@ class Pipeline:
             # the prior does not fit them either (a sensor far from the datasheet): no
             # estimate, a bootstrap from the data (`_try_bootstrap`), these windows first
             self.estimate, self.bootstrapped = None, False
+            self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
             self._refill(recent, gate=False)
             return None
         return self._update(idx, now_us)

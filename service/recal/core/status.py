@@ -12,9 +12,16 @@ Statuses (one per sample, `Status`; the numbers are the wire values of ``recal.S
 * ``held`` (4): an estimate exists but no data informed it yet: the pre-calibration as given
   (a configured prior), or the prior again after a self-watch reset, until an accepted update
   observes a parameter.
-* ``suspect`` (5): the self-watch found the still windows contradicting the estimate beyond
-  its uncertainty for a sustained time (a swapped sensor, another sensor's checkpoint, a knock
-  the estimator could not absorb); it stays until the windows agree again.
+* ``suspect`` (5): the self-watch's alarm (`Watch`): the estimator fitted an offset jump (a
+  knock, or another sensor now under this id: held for JUMP_REPEAT_S), or the still windows
+  contradicted the estimate beyond its uncertainty for a sustained time (a second jump
+  within JUMP_REPEAT_S, or windows failing the norm gate for SUSPECT_AFTER_S) and the
+  pipeline reset it: back to the prior with a buffer of the recent windows only (those since
+  the first jump, or since the contradiction began), re-fitted at once; if the prior does
+  not fit them either, no estimate and a bootstrap from them. It clears when the windows
+  agree again (CLEAR_GOOD_WINDOWS in a row, after the alarm's hold).
+
+Precedence: no estimate (uncalibrated, bootstrapping) before suspect before held.
 
 0 (``not_recorded``) is the protobuf default: a recording made before statuses existed.
 
