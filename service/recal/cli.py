@@ -91,6 +91,11 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         offset_drift_g_per_h=tuple(np.full(3, a.drift_mg_per_h / 1e3) * rng.choice([-1, 1], 3)),
         q_per_g=tuple(np.full(3, a.nonlinearity_pct / 100) * rng.choice([-1, 1], 3)),
         temp_channel=a.temp_name, supply_channel=a.supply_name)
+    if a.sensor_type:  # the type's fields (counts per g, zero-g, ADC) over the options'
+        if a.sensor_type not in sim.SENSOR_TYPES:
+            raise UsageError(f"--sensor-type must be one of {', '.join(sim.SENSOR_TYPES)}, "
+                             f"not {a.sensor_type!r}")
+        sensor = replace(sensor, **sim.SENSOR_TYPES[a.sensor_type])
     temp = {k: v for k, v in (("temp_wander_c", a.temp_wander_c),
                               ("temp_wander_tau_min", a.temp_tau_min)) if v is not None}
     wearer = sim.WearerSpec(upright_only=a.upright_only, always_aux=a.aux, **temp)
@@ -434,10 +439,24 @@ def run_from_args(a: argparse.Namespace) -> int:
                        batch_s=None if a.batch_ms is None else a.batch_ms / 1e3)
 
 
+def add_serving_arguments(ap: argparse.ArgumentParser) -> None:
+    """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node`` and
+    ``python -m recal.node``)."""
+    ap.add_argument("--sensor-id", action="append", default=[],
+                    help="serve this sensor (repeatable; default: the config's [[sensors]])")
+    ap.add_argument("--accept-any", action="store_const", const=True, default=None,
+                    help="also serve sensors nobody named, whoever publishes them "
+                         "(default: config [node] accept_any, false)")
+    ap.add_argument("--max-sensors", type=int, metavar="N", default=None,
+                    help="with --accept-any, serve at most N sensors not named "
+                         "(default: config [node] max_sensors, 16)")
+
+
 def _cmd_node(a: argparse.Namespace) -> int:
     from recal.node import run_node
 
-    return run_node(a.config, a.sensor_id, a.mcap, a.model)
+    return run_node(a.config, a.sensor_id, a.mcap, a.model, accept_any=a.accept_any,
+                    max_sensors=a.max_sensors)
 
 
 def _cmd_demo(a: argparse.Namespace) -> int:
@@ -478,9 +497,12 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
              "recal run --port /dev/ttyACM0 --port /dev/ttyACM1 --sensor-id l --sensor-id r")),
     "node": ("A calibration node without serial ports: takes recal/*/raw from gateways that run "
              "with run_nodes = false (through a `recal router` or as peers), and publishes "
-             "calibrated, body, calibration and events for each sensor. Runs until Ctrl-C or "
-             "SIGTERM.",
-             ("recal node --config configs/gateway.toml --mcap node.mcap",)),
+             "calibrated, body, calibration and events for each sensor it serves: those of the "
+             "config's [[sensors]] or --sensor-id; other ids are counted and dropped unless "
+             "--accept-any (at most --max-sensors of them). Runs until Ctrl-C or SIGTERM.",
+             ("recal node --config configs/gateway.toml --mcap node.mcap",
+              "recal node --config configs/fleet/node.toml",
+              "recal node --config node.toml --accept-any --max-sensors 8")),
     "replay": ("Runs the raw topic of a recording through the same calibration node as the "
                "daemon (detector, windows, estimator, correction) and writes raw, calibrated, "
                "body, plot, calibration states and events to a new MCAP. No Zenoh, no clocks: "
@@ -566,8 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "(gateways elsewhere run with run_nodes = false)")
     s.add_argument("--config", help="service config (TOML): [zenoh], [[sensors]] priors, "
                    "[pipeline]")
-    s.add_argument("--sensor-id", action="append", default=[], help="only these sensors "
-                   "(repeatable; default: every sensor that publishes)")
+    add_serving_arguments(s)
     s.add_argument("--mcap", help="also log raw and calibrated here")
     s.add_argument("--model", help="model file for every sensor (recal discover --write-model)")
     s.set_defaults(func=_cmd_node)
@@ -600,6 +621,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="white noise per axis (default 4)")
     s.add_argument("--counts-per-g", type=float, default=1024.0,
                    help="ADC scale (default 1024); 0: no ADC, readings in g")
+    s.add_argument("--sensor-type", metavar="TYPE",
+                   help="a sensor people plug in: adxl335-adc12, mma7260-adc14 (analog, "
+                        "unsigned ADC), digital-2g ... digital-16g, adxl345-10bit, phone-ms2 "
+                        "(floats); its counts per g, zero-g and ADC replace --counts-per-g")
     s.add_argument("--offset-tc-mg-per-c", type=float, default=0.0,
                    help="offset temperature coefficient (random sign per axis)")
     s.add_argument("--gain-tc-pct-per-c", type=float, default=0.0,

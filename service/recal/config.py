@@ -20,7 +20,10 @@ relative to the file)::
     [pipeline]  threshold_g, window_s, model = "diagonal"|"full", mode = "all"|"offsets",
                 plot_hz = 10, any other PipelineConfig field; [pipeline.estimator],
                 [pipeline.buffer] pass to EstimatorConfig / BufferConfig
-    [alignment] enabled, min_still_s = 10, tilt_limit_deg = 7, upright_max_deg = 30
+    [alignment] enabled, min_still_s = 10, tilt_limit_deg = 7, upright_max_deg = 30,
+                request_interval_s = 60 (at most one recal/<sensor>/align request per sensor)
+    [node]      accept_any = false, max_sensors = 16: which sensors a `recal node` serves
+                (default: only those in [[sensors]] or --sensor-id)
     [discovery] every_h = 0 (off), min_windows = 60, blocks = 10: rediscover effects on the
                 live buffer (recal.core.discovery) and continue with the extended model
     [[sensors]] id, port, format = "ascii"|"cobs", baudrate, aux_names, rate_hz,
@@ -55,6 +58,7 @@ __all__ = [
     "CheckpointConfig",
     "ConfigError",
     "McapConfig",
+    "NodeConfig",
     "PipelineSettings",
     "PriorConfig",
     "RediscoveryConfig",
@@ -222,6 +226,8 @@ class AlignmentConfig:
         max_offset_sd_mg: ... and until the x/y offsets are known this well (posterior sd, mg):
             an offset error of e mg tilts the reference by about e/1000 rad (17 mg ≈ 1°;
             the first updates, made on one or two postures, are not that good yet).
+        request_interval_s: a re-alignment request (query on recal/<sensor>/align) less than
+            this long after the last one accepted is refused, seconds (0: never refused).
     """
 
     enabled: bool = True
@@ -230,6 +236,21 @@ class AlignmentConfig:
     upright_max_deg: float = 30.0
     require_update: bool = True
     max_offset_sd_mg: float = 10.0
+    request_interval_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """Which sensors a calibration node on the bus (`recal node`) serves.
+
+    Attributes:
+        accept_any: serve any sensor that publishes recal/<id>/raw, not only the configured
+            ones (a stranger's stream is then logged, calibrated and checkpointed too).
+        max_sensors: with accept_any, serve at most this many sensors; later ids are dropped.
+    """
+
+    accept_any: bool = False
+    max_sensors: int = 16
 
 
 @dataclass(frozen=True)
@@ -271,6 +292,7 @@ class ServiceConfig:
     idle_batch_ms: float = 0.0
     source: Path | None = None
     discovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
+    node: NodeConfig = field(default_factory=NodeConfig)
 
     def sensor(self, sensor_id: str) -> SensorConfig | None:
         return next((s for s in self.sensors if s.id == sensor_id), None)
@@ -520,13 +542,26 @@ def _pipeline(ctx: _Ctx, d: Any) -> PipelineSettings:
 
 def _alignment(ctx: _Ctx, d: Any) -> AlignmentConfig:
     d = _table(ctx, d, ("enabled", "min_still_s", "tilt_limit_deg", "upright_max_deg",
-                        "require_update", "max_offset_sd_mg"))
+                        "require_update", "max_offset_sd_mg", "request_interval_s"))
     return AlignmentConfig(_bool(ctx, d, "enabled", True),
                            _num(ctx, d, "min_still_s", 10.0, positive=True),
                            _num(ctx, d, "tilt_limit_deg", 7.0, positive=True),
                            _num(ctx, d, "upright_max_deg", 30.0, positive=True),
                            _bool(ctx, d, "require_update", True),
-                           _num(ctx, d, "max_offset_sd_mg", 10.0, positive=True))
+                           _num(ctx, d, "max_offset_sd_mg", 10.0, positive=True),
+                           _nonnegative(ctx, d, "request_interval_s", 60.0))
+
+
+def _nonnegative(ctx: _Ctx, d: Mapping, key: str, default: float) -> float:
+    v = _num(ctx, d, key, default)
+    if v < 0:
+        raise ctx.error(key, f"expected a number >= 0, got {v!r}")
+    return float(v)
+
+
+def _node(ctx: _Ctx, d: Any) -> NodeConfig:
+    d = _table(ctx, d, ("accept_any", "max_sensors"))
+    return NodeConfig(_bool(ctx, d, "accept_any", False), _int(ctx, d, "max_sensors", 16))
 
 
 def _discovery(ctx: _Ctx, d: Any) -> RediscoveryConfig:
@@ -563,7 +598,7 @@ def _priors_file(path: Path) -> dict[str, PriorConfig]:
 
 
 _TOP_KEYS = ("priors_file", "run_nodes", "batch_ms", "idle_batch_ms", "zenoh", "mcap",
-             "checkpoint", "pipeline", "alignment", "sensors", "priors", "discovery")
+             "checkpoint", "pipeline", "alignment", "sensors", "priors", "discovery", "node")
 
 
 def parse_config(doc: Mapping[str, Any], base_dir: Path | str = ".",
@@ -595,7 +630,8 @@ def parse_config(doc: Mapping[str, Any], base_dir: Path | str = ".",
         run_nodes=_bool(ctx, doc, "run_nodes", True),
         batch_ms=_batch_ms(ctx, doc, "batch_ms", 0.0),
         idle_batch_ms=_batch_ms(ctx, doc, "idle_batch_ms", 0.0),
-        discovery=_discovery(ctx.sub("discovery"), doc.get("discovery", {})))
+        discovery=_discovery(ctx.sub("discovery"), doc.get("discovery", {})),
+        node=_node(ctx.sub("node"), doc.get("node", {})))
 
 
 def load_config(path: str | Path | None) -> ServiceConfig:

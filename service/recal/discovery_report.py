@@ -34,6 +34,7 @@ import numpy as np
 from recal.core import discovery as dc
 from recal.core.effects import TIME
 from recal.core.model import SensorModel
+from recal.core.pipeline import gain_reference
 from recal.samples import RawBatch
 
 __all__ = [
@@ -155,6 +156,7 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
     """The JSON report (keys in the module docstring)."""
     cfg, data = result.config, result.data
     n_blocks = int(result.blocks.max()) + 1
+    ref = gain_reference(result.model, result.p, from_prior=False)  # the data's own scale
     t_h = data.cov.t_h
     steps = [{"step": i + 1, "action": s.action,
               "effect": " + ".join([s.effect.label, *(e.label for e in s.together)]),
@@ -168,6 +170,7 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
         "held_at_start": list(result.held_at_start()),
         "input": {"kind": data.source, "windows": len(data), "dropped_moving": data.dropped,
                   "aux_names": list(data.aux_names), "s0": data.s0,
+                  "zero_g": [float(x) for x in data.zero],
                   "span_h": float(np.ptp(t_h)) if data.has_time and len(t_h) else None,
                   "blocks": int(result.blocks.max()) + 1},
         "criterion": {"text": criterion_text(cfg, n_blocks), "min_gain": cfg.min_gain,
@@ -184,15 +187,20 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
                               "after": _analysis_dict(result.analysis_final)},
         "model": {"base": result.base_model.to_dict(), "final": result.model.to_dict(),
                   "params": result.model.params_dict(result.p),
-                  "described": result.model.describe(result.p)},
+                  "gain_reference": ref,
+                  "described": result.model.describe(result.p, ref["counts_per_g"])},
     }
     return _clean(report)
 
 
 def model_file_dict(result: dc.DiscoveryResult) -> dict[str, Any]:
-    """What `--write-model` writes: the extended model and the live estimator's prior."""
+    """What `--write-model` writes: the extended model and the live estimator's prior. Its
+    s0, the nominal sensitivity gains are reported against once it is a prior, is the gain
+    reference of the discovery report (the mean fitted scale), so replay --model reports the
+    gains discover did."""
+    ref = gain_reference(result.model, result.p, from_prior=False)["counts_per_g"]
     return _clean({
-        "model": result.model.to_dict(),
+        "model": {**result.model.to_dict(), "s0": ref},
         "params": result.model.params_dict(result.p),
         "sd": result.model.params_dict(result.prior.sd),
         "prior": result.prior.to_dict(),

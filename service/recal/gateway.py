@@ -78,6 +78,7 @@ from recal.node import (
     LoggedBusSink,
     RecordingSink,
     Sink,
+    align_handler,
     checkpoint_path,
     make_node,
     node_settings,
@@ -553,9 +554,7 @@ class Gateway:
         self.bus.queryable(key(sid, "status"),
                            lambda _k, _pl: messages.encode_json(self.status(sid)))
         if p.node is not None:
-            node = p.node
-            self.bus.queryable(key(sid, "align"),
-                               lambda _k, _pl: messages.encode_json(node.request_alignment()))
+            self.bus.queryable(key(sid, "align"), align_handler(p.node, self.out, NOTE_PREFIX))
 
     def status(self, sid: str) -> dict[str, Any]:
         """The sensor's calibration state (if calibrated here) plus the gateway's counters."""

@@ -3,9 +3,11 @@
 Three passes over the input, one batch at a time (a week-long file needs memory for its
 windows, about 100 bytes each, not for its samples):
 
-1. the sample rate and the median norm (the detector's scale and the model's nominal sensitivity
-   unless a model file gives one), from counts (`discovery.rate_and_scale`);
-2. the quasi-static windows, and one fit of the model on all of them;
+1. the sample rate and the median norm (the detector's first scale and the model's nominal
+   sensitivity unless a model file gives one), from counts (`discovery.rate_and_scale`);
+2. the quasi-static windows, and one fit of the model on all of them (when the windows show
+   zero-g far from 0 or another scale, as an analog part on an unsigned ADC does, the windows
+   once more by a detector centred there: `hindsight.calibrate`);
 3. every sample corrected with that fit and written out: an MCAP gets the raw topic copied as
    logged, a calibrated topic (with the detector's gate and output per sample, as the live
    node writes them) and the fit as a calibration message; a CSV gets t_us, x_g, y_g, z_g.
@@ -25,7 +27,7 @@ from recal.core import detector as det
 from recal.core import hindsight
 from recal.core.discovery import rate_and_scale
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig, usable
+from recal.core.pipeline import PipelineConfig, gain_reference, usable
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
 __all__ = ["Source", "calibrate_file", "open_source", "summary_lines"]
@@ -97,8 +99,10 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
 def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
     """The fit as JSON-able values: parameters by name and in physical units, their sd."""
     sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
+    ref = gain_reference(fit.model, fit.p, from_prior=False)  # no prior: the data's own scale
     return {"model": fit.model.to_dict(), "params": fit.model.params_dict(fit.p),
-            "described": fit.model.describe(fit.p),
+            "gain_reference": ref,
+            "described": fit.model.describe(fit.p, ref["counts_per_g"]),
             "sd": dict(zip(fit.model.names, sd.tolist(), strict=True)),
             "held": list(fit.held), "windows": fit.windows, "windows_dropped": fit.dropped,
             "residual_rms_mg": fit.residual_rms_mg}
@@ -112,6 +116,10 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
              f"{s['residual_rms_mg']:.2f} mg"]
     for effect, values in s["described"].items():
         lines.append(f"  {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
+    ref = s.get("gain_reference")
+    if ref is not None and "scale" in s["described"]:
+        lines.append(f"  gains against {ref['counts_per_g']:.6g} raw units per g (the mean "
+                     f"fitted scale: no prior)")
     if s["held"]:
         lines.append(f"  held at nominal (the recording's poses cannot determine them): "
                      f"{', '.join(s['held'])}")

@@ -44,7 +44,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -76,7 +76,9 @@ __all__ = [
     "NodeSettings",
     "NullSink",
     "RecordingSink",
+    "SensorGate",
     "Sink",
+    "align_handler",
     "checkpoint_path",
     "infer_rate_hz",
     "load_checkpoint",
@@ -478,6 +480,9 @@ class CalibrationNode:
         self._next_discovery_us: int | None = None
         self._discovery: _Rediscovery | None = None  # a run in its thread
         self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
+        self._last_align_request_s: float | None = None  # monotonic time of the last accepted
+        self.align_refused = 0  # requests refused by the rate limit, in all
+        self._refused_unreported = 0  # ... since the last align_refused event
         if pipeline is not None:
             self._tracker = self._make_tracker(pipeline.cfg.rate_hz)
 
@@ -574,7 +579,8 @@ class CalibrationNode:
                              "samples_not_finite": self.samples_not_finite,
                              "accepted_updates": self.accepted_updates,
                              "still_s": self._tracker.duration_s if self._tracker else 0.0,
-                             "align_requested": self._align_requested}
+                             "align_requested": self._align_requested,
+                             "align_refused": self.align_refused}
             return state
 
     def samples_by_status(self) -> dict[str, int]:
@@ -586,27 +592,66 @@ class CalibrationNode:
         """Samples published with any status but calibrated."""
         return int(self.status_counts.sum() - self.status_counts[Status.CALIBRATED])
 
-    def request_alignment(self, log_time_ns: int | None = None) -> dict[str, Any]:
+    def request_alignment(self, log_time_ns: int | None = None,
+                          now_s: float | None = None) -> dict[str, Any]:
         """Align now on the current still run if it is long enough, else arm the next one.
 
-        Returns ``{"status": "aligned", "alignment": {...}}`` or ``{"status": "armed", ...}``.
+        Returns ``{"status": "aligned", "alignment": {...}}`` or ``{"status": "armed", ...}``,
+        or ``{"status": "refused", "retry_after_s": ...}`` within ``[alignment]
+        request_interval_s`` of the last request accepted (``now_s``: a monotonic clock,
+        default ``time.monotonic()``). Why: anyone who may query the key could otherwise
+        reset the mounting reference at will. Accepted requests are events
+        ``align_request``; refusals are counted and reported as ``align_refused`` events, at
+        most one per interval (a flood of queries must not flood the log).
         """
         log_ns = time.time_ns() if log_time_ns is None else log_time_ns
+        now = time.monotonic() if now_s is None else now_s
         with self._lock:
-            tr = self._tracker
-            if tr is not None and tr.duration_s >= self.settings.request_min_s:
-                mean = tr.mean()
-                if mean is not None:
-                    ali = self._set_alignment(mean, tr.n, self.last_t_us, "request", log_ns)
-                    return {"status": "aligned", "sensor_id": self.sensor_id,
-                            "alignment": ali.to_dict()}
-            self._align_requested = True
-            if tr is not None:
-                tr.rearm()
-            return {"status": "armed", "sensor_id": self.sensor_id,
-                    "detail": f"aligns on the next still period of "
-                              f"{self.settings.alignment.min_still_s:g} s",
-                    "still_s": tr.duration_s if tr else 0.0}
+            wait_s = self._align_wait_s(now)
+            if wait_s > 0:
+                return self._refuse_alignment(wait_s, log_ns)
+            self._last_align_request_s = now
+            reply = self._accept_alignment(log_ns)
+            self._event("align_request", self.last_t_us, log_ns, {
+                "status": reply["status"], "refused_before": self._refused_unreported})
+            self._refused_unreported = 0
+            return reply
+
+    def _align_wait_s(self, now_s: float) -> float:
+        """Seconds until an alignment request may be accepted again (0: now)."""
+        last = self._last_align_request_s
+        if last is None:
+            return 0.0
+        return max(0.0, last + self.settings.alignment.request_interval_s - now_s)
+
+    def _refuse_alignment(self, wait_s: float, log_ns: int) -> dict[str, Any]:
+        self.align_refused += 1
+        self._refused_unreported += 1
+        if self._refused_unreported == 1:  # the first refusal of this interval
+            self._event("align_refused", self.last_t_us, log_ns, {
+                "retry_after_s": wait_s,
+                "interval_s": self.settings.alignment.request_interval_s,
+                "refused_total": self.align_refused})
+        return {"status": "refused", "sensor_id": self.sensor_id,
+                "retry_after_s": round(wait_s, 3), "refused": self._refused_unreported,
+                "detail": f"at most one alignment request per "
+                          f"{self.settings.alignment.request_interval_s:g} s"}
+
+    def _accept_alignment(self, log_ns: int) -> dict[str, Any]:
+        tr = self._tracker
+        if tr is not None and tr.duration_s >= self.settings.request_min_s:
+            mean = tr.mean()
+            if mean is not None:
+                ali = self._set_alignment(mean, tr.n, self.last_t_us, "request", log_ns)
+                return {"status": "aligned", "sensor_id": self.sensor_id,
+                        "alignment": ali.to_dict()}
+        self._align_requested = True
+        if tr is not None:
+            tr.rearm()
+        return {"status": "armed", "sensor_id": self.sensor_id,
+                "detail": f"aligns on the next still period of "
+                          f"{self.settings.alignment.min_still_s:g} s",
+                "still_s": tr.duration_s if tr else 0.0}
 
     def checkpoint(self) -> dict[str, Any] | None:
         """A JSON-able checkpoint of the node (None before its pipeline started)."""
@@ -982,17 +1027,112 @@ def make_node(settings: NodeSettings, sink: Sink, checkpoint_dir: str | Path | N
 # A node on its own: subscribe to recal/*/raw (another process or machine)
 # ---------------------------------------------------------------------------------------------
 
+REJECT_REPORT_S = 10.0  # at most one console line and event this often about turned-away ids
+REJECT_IDS_KEPT = 16  # example ids named in that line and event (bounded, whatever comes in)
+NOTE_PREFIX = "recal node:"
+
+
+class SensorGate:
+    """Which sensor ids a node on the bus serves, and a count of what it turned away.
+
+    Served: the ``named`` ids (config ``[[sensors]]`` or ``--sensor-id``) and, with
+    ``accept_any``, up to ``max_sensors`` other ids, first come first served. Anything else
+    is counted by reason (``not_served``, ``over_cap``, ``key_mismatch``: the payload names
+    another sensor than its key) and dropped before it gets a node, a log channel, a topic or
+    a checkpoint. Memory is bounded: counts, and at most ``REJECT_IDS_KEPT`` example ids
+    between two reports.
+    """
+
+    REASONS = ("not_served", "over_cap", "key_mismatch")
+
+    def __init__(self, named: Iterable[str], accept_any: bool = False,
+                 max_sensors: int = 16) -> None:
+        self.named = frozenset(named)
+        self.accept_any = bool(accept_any)
+        self.max_sensors = int(max_sensors)
+        self.served: set[str] = set()
+        self._extra = 0  # served ids not named (accept_any)
+        self.rejected = dict.fromkeys(self.REASONS, 0)  # messages turned away, in all
+        self._pending = dict.fromkeys(self.REASONS, 0)  # ... since the last report
+        self._ids: set[str] = set()
+
+    def admit(self, sid: str) -> bool:
+        """Whether ``sid`` is served (counting it as turned away if not)."""
+        if sid in self.served:
+            return True
+        if sid in self.named:
+            self.served.add(sid)
+            return True
+        if self.accept_any and self._extra < self.max_sensors:
+            self._extra += 1
+            self.served.add(sid)
+            return True
+        self.reject(sid, "over_cap" if self.accept_any else "not_served")
+        return False
+
+    def reject(self, sid: str, reason: str) -> None:
+        self.rejected[reason] += 1
+        self._pending[reason] += 1
+        if len(self._ids) < REJECT_IDS_KEPT:
+            self._ids.add(sid)
+
+    def take_report(self) -> dict[str, Any] | None:
+        """What was turned away since the last call (None: nothing)."""
+        n = sum(self._pending.values())
+        if n == 0:
+            return None
+        report = {"messages": n, "by_reason": {k: v for k, v in self._pending.items() if v},
+                  "sensor_ids": sorted(self._ids), "ids_listed_max": REJECT_IDS_KEPT,
+                  "messages_total": sum(self.rejected.values())}
+        self._pending = dict.fromkeys(self.REASONS, 0)
+        self._ids = set()
+        return report
+
+    def describe(self) -> str:
+        """One phrase for the console: what this gate lets in."""
+        named = ", ".join(sorted(self.named)) or "none named"
+        if self.accept_any:
+            return f"{named}, and any other sensor up to {self.max_sensors} (accept_any)"
+        return named
+
+
+def align_handler(node: CalibrationNode, out: Callable[[str], None],
+                  prefix: str = NOTE_PREFIX) -> Callable[[str, bytes | None], bytes]:
+    """The ``recal/<sensor>/align`` queryable's handler: :meth:`CalibrationNode.
+    request_alignment`, and a console line for each accepted request and for the first
+    refusal of an interval (a flood of queries gives one line, not one per query)."""
+    from recal.io import messages
+
+    def handle(_key: str, _payload: bytes | None) -> bytes:
+        reply = node.request_alignment()
+        sid = node.sensor_id
+        if reply["status"] != "refused":
+            out(f"{prefix} {sid}: alignment requested on the bus ({reply['status']})")
+        elif reply.get("refused") == 1:
+            out(f"{prefix} {sid}: alignment request refused: at most one per "
+                f"{node.settings.alignment.request_interval_s:g} s (next in "
+                f"{reply['retry_after_s']:.0f} s); further refusals are counted in status")
+        return messages.encode_json(reply)
+
+    return handle
+
+
 def run_node(config: ServiceConfig | str | Path | None = None,
              sensor_ids: Sequence[str] = (), mcap_out: str | Path | None = None,
              model_path: str | Path | None = None, stop_event: threading.Event | None = None,
-             *, bus: Any = None, out: Callable[[str], None] | None = None) -> int:
-    """Calibrate every sensor whose raw stream arrives on ``recal/*/raw`` until stopped.
+             *, bus: Any = None, out: Callable[[str], None] | None = None,
+             accept_any: bool | None = None, max_sensors: int | None = None) -> int:
+    """Calibrate the sensors it serves whose raw streams arrive on ``recal/*/raw`` until stopped.
 
-    Publishes calibrated, body, calibration and events on the bus, answers
-    ``recal/<sensor>/status`` and ``recal/<sensor>/align``, optionally logs everything (raw
-    included) to ``mcap_out``, and checkpoints like the gateway. ``sensor_ids`` limits which
-    sensors it takes (default: all). Stops on ``stop_event`` or SIGINT/SIGTERM (main thread).
-    Returns 0, or 2 for a configuration error.
+    Serves the sensors ``sensor_ids`` names, else those of the config's ``[[sensors]]``; with
+    ``accept_any`` (default: config ``[node] accept_any``) any other sensor as well, at most
+    ``max_sensors`` of them (default ``[node] max_sensors``). Other ids are counted and dropped
+    (see :class:`SensorGate`), with a console line and a ``sensors_ignored`` event in the
+    recording at most every ``REJECT_REPORT_S``. A node with nothing to serve is a
+    configuration error. Publishes calibrated, body, calibration and events on the bus,
+    answers ``recal/<sensor>/status`` and ``recal/<sensor>/align`` (rate-limited), optionally
+    logs everything (raw included) to ``mcap_out``, and checkpoints like the gateway. Stops on
+    ``stop_event`` or SIGINT/SIGTERM (main thread). Returns 0, or 2 for a configuration error.
     """
     from recal.gateway import ERROR_PREFIX, install_stop_signals, open_bus, open_recording
 
@@ -1009,6 +1149,11 @@ def run_node(config: ServiceConfig | str | Path | None = None,
              f"config's [zenoh] enabled = false")
         return 2
     try:
+        gate = _gate(cfg, sensor_ids, accept_any, max_sensors)
+    except ConfigError as exc:
+        fail(f"{ERROR_PREFIX} {exc}")
+        return 2
+    try:
         bus = open_bus(cfg) if own_bus else bus
     except Exception as exc:  # zenoh.ZError: bad endpoint, port in use, router down
         fail(f"{ERROR_PREFIX} cannot open Zenoh: {exc}")
@@ -1022,8 +1167,9 @@ def run_node(config: ServiceConfig | str | Path | None = None,
         return 1
     stop = stop_event or threading.Event()
     restore = install_stop_signals(stop)
-    runner = _NodeRunner(cfg, bus, writer, set(sensor_ids), model_path, emit)
+    runner = _NodeRunner(cfg, bus, writer, gate, model_path, emit)
     emit(f"{NODE_READY_PREFIX} mcap={writer.paths[0] if writer is not None else None}")
+    emit(f"{NOTE_PREFIX} serving {gate.describe()}")
     try:
         runner.run(stop)
     finally:
@@ -1036,21 +1182,45 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     return 0
 
 
+def _gate(cfg: ServiceConfig, sensor_ids: Sequence[str], accept_any: bool | None,
+          max_sensors: int | None) -> SensorGate:
+    """The node's SensorGate from the arguments and the config (ConfigError if it would
+    serve nothing, or for a bad cap)."""
+    from recal.io.bus import validate_sensor_id
+
+    named = list(sensor_ids) or [s.id for s in cfg.sensors]
+    for sid in named:
+        try:
+            validate_sensor_id(sid)
+        except ValueError as exc:
+            raise ConfigError(f"--sensor-id: {exc}") from None
+    any_ = cfg.node.accept_any if accept_any is None else accept_any
+    cap = cfg.node.max_sensors if max_sensors is None else max_sensors
+    if cap < 1:
+        raise ConfigError(f"--max-sensors: expected an integer >= 1, got {cap}")
+    if not named and not any_:
+        raise ConfigError("a calibration node serves only the sensors it is told about: name "
+                          "them in [[sensors]] or with --sensor-id, or serve any that "
+                          "publishes with [node] accept_any = true (or --accept-any)")
+    return SensorGate(named, any_, cap)
+
+
 class _NodeRunner:
     """The loop of :func:`run_node`: bus messages -> nodes, checkpoints on a timer.
 
     Messages are taken in rounds of whatever has arrived (up to ``RECV_ROUND``), and each
     sensor's messages of a round are logged and calibrated as one batch (the pipeline is
     batch-size invariant): under load, rounds grow and the per-batch costs are paid less
-    often, as in the gateway's read loop.
+    often, as in the gateway's read loop. Only the sensors the :class:`SensorGate` admits get
+    that far.
     """
 
-    def __init__(self, cfg: ServiceConfig, bus: Any, writer: Any, only: set[str],
+    def __init__(self, cfg: ServiceConfig, bus: Any, writer: Any, gate: SensorGate,
                  model_path: str | Path | None, emit: Callable[[str], None]) -> None:
         from recal.io import bus as _bus
         from recal.io import messages
 
-        self.cfg, self.bus, self.writer, self.only = cfg, bus, writer, only
+        self.cfg, self.bus, self.writer, self.gate = cfg, bus, writer, gate
         self.model_path, self.emit = model_path, emit
         self.nodes: dict[str, CalibrationNode] = {}
         self.sink: Sink = LoggedBusSink(writer, bus) if writer is not None else BusSink(bus)
@@ -1061,17 +1231,23 @@ class _NodeRunner:
         self.schedule = CheckpointSchedule(cfg.checkpoint.interval_s)
         self._drops_reported = 0
         self._next_drop_report_s = 0.0
+        self._next_reject_report_s = 0.0
+        # key -> sensor id of served sensors only (bounded by the gate): parsing and
+        # validating the key cost a tenth of decoding a one-sample message
+        self._key_sid: dict[str, str] = {}
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             self._handle_round(self.receiver.recv_batch(RECV_ROUND, timeout=0.1))
             self.checkpoint(self.schedule.take_due())  # a few sensors at a time
             self._report_drops()
+            self._report_rejects()
         while True:  # what already arrived
             msgs = self.receiver.recv_batch(RECV_ROUND, timeout=0.0)
             if not msgs:
                 break
             self._handle_round(msgs)
+        self._report_rejects(force=True)
 
     def _report_drops(self) -> None:
         """Say so (at most once a second) when the receive buffer overflowed: samples lost
@@ -1086,20 +1262,45 @@ class _NodeRunner:
         self.emit(f"recal node: {dropped} raw messages dropped so far (node behind)")
         self._drops_reported = dropped
 
+    def _report_rejects(self, force: bool = False) -> None:
+        """At most every REJECT_REPORT_S: one console line and one ``sensors_ignored`` event
+        (the recording's service events, ``/gateway/events``; not on the bus, where it would
+        need a key of its own) about the raw messages the gate turned away."""
+        now = time.monotonic()
+        if not force and now < self._next_reject_report_s:
+            return
+        report = self.gate.take_report()
+        if report is None:
+            return
+        self._next_reject_report_s = now + REJECT_REPORT_S
+        why = ", ".join(f"{k} {v}" for k, v in report["by_reason"].items())
+        self.emit(f"{NOTE_PREFIX} ignored {report['messages']} raw messages ({why}) from "
+                  f"sensor ids it does not serve: {', '.join(report['sensor_ids'])}"
+                  f"{' ...' if len(report['sensor_ids']) >= REJECT_IDS_KEPT else ''} "
+                  f"(serving {self.gate.describe()})")
+        if self.writer is not None:
+            self.writer.write_event("sensors_ignored", time.time_ns(), detail=report)
+
     def _handle_round(self, msgs: list[Any]) -> None:
-        """Decode a round of messages and hand each sensor its samples, in arrival order."""
+        """Decode a round of messages and hand each served sensor its samples, in order."""
         from recal.gateway import join_by_layout
 
         by_sensor: dict[str, list[RawBatch]] = {}
         for msg in msgs:
             try:
+                key_sid = self._key_sid.get(msg.key) or msg.sensor
                 sid, batch = self._messages.decode_raw(msg.payload)
-                sid = sid or msg.sensor
             except ValueError:
                 self.bad_messages += 1
                 continue
-            if not self.only or sid in self.only:
-                by_sensor.setdefault(sid, []).append(batch)
+            if sid and sid != key_sid:
+                # the key is what access control checks: a payload naming another sensor
+                # would let a gateway allowed on one key write into another sensor's state
+                self.gate.reject(key_sid, "key_mismatch")
+                continue
+            if self.gate.admit(key_sid):
+                self._key_sid[msg.key] = key_sid
+                by_sensor.setdefault(key_sid, []).append(batch)
         for sid, batches in by_sensor.items():
             for batch in join_by_layout(batches):
                 self._handle(sid, batch)
@@ -1120,9 +1321,7 @@ class _NodeRunner:
         k = self._bus_mod.key
         self.bus.queryable(k(sid, "status"),
                            lambda _k, _p, n=node: self._messages.encode_json(n.status()))
-        self.bus.queryable(k(sid, "align"),
-                           lambda _k, _p, n=node: self._messages.encode_json(
-                               n.request_alignment()))
+        self.bus.queryable(k(sid, "align"), align_handler(node, self.emit))
         node.say = lambda line: self.emit(f"recal node: {line}")
         self.emit(f"recal node: calibrating {sid} (start: {node.start})")
         return node
@@ -1151,12 +1350,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m recal.node",
                                  description="calibration node subscribed to recal/*/raw")
     ap.add_argument("--config", help="service TOML: [zenoh], [[sensors]] priors, [pipeline]")
-    ap.add_argument("--sensor-id", action="append", default=[], help="only these sensors")
+    from recal.cli import add_serving_arguments
+
+    add_serving_arguments(ap)
     ap.add_argument("--mcap", help="also log everything to this recording")
     ap.add_argument("--model", help="model file for every sensor")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return run_node(args.config, args.sensor_id, args.mcap, args.model)
+    return run_node(args.config, args.sensor_id, args.mcap, args.model,
+                    accept_any=args.accept_any, max_sensors=args.max_sensors)
 
 
 if __name__ == "__main__":

@@ -14,11 +14,14 @@ appear in `raw.aux` (noisy, quantized), so the model is exactly invertible from 
 1. nonlinearity:  a' = a + q ⊙ a²                        (q = `q_per_g`, 1/g, per axis)
 2. sensitivity:   u = diag(1 + gain + gain_tc ⊙ (T − T_ref)) · S · a'
 3. offset:        u += offset_g + offset_tc_g ⊙ (T − T_ref) + offset_drift_g_per_h ⊙ t
-4. ratiometric:   u *= 1 + ratiometric_per_v · (V − V_ref)
+   zero-g:        u += zero_g_counts / counts_per_g      (an analog part's mid-supply output)
+4. ratiometric:   u *= 1 + ratiometric_per_v · (V − V_ref)  (zero-g and sensitivity alike: a
+                  ratiometric part read by an ADC with a fixed reference)
 5. noise:         u += N(0, noise_g²) per axis, white
 6. ADC:           v = clip(round(u · counts_per_g), ±floor(full_scale_g · counts_per_g))
                   (with counts_per_g None: v = clip(u, ±full_scale_g) in g; no clipping if
-                  full_scale_g is None)
+                  full_scale_g is None; with adc_bits, unsigned: clip to 0 .. 2^adc_bits − 1;
+                  with quantize False, no rounding: a phone's floats, e.g. in m/s²)
 
 Cross-axis matrix S (rows = actual sensing-axis directions, unit norm), from the three
 misalignment angles (α_xy, α_xz, α_yz) = `misalignment_rad`:
@@ -65,6 +68,7 @@ from recal.samples import RawBatch
 
 __all__ = [
     "POSTURE_KINDS",
+    "SENSOR_TYPES",
     "SensorSpec",
     "SimResult",
     "Truth",
@@ -76,6 +80,7 @@ __all__ = [
     "misalignment_matrix",
     "save_truth",
     "sensing_axis_angles_deg",
+    "sensor_type",
     "simulate",
     "with_sensor",
 ]
@@ -144,6 +149,12 @@ class SensorSpec:
         v_ref_v: reference supply voltage in V.
         temp_channel: aux channel name of the temperature in the recording.
         supply_channel: aux channel name of the supply voltage in the recording.
+        zero_g_counts: the reading at 0 g in counts (2048: mid-scale of a 12-bit ADC reading
+            an analog part); it scales with the supply like the sensitivity (ratiometric).
+        adc_bits: an unsigned ADC of this many bits: readings clipped to 0 .. 2^bits − 1
+            instead of ±full_scale_g. None: signed (a digital part's two's complement).
+        quantize: round to whole counts; False: floats in the unit of counts_per_g (a phone's
+            m/s², counts_per_g = 9.80665).
     """
 
     counts_per_g: float | None = 1024.0
@@ -161,6 +172,9 @@ class SensorSpec:
     v_ref_v: float = 3.3
     temp_channel: str = "temp_c"
     supply_channel: str = "vdd_v"
+    zero_g_counts: float = 0.0
+    adc_bits: int | None = None
+    quantize: bool = True
 
     def __post_init__(self) -> None:
         # accept lists / arrays but store plain float tuples: hashable and JSON-friendly
@@ -174,6 +188,10 @@ class SensorSpec:
             raise ValueError("noise_g must be >= 0")
         if self.temp_channel == self.supply_channel:
             raise ValueError("temperature and supply channels need different names")
+        if (self.zero_g_counts or self.adc_bits is not None) and self.counts_per_g is None:
+            raise ValueError("zero_g_counts and adc_bits need counts_per_g")
+        if self.adc_bits is not None and not 2 <= self.adc_bits <= 32:
+            raise ValueError("adc_bits must be in 2..32")
 
     @property
     def matrix(self) -> np.ndarray:
@@ -187,8 +205,9 @@ class SensorSpec:
 
     @property
     def full_scale_counts(self) -> float | None:
-        """Clipping limit in counts (±), a whole number so clipped readings stay integers."""
-        if self.full_scale_g is None or self.counts_per_g is None:
+        """Clipping limit in counts (±), a whole number so clipped readings stay integers
+        (None for an unsigned ADC, which clips at 0 and 2^adc_bits − 1)."""
+        if self.full_scale_g is None or self.counts_per_g is None or self.adc_bits is not None:
             return None
         return float(math.floor(self.full_scale_g * self.counts_per_g + 1e-9))
 
@@ -219,6 +238,37 @@ class SensorSpec:
         angles = np.radians(rng.uniform(-cross_axis_deg, cross_axis_deg, 3))
         return cls(**({"offset_g": offset, "gain": gain, "misalignment_rad": angles}
                       | overrides))
+
+
+#: The accelerometers people plug in, as `SensorSpec` fields (`sensor_type`): analog parts on
+#: an unsigned ADC (zero-g at mid-scale; ADXL335: 300 mV/g at 3.3 V into 12 bits, 372 counts
+#: per g; MMA7260 as Zheng et al. read it: 800 mV/g, a 14-bit converter whose top bit is the
+#: sign, 3.0 V reference, 2185 counts per g, zero-g 4096), digital parts in two's complement
+#: at several ranges, a phone in m/s² (floats).
+SENSOR_TYPES: dict[str, dict[str, Any]] = {
+    "default": {},
+    "adxl335-adc12": {"counts_per_g": 372.0, "zero_g_counts": 2048.0, "adc_bits": 12,
+                      "full_scale_g": None},
+    "mma7260-adc14": {"counts_per_g": 2185.0, "zero_g_counts": 4096.0, "adc_bits": 13,
+                      "full_scale_g": None},
+    "digital-2g": {"counts_per_g": 16384.0, "full_scale_g": 2.0},
+    "digital-4g": {"counts_per_g": 8192.0, "full_scale_g": 4.0},
+    "digital-8g": {"counts_per_g": 4096.0, "full_scale_g": 8.0},
+    "digital-16g": {"counts_per_g": 2048.0, "full_scale_g": 16.0},
+    "adxl345-10bit": {"counts_per_g": 256.0, "full_scale_g": 2.0},
+    "phone-ms2": {"counts_per_g": 9.80665, "full_scale_g": 8.0, "quantize": False},
+}
+
+
+def sensor_type(name: str, rng: np.random.Generator, offset_mg: float = 50.0,
+                gain_pct: float = 3.0, cross_axis_deg: float = 0.0,
+                **overrides: Any) -> SensorSpec:
+    """A random sensor (`SensorSpec.random`) of one of `SENSOR_TYPES`; `overrides` last."""
+    try:
+        fields_ = SENSOR_TYPES[name]
+    except KeyError:
+        raise ValueError(f"unknown sensor type {name!r}; known: {sorted(SENSOR_TYPES)}") from None
+    return SensorSpec.random(rng, offset_mg, gain_pct, cross_axis_deg, **(fields_ | overrides))
 
 
 def _delta(x: np.ndarray | None, ref: float, n: int, what: str) -> np.ndarray:
@@ -264,6 +314,8 @@ def forward_model(a_g: np.ndarray, sensor: SensorSpec, *, temp_c: np.ndarray | N
         hours = _delta(t_h, 0.0, n, "time")
         for j in range(3):
             u[:, j] += sensor.offset_drift_g_per_h[j] * hours
+    if sensor.zero_g_counts:
+        u += sensor.zero_g_counts / sensor.counts_per_g  # type: ignore[operator]
     if sensor.ratiometric_per_v:
         dv = _delta(vdd_v, sensor.v_ref_v, n, "supply")
         u *= (1.0 + sensor.ratiometric_per_v * dv)[:, None]
@@ -281,11 +333,14 @@ def _adc(u: np.ndarray, sensor: SensorSpec) -> np.ndarray:
     """Quantize (round half to even, like np.rint) and clip, in place."""
     if sensor.counts_per_g is not None:
         u *= sensor.counts_per_g
-        np.rint(u, out=u)
+        if sensor.quantize:
+            np.rint(u, out=u)
         lim = sensor.full_scale_counts
     else:
         lim = sensor.full_scale_g
-    if lim is not None:
+    if sensor.adc_bits is not None:
+        np.clip(u, 0.0, float(2**sensor.adc_bits - 1), out=u)
+    elif lim is not None:
         np.clip(u, -lim, lim, out=u)
     return u
 
@@ -316,6 +371,8 @@ def inverse_model(v: np.ndarray, sensor: SensorSpec, *, temp_c: np.ndarray | Non
         u /= sensor.counts_per_g
     if sensor.ratiometric_per_v:
         u /= (1.0 + sensor.ratiometric_per_v * _delta(vdd_v, sensor.v_ref_v, n, "supply"))[:, None]
+    if sensor.zero_g_counts:
+        u -= sensor.zero_g_counts / sensor.counts_per_g  # type: ignore[operator]
     u -= np.array(sensor.offset_g)
     if any(sensor.offset_tc_g_per_c):
         u -= (_delta(temp_c, sensor.t_ref_c, n, "temperature")[:, None]

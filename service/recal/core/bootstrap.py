@@ -8,16 +8,112 @@ with |a| = 1 g). Its algebraic fit is linear in the quadric's coefficients:
 From Q, o = -Q^-1 (G, H, I), and the Cholesky factor Q = U^T U with U upper-triangular gives the
 correction a = U (v - o) in the same rotation gauge as `effects.CrossAxis`: s_i = 1 / U_ii and
 M = U diag(s). The diagonal model fits the axis-aligned ellipsoid (D = E = F = 0).
+
+Before any of that, a sensor with no prior has no zero-g and no scale: an analog part on an
+unsigned 12-bit ADC reads ~2048 counts at 0 g and ~372 counts per g, a phone ~9.8 m/s^2 per g,
+a digital part 0 at 0 g and 256 to 16 384 counts per g. `locate` finds both from the still
+window means alone (a robust sphere fit), and says whether they are pinned down: orientation
+coverage is judged on the centred readings (v - centre), never on the raw ones, which for an
+unsigned part all lie in one octant.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from recal.core.buffer import cell_of
 from recal.core.effects import CrossAxis, Offset, Scale
 from recal.core.model import SensorModel
 
-__all__ = ["fit_ellipsoid", "fit_sphere", "initial_params"]
+__all__ = ["Located", "fit_ellipsoid", "fit_sphere", "initial_params", "locate", "off_by",
+           "zero_and_scale"]
+
+#: Window means further than this from the sphere (relative: 50 mg) are not still poses.
+LOCATE_OUTLIER_G = 0.05
+#: A sphere whose inliers are further than this from it (relative RMS) is none: the noise of
+#: one still pose fits a tiny sphere around itself at ~0.42 (the chi distribution with 3
+#: degrees of freedom), while a whole recording of a ratiometric part whose zero-g follows a
+#: sagging supply is still a usable first guess at ~0.1.
+LOCATE_MAX_RESIDUAL_G = 0.2
+#: Passes of `locate`'s fit, each dropping the windows the one before put off the sphere.
+LOCATE_PASSES = 6
+#: Half-axes the centred directions must reach beyond COVERAGE_LEVEL_G for a fit to stand
+#: (five of six: lying face down may never happen).
+LOCATE_HALF_AXES = 5
+COVERAGE_LEVEL_G = 0.3
+
+
+@dataclass(frozen=True, eq=False)
+class Located:
+    """Zero-g and scale found from still window means (`locate`).
+
+    Attributes:
+        centre: the reading at 0 g, raw units (3,).
+        scale: raw units per g (the sphere's radius).
+        inliers: the windows on the sphere (within LOCATE_OUTLIER_G), a mask over the input.
+        half_axes: half-axes the centred inliers reach beyond COVERAGE_LEVEL_G.
+        cells: cube-face grid cells (`buffer.cell_of`) the centred inliers fill.
+        residual_g: RMS of |v - centre| / scale - 1 over the inliers.
+    """
+
+    centre: np.ndarray
+    scale: float
+    inliers: np.ndarray
+    half_axes: int
+    cells: int
+    residual_g: float
+
+    def covers(self, half_axes: int = LOCATE_HALF_AXES, cells: int = 1) -> bool:
+        return self.half_axes >= half_axes and self.cells >= cells
+
+
+def locate(v: np.ndarray, grid: int = 6) -> Located | None:
+    """Zero-g and scale of still window means v (M,3) in any raw unit: a sphere fit
+    (`fit_sphere`) repeated without the windows off it (movement a detector with a wrong scale
+    let through: their means are short of or beyond 1 g), judged by how the centred inliers
+    cover the orientations. None: too few windows, or no sphere through them (inliers further
+    than LOCATE_MAX_RESIDUAL_G from it, RMS)."""
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    v = v[np.all(np.isfinite(v), axis=1)]
+    keep = np.ones(len(v), bool)
+    fit = None
+    for _ in range(LOCATE_PASSES):
+        if keep.sum() < 10:
+            return None
+        fit = fit_sphere(v[keep])
+        if fit is None:
+            return None
+        c, r = fit[0], 1.0 / float(fit[1][0, 0])
+        dev = np.abs(np.linalg.norm(v - c, axis=1) / r - 1.0)
+        # a robust cut first (the fit may lean on movement), then the physical one
+        cut = max(LOCATE_OUTLIER_G, 3.0 * float(np.median(dev[keep])))
+        new = dev <= cut
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    if fit is None or keep.sum() < 10:
+        return None
+    residual = float(np.sqrt(np.mean(dev[keep] ** 2)))
+    if residual > LOCATE_MAX_RESIDUAL_G:  # no sphere: one pose's noise around a tiny one
+        return None
+    u = v[keep] - c
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    half = int((u > COVERAGE_LEVEL_G).any(axis=0).sum() + (u < -COVERAGE_LEVEL_G).any(axis=0).sum())
+    cells = len(np.unique(cell_of(u, grid)))
+    return Located(c, r, keep, half, cells, residual)
+
+
+def off_by(centre: np.ndarray, scale: float, centre0: np.ndarray, scale0: float,
+           centre_g: float = 0.25, scale_ratio: float = 1.5) -> bool:
+    """Whether zero-g and scale (centre0, scale0) are materially wrong against (centre, scale):
+    the centre more than centre_g apart, or the scales more than scale_ratio. Within these
+    the detector works as well (its threshold then 10-22 mg for 15 mg: within the 5-30 mg
+    that works, detector.DEFAULT_THRESHOLD_G) and the orientation cells differ little."""
+    ratio = scale / scale0 if scale0 > 0 else np.inf
+    return bool(np.linalg.norm(np.asarray(centre) - np.asarray(centre0)) > centre_g * scale
+                or not 1.0 / scale_ratio <= ratio <= scale_ratio)
 
 
 def fit_ellipsoid(v: np.ndarray, full: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
@@ -87,3 +183,17 @@ def initial_params(model: SensorModel, v: np.ndarray,
         M = U * s[None, :]
         p[fitted.slice(CrossAxis())] = [M[0, 1], M[0, 2], M[1, 2]]
     return fitted, p
+
+
+def zero_and_scale(v: np.ndarray) -> tuple[np.ndarray, float]:
+    """Zero-g and raw units per g of still readings v (M,3): 0 and their median norm (a signed
+    sensor), unless a sphere through them (`locate`, orientations covered) shows those
+    materially wrong (`off_by`: an analog part on an unsigned ADC), then its centre and
+    radius. The batch tools' rule (discover, hindsight, static); the live pipeline's is the
+    same, applied as the windows come (`Pipeline._relocate`)."""
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    s0 = float(np.median(np.linalg.norm(v, axis=1))) if len(v) else 1.0
+    loc = locate(v) if len(v) else None
+    if loc is not None and loc.covers() and off_by(loc.centre, loc.scale, np.zeros(3), s0):
+        return np.asarray(loc.centre, np.float64), float(loc.scale)
+    return np.zeros(3), s0

@@ -301,6 +301,25 @@ class WindowBuffer:
     def __len__(self) -> int:
         return int(self.filled.sum())
 
+    def slots(self) -> np.ndarray:
+        """The filled slots in the order `windows` returns their windows (oldest first)."""
+        self._flush()
+        slots = np.flatnonzero(self.filled)
+        return slots[np.argsort(self._t_us[slots], kind="stable")]
+
+    def drop(self, slots: np.ndarray) -> None:
+        """Empty these slots (windows found not to be still poses once the scale is known)."""
+        slots = np.asarray(slots, np.intp)
+        if not len(slots):
+            return
+        self._flush()
+        self._hot = None
+        self.filled[slots] = False
+        self._k[slots] = 0
+        if self.last is not None and self.last[0] in set(slots.tolist()):
+            self.last = None
+        self._coverage.clear()
+
     def coverage(self, level_g: float = 0.3) -> Coverage:
         known = self._coverage.get(level_g)
         if known is not None:  # updates and state messages ask between the same adds

@@ -1,6 +1,6 @@
 """Quasi-static moments detector (Lötters 1998, eq. 1-2), streaming.
 
-    v_in  = |v| / s0                     eq. 1, the vector norm, here in g
+    v_in  = |v - z| / s0                 eq. 1, the vector norm, here in g (z: zero-g, raw)
     v_out = LPF(REC(HPF(v_in)))          eq. 2, 0.5 Hz high-pass, rectifier, 0.5 Hz low-pass
 
 A sample is quasi-static when v_out is below the threshold T (Lötters' T_v, here in g) and it
@@ -48,8 +48,12 @@ class DetectorConfig:
         hp_hz, lp_hz: the high- and low-pass corner frequencies (Lötters: 0.5 Hz each).
         order: Butterworth order of each filter.
         s0: nominal raw units per g, so that the norm and threshold are in g.
-        clip_raw: |v| on any axis at or above this (raw units) counts as clipped; None = off.
+        clip_raw: |v - zero_raw| on any axis at or above this (raw units) counts as clipped;
+            None = off.
         flat_s: this long of bit-identical samples is a flat line, not stillness.
+        zero_raw: the reading at 0 g (raw units, per axis), taken off before the norm: an
+            analog part on an unsigned ADC reads ~2048 counts at 0 g, and the norm of such
+            readings follows the offset, not the acceleration.
     """
 
     rate_hz: float
@@ -60,6 +64,7 @@ class DetectorConfig:
     s0: float = 1.0
     clip_raw: float | None = None
     flat_s: float = 1.0
+    zero_raw: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def sos(self) -> tuple[np.ndarray, np.ndarray]:
         return _butter_pair(self.order, self.hp_hz, self.lp_hz, self.rate_hz)
@@ -155,7 +160,8 @@ def detect(cfg: DetectorConfig, state: DetectorState,
     if len(v) == 0:
         empty = np.zeros(0, bool)
         return state, DetectorOutput(np.zeros(0), empty, empty, empty)
-    v_in = norm3(v) / cfg.s0  # eq. 1
+    vc = v - np.asarray(cfg.zero_raw) if any(cfg.zero_raw) else v
+    v_in = norm3(vc) / cfg.s0  # eq. 1
     finite = np.isfinite(v_in)
     if not finite.all():  # NaN/inf skip the filters: one would poison their state for good
         return _detect_finite(cfg, state, v, finite)
@@ -165,7 +171,7 @@ def detect(cfg: DetectorConfig, state: DetectorState,
     y_hp, zi_hp = _filter(hp, v_in, state.zi_hp)
     v_out, zi_lp = _filter(lp, np.abs(y_hp), state.zi_lp)  # eq. 2
     runs = _flat_runs(v, state.last_v, state.same_run)
-    clipped = (any3(np.abs(v) >= cfg.clip_raw) if cfg.clip_raw is not None
+    clipped = (any3(np.abs(vc) >= cfg.clip_raw) if cfg.clip_raw is not None
                else np.zeros(len(v), bool))
     out = DetectorOutput(v_out, v_out < cfg.threshold_g, clipped, runs >= cfg.flat_n - 1)
     return DetectorState(zi_hp, zi_lp, v[-1].copy(), int(runs[-1]), True), out

@@ -53,7 +53,7 @@ from itertools import combinations, pairwise
 import numpy as np
 from scipy import stats
 
-from recal.core.bootstrap import initial_params
+from recal.core.bootstrap import initial_params, off_by, zero_and_scale
 from recal.core.buffer import Windows
 from recal.core.effects import TIME, Covariates, CrossAxis, Effect, Nonlinearity, make_effect
 from recal.core.estimator import EstimatorConfig, Prior, solve
@@ -164,10 +164,13 @@ class DiscoveryData:
         windows: raw means v (M,3), aux (M,K), mid time t_us, samples n, variance var.
         cov: covariates per window: time in hours since the recording's first sample (the
             live pipeline's origin for "time"), channels by name.
-        s0: nominal raw units per g (median norm of the means).
+        s0: nominal raw units per g (median norm of the means, or the radius of their sphere
+            when its centre is far from 0: `bootstrap.locate`).
         has_time: False for a static table (rows have no time; no drift candidate).
         source: "windows" or "table".
         dropped: windows screened out as movement (see `data_from_windows`).
+        zero: the reading at 0 g (raw, (3,)): the sphere's centre where it is far from 0 (an
+            analog part on an unsigned ADC), else zero.
     """
 
     windows: Windows
@@ -176,6 +179,7 @@ class DiscoveryData:
     has_time: bool = True
     source: str = "windows"
     dropped: int = 0
+    zero: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __len__(self) -> int:
         return len(self.windows)
@@ -217,8 +221,8 @@ def data_from_windows(windows: Windows, aux_names: tuple[str, ...], t0_us: int,
     w = windows
     kept = Windows(w.v[keep], w.aux[keep], w.t_us[keep], w.n[keep], w.var[keep])
     cov = Covariates.from_samples(kept.t_us, kept.aux, tuple(aux_names), int(t0_us))
-    return DiscoveryData(kept, cov, _median_norm(kept.v), has_time,
-                         dropped=int((~keep).sum()))
+    zero, s0 = zero_and_scale(kept.v)
+    return DiscoveryData(kept, cov, s0, has_time, dropped=int((~keep).sum()), zero=zero)
 
 
 def data_from_batch(batch: RawBatch, cfg: PipelineConfig | None = None,
@@ -253,7 +257,20 @@ def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
                       PipelineConfig(rate_hz=rate_hz, window_s=float(window_s),
                                      guard_s=float(window_s) / 2))
         s0 = median_norm if s0 is None else s0
+    return centred_data(batches, cfg, s0)
+
+
+def centred_data(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
+                 s0: float) -> DiscoveryData:
+    """The recording's window means by a detector in units of s0; when they show zero-g far
+    from 0 or the scale far from s0 (`zero_and_scale`: a detector so wrong lets movement
+    through and runs on the offset's norm), again by a detector centred at the zero-g found
+    and in its units (one more pass)."""
     w, aux_names, t0_us = window_means(batches(), cfg, s0)
+    data = data_from_windows(w, aux_names, t0_us)
+    if not off_by(data.zero, data.s0, np.zeros(3), s0):
+        return data
+    w, aux_names, t0_us = window_means(batches(), cfg, data.s0, data.zero)
     return data_from_windows(w, aux_names, t0_us)
 
 
@@ -334,7 +351,8 @@ def data_from_table(v: np.ndarray) -> DiscoveryData:
     # rows keep table order through the stable sort of equal times (blocks of rows)
     w = Windows(v, np.zeros((m, 0)), np.zeros(m, np.int64), np.ones(m, np.int64), np.zeros(m))
     cov = Covariates(np.zeros(m), np.zeros((m, 0)), ())
-    return DiscoveryData(w, cov, _median_norm(v), has_time=False, source="table")
+    zero, s0 = zero_and_scale(v)
+    return DiscoveryData(w, cov, s0, has_time=False, source="table", zero=zero)
 
 
 def time_blocks(t_us: np.ndarray, n_blocks: int) -> np.ndarray:
@@ -455,7 +473,7 @@ def start_params(model: SensorModel, data: DiscoveryData) -> np.ndarray:
     """Starting values: ellipsoid (all six half-axes seen) or sphere fit (five), else nominal
     (too few orientations: e.g. one still pose, where only the offset along gravity shows)."""
     v = data.windows.v
-    seen = _half_axes(v)
+    seen = _half_axes(v - data.zero)  # on centred readings: an unsigned part's are all > 0
     fit = None
     if seen >= 5 and len(v) >= 12:
         fit = initial_params(model, v, sphere=seen < 6)
@@ -464,7 +482,15 @@ def start_params(model: SensorModel, data: DiscoveryData) -> np.ndarray:
         s = p[fitted.slice(("scale", None))]
         if np.all((s > 0.5 * data.s0) & (s < 2.0 * data.s0)):
             return _carry(fitted, p, model)
-    return model.nominal()
+    return nominal(model, data)
+
+
+def nominal(model: SensorModel, data: DiscoveryData) -> np.ndarray:
+    """The model's nominal parameters with the offsets at the data's zero-g."""
+    p = model.nominal()
+    if model.has("offset"):
+        p[model.slice(("offset", None))] = data.zero
+    return p
 
 
 def _carry(src: SensorModel, p: np.ndarray, dst: SensorModel) -> np.ndarray:

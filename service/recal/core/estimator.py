@@ -33,9 +33,10 @@ beyond the paper where the paper fails in use:
   declares a drift or a knock; its parameters are the calibration now). They act exactly: the
   raw readings of a window are moved by its lag through the stages before the offsets.
 * Gates: an update is rejected (the previous estimate kept) when it leaves physical bounds
-  (|offset| > 0.5 g, gain outside 0.8-1.2 of nominal, ...), fails to lower the objective, or is
-  not finite. Each update reports its residual, the condition of the posterior information and
-  which parameters the data (not the prior) determined.
+  (an offset more than 0.5 g from the prior's zero-g, a gain outside 0.8-1.2 of nominal,
+  ...), fails to lower the objective, or is not finite. Each update reports its residual,
+  the condition of the posterior information and which parameters the data (not the prior)
+  determined.
 * Offsets-only mode (Lötters: "in case the sensitivities are assumed to be known and stable").
 
 Why the whole buffer, re-linearized, rather than a recursive (Kalman) update of the fresh windows
@@ -61,7 +62,7 @@ from recal.core.buffer import Windows
 from recal.core.effects import Covariates, Offset
 from recal.core.model import SensorModel
 
-__all__ = ["Estimate", "EstimatorConfig", "Prior", "UpdateReport", "consistent",
+__all__ = ["Estimate", "EstimatorConfig", "Prior", "UpdateReport", "bounds_around", "consistent",
            "consistent_many", "innovations", "solve", "update"]
 
 
@@ -520,7 +521,7 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
     observable, condition = _observability(sol, prior, free, cfg)
     rms = (float(np.sqrt(np.mean(sol.xi_start**2))), float(np.sqrt(np.mean(sol.xi_end**2))))
     flags = (condition, tuple(map(bool, observable)), tuple(map(bool, free)))
-    reason = _gate(model, sol)
+    reason = _gate(model, sol, prior)
     if reason is not None:
         return estimate, UpdateReport(False, reason, n, sol.iterations, *rms, *flags)
     cov_full = np.diag(prior.sd**2)  # a parameter not estimated is as uncertain as the prior
@@ -571,9 +572,22 @@ def _chi2_quantile(m: np.ndarray) -> np.ndarray:
     return m * (1.0 - h + _Z_ONE_SIDED * np.sqrt(h)) ** 3
 
 
-def _gate(model: SensorModel, sol: _Solution) -> str | None:
-    """Why an update must be rejected, or None."""
+def bounds_around(model: SensorModel, prior: Prior) -> tuple[np.ndarray, np.ndarray]:
+    """The model's physical bounds (`SensorModel.bounds`), the offsets' around the prior's
+    zero-g: an analog part on an unsigned ADC reads ~2048 counts at 0 g, and its offsets may
+    move 0.5 g from there, not from 0. Gains are bounded around the model's s0 (the prior's
+    nominal sensitivity, or the bootstrap's fitted scale)."""
     lo, hi = model.bounds()
+    if model.has("offset"):
+        sl = model.slice(Offset())
+        lo[sl] += prior.mean[sl]
+        hi[sl] += prior.mean[sl]
+    return lo, hi
+
+
+def _gate(model: SensorModel, sol: _Solution, prior: Prior) -> str | None:
+    """Why an update must be rejected, or None."""
+    lo, hi = bounds_around(model, prior)
     if not (np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.cov_free))
             and np.all(np.isfinite(sol.nuisance))):
         return "not finite"

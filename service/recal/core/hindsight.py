@@ -26,12 +26,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recal.core.bootstrap import off_by
 from recal.core.buffer import Windows
 from recal.core.discovery import (
     DiscoveryConfig,
     data_from_windows,
     fit_model,
     free_params,
+    nominal,
     start_params,
 )
 from recal.core.effects import Covariates
@@ -99,12 +101,15 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
     """The model fitted to a recording's window means (module doc, step 2)."""
     data = data_from_windows(windows, aux_names, t0_us)
     dropped = data.dropped
+    if off_by(data.zero, data.s0, np.zeros(3), model.s0):  # s0 a first guess (`calibrate`)
+        model = SensorModel(model.effects, data.s0, model.spreads)
     p = start_params(model, data)
     # what the poses cannot determine stays at the model's nominal value (the datasheet, as
-    # in the live core), not at the start's: an ellipsoid or sphere fit to a cap of
-    # orientations trades the unseen axis's scale against its offset almost freely
+    # in the live core; the offsets at the data's zero-g), not at the start's: an ellipsoid
+    # or sphere fit to a cap of orientations trades the unseen axis's scale against its
+    # offset almost freely
     held = ~free_params(model, p, data)
-    p[held] = model.nominal()[held]
+    p[held] = nominal(model, data)[held]
     cfg = DiscoveryConfig()
     keep = np.ones(len(data), bool)
     for _ in range(MAX_PASSES):
@@ -122,9 +127,24 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
 
 def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
               cfg: PipelineConfig) -> HindsightFit:
-    """Fit a recording read batch by batch (``batches()``: one pass over it) with hindsight.
-    The detector runs in units of model.s0 raw per g."""
-    w = Windowing(cfg, model, model.s0)
+    """Fit a recording read batch by batch (``batches()``: one pass over it, or two) with
+    hindsight. The detector runs in units of model.s0 raw per g; when the windows show zero-g
+    far from 0 or the scale far from s0 (`discovery.zero_and_scale`: an analog part on an
+    unsigned ADC, s0 a first sample's norm), once more centred at the zero-g found and in its
+    units, and the model's s0 becomes that scale."""
+    windows, aux_names, t0_us = _windows(batches, cfg, model, model.s0, None)
+    data = data_from_windows(windows, aux_names, t0_us)
+    if off_by(data.zero, data.s0, np.zeros(3), model.s0):
+        model = SensorModel(model.effects, data.s0, model.spreads)
+        windows, aux_names, t0_us = _windows(batches, cfg, model, data.s0, data.zero)
+    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g)
+
+
+def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
+             model: SensorModel, s0: float, zero: np.ndarray | None
+             ) -> tuple[Windows, tuple[str, ...], int]:
+    """The recording's kept windows by the detector in units of s0, zero-g `zero` off."""
+    w = Windowing(cfg, model, s0, zero)
     for b in rebatch(batches()):  # a recording's small messages, joined: fewer numpy calls
         w.add(b)
     if w.aux_names is None or w.t0_us is None:
@@ -132,4 +152,4 @@ def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
     sums = w.kept()
     if not len(sums):
         raise ValueError("no quasi-static window in the recording: nothing to calibrate on")
-    return fit(sums.means()[0], w.aux_names, w.t0_us, model, cfg.norm_tol_g)
+    return sums.means()[0], w.aux_names, w.t0_us

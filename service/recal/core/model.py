@@ -227,9 +227,12 @@ class SensorModel:
         return 1.0 - r, B
 
     # --- reporting and files -----------------------------------------------------------------
-    def describe(self, p: np.ndarray) -> dict[str, dict]:
-        """Parameters by effect, in physical units (mg, %, ...)."""
-        return {e.label: e.describe(p[self.slice(e)], self.s0) for e in self.effects}
+    def describe(self, p: np.ndarray, gain_reference: float | None = None) -> dict[str, dict]:
+        """Parameters by effect, in physical units (mg, %, ...); gains in % of gain_reference
+        (raw units per g; None: s0), the others in units of s0."""
+        ref = self.s0 if gain_reference is None else float(gain_reference)
+        return {e.label: e.describe(p[self.slice(e)], ref if isinstance(e, Scale) else self.s0)
+                for e in self.effects}
 
     def sensitivity_matrix(self, p: np.ndarray) -> np.ndarray:
         """K in v = K a + o for the linear part (raw per g), rotation gauge fixed."""

@@ -27,6 +27,7 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 from __future__ import annotations
 
 import bisect
+import copy
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from itertools import pairwise
@@ -34,9 +35,9 @@ from itertools import pairwise
 import numpy as np
 
 from recal.core import detector as det
-from recal.core.bootstrap import initial_params
+from recal.core.bootstrap import initial_params, locate, off_by
 from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows, cell_of
-from recal.core.effects import TIME, Covariates, Scale
+from recal.core.effects import TIME, Covariates, Offset, Scale
 from recal.core.estimator import (
     Estimate,
     EstimatorConfig,
@@ -58,7 +59,8 @@ from recal.core.triaxial import norm3
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent", "WindowSums",
-           "check_channels", "from_state_dict", "run_starts", "state_dict", "usable"]
+           "check_channels", "from_state_dict", "gain_reference", "run_starts", "state_dict",
+           "usable"]
 
 
 @dataclass(frozen=True)
@@ -130,12 +132,15 @@ class PipelineConfig:
         """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
         return run_start_us + (k + 1) * self.window_us + round(self.guard_s * 1e6)
 
-    def detector(self, s0: float) -> det.DetectorConfig:
-        """The detector's settings for a sensor of s0 raw units per g."""
+    def detector(self, s0: float, zero_raw: np.ndarray | Sequence[float] | None = None
+                 ) -> det.DetectorConfig:
+        """The detector's settings for a sensor of s0 raw units per g reading zero_raw at
+        0 g (None: zero)."""
         clip = None if self.full_scale_g is None else 0.98 * self.full_scale_g * s0
+        zero = (0.0, 0.0, 0.0) if zero_raw is None else tuple(float(x) for x in zero_raw)
         return det.DetectorConfig(rate_hz=self.rate_hz, threshold_g=self.threshold_g,
                                   hp_hz=self.hp_hz, lp_hz=self.lp_hz, s0=s0, clip_raw=clip,
-                                  flat_s=self.flat_s)
+                                  flat_s=self.flat_s, zero_raw=zero)  # type: ignore[arg-type]
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -407,8 +412,13 @@ class Pipeline:
         cfg: settings.
         model: the sensor model (effects and nominal s0 in raw units per g).
         prior: pre-calibration (Lötters' reference calibration, or a config's nominal
-            sensitivity and zero-g). None bootstraps: the scale is taken from the first sample's
-            norm until the buffer covers enough orientations for an ellipsoid fit.
+            sensitivity and zero-g). None bootstraps (`phase` "provisional" until then): zero-g
+            and scale are first taken as 0 and the first sample's norm, for the detector and
+            the orientation cells only; once the still windows pin down a sphere
+            (`bootstrap.locate`) that shows them materially wrong (an analog part on an
+            unsigned ADC: zero-g ~2048 counts), its centre and radius replace them, the
+            windows off the sphere are dropped and the detector restarts centred; when the
+            centred windows cover enough orientations an ellipsoid fit is the calibration.
         aux_names: the auxiliary channels the recording carries (the model may use some).
         t0_us: origin of the model's "time" covariate (default: the first sample's time).
     """
@@ -423,12 +433,17 @@ class Pipeline:
         self.t0_us = t0_us
         self.estimate = Estimate.from_prior(prior) if prior is not None else None
         self.bootstrapped = prior is not None
+        #: the calibration's origin: a prior given (or adopted), else the bootstrap's fit
+        self.from_prior = prior is not None
+        #: zero-g (raw) assumed while no estimate exists (`phase` "provisional")
+        self.centre0 = np.zeros(3)
+        self._restart_at: int | None = None  # the detector restarts after this sample
         self.buffer = WindowBuffer(cfg.buffer, len(self.aux_names))
         self.fresh: list[tuple] = []  # windows committed since the last update (< update_every)
         self.det_cfg: det.DetectorConfig | None = None
         self.det_state: det.DetectorState | None = None
         if prior is not None:
-            self._start_detector(model.s0)
+            self._start_detector(model.s0, _zero_of(model, prior.mean))
         self.open: _Acc | None = None  # window being filled
         self.pending: tuple[_Acc, int] | None = None  # finished window, commit time (us)
         self.last_t_us: int | None = None
@@ -456,7 +471,25 @@ class Pipeline:
     def params(self) -> np.ndarray:
         if self.estimate is not None:
             return self.estimate.p
-        return self.model.nominal()
+        p = self.model.nominal()
+        if self.model.has("offset") and self.centre0.any():
+            p[self.model.slice(Offset())] = self.centre0
+        return p
+
+    @property
+    def phase(self) -> str:
+        """"prior": calibrated from a pre-calibration; "bootstrap": from the ellipsoid fit of
+        its own still windows; "provisional": no calibration yet (zero-g and scale are
+        guesses for the detector and the orientation cells, see the class doc)."""
+        if self.estimate is None:
+            return "provisional"
+        return "prior" if self.from_prior else "bootstrap"
+
+    def gain_reference(self) -> dict:
+        """What the gains (`gain_*_pct`) are relative to: the prior's nominal sensitivity, or
+        without a prior the mean of the three fitted scales (the data's own counts per g; a
+        first sample's norm is no reference). One rule for replay, hindsight and discover."""
+        return gain_reference(self.model, self.params, self.from_prior)
 
     @property
     def status(self) -> Status:
@@ -493,6 +526,28 @@ class Pipeline:
             s0 = float(good[0]) if len(good) else 1.0
             self.model = SensorModel(self.model.effects, s0, self.model.spreads)
             self._start_detector(s0)
+        # until an estimate exists, zero-g and scale may be found wrong at a window inside
+        # the batch (`_relocate`): the detector then restarts after that sample, as it would
+        # have had the batch come in two, so the state before the batch is kept to redo it
+        snap = (copy.deepcopy({k: v for k, v in self.__dict__.items() if k != "_marks"})
+                if self.estimate is None and n > 1 else None)
+        out = self._step(batch, marks)
+        at, self._restart_at = self._restart_at, None
+        if at is None:
+            return out
+        if snap is None or at + 1 >= n:
+            self._start_detector(self.model.s0, _zero_of(self.model, self.params))
+            return out
+        self.__dict__.update(snap)
+        head = self._step(batch[:at + 1], [m for m in marks if m <= at + 1])
+        self._restart_at = None
+        self._start_detector(self.model.s0, _zero_of(self.model, self.params))
+        tail = self.step(batch[at + 1:], [m - at - 1 for m in marks if m > at + 1])
+        return _joined(head, tail, at + 1)
+
+    def _step(self, batch: RawBatch, marks: list[int]) -> StepOutput:
+        """`step` with the detector as it is (see there)."""
+        n = len(batch)
         self._watch_events = []
         self._heal_if_not_finite(int(batch.t_us[0]))
         self.det_state, d = det.detect(self.det_cfg, self.det_state, batch.v)
@@ -557,15 +612,19 @@ class Pipeline:
                 mk.dirty = False
 
     def summary(self) -> dict:
-        """The calibration state: parameters by name, covariance, residual, coverage, ..."""
+        """The calibration state: parameters by name, covariance, residual, coverage, ...
+        Gains are relative to `gain_reference` (named in "gain_reference")."""
         p = self.params
         cov = self.estimate.cov if self.estimate is not None else None
         rep = self.last_report
+        ref = self.gain_reference()
         return {
             "bootstrapped": self.bootstrapped,
+            "phase": self.phase,
+            "gain_reference": ref,
             "model": self.model.to_dict(),
             "params": self.model.params_dict(p),
-            "described": self.model.describe(p),
+            "described": self.model.describe(p, ref["counts_per_g"]),
             "sd": (dict(zip(self.model.names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(),
                             strict=True)) if cov is not None else None),
             "covariance": cov.tolist() if cov is not None else None,
@@ -759,7 +818,8 @@ class Pipeline:
                 counts["windows_rejected"] += 1
                 continue
             add(v, aux, t_mid, n, var, direction, run, cell)
-            fresh.append((v, aux, t_mid, n, var))
+            if watch:  # before the bootstrap nothing tests them (and they would pile up)
+                fresh.append((v, aux, t_mid, n, var))
             counts["windows"] += 1
             if not watch and self._segs and self._segs[-1].status is Status.UNCALIBRATED:
                 self._segs.append(self._segment(due[slot[c]][0]))  # now bootstrapping
@@ -989,11 +1049,18 @@ class Pipeline:
         return UpdateEvent(idx, now_us, rep, estimate=self.estimate, model=self.model)
 
     def _try_bootstrap(self, idx: int, now_us: int) -> UpdateEvent | None:
+        self._relocate(idx)
         cov = self.buffer.coverage()
         # five of the six half-axes: lying face down (-z for a hip sensor) may never happen
         half_axes = sum(cov.seen_pos) + sum(cov.seen_neg)
         if half_axes < 5 or cov.cells_filled < self.cfg.bootstrap_min_cells:
             return None
+        if self.centre0.any():  # zero-g was found, roughly: coverage around the best centre
+            if self.counts["windows"] % self.cfg.update_every:
+                return None
+            loc = locate(self.buffer.windows().v, self.cfg.buffer.grid)
+            if loc is None or not loc.covers(cells=self.cfg.bootstrap_min_cells):
+                return None
         w = self.buffer.windows()
         fit = initial_params(self.model, w.v, sphere=not cov.full)
         if fit is None:
@@ -1003,13 +1070,40 @@ class Pipeline:
                       & (p[model.slice(Scale())] < 2.0 * self.model.s0)):
             return None  # an ellipsoid far from the first sample's norm is not this sensor
         # keep the detector's scale: its filters already run in the first sample's units
+        # (`_relocate` restarted it if those were materially wrong)
         self.model = model
-        self.prior = Prior.default(model, p)
+        self.prior = Prior.default(model, p)  # bounds and gates now relative to the fit
         self.estimate = Estimate.from_prior(self.prior)
         self.bootstrapped = True
         self._redirect()
-        ev = self._update(idx, now_us, w)  # the whole buffer: it is the fit's own data
+        if off_by(p[model.slice(Offset())], model.s0, np.asarray(self.det_cfg.zero_raw),
+                  self.det_cfg.s0):  # the detector's zero-g or scale was wrong: restart it
+            self._restart_at = idx
+        ev = self._update(idx, now_us, self.buffer.windows())  # the fit's own data
         return replace(ev, bootstrap=True)
+
+    def _relocate(self, idx: int) -> None:
+        """Before a bootstrap: if the still windows pin down zero-g and scale, roughly
+        (`bootstrap.locate`: half-axes and cells of their centred directions), and the ones
+        in use are materially wrong (`bootstrap.off_by`), use the found ones from the next
+        sample on: the detector restarts centred at the found scale (`step`), and the windows
+        the wrong one gated leave the buffer. Later windows bin by their centred directions,
+        and the bootstrap waits until those cover the orientations around the centre found
+        then (`_try_bootstrap`)."""
+        if len(self.buffer) < 10 or self.counts["windows"] % self.cfg.update_every:
+            return  # a sphere fit per update_every windows: a wearer who never turns costs little
+        slots = self.buffer.slots()
+        loc = locate(self.buffer.v[slots], self.cfg.buffer.grid)
+        if (loc is None or not loc.covers(cells=max(4, self.cfg.bootstrap_min_cells // 2))
+                or not off_by(loc.centre, loc.scale, self.centre0, self.model.s0)):
+            return
+        self.centre0 = np.asarray(loc.centre, np.float64).copy()
+        self.model = SensorModel(self.model.effects, loc.scale, self.model.spreads)
+        # a detector that wrong (10x too loose on an unsigned part, blind along its offset)
+        # let movement through, and a few such windows bend a fit of few poses by tenths of
+        # a g: the bootstrap waits for windows the restarted detector gates
+        self.buffer.drop(slots)
+        self._restart_at = idx
 
     def _redirect(self) -> None:
         """Re-bin nothing, but refresh stored gravity directions with the new calibration."""
@@ -1058,8 +1152,8 @@ class Pipeline:
                 sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
         return out, status, sigma
 
-    def _start_detector(self, s0: float) -> None:
-        self.det_cfg = self.cfg.detector(s0)
+    def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
+        self.det_cfg = self.cfg.detector(s0, zero_raw)
         self.det_state = det.init_state(self.det_cfg)
 
 
@@ -1084,6 +1178,28 @@ def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_g
     start[1:] &= ~gate[:-1] | ~ok_dt[1:]
     start[0] &= not (prev_gate and ok_dt[0])
     return start
+
+
+def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
+    """The counts per g that gains are reported against (`Pipeline.gain_reference`): the
+    prior's nominal sensitivity (model.s0), or without a prior the mean fitted scale."""
+    if from_prior or not model.has("scale"):
+        return {"source": "prior", "counts_per_g": float(model.s0)}
+    return {"source": "fit", "counts_per_g": float(np.mean(p[model.slice(Scale())]))}
+
+
+def _zero_of(model: SensorModel, p: np.ndarray) -> np.ndarray | None:
+    """Zero-g (raw) the parameters p give, for the detector (None: the model has no offsets)."""
+    return np.asarray(p[model.slice(Offset())], np.float64) if model.has("offset") else None
+
+
+def _joined(head: StepOutput, tail: StepOutput, at: int) -> StepOutput:
+    """One step's output from its first `at` samples' and the rest's."""
+    ups = (*head.updates, *(replace(u, index=u.index + at) for u in tail.updates))
+    watch = (*head.watch, *(replace(w, index=w.index + at) for w in tail.watch))
+    return StepOutput(CalibratedBatch.concat([head.calibrated, tail.calibrated]), ups,
+                      head.windows_committed + tail.windows_committed,
+                      {**head.states, **{m + at: v for m, v in tail.states.items()}}, watch)
 
 
 def check_channels(model: SensorModel, aux_names: tuple[str, ...]) -> None:
@@ -1112,7 +1228,8 @@ def _settled(before: Estimate, after: Estimate) -> bool:
 def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | None) -> dict | None:
     if cfg is None or st is None:
         return None
-    return {"s0": cfg.s0, "zi_hp": st.zi_hp.tolist(), "zi_lp": st.zi_lp.tolist(),
+    return {"s0": cfg.s0, "zero_raw": list(cfg.zero_raw), "zi_hp": st.zi_hp.tolist(),
+            "zi_lp": st.zi_lp.tolist(),
             "last_v": [None if np.isnan(x) else float(x) for x in st.last_v],
             "same_run": st.same_run, "started": st.started}
 
@@ -1127,6 +1244,8 @@ def state_dict(pipe: Pipeline) -> dict:
         "prior": pipe.prior.to_dict() if pipe.prior is not None else None,
         "estimate": pipe.estimate.to_dict() if pipe.estimate is not None else None,
         "bootstrapped": pipe.bootstrapped,
+        "from_prior": pipe.from_prior,
+        "centre0": pipe.centre0.tolist(),
         "aux_names": list(pipe.aux_names),
         "t0_us": pipe.t0_us,
         "buffer": pipe.buffer.state_dict(),
@@ -1159,10 +1278,12 @@ def from_state_dict(d: dict) -> Pipeline:
     pipe.model = model  # bootstrap may have replaced s0; the checkpoint's model is the truth
     pipe.estimate = Estimate.from_dict(d["estimate"]) if d["estimate"] is not None else None
     pipe.bootstrapped = bool(d["bootstrapped"])
+    pipe.from_prior = bool(d.get("from_prior", prior is not None and pipe.bootstrapped))
+    pipe.centre0 = np.asarray(d.get("centre0", [0.0] * 3), np.float64)
     pipe.buffer = WindowBuffer.from_state_dict(d["buffer"])
     ds = d["detector"]
     if ds is not None:
-        pipe._start_detector(float(ds["s0"]))
+        pipe._start_detector(float(ds["s0"]), np.asarray(ds.get("zero_raw", [0.0] * 3), float))
         pipe.det_state = det.DetectorState(
             np.asarray(ds["zi_hp"], float), np.asarray(ds["zi_lp"], float),
             np.array([np.nan if x is None else x for x in ds["last_v"]], float),

@@ -20,11 +20,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize
 
-from recal.core.bootstrap import initial_params
+from recal.core.bootstrap import initial_params, off_by, zero_and_scale
 from recal.core.buffer import Windows
 from recal.core.effects import Covariates
 from recal.core.estimator import EstimatorConfig, Prior, solve
 from recal.core.model import SensorModel
+from recal.core.pipeline import gain_reference
 
 __all__ = ["StaticFit", "fit_known_orientations", "fit_unknown_orientations", "nearest_axes"]
 
@@ -86,7 +87,10 @@ def fit_unknown_orientations(v: np.ndarray, fit_rows: np.ndarray, g: float | Non
                          f"{base.size} rows" + (" (or 6 with --diagonal)" if full else ""))
     start = initial_params(base, v[fit_rows])
     model, p0 = start if start is not None else (base, base.nominal())
-    model = SensorModel(model.effects, g, model.spreads)
+    s0 = g
+    if start is not None and off_by(p0[model.slice(("offset", None))], model.s0, np.zeros(3), g):
+        s0 = model.s0  # zero-g far from 0 (an unsigned ADC): the median norm is no scale
+    model = SensorModel(model.effects, s0, model.spreads)
     # A very wide prior: only a tie-breaker for directions a degenerate table leaves open.
     prior = Prior.from_sd(model.nominal(), model.prior_sd() * 1e3)
     sel = v[fit_rows]
@@ -97,8 +101,9 @@ def fit_unknown_orientations(v: np.ndarray, fit_rows: np.ndarray, g: float | Non
     if loss == "minimax":
         p = _minimax(model, p, sel, model.prior_sd())
     a = model.correct(p, v, _no_covariates(len(v)))
+    ref = gain_reference(model, p, from_prior=False)
     params = {"model": model.to_dict(), "p": model.params_dict(p), "loss": loss,
-              "described": model.describe(p)}
+              "gain_reference": ref, "described": model.describe(p, ref["counts_per_g"])}
     if full:
         params["axis_angles_deg"] = model.axis_angles_deg(p)
     return StaticFit("unknown_orientations", g, params, a, np.asarray(fit_rows, bool))
@@ -120,13 +125,26 @@ def nearest_axes(v: np.ndarray, max_angle_deg: float = 25.0) -> np.ndarray:
     return out
 
 
+def _zero_g(z: np.ndarray) -> np.ndarray:
+    """Where a table's rows are centred (an unsigned ADC's point along the axes only from its
+    zero-g, ~2048 counts): `bootstrap.zero_and_scale`, or for a table too short for its
+    sphere, the midrange of each axis when that shows zero far from 0 (faces seen from both
+    sides: the offsets)."""
+    zero, s0 = zero_and_scale(z)
+    if zero.any() or len(z) < 2:
+        return zero
+    mid = (z.max(axis=0) + z.min(axis=0)) / 2
+    half = float(np.mean(np.ptp(z, axis=0))) / 2
+    return mid if half > 0 and off_by(mid, half, np.zeros(3), s0) else zero
+
+
 def fit_known_orientations(v: np.ndarray, fit_rows: np.ndarray,
                            g: float | None = None) -> StaticFit:
     """Bragge eq. 4: theta = (H^T H)^-1 H^T z with H from the known gravity directions."""
     v = np.asarray(v, np.float64)
     g = float(np.median(np.linalg.norm(v, axis=1))) if g is None else float(g)
     z = v[fit_rows]
-    a_known = nearest_axes(z)  # in g
+    a_known = nearest_axes(z - _zero_g(z))  # in g
     H = np.hstack([a_known, np.ones((len(z), 1))])  # rows (a_x, a_y, a_z, 1), eq. 2 per axis
     if np.linalg.matrix_rank(H) < 4:
         raise ValueError("known orientations must span 4 independent rows (Georgieva eq. 22)")

@@ -73,11 +73,13 @@ class Windowing:
         cfg: the live pipeline's settings (detector, window_s, guard_s, min_fill, rate_hz).
         model: whose covariate channels must be finite for a sample to count (`usable`).
         s0: raw units per g for the detector.
+        zero: the reading at 0 g (raw, 3 values) the detector takes off (None: zero).
     """
 
     cfg: PipelineConfig
     model: SensorModel
     s0: float
+    zero: np.ndarray | None = None
     aux_names: tuple[str, ...] | None = field(default=None, init=False)  # the first batch's
     t0_us: int | None = field(default=None, init=False)  # the first sample's time
     _det: det.DetectorConfig = field(init=False)
@@ -90,7 +92,7 @@ class Windowing:
     _pieces: list[_Pieces] = field(default_factory=list, init=False)
 
     def __post_init__(self) -> None:
-        self._det = self.cfg.detector(self.s0)
+        self._det = self.cfg.detector(self.s0, self.zero)
         self._state = det.init_state(self._det)
 
     def add(self, b: RawBatch) -> None:
@@ -151,13 +153,13 @@ class Windowing:
         return sums.take(np.flatnonzero(keep))
 
 
-def window_means(batches: Iterable[RawBatch], cfg: PipelineConfig, s0: float
-                 ) -> tuple[Windows, tuple[str, ...], int]:
+def window_means(batches: Iterable[RawBatch], cfg: PipelineConfig, s0: float,
+                 zero: np.ndarray | None = None) -> tuple[Windows, tuple[str, ...], int]:
     """Every quasi-static window mean of a recording given batch by batch, by the live
-    detector (in units of s0 raw per g) and windowing, with no norm gate (nothing is
-    calibrated yet): the raw material of `core.discovery` and `core.hindsight`. Returns
-    (windows, the channels, the first sample's time)."""
-    w = Windowing(cfg, SensorModel.diagonal(float(s0)), float(s0))
+    detector (in units of s0 raw per g, zero-g `zero` taken off) and windowing, with no norm
+    gate (nothing is calibrated yet): the raw material of `core.discovery` and
+    `core.hindsight`. Returns (windows, the channels, the first sample's time)."""
+    w = Windowing(cfg, SensorModel.diagonal(float(s0)), float(s0), zero)
     for b in rebatch(batches):  # a recording's small messages, joined: fewer numpy calls
         w.add(b)
     if w.aux_names is None or w.t0_us is None:

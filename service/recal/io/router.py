@@ -9,6 +9,13 @@ enabled on both sides (the router then introduces them and they connect directly
 starts with gossip on for that reason. Gossip travels only over links already open, so it does
 not reach beyond the configured endpoints.
 
+Security: by default anyone who reaches the router may publish and query anything. The
+ready line says which protections the configuration turns on (``tls=mtls|tls|off``,
+``acl=on|off``), and a router that listens beyond loopback without mutual TLS and access
+control prints a warning line. ``configs/fleet/router.json5`` is a router with both (Zenoh's
+own ``transport/link/tls`` and ``access_control``; certificates from
+``configs/fleet/make-certs.sh``).
+
 When the router dies, clients keep running: their puts are silently unmatched, and they
 reconnect by themselves once a router listens on the same endpoint again (back-off set by
 ``connect/retry/*`` in the client's config).
@@ -17,6 +24,7 @@ reconnect by themselves once a router listens on the same endpoint again (back-o
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import subprocess
@@ -32,9 +40,12 @@ import zenoh
 
 from recal.io.bus import DEFAULT_ROUTER_ENDPOINT, zenoh_config
 
-__all__ = ["READY_PREFIX", "RouterProcess", "main", "run_router", "start_router_process"]
+__all__ = ["READY_PREFIX", "RouterProcess", "main", "run_router", "security_summary",
+           "start_router_process"]
 
 READY_PREFIX = "recal-router ready"
+WARNING_PREFIX = "recal-router: warning:"
+_LOOPBACK_HOSTS = ("127.", "localhost", "[::1]")
 STOPPED_PREFIX = "recal-router stopped"
 _POLL_S = 0.2  # how often the router loop checks the stop event (signals are handled between)
 _OUTPUT_LINES_KEPT = 200
@@ -73,7 +84,12 @@ def run_router(
         session = zenoh.open(config)
         try:
             listen = config.get_json("listen/endpoints")
-            emit(f"{READY_PREFIX} zid={session.zid()} listen={listen}")
+            tls, acl, exposed = security_summary(config)
+            emit(f"{READY_PREFIX} zid={session.zid()} listen={listen} tls={tls} acl={acl}")
+            if exposed and (tls != "mtls" or acl != "on"):
+                emit(f"{WARNING_PREFIX} listening on {', '.join(exposed)} without mutual TLS "
+                     f"and access control: anyone who reaches it may publish and query "
+                     f"anything (see configs/fleet/router.json5)")
             while not stop.wait(_POLL_S):
                 if parent_pid is not None and os.getppid() != parent_pid:
                     emit("recal-router parent exited")
@@ -84,6 +100,25 @@ def run_router(
         _restore_signal_handlers(previous)
     emit(STOPPED_PREFIX)
     return 0
+
+
+def security_summary(config: zenoh.Config) -> tuple[str, str, list[str]]:
+    """``(tls, acl, exposed)`` of a router config: tls "mtls" (every listen endpoint is TLS
+    and clients must show a certificate), "tls" or "off"; acl "on" or "off"; the listen
+    endpoints not on loopback."""
+    def get(path: str) -> object:
+        raw = config.get_json(path)
+        return json.loads(raw) if isinstance(raw, str) else raw
+
+    listen = get("listen/endpoints")
+    endpoints = [str(e) for e in listen] if isinstance(listen, list) else []
+    all_tls = bool(endpoints) and all(e.startswith(("tls/", "quic/")) for e in endpoints)
+    mtls = get("transport/link/tls/enable_mtls") is True
+    tls = ("mtls" if mtls else "tls") if all_tls else "off"
+    acl = "on" if get("access_control/enabled") is True else "off"
+    exposed = [e for e in endpoints
+               if not e.split("/", 1)[-1].startswith(_LOOPBACK_HOSTS)]
+    return tls, acl, exposed
 
 
 def _print_flush(line: str) -> None:
