@@ -194,7 +194,7 @@ def test_upright_wearer_without_prior_is_not_published_as_calibrated_before_it_i
                          for p in early)
     assert cli_main(["export", str(out), "--csv", str(csv), "--json", str(js)]) == 0
     said = capsys.readouterr().out
-    assert f"{n_not} samples not calibrated" in said
+    assert f"{n_not} with another status" in said
     assert csv.read_text().splitlines()[0] == "t_us,x_g,y_g,z_g,status,sigma_mg"
     table = read_csv(csv)
     assert np.array_equal(table.batch.channel("status"), cal.status)

@@ -886,13 +886,15 @@ class Pipeline:
             "resets": self.watch.triggers,
             "params_before": self.model.params_dict(before.p) if before is not None else None}))
         self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
-        if kept < self.cfg.estimator.min_windows:
-            # the prior does not fit them either (a sensor far from the datasheet): no
-            # estimate, a bootstrap from the data (`_try_bootstrap`), these windows first
-            self.estimate, self.bootstrapped = None, False
+        if len(recent) >= self.cfg.estimator.min_windows and 2 * kept < len(recent):
+            # the prior does not fit most of them either (a sensor far from the datasheet):
+            # no estimate, a bootstrap from the data (`_try_bootstrap`), these windows first
+            self.estimate, self.bootstrapped, self.from_prior = None, False, False
             self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
             self._refill(recent, gate=False)
             return None
+        if kept < self.cfg.estimator.min_windows:
+            return None  # held at the prior until more windows come
         return self._update(idx, now_us)
 
     def _refill(self, recent: list[tuple], gate: bool = True) -> int:
@@ -939,6 +941,7 @@ class Pipeline:
             self.estimate = Estimate.from_prior(prior)
         else:
             self.estimate, self.prior, self.bootstrapped = None, None, False
+            self.from_prior = False
         self._watch_events.append(WatchEvent(0, t_us, "reset", {
             "reason": "estimate not finite",
             "to": "prior" if usable_prior else "bootstrap"}))
