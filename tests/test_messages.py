@@ -337,7 +337,7 @@ def test_plot_messages_are_exact_per_sample_protobuf() -> None:
         sample = m.decode_plot(data)
         official = OfficialPlot.FromString(data)  # the reference runtime reads the same
         assert set(sample) == {"t_us", "x_g", "y_g", "z_g", "norm_g", "quasi_static",
-                               "detector_g"}
+                               "detector_g", "status", "sigma_mg"}
         for name, value in sample.items():
             assert value == getattr(official, name) or (math.isnan(value)
                                                         and math.isnan(getattr(official, name)))
@@ -357,4 +357,4 @@ def test_plot_messages_are_exact_per_sample_protobuf() -> None:
     official = OfficialPlot(t_us=int(batch.t_us[1]), x_g=float(batch.a_g[1, 0]))
     assert m.decode_plot(official.SerializeToString()) == {
         "t_us": int(batch.t_us[1]), "x_g": float(batch.a_g[1, 0]), "y_g": 0.0, "z_g": 0.0,
-        "norm_g": 0.0, "quasi_static": False, "detector_g": 0.0}
+        "norm_g": 0.0, "quasi_static": False, "detector_g": 0.0, "status": 0, "sigma_mg": 0.0}

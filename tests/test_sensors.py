@@ -174,15 +174,27 @@ def test_shipped_prior_calibrates_a_sensor_of_its_type(name: str) -> None:
 
 def test_a_prior_whose_zero_g_is_wrong_calibrates_nothing_and_counts_it() -> None:
     """An unsigned part given a prior at zero-g 0 (its readings ~9.5 g long): every window
-    fails the norm gate around that prior, none reaches the estimator, the counts say so."""
+    fails the norm gate around that prior, none reaches the estimator, the counts say so and
+    the output is held (the prior, nothing informed). After 3 minutes of that the self-watch
+    (core/status.py) resets: the prior does not fit those windows either, so the pipeline
+    bootstraps from them (suspect, then the bootstrap's own phase)."""
+    from recal.core.status import SUSPECT_AFTER_S, Status
+
     s = _sim("adxl335-adc12", seed=3, minutes=10.0)
     model = SensorModel.diagonal(372.0)
     pipe = Pipeline(PipelineConfig(rate_hz=RATE), model, Prior.default(model), ())
+    outs = []
     for i in range(0, len(s.raw), 1000):
-        pipe.step(s.raw[i:i + 1000])
-    c = pipe.counts
-    assert c["windows_rejected"] > 100 and c["windows"] == 0 and c["updates"] == 0
-    assert pipe.summary()["phase"] == "prior"
+        outs.append(pipe.step(s.raw[i:i + 1000]))
+        if s.raw.t_us[min(i + 999, len(s.raw) - 1)] - s.raw.t_us[0] < SUSPECT_AFTER_S * 1e6:
+            c = pipe.counts  # until the self-watch may fire
+            assert c["windows"] == 0 and c["updates"] == 0
+            assert pipe.summary()["phase"] == "prior" and pipe.status == Status.HELD
+    assert pipe.counts["windows_rejected"] > 50
+    watch = [w for o in outs for w in o.watch]
+    assert [w.kind for w in watch] == ["suspect"]
+    assert watch[0].detail["reason"] == "still windows fail the norm gate under the estimate"
+    assert pipe.summary()["phase"] == "bootstrap" and pipe.status == Status.SUSPECT
 
 
 def _run(pipe: Pipeline, raw: RawBatch, size: int) -> tuple[np.ndarray, list]:

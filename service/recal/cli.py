@@ -14,7 +14,7 @@ import textwrap
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 
@@ -221,6 +221,7 @@ def _cmd_export(a: argparse.Namespace) -> int:
     from recal.io import csv_table, recording
 
     _new_output(a.csv, a.overwrite, a.input)
+    _report_paths(a.json)
     sensors = recording.sensors(a.input)
     if not sensors:
         raise UsageError(f"{a.input} holds no sensor topics")
@@ -234,13 +235,59 @@ def _cmd_export(a: argparse.Namespace) -> int:
         rows = csv_table.write_raw_csv(a.csv, (b for _, b, _ in recording.iter_raw(a.input, sid)),
                                        units if units in csv_table.UNITS else None)
     else:
-        batches = (b for _, b, _ in recording.iter_calibrated(a.input, sid))
+        counts = _StatusCounts()
+        batches = (counts.add(b) for _, b, _ in recording.iter_calibrated(a.input, sid))
         first = next(batches, None)
         if first is None:
             raise UsageError(f"{a.input} has no calibrated data for {sid!r}; run recal replay")
         rows = csv_table.write_calibrated_csv(a.csv, itertools.chain([first], batches))
     print(f"wrote {rows} rows of {sid}/{a.topic} to {a.csv}")
+    report = {"in": a.input, "csv": a.csv, "sensor_id": sid, "topic": a.topic, "rows": rows}
+    if a.topic != "raw":
+        report.update(counts.to_dict())
+        print(f"  {counts.line()}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(report, indent=2))
     return 0
+
+
+class _StatusCounts:
+    """Samples per status (`recal.core.status.Status`) of the calibrated batches it sees."""
+
+    def __init__(self) -> None:
+        from recal.core.status import Status
+
+        self.status = Status
+        self.counts = np.zeros(256, np.int64)
+
+    def add(self, batch: Any) -> Any:
+        self.counts += np.bincount(batch.status, minlength=256)
+        return batch
+
+    def to_dict(self) -> dict:
+        S = self.status
+        by = {S(i).label if i in S._value2member_map_ else str(i): int(n)
+              for i, n in enumerate(self.counts.tolist()) if n}
+        recorded = int(self.counts.sum() - self.counts[S.NOT_RECORDED])
+        return {"samples_by_status": by,
+                "samples_uncalibrated": recorded - int(self.counts[S.CALIBRATED]),
+                "samples_status_not_recorded": int(self.counts[S.NOT_RECORDED])}
+
+    def line(self) -> str:
+        return status_line(self.to_dict())
+
+
+def status_line(d: dict) -> str:
+    """How many samples went out with a status other than calibrated, said for a person."""
+    by = d.get("samples_by_status") or {}
+    others = ", ".join(f"{k} {v}" for k, v in by.items() if k not in ("calibrated",
+                                                                        "not_recorded"))
+    text = (f"{by.get('calibrated', 0)} samples out calibrated, {d['samples_uncalibrated']} "
+            "with another status" + (f" ({others})" if others else ""))
+    if d.get("samples_status_not_recorded"):
+        text += (f"; {d['samples_status_not_recorded']} without a status (recorded before "
+                 "statuses existed)")
+    return text
 
 
 # --- static ----------------------------------------------------------------------------------
@@ -394,6 +441,10 @@ def replay_lines(summary: dict) -> list[str]:
                      f"{c['quasi_static']} quasi-static samples, {c['windows']} windows, "
                      f"{c['updates']} updates ({c['updates_rejected']} rejected)"
                      + (f"; residual {rms:.2f} mg" if rms is not None else ""))
+        if "samples_by_status" in info:
+            lines.append(f"    {status_line(info)}"
+                         + (f"; {info['samples_not_finite']} not finite, published zeroed"
+                            if info.get("samples_not_finite") else ""))
         if not info["bootstrapped"]:
             lines.append("    not calibrated: without a prior the recording must first cover "
                          "enough orientations (5 half-axes); give one with --config or --model")
@@ -750,6 +801,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topic", choices=("calibrated", "raw"), default="calibrated",
                    help="which samples (default calibrated)")
     s.add_argument("--sensor-id", help="which sensor (default: the first)")
+    s.add_argument("--json", help="write the counts (rows, samples per status) here")
     s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_export)
 

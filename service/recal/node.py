@@ -15,7 +15,10 @@ No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math
 Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
 ``recal/<sensor>/<suffix>`` where the bus layout has one):
 
-* ``calibrated`` (and ``body``): CalibratedBatch protobuf.
+* ``calibrated`` (and ``body``): CalibratedBatch protobuf, each sample with its status and
+  predicted error (`recal.core.status`). A sample whose calibrated value is not finite (a NaN
+  or inf reading, a broken estimate) is never published as such: its x_g, y_g, z_g go out as
+  0, its status uncalibrated and its sigma_mg inf, and it is counted (``samples_not_finite``).
 * ``calibration``: JSON, the calibration state: ``sensor_id``, ``t_us`` (device time, us),
   ``reason`` (start | restored | update | bootstrap | status | discovery), ``model`` (name),
   ``model_spec``, ``param_names``, ``params`` (by name, raw units), ``described`` (mg, %),
@@ -83,6 +86,7 @@ from recal.core.effects import TIME as TIME_COVARIATE
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, StepOutput
+from recal.core.status import NOT_FINITE_SIGMA_MG, Status
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = [
@@ -408,6 +412,11 @@ class CalibrationNode:
         self.accepted_updates = 0
         self.samples = 0
         self.samples_skipped = 0
+        # samples published per status (`core.status.Status`), and those zeroed (not finite)
+        self.status_counts = np.zeros(len(Status), np.int64)
+        self.samples_not_finite = 0
+        self._status: Status | None = None  # of the last sample published
+        self._calibrated_once = False
         self.last_t_us: int | None = None
         self.last_state: dict[str, Any] | None = None
         # (model, estimate, summary) of the batch being reported while process_many reports
@@ -424,7 +433,9 @@ class CalibrationNode:
         #: why this sensor cannot be calibrated at all (a channel the model needs is missing
         #: from the stream), reported once as an event; None while it can
         self.failed: str | None = None
-        #: an operator's console line (the gateway sets it): time units and reboots
+        #: where the operator's one-line notes go (the gateway's or node's console, prefixed
+        #: with the sensor id): time units, reboots, first calibrated, suspect and back;
+        #: None: the log only (replay)
         self.on_note: Callable[[str], None] | None = None
         if pipeline is not None:
             self._tracker = self._make_tracker(pipeline.cfg.rate_hz)
@@ -486,6 +497,7 @@ class CalibrationNode:
             out = pipe.step(joined, marks=ends)
             self._last_names = pipe.aux_names
             todo = list(out.updates)
+            watch = list(out.watch)
             lo = 0
             try:
                 for (_, log_ns), hi in zip(items, ends, strict=True):
@@ -497,8 +509,12 @@ class CalibrationNode:
                         model, estimate = mine[-1].model or model, mine[-1].estimate
                     state = out.states.get(hi)  # (model, summary) after this batch
                     self._view = (model, estimate, state[1] if state else None)
+                    seen = []
+                    while watch and watch[0].index < hi:
+                        w = watch.pop(0)
+                        seen.append(replace(w, index=w.index - lo))
                     cal = out.calibrated[lo:hi]
-                    self._emit(StepOutput(cal, tuple(mine), 0), log_ns)
+                    self._emit(StepOutput(cal, tuple(mine), 0, watch=tuple(seen)), log_ns)
                     lo = hi
             finally:
                 self._view = None
@@ -524,11 +540,22 @@ class CalibrationNode:
                                                                **tbs.counts()},
                              "failed": self.failed,
                              "samples": self.samples, "samples_skipped": self.samples_skipped,
+                             "samples_by_status": self.samples_by_status(),
+                             "samples_not_finite": self.samples_not_finite,
                              "accepted_updates": self.accepted_updates,
                              "still_s": self._tracker.duration_s if self._tracker else 0.0,
                              "align_requested": self._align_requested,
                              "align_refused": self.align_refused}
             return state
+
+    def samples_by_status(self) -> dict[str, int]:
+        """Samples published so far per status label (only the statuses seen)."""
+        return {Status(i).label: int(n) for i, n in enumerate(self.status_counts.tolist()) if n}
+
+    @property
+    def samples_uncalibrated(self) -> int:
+        """Samples published with any status but calibrated."""
+        return int(self.status_counts.sum() - self.status_counts[Status.CALIBRATED])
 
     def request_alignment(self, log_time_ns: int | None = None,
                           now_s: float | None = None) -> dict[str, Any]:
@@ -724,11 +751,14 @@ class CalibrationNode:
 
     def _emit(self, out: StepOutput, log_ns: int) -> None:
         """Everything a step's output produces: calibrated, plot, events, state, body."""
-        cal = out.calibrated
+        cal = self._guard(out.calibrated, log_ns)
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
+        self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
         self.sink.calibrated(self.sensor_id, cal, log_ns)
         self.sink.plot(self.sensor_id, cal, log_ns, self._plot_every())
+        self._report_watch(out, log_ns)
+        self._report_status(cal, log_ns)
         self._report_updates(out, log_ns)
         self._maybe_rediscover(log_ns)
         self._track_alignment(cal, log_ns)
@@ -775,6 +805,56 @@ class CalibrationNode:
                     f"{d['unit']}): the device rebooted; output time continues")
         if note is not None and self.on_note is not None:
             self.on_note(note)
+
+    def _guard(self, cal: CalibratedBatch, log_ns: int) -> CalibratedBatch:
+        """The last guard before the wire: a calibrated value that is not finite is never
+        published. Its sample goes out as (0, 0, 0) g, status uncalibrated, sigma inf: a
+        consumer that reads the status, or weighs by 1/sigma^2, cannot take it for data (NaN
+        would be read by many as "missing", zeros alone as a vector). Counted, and said once
+        per batch as an event. A non-finite sigma of a finite value is inf."""
+        a = cal.a_g
+        bad = ~(np.isfinite(a[:, 0]) & np.isfinite(a[:, 1]) & np.isfinite(a[:, 2]))
+        bad_sigma = ~np.isfinite(cal.sigma_mg) & ~np.isinf(cal.sigma_mg)
+        if not bad.any() and not bad_sigma.any():
+            return cal
+        a, status, sigma = a.copy(), cal.status.copy(), cal.sigma_mg.copy()
+        sigma[bad_sigma] = NOT_FINITE_SIGMA_MG
+        n = int(bad.sum())
+        if n:
+            a[bad] = 0.0
+            status[bad] = Status.UNCALIBRATED
+            sigma[bad] = NOT_FINITE_SIGMA_MG
+            self.samples_not_finite += n
+            self._event("not_finite", int(cal.t_us[np.argmax(bad)]), log_ns, {
+                "samples": n, "published_as": "zeros, status uncalibrated, sigma_mg inf",
+                "total": self.samples_not_finite})
+        return CalibratedBatch(cal.t_us, a, cal.quasi_static, cal.detector_g, status, sigma)
+
+    def _report_watch(self, out: StepOutput, log_ns: int) -> None:
+        """The pipeline's self-watch events (`core.pipeline.WatchEvent`) as events."""
+        for w in out.watch:
+            kind = "estimate_reset" if w.kind == "reset" else w.kind
+            self._event(kind, w.t_us, log_ns, w.detail)
+
+    def _report_status(self, cal: CalibratedBatch, log_ns: int) -> None:
+        """One line (``on_note``) and an event ``status_changed`` when the status becomes or stops
+        being suspect, and when the sensor is first calibrated."""
+        st = cal.status
+        change = np.flatnonzero(st[1:] != st[:-1]) + 1
+        points = ([0] if int(st[0]) != self._status else []) + change.tolist()
+        for i in points:
+            old, new = self._status, Status(int(st[i]))
+            self._status = new
+            first = new == Status.CALIBRATED and not self._calibrated_once
+            if not (first or new == Status.SUSPECT or old == Status.SUSPECT):
+                continue
+            self._calibrated_once |= new == Status.CALIBRATED
+            why = (" (the still windows contradict the calibration: re-fitting)"
+                   if new == Status.SUSPECT else "")
+            self._event("status_changed", int(cal.t_us[i]), log_ns, {
+                "status": new.label, "was": old.label if old is not None else None})
+            if self.on_note is not None:
+                self.on_note(f"{new.label}{why}")
 
     def _as_of(self) -> tuple[SensorModel, Any]:
         """Model and estimate as of the batch being reported (see ``_view``)."""
@@ -938,8 +1018,9 @@ class CalibrationNode:
 
     @staticmethod
     def _body(cal: CalibratedBatch, ali: al.Alignment) -> CalibratedBatch:
+        # a rotation keeps each sample's status and the length of its error (sigma_mg)
         return CalibratedBatch(cal.t_us, al.to_body(ali.rotation, cal.a_g), cal.quasi_static,
-                               cal.detector_g)
+                               cal.detector_g, cal.status, cal.sigma_mg)
 
     # -- state and events ---------------------------------------------------------------------
 
@@ -1346,6 +1427,7 @@ class _NodeRunner:
         self.bus.queryable(k(sid, "status"),
                            lambda _k, _p, n=node: self._messages.encode_json(n.status()))
         self.bus.queryable(k(sid, "align"), align_handler(node, self.emit))
+        node.on_note = lambda line, sid=sid: self.emit(f"{NOTE_PREFIX} {sid}: {line}")
         self.emit(f"recal node: calibrating {sid} (start: {node.start})")
         return node
 

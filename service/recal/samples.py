@@ -93,22 +93,36 @@ class CalibratedBatch:
         quasi_static: (N,) bool, the detector's gate (Lötters eq. 2 below threshold, and not
             rejected as clipped, flat-lined or far from 1 g).
         detector_g: (N,) float64 the detector output LPF(REC(HPF(|v|))) in g.
+        status: (N,) uint8 `recal.core.status.Status` of each sample (uncalibrated,
+            bootstrapping, calibrated, held, suspect); 0 (not recorded, the default): a
+            recording made before statuses existed.
+        sigma_mg: (N,) float64 the predicted 1-sigma error of the calibrated vector from the
+            parameters' uncertainty, mg (`core.status.predicted_sigma_mg`); NaN: not recorded,
+            inf: nothing known (a sample published zeroed).
     """
 
     t_us: np.ndarray
     a_g: np.ndarray
     quasi_static: np.ndarray
     detector_g: np.ndarray
+    status: np.ndarray | None = None
+    sigma_mg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = _as_time_us(self.t_us)
+        n = len(t)
         object.__setattr__(self, "t_us", t)
         object.__setattr__(self, "a_g", np.ascontiguousarray(self.a_g, np.float64).reshape(-1, 3))
         object.__setattr__(self, "quasi_static",
                            np.ascontiguousarray(self.quasi_static, bool).reshape(-1))
         object.__setattr__(self, "detector_g",
                            np.ascontiguousarray(self.detector_g, np.float64).reshape(-1))
-        if not (len(self.a_g) == len(self.quasi_static) == len(self.detector_g) == len(t)):
+        object.__setattr__(self, "status", np.zeros(n, np.uint8) if self.status is None
+                           else np.ascontiguousarray(self.status, np.uint8).reshape(-1))
+        object.__setattr__(self, "sigma_mg", np.full(n, np.nan) if self.sigma_mg is None
+                           else np.ascontiguousarray(self.sigma_mg, np.float64).reshape(-1))
+        if not (len(self.a_g) == len(self.quasi_static) == len(self.detector_g) == n
+                == len(self.status) == len(self.sigma_mg)):
             raise ValueError("calibrated batch fields differ in length")
 
     @classmethod
@@ -122,14 +136,21 @@ class CalibratedBatch:
         return cls(np.concatenate([b.t_us for b in batches]),
                    np.concatenate([b.a_g for b in batches]),
                    np.concatenate([b.quasi_static for b in batches]),
-                   np.concatenate([b.detector_g for b in batches]))
+                   np.concatenate([b.detector_g for b in batches]),
+                   np.concatenate([b.status for b in batches]),
+                   np.concatenate([b.sigma_mg for b in batches]))
+
+    @property
+    def recorded(self) -> bool:
+        """Whether the batch carries statuses (a recording from before them does not)."""
+        return bool(self.status.any())
 
     def __len__(self) -> int:
         return len(self.t_us)
 
     def __getitem__(self, index: slice | np.ndarray) -> CalibratedBatch:
         return CalibratedBatch(self.t_us[index], self.a_g[index], self.quasi_static[index],
-                               self.detector_g[index])
+                               self.detector_g[index], self.status[index], self.sigma_mg[index])
 
 
 def batch_groups(items: Iterable[tuple[RawBatch, T]], min_samples: int = REBATCH_SAMPLES

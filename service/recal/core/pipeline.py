@@ -11,7 +11,14 @@ Per batch:
    settled, no new orientation cell arrived and less than `max_update_interval_s` of device
    time passed: on a 24 h wearer that skips ~9 of 10 re-fits, the core's main cost;
 4. samples are calibrated with the parameters in force when they arrived: an update that
-   happens at sample j applies from sample j on.
+   happens at sample j applies from sample j on; so are their status and predicted error
+   (`core.status`: uncalibrated, bootstrapping, calibrated, held, suspect; sigma from the
+   estimate's covariance);
+5. the self-watch (`core.status.Watch`) marks the output suspect when the estimator fits an
+   offset jump, and resets the estimate when the windows keep contradicting it (a second jump
+   soon after, or windows failing the norm gate for minutes): another sensor under the same
+   id, another sensor's checkpoint. A checkpoint whose estimate is not finite goes back to
+   the prior (or to a bootstrap) at the next step.
 
 Everything is driven by the sample sequence alone (never by batch boundaries or clocks), so
 feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
@@ -41,10 +48,17 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
+from recal.core.status import (
+    JUMP_REPEAT_S,
+    Status,
+    Watch,
+    predicted_sigma_mg,
+    sigma_form,
+)
 from recal.core.triaxial import norm3
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WindowSums",
+__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent", "WindowSums",
            "check_channels", "from_state_dict", "gain_reference", "run_starts", "state_dict",
            "usable"]
 
@@ -152,16 +166,30 @@ class UpdateEvent:
     model: SensorModel | None = field(default=None, compare=False)
 
 
+@dataclass(frozen=True)
+class WatchEvent:
+    """The self-watch at sample `index` of the batch (device time t_us): ``suspect`` (the
+    still windows contradicted the estimate for a sustained time: the output is suspect and
+    the estimate was reset toward the prior and re-fitted on the recent windows), ``agrees``
+    (the windows agree again: suspect no more) or ``reset`` (the estimate was not finite)."""
+
+    index: int
+    t_us: int
+    kind: str
+    detail: dict = field(default_factory=dict, compare=False)
+
+
 @dataclass(frozen=True, eq=False)
 class StepOutput:
     """What one step produced. ``states``: for each mark given to `Pipeline.step` whose
     stretch since the previous mark holds an update, the model and `Pipeline.summary()` as
-    they were after that many samples."""
+    they were after that many samples. ``watch``: the self-watch's events, in order."""
 
     calibrated: CalibratedBatch
     updates: tuple[UpdateEvent, ...]
     windows_committed: int
     states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
+    watch: tuple[WatchEvent, ...] = ()
 
 
 @dataclass(eq=False)
@@ -221,6 +249,20 @@ class _Event:
     index: int
     model: SensorModel
     p: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _Segment:
+    """From sample `index` of the batch on: the model and parameters in force, the status and
+    how to predict each sample's error (`core.status.sigma_form`, or None: the covariance
+    sample by sample)."""
+
+    index: int
+    model: SensorModel
+    p: np.ndarray
+    cov: np.ndarray
+    form: np.ndarray | None
+    status: Status
 
 
 @dataclass(frozen=True, eq=False)
@@ -415,6 +457,14 @@ class Pipeline:
         # fresh windows tested so far, and the sums of their normalized innovations
         self.tested = (0, 0.0, 0.0)
         self._marks: _Marks | None = None  # only during a step with marks
+        # data informed the estimate (an accepted update observed a parameter): `status`
+        self.informed = False
+        self.watch = Watch()
+        self._segs: list[_Segment] = []  # during a step: what is in force from where
+        self._watch_events: list[WatchEvent] = []
+        self._reset_due: str | None = None  # why the self-watch resets at the next update point
+        self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
+        self._finite_estimate: Estimate | None = None
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -440,6 +490,15 @@ class Pipeline:
         without a prior the mean of the three fitted scales (the data's own counts per g; a
         first sample's norm is no reference). One rule for replay, hindsight and discover."""
         return gain_reference(self.model, self.params, self.from_prior)
+
+    @property
+    def status(self) -> Status:
+        """The status of output calibrated now (`core.status` defines each)."""
+        if self.estimate is None:
+            return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
+        if self.watch.suspect:
+            return Status.SUSPECT
+        return Status.CALIBRATED if self.informed else Status.HELD
 
     def step(self, batch: RawBatch, marks: Sequence[int] = ()) -> StepOutput:
         """Process one batch of raw samples (any size, in time order).
@@ -489,9 +548,11 @@ class Pipeline:
     def _step(self, batch: RawBatch, marks: list[int]) -> StepOutput:
         """`step` with the detector as it is (see there)."""
         n = len(batch)
+        self._watch_events = []
+        self._heal_if_not_finite(int(batch.t_us[0]))
         self.det_state, d = det.detect(self.det_cfg, self.det_state, batch.v)
         gate = usable(d.gate, batch, self.model)
-        start = (self.model, self.params.copy())
+        self._segs = [self._segment(0)]
         if marks:
             self._marks = _Marks(marks, gate, self.counts["samples"],
                                  self.counts["quasi_static"])
@@ -500,14 +561,15 @@ class Pipeline:
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._marks = self._marks, None
-        cal = self._calibrate(batch, start, events)
+        cal, status, sigma = self._calibrate(batch)
+        self._segs = []
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
         self.last_t_us = int(batch.t_us[-1])
         self.last_gate = bool(gate[-1])
-        return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g),
+        return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
                           tuple(e.update for e in events), committed,
-                          done.states if done is not None else {})
+                          done.states if done is not None else {}, tuple(self._watch_events))
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""
@@ -570,6 +632,8 @@ class Pipeline:
             "last_update": rep.to_dict(self.model.names) if rep else None,
             "coverage": self.coverage().to_dict(),
             "counts": dict(self.counts),
+            "status": self.status.label,  # of output calibrated now (core/status.py)
+            "watch": {"suspect": self.watch.suspect, "resets": self.watch.triggers},
         }
 
     # --- windows -----------------------------------------------------------------------------
@@ -711,10 +775,18 @@ class Pipeline:
                 if e is None:
                     continue
                 idx = at[e]
-                ev = (self._try_bootstrap(idx, int(b.t_us[idx])) if not self.bootstrapped
-                      else self._update(idx, int(b.t_us[idx])))
-                if ev is not None:
-                    events.append(_Event(ev, idx, self.model, self.params.copy()))
+                now = int(b.t_us[idx])
+                evs: list[UpdateEvent | None] = []
+                if self._reset_due is None:  # (else the self-watch fired at this window)
+                    evs.append(self._try_bootstrap(idx, now) if not self.bootstrapped
+                               else self._update(idx, now))
+                reset = self._reset_due is not None  # fired, or the update found a jump again
+                if reset:
+                    evs.append(self._reset(idx, now))
+                events += [_Event(ev, idx, self.model, self.params.copy())
+                           for ev in evs if ev is not None]
+                if reset or evs[-1] is not None:
+                    self._segs.append(self._segment(idx))
                     if self._marks is not None:
                         self._marks.dirty = True
                     chunk, size = None, 0  # the parameters changed: a new first chunk
@@ -736,6 +808,12 @@ class Pipeline:
                 self._reach(due[slot[c]][0])
             ok, v, aux, t_mid, n, var, direction, run, cell = row
             done = slot[c] + 1
+            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), due[slot[c]][0]):
+                if ok:  # in the buffer it is about to replace: counted as the others
+                    counts["windows"] += 1
+                else:
+                    counts["windows_rejected"] += 1
+                return done, c  # a reset (`_reset`) at this window
             if not ok:
                 counts["windows_rejected"] += 1
                 continue
@@ -743,10 +821,130 @@ class Pipeline:
             if watch:  # before the bootstrap nothing tests them (and they would pile up)
                 fresh.append((v, aux, t_mid, n, var))
             counts["windows"] += 1
+            if not watch and self._segs and self._segs[-1].status is Status.UNCALIBRATED:
+                self._segs.append(self._segment(due[slot[c]][0]))  # now bootstrapping
             if (watch and counts["windows"] % ue == 0
                     and buf.cells_opened != self.coverage_at_update):
                 return done, c
         return done, None
+
+    # --- self-watch --------------------------------------------------------------------------
+    def _watch_window(self, bad: bool, window: tuple, idx: int) -> bool:
+        """One committed window through the self-watch (`core.status.Watch`; bad: it failed
+        the norm gate, its calibrated norm more than norm_tol_g from 1 g or not finite): True
+        when that became sustained (a reset runs at this window); an end of suspicion changes
+        the status from sample idx on."""
+        seen = self.watch.see(bad, window)
+        if seen == "clear":
+            self._watch_events.append(WatchEvent(idx, int(window[2]), "agrees", {
+                "status": self.status.label}))
+            self._segs.append(self._segment(idx))
+        if seen == "trigger":
+            self._reset_due = "still windows fail the norm gate under the estimate"
+            return True
+        return False
+
+    def _watch_jump(self, before: Estimate, idx: int, now_us: int) -> None:
+        """An accepted update that fitted a new offset jump (`estimator._jump`): suspect for
+        JUMP_REPEAT_S at least. A knock fits one and the windows agree again; a sensor whose
+        gains differ too (another sensor under this id, another sensor's checkpoint) jumps
+        again at a new posture: a second jump within JUMP_REPEAT_S of the first resets."""
+        step_us = self.estimate.step_us if self.estimate is not None else None
+        if step_us is None or step_us == before.step_us:
+            return
+        first = self.watch.jump_us
+        if first is not None and step_us - first <= JUMP_REPEAT_S * 1e6:
+            self._reset_due = "the offsets jumped again"
+            return
+        self.watch.jump_us = step_us
+        if self.watch.alarm(now_us, JUMP_REPEAT_S):
+            self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
+                "reason": "the offsets jumped", "jump_t_us": step_us}))
+
+    def _reset(self, idx: int, now_us: int) -> UpdateEvent | None:
+        """The windows contradict the estimate beyond what the estimator absorbs: it is not
+        this sensor's (another sensor under the same id, another sensor's checkpoint) or the
+        sensor changed too much. Back to the prior, with a buffer of the recent windows only
+        (the older ones are another sensor's, or the old one's), re-fitted at once."""
+        reason, self._reset_due = self._reset_due, None
+        since = self.watch.jump_us
+        recent = self.watch.fired(now_us)
+        old = self.buffer.windows()
+        if since is not None:  # the buffer's windows since the first jump, and the watch's
+            keep = old.t_us >= since
+            recent = [(old.v[i], old.aux[i], int(old.t_us[i]), int(old.n[i]), float(old.var[i]))
+                      for i in np.flatnonzero(keep).tolist()] + recent
+            recent = list({int(r[2]): r for r in recent}.values())  # each window once
+        before = self.estimate
+        assert self.prior is not None
+        self.estimate = Estimate.from_prior(self.prior)
+        self.informed = False
+        self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+        kept = self._refill(recent)
+        self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
+            "reason": reason, "windows": len(recent), "refitted": kept,
+            "resets": self.watch.triggers,
+            "params_before": self.model.params_dict(before.p) if before is not None else None}))
+        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        if len(recent) >= self.cfg.estimator.min_windows and 2 * kept < len(recent):
+            # the prior does not fit most of them either (a sensor far from the datasheet):
+            # no estimate, a bootstrap from the data (`_try_bootstrap`), these windows first
+            self.estimate, self.bootstrapped, self.from_prior = None, False, False
+            self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+            self._refill(recent, gate=False)
+            return None
+        if kept < self.cfg.estimator.min_windows:
+            return None  # held at the prior until more windows come
+        return self._update(idx, now_us)
+
+    def _refill(self, recent: list[tuple], gate: bool = True) -> int:
+        """The recent windows that pass the norm gate under the estimate now (all of them
+        without ``gate``), into the buffer (each a slot of its own, oldest first); returns
+        how many."""
+        if not recent:
+            return 0
+        recent = sorted(recent, key=lambda r: r[2])
+        m, k = len(recent), len(self.aux_names)
+        w = Windows(np.array([r[0] for r in recent], float).reshape(m, 3),
+                    np.array([r[1] for r in recent], float).reshape(m, k),
+                    np.array([r[2] for r in recent], np.int64),
+                    np.array([r[3] for r in recent], np.int64),
+                    np.array([r[4] for r in recent], float))
+        a = self.model.correct(self.params, w.v, self.covariates(w.t_us, w.aux))
+        norm = norm3(a)
+        ok = np.abs(norm - 1.0) <= self.cfg.norm_tol_g if gate else np.isfinite(norm)
+        dirs = a / np.where(norm > 0, norm, 1.0)[:, None]
+        cells = cell_of(dirs, self.cfg.buffer.grid)
+        for i in np.flatnonzero(ok).tolist():
+            self.buffer.add(w.v[i].tolist(), w.aux[i].tolist(), int(w.t_us[i]), int(w.n[i]),
+                            float(w.var[i]), dirs[i].tolist(), None, int(cells[i]))
+        return int(ok.sum())
+
+    def _heal_if_not_finite(self, t_us: int) -> None:
+        """An estimate that is not finite (a damaged checkpoint) would make every sample NaN
+        and every window fail the norm gate, for good: back to the prior if it is finite
+        (status held), else to no estimate at all (a bootstrap from the data)."""
+        est = self.estimate
+        if est is None or est is self._finite_estimate:
+            return
+        if np.isfinite(est.p).all() and np.isfinite(est.cov).all():
+            self._finite_estimate = est  # asked at every step: once per estimate
+            return
+        prior = self.prior
+        usable_prior = (prior is not None and np.isfinite(prior.mean).all()
+                        and np.isfinite(prior.info).all())
+        self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        self.informed, self.watch = False, Watch()
+        if usable_prior:
+            assert prior is not None
+            self.estimate = Estimate.from_prior(prior)
+        else:
+            self.estimate, self.prior, self.bootstrapped = None, None, False
+            self.from_prior = False
+        self._watch_events.append(WatchEvent(0, t_us, "reset", {
+            "reason": "estimate not finite",
+            "to": "prior" if usable_prior else "bootstrap"}))
 
     def _reject_short(self, due: list[tuple[int, bool]], done: int, stop: int) -> int:
         """Due entries done..stop are windows too short to keep (`_finish`): counted."""
@@ -839,6 +1037,10 @@ class Pipeline:
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
                                     self.cfg.estimator)
         self.settled = rep.accepted and _settled(before, self.estimate)
+        if rep.accepted:
+            self._watch_jump(before, idx, now_us)
+        if rep.accepted and any(rep.observable):
+            self.informed = True
         self.coverage_at_update = self.buffer.cells_opened
         self.tested = (0, 0.0, 0.0)
         self.counts["updates"] += 1
@@ -925,16 +1127,33 @@ class Pipeline:
                        np.array([f[4] for f in fresh], float))
 
     # --- correction --------------------------------------------------------------------------
-    def _calibrate(self, b: RawBatch, start: tuple[SensorModel, np.ndarray],
-                   events: list[_Event]) -> np.ndarray:
-        """Correct each sample with the parameters in force when it arrived."""
+    def _segment(self, idx: int) -> _Segment:
+        """What is in force from sample idx on (now): model, parameters, covariance (no
+        estimate: the model's default prior spread around the provisional scale), status."""
+        est, model = self.estimate, self.model
+        cache = self._form_cache
+        if cache is None or cache[0] is not model or cache[1] is not est:
+            p = self.params.copy()
+            cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
+            form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
+            cache = self._form_cache = (model, est, p, cov, form)
+        return _Segment(idx, model, cache[2], cache[3], cache[4], self.status)
+
+    def _calibrate(self, b: RawBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Correct each sample with the parameters in force when it arrived; its status and
+        predicted error (`core.status.predicted_sigma_mg`) as they were then."""
         out = np.empty_like(b.v)
-        cuts = [0, *[e.index for e in events], len(b)]
-        params = [start, *[(e.model, e.p) for e in events]]
-        for s, e, (model, p) in zip(cuts[:-1], cuts[1:], params, strict=True):
+        status = np.empty(len(b), np.uint8)
+        sigma = np.empty(len(b))
+        segs = self._segs
+        cuts = [*[g.index for g in segs], len(b)]
+        for s, e, g in zip(cuts[:-1], cuts[1:], segs, strict=True):
             if e > s:
-                out[s:e] = model.correct(p, b.v[s:e], self.covariates(b.t_us[s:e], b.aux[s:e]))
-        return out
+                cov = self.covariates(b.t_us[s:e], b.aux[s:e])
+                out[s:e] = g.model.correct(g.p, b.v[s:e], cov)
+                status[s:e] = g.status
+                sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
+        return out, status, sigma
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
         self.det_cfg = self.cfg.detector(s0, zero_raw)
@@ -980,9 +1199,10 @@ def _zero_of(model: SensorModel, p: np.ndarray) -> np.ndarray | None:
 def _joined(head: StepOutput, tail: StepOutput, at: int) -> StepOutput:
     """One step's output from its first `at` samples' and the rest's."""
     ups = (*head.updates, *(replace(u, index=u.index + at) for u in tail.updates))
+    watch = (*head.watch, *(replace(w, index=w.index + at) for w in tail.watch))
     return StepOutput(CalibratedBatch.concat([head.calibrated, tail.calibrated]), ups,
                       head.windows_committed + tail.windows_committed,
-                      {**head.states, **{m + at: v for m, v in tail.states.items()}})
+                      {**head.states, **{m + at: v for m, v in tail.states.items()}}, watch)
 
 
 def check_channels(model: SensorModel, aux_names: tuple[str, ...]) -> None:
@@ -1045,6 +1265,8 @@ def state_dict(pipe: Pipeline) -> dict:
         "settled": pipe.settled,
         "coverage_at_update": pipe.coverage_at_update,
         "tested": list(pipe.tested),
+        "informed": pipe.informed,
+        "watch": pipe.watch.to_dict(),
     }
 
 
@@ -1084,6 +1306,10 @@ def from_state_dict(d: dict) -> Pipeline:
     pipe.coverage_at_update = int(cov_key) if cov_key is not None else None
     m, s2, s1 = d.get("tested", (0, 0.0, 0.0))
     pipe.tested = (int(m), float(s2), float(s1))
+    informed = d.get("informed")  # absent in checkpoints from before statuses
+    pipe.informed = (bool(informed) if informed is not None
+                     else pipe.estimate is not None and pipe.estimate.t_us is not None)
+    pipe.watch = Watch.from_dict(d.get("watch"))
     rep = d.get("last_report")
     pipe.last_report = (UpdateReport(**{**rep, "observable": tuple(rep["observable"]),
                                         "free": tuple(rep["free"])}) if rep else None)

@@ -21,7 +21,10 @@ What ``read_csv`` accepts:
 
 ``iter_csv`` reads the same a chunk of lines at a time, in bounded memory; ``read_csv`` joins
 its chunks. ``write_raw_csv`` writes ``t_us,x,y,z,<aux...>`` and ``write_calibrated_csv`` writes
-``t_us,x_g,y_g,z_g`` (optionally ``quasi_static,detector_g``), with Python's shortest
+``t_us,x_g,y_g,z_g``, then ``status,sigma_mg`` when the samples carry statuses (the number of
+`recal.core.status.Status`: 1 uncalibrated, 2 bootstrapping, 3 calibrated, 4 held, 5 suspect;
+the predicted 1-sigma error of the vector in mg), optionally ``quasi_static,detector_g``, with
+Python's shortest
 round-trip float text, so reading a written file gives back exactly the same numbers.
 """
 
@@ -372,23 +375,32 @@ def write_raw_csv(path: str | os.PathLike[str], batch: RawBatch | Iterable[RawBa
 
 def write_calibrated_csv(path: str | os.PathLike[str],
                          batch: CalibratedBatch | Iterable[CalibratedBatch],
-                         with_detector: bool = False) -> int:
-    """Write ``t_us,x_g,y_g,z_g`` (plus ``quasi_static,detector_g`` if asked) of one batch or
-    of several, read one at a time; returns the rows.
+                         with_detector: bool = False, with_status: bool | None = None) -> int:
+    """Write ``t_us,x_g,y_g,z_g``, plus ``status,sigma_mg`` (``with_status``; None: when the
+    first batch carries statuses, `CalibratedBatch.recorded`) and ``quasi_static,detector_g``
+    (if asked), of one batch or of several, read one at a time; returns the rows.
 
-    ``read_csv`` reads the file back as a batch in units "g" (detector columns as auxiliary
+    ``read_csv`` reads the file back as a batch in units "g" (the other columns as auxiliary
     channels, ``quasi_static`` as 0/1).
     """
+    first, batches = _batches(batch)
+    if with_status is None:
+        with_status = first is not None and first.recorded
     header = ["t_us", "x_g", "y_g", "z_g"]
     is_int = [True, False, False, False]
+    if with_status:
+        header += ["status", "sigma_mg"]
+        is_int += [True, False]
     if with_detector:
         header += ["quasi_static", "detector_g"]
         is_int += [True, False]
 
     def columns(b: CalibratedBatch) -> list[np.ndarray]:
         cols = [b.t_us, *b.a_g.T]
+        if with_status:
+            cols += [b.status.astype(np.int64), b.sigma_mg]
         if with_detector:
             cols += [b.quasi_static.astype(np.int64), b.detector_g]
         return cols
 
-    return _write_table(path, header, map(columns, _batches(batch)[1]), is_int)
+    return _write_table(path, header, map(columns, batches), is_int)

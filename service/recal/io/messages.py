@@ -23,6 +23,16 @@ message CalibratedBatch {
   repeated double z_g = 5 [packed = true];
   repeated bool quasi_static = 6 [packed = true];
   repeated double detector_g = 7 [packed = true];
+  repeated Status status = 8 [packed = true];   // per sample; absent in older recordings
+  repeated double sigma_mg = 9 [packed = true]; // predicted 1-sigma error of the vector, mg
+}
+enum Status {                                   // recal.core.status.Status
+  STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
+  STATUS_UNCALIBRATED = 1;
+  STATUS_BOOTSTRAPPING = 2;
+  STATUS_CALIBRATED = 3;
+  STATUS_HELD = 4;
+  STATUS_SUSPECT = 5;
 }
 message PlotSample {                            // one decimated sample, for a Plot panel
   sfixed64 t_us = 1;
@@ -32,13 +42,19 @@ message PlotSample {                            // one decimated sample, for a P
   double norm_g = 5;
   bool quasi_static = 6;
   double detector_g = 7;
+  Status status = 8;
+  double sigma_mg = 9;
 }
 ```
+
+A CalibratedBatch whose samples all have status 0 (not recorded) is written without fields 8
+and 9, byte for byte as before they existed; a decoded message without them has status 0 and
+sigma_mg NaN for every sample.
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
 directly (``protobuf``'s Python runtime is slow for large repeated fields). A ``PlotSample`` is
-written with every field present, so each one is the same 56 bytes and a whole batch of them is
+written with every field present, so each one is the same 67 bytes and a whole batch of them is
 one numpy structured array (formatting floats as JSON text cost more than the calibration).
 The decoder follows protobuf semantics (unknown fields and known fields with an unexpected
 wire type are skipped, packed and unpacked repeated encodings are both accepted, the last
@@ -61,6 +77,7 @@ from typing import Any
 import numpy as np
 from google.protobuf import descriptor_pb2
 
+from recal.core.status import Status
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = [
@@ -105,6 +122,9 @@ _F_RAW_AUX_NAMES = 6
 _F_RAW_AUX = 7
 _F_CAL_QUASI_STATIC = 6
 _F_CAL_DETECTOR = 7
+_F_CAL_STATUS = 8
+_F_CAL_SIGMA = 9
+STATUS_ENUM_NAME = "Status"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -133,6 +153,8 @@ def _add_field(msg: descriptor_pb2.DescriptorProto, name: str, number: int, ftyp
     fd = descriptor_pb2.FieldDescriptorProto
     field = msg.field.add(name=name, number=number, type=ftype,
                           label=fd.LABEL_REPEATED if repeated else fd.LABEL_OPTIONAL)
+    if ftype == fd.TYPE_ENUM:
+        field.type_name = f".{PROTO_PACKAGE}.{STATUS_ENUM_NAME}"
     if repeated and ftype != fd.TYPE_STRING:
         # proto3 packs by default; saying so explicitly documents the wire layout we rely on.
         field.options.packed = True
@@ -144,7 +166,9 @@ _PLOT_FIELDS = (("t_us", 1, descriptor_pb2.FieldDescriptorProto.TYPE_SFIXED64),
                 ("z_g", 4, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
                 ("norm_g", 5, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
                 ("quasi_static", 6, descriptor_pb2.FieldDescriptorProto.TYPE_BOOL),
-                ("detector_g", 7, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE))
+                ("detector_g", 7, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
+                ("status", 8, descriptor_pb2.FieldDescriptorProto.TYPE_ENUM),
+                ("sigma_mg", 9, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE))
 
 
 def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
@@ -152,6 +176,9 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     fd = descriptor_pb2.FieldDescriptorProto
     fds = descriptor_pb2.FileDescriptorSet()
     f = fds.file.add(name="recal/batches.proto", package=PROTO_PACKAGE, syntax="proto3")
+    status = f.enum_type.add(name=STATUS_ENUM_NAME)
+    for st in Status:
+        status.value.add(name=f"STATUS_{st.name}", number=int(st))
     raw = f.message_type.add(name="RawBatch")
     _add_field(raw, "sensor_id", _F_SENSOR, fd.TYPE_STRING, False)
     _add_field(raw, "t_us", _F_T_US, fd.TYPE_SFIXED64, True)
@@ -166,6 +193,8 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
         _add_field(cal, name, number, fd.TYPE_DOUBLE, True)
     _add_field(cal, "quasi_static", _F_CAL_QUASI_STATIC, fd.TYPE_BOOL, True)
     _add_field(cal, "detector_g", _F_CAL_DETECTOR, fd.TYPE_DOUBLE, True)
+    _add_field(cal, "status", _F_CAL_STATUS, fd.TYPE_ENUM, True)
+    _add_field(cal, "sigma_mg", _F_CAL_SIGMA, fd.TYPE_DOUBLE, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -306,6 +335,9 @@ def encode_calibrated(sensor_id: str, batch: CalibratedBatch) -> bytes:
              *_packed(_F_T_US, _le_bytes(batch.t_us, "<i8")),
              *_packed(_F_X, x), *_packed(_F_Y, y), *_packed(_F_Z, z),
              *_packed(_F_CAL_QUASI_STATIC, quasi), *_packed(_F_CAL_DETECTOR, detector)]
+    if batch.recorded:  # statuses 0-5 are one-byte varints, so uint8 is the wire form
+        parts += [*_packed(_F_CAL_STATUS, _le_bytes(batch.status, "|u1")),
+                  *_packed(_F_CAL_SIGMA, _le_bytes(batch.sigma_mg, "<f8"))]
     return b"".join(parts)
 
 
@@ -417,6 +449,30 @@ def _bools(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> np.n
     return runs[0] if len(runs) == 1 else np.concatenate(runs)
 
 
+def _small_varints(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> np.ndarray:
+    """A repeated enum field of small values (packed and/or single varints) as uint8; a value
+    above 255 (no status has one) reads as 0, not recorded."""
+    runs = []
+    for wire_type, start, end in occurrences or ():
+        if wire_type not in (_WT_LEN, _WT_VARINT):
+            continue
+        run = np.frombuffer(buf, dtype=np.uint8, count=end - start, offset=start)
+        if run.size and run.max() >= 0x80:  # multi-byte varints: the rare slow path
+            values, pos = [], start
+            for _ in range(end - start):
+                if pos >= end:
+                    break
+                value, pos = _read_varint(buf, pos)
+                values.append(value if value <= 0xFF else 0)
+            if pos != end:
+                raise ValueError(f"packed field {what} ends inside a varint")
+            run = np.array(values, np.uint8)
+        runs.append(run)
+    if not runs:
+        return np.zeros(0, np.uint8)
+    return np.array(runs[0] if len(runs) == 1 else np.concatenate(runs), np.uint8)
+
+
 def _multibyte_varints_nonzero(run: np.ndarray, what: str) -> np.ndarray:
     """Whether each varint of a packed run is nonzero (the rare non-canonical encoding)."""
     last_byte = run < 0x80
@@ -443,7 +499,7 @@ def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
 
 _RAW_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES, _F_RAW_AUX))
 _CAL_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
-                         _F_CAL_DETECTOR))
+                         _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA))
 
 
 def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
@@ -475,7 +531,16 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     for name, column in (("quasi_static", quasi), ("detector_g", detector)):
         if len(column) != len(t_us):
             raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
-    return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector)
+    status = sigma = None  # absent: a recording from before statuses (not recorded, NaN)
+    if _F_CAL_STATUS in fields or _F_CAL_SIGMA in fields:
+        status = _small_varints(buf, fields.get(_F_CAL_STATUS), "status")
+        sigma = np.array(_fixed64(buf, fields.get(_F_CAL_SIGMA), "<f8", "sigma_mg"),
+                         dtype=np.float64)
+        for name, column in (("status", status), ("sigma_mg", sigma)):
+            if len(column) != len(t_us):
+                raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
+    return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
+                                                                      status, sigma)
 
 
 def batch_extent(data: bytes | bytearray | memoryview) -> tuple[int, int | None, int | None]:
@@ -567,14 +632,15 @@ def encode_event(kind: str, *, t_us: int | None = None, sensor_id: str | None = 
 PLOT_DTYPE = np.dtype([
     ("k_t", "u1"), ("t_us", "<i8"), ("k_x", "u1"), ("x_g", "<f8"), ("k_y", "u1"),
     ("y_g", "<f8"), ("k_z", "u1"), ("z_g", "<f8"), ("k_n", "u1"), ("norm_g", "<f8"),
-    ("k_q", "u1"), ("quasi_static", "u1"), ("k_d", "u1"), ("detector_g", "<f8")])
+    ("k_q", "u1"), ("quasi_static", "u1"), ("k_d", "u1"), ("detector_g", "<f8"),
+    ("k_s", "u1"), ("status", "u1"), ("k_e", "u1"), ("sigma_mg", "<f8")])
 _PLOT_TAGS = {"k_t": 1 << 3 | _WT_I64, "k_x": 2 << 3 | _WT_I64, "k_y": 3 << 3 | _WT_I64,
               "k_z": 4 << 3 | _WT_I64, "k_n": 5 << 3 | _WT_I64, "k_q": 6 << 3 | _WT_VARINT,
-              "k_d": 7 << 3 | _WT_I64}
+              "k_d": 7 << 3 | _WT_I64, "k_s": 8 << 3 | _WT_VARINT, "k_e": 9 << 3 | _WT_I64}
 _PLOT_FIELD_NUMBERS = {name: number for name, number, _ in _PLOT_FIELDS}
 
 
-_PLOT_STRUCT = struct.Struct("<BqBdBdBdBdBBBd")  # one PlotSample, the layout of PLOT_DTYPE
+_PLOT_STRUCT = struct.Struct("<BqBdBdBdBdBBBdBBBd")  # one PlotSample, the layout of PLOT_DTYPE
 _PLOT_TAG_VALUES = tuple(_PLOT_TAGS.values())
 
 
@@ -599,6 +665,8 @@ def plot_payloads(batch: CalibratedBatch,
     out["norm_g"] = np.sqrt(np.einsum("ij,ij->i", a_g, a_g))
     out["quasi_static"] = batch.quasi_static[sel]
     out["detector_g"] = batch.detector_g[sel]
+    out["status"] = batch.status[sel]
+    out["sigma_mg"] = batch.sigma_mg[sel]
     return out
 
 
@@ -613,13 +681,14 @@ def encode_plot(batch: CalibratedBatch, indices: np.ndarray | Iterable[int] | No
         size = PLOT_DTYPE.itemsize
         return [blob[i:i + size] for i in range(0, len(blob), size)]
     norm = np.sqrt(np.einsum("ij,ij->i", a_g, a_g))  # as plot_payloads computes it
-    kt, kx, ky, kz, kn, kq, kd = _PLOT_TAG_VALUES
+    kt, kx, ky, kz, kn, kq, kd, ks, ke = _PLOT_TAG_VALUES
     pack = _PLOT_STRUCT.pack
-    return [pack(kt, t, kx, x, ky, y, kz, z, kn, n, kq, q, kd, d)
-            for t, (x, y, z), n, q, d in zip(
+    return [pack(kt, t, kx, x, ky, y, kz, z, kn, n, kq, q, kd, d, ks, s, ke, e)
+            for t, (x, y, z), n, q, d, s, e in zip(
                 batch.t_us[sel].tolist(), a_g.tolist(), norm.tolist(),
                 batch.quasi_static[sel].astype(np.uint8).tolist(),
-                batch.detector_g[sel].tolist(), strict=True)]
+                batch.detector_g[sel].tolist(), batch.status[sel].tolist(),
+                batch.sigma_mg[sel].tolist(), strict=True)]
 
 
 def decode_plot(data: bytes | bytearray | memoryview) -> dict[str, Any]:
@@ -632,6 +701,10 @@ def decode_plot(data: bytes | bytearray | memoryview) -> dict[str, Any]:
         if name == "quasi_static":
             values = _bools(buf, fields.get(number), name)
             out[name] = bool(values[-1]) if len(values) else False
+            continue
+        if name == "status":
+            values = _small_varints(buf, fields.get(number), name)
+            out[name] = int(values[-1]) if len(values) else 0
             continue
         values = _fixed64(buf, fields.get(number), "<i8" if name == "t_us" else "<f8", name)
         out[name] = values[-1].item() if len(values) else (0 if name == "t_us" else 0.0)
