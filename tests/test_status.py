@@ -493,3 +493,21 @@ def test_the_gateway_says_when_a_sensor_is_first_calibrated(tmp_path: Path) -> N
     assert np.all(cal.status[first:] == Status.CALIBRATED)
     # the datasheet's spread before; falling as the postures inform the parameters
     assert np.all(cal.sigma_mg[:first] > 50.0) and np.all(cal.sigma_mg[-500:] < 5.0)
+
+
+def test_hindsight_output_says_calibrated_and_its_predicted_error(tmp_path: Path) -> None:
+    """`recal hindsight`'s calibrated topic carries the status of its one fit and the predicted
+    error from the fit's covariance, like the live node's (not 'not recorded')."""
+    res = sim.simulate(40 / 60, RATE_HZ, 3, _spec(3))
+    src = tmp_path / "in.mcap"
+    with rec.RecordingWriter(src) as w:
+        for i in range(0, len(res.raw), 500):
+            w.write_raw(SID, res.raw[i:i + 500], 1_000_000_000 + int(res.raw.t_us[i]) * 1000)
+    out = tmp_path / "h.mcap"
+    assert cli_main(["hindsight", str(src), "--out", str(out), "--quiet"]) == 0
+    cal = rec.read_all_calibrated(out, SID)
+    assert len(cal) == len(res.raw) and cal.recorded
+    assert np.all(cal.status == Status.CALIBRATED)
+    # a whole recording's fit: known to a few mg at most, and never nothing
+    assert np.all(np.isfinite(cal.sigma_mg)) and 0 < cal.sigma_mg.min()
+    assert cal.sigma_mg.max() < 5.0, cal.sigma_mg.max()

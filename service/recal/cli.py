@@ -449,6 +449,10 @@ def replay_lines(summary: dict) -> list[str]:
             lines.append("    not calibrated: without a prior the recording must first cover "
                          "enough orientations (5 half-axes); give one with --config or --model")
             continue
+        ref = info.get("gain_reference")
+        if ref:
+            lines.append(f"    gains against {ref['counts_per_g']:.6g} counts per g "
+                         f"(from the {ref['source']}); status at the end: {info.get('status')}")
         for effect, values in info["described"].items():
             lines.append(f"    {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in
                                                         values.items()))

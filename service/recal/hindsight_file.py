@@ -26,8 +26,10 @@ import numpy as np
 from recal.core import detector as det
 from recal.core import hindsight
 from recal.core.discovery import rate_and_scale
+from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 from recal.core.pipeline import PipelineConfig, gain_reference, usable
+from recal.core.status import Status, predicted_sigma_mg, sigma_form
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
 __all__ = ["Source", "calibrate_file", "open_source", "summary_lines"]
@@ -142,11 +144,19 @@ class _Corrected:
         self.fit = fit
         self.det_cfg = cfg.detector(fit.model.s0)
         self.state = det.init_state(self.det_cfg)
+        # one fit for the whole recording: calibrated where the poses determined a parameter,
+        # else the nominal values are all there is (held); the predicted error from its
+        # covariance, as the live node's
+        self.status = Status.CALIBRATED if fit.free.any() else Status.HELD
+        self.form = sigma_form(fit.model, fit.p, fit.cov)
 
     def __call__(self, b: RawBatch) -> CalibratedBatch:
         self.state, d = det.detect(self.det_cfg, self.state, b.v)
-        return CalibratedBatch(b.t_us, self.fit.correct(b), usable(d.gate, b, self.fit.model),
-                               d.detector_g)
+        fit = self.fit
+        cov = Covariates.from_samples(b.t_us, b.aux, b.aux_names, fit.t0_us)
+        sigma = predicted_sigma_mg(fit.model, fit.p, fit.cov, b.v, cov, self.form)
+        return CalibratedBatch(b.t_us, fit.correct(b), usable(d.gate, b, fit.model),
+                               d.detector_g, np.full(len(b), self.status, np.uint8), sigma)
 
 
 def _write_csv(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, out: str | Path,

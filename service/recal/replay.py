@@ -207,5 +207,7 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
         out.update({"model": model_name(node.pipeline.model), "params": s["params"],
                     "described": s["described"], "residual_rms_mg": s["residual_rms_mg"],
                     "counts": s["counts"], "bootstrapped": s["bootstrapped"],
+                    "phase": s["phase"], "gain_reference": s["gain_reference"],
+                    "status": s["status"],
                     "alignment": node.alignment.to_dict() if node.alignment else None})
     return out
