@@ -292,9 +292,11 @@ def test_cli_hindsight_writes_every_sample_calibrated_and_the_fit(tmp_path, caps
     csv = tmp_path / "out.csv"
     assert cli.main(["hindsight", str(mcap), "--out", str(csv), "--model", str(model_file),
                      "--quiet"]) == 0
+    assert csv.read_text().split("\n", 1)[0] == "t_us,x_g,y_g,z_g,status,sigma_mg"
     rows = np.loadtxt(csv, delimiter=",", skiprows=1)
     assert np.array_equal(rows[:, 0].astype(np.int64), r.raw.t_us)
-    assert np.allclose(rows[:, 1:], cal.a_g, rtol=0, atol=1e-12)
+    assert np.allclose(rows[:, 1:4], cal.a_g, rtol=0, atol=1e-12)
+    assert np.array_equal(rows[:, 4], cal.status) and np.allclose(rows[:, 5], cal.sigma_mg)
 
     # a CSV in (the raw samples in counts), an MCAP out in messages of 1000 samples
     raw_csv, from_csv = tmp_path / "raw.csv", tmp_path / "from_csv.mcap"
