@@ -40,22 +40,11 @@ from recal.config import (
     SensorConfig,
     model_and_prior,
 )
-from recal.node import CalibrationNode, NodeSettings, NullSink
+from recal.node import CalibrationNode, EventSink, NodeSettings
 from recal.sim import MountSlip, SensorSpec, WearerSpec, simulate
 
 RATE_HZ = 25.0
 SLIP_AFTER_REF_S = 300.0
-
-
-class EventSink(NullSink):
-    """Keeps the node's events (a real sink: the node's own NullSink plus a list)."""
-
-    def __init__(self) -> None:
-        self.events: list[dict[str, Any]] = []
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix == "events":
-            self.events.append(obj)
 
 
 @dataclass(frozen=True)

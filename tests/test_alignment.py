@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 import pytest
@@ -19,7 +18,7 @@ from recal.config import (
     model_and_prior,
 )
 from recal.core import alignment as al
-from recal.node import CalibrationNode, NodeSettings, NullSink
+from recal.node import CalibrationNode, EventSink, NodeSettings
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -223,20 +222,6 @@ def test_slip_watch_needs_movement_between_periods() -> None:
 # -- the tilt alarm end to end: CalibrationNode on simulated wear -----------------------------
 
 RATE_HZ = 25.0
-
-
-class EventSink(NullSink):
-    """The node's events in a list; everything else discarded (a real sink)."""
-
-    def __init__(self) -> None:
-        self.events: list[dict[str, Any]] = []
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix == "events":
-            self.events.append(obj)
-
-    def of(self, kind: str) -> list[dict[str, Any]]:
-        return [e for e in self.events if e["kind"] == kind]
 
 
 def _wear(seed: int, minutes: float, wearer: sim.WearerSpec, slip: sim.MountSlip | None = None,

@@ -33,8 +33,8 @@ from recal.io.router import RouterProcess, run_router, security_summary
 from recal.node import (
     REJECT_IDS_KEPT,
     CalibrationNode,
+    EventSink,
     NodeSettings,
-    NullSink,
     SensorGate,
     align_handler,
     load_checkpoint,
@@ -414,14 +414,6 @@ def test_sensor_gate_memory_is_bounded() -> None:
 
 
 # --------------------------------------------------------------------------- align rate limit
-
-class EventSink(NullSink):
-    def __init__(self) -> None:
-        self.events: list[dict[str, Any]] = []
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix == "events":
-            self.events.append(obj)
 
 
 def align_node(interval_s: float) -> tuple[CalibrationNode, EventSink]:

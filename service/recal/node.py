@@ -93,6 +93,7 @@ __all__ = [
     "BusSink",
     "CalibrationNode",
     "CheckpointSchedule",  # re-exported from recal.checkpoints, where the checkpoint code lives
+    "EventSink",
     "LoggedBusSink",
     "NodeSettings",
     "NullSink",
@@ -161,6 +162,23 @@ class NullSink:
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
         pass
+
+
+class EventSink(NullSink):
+    """Keeps the node's events (``{t_us, kind, sensor_id, detail}``) in a list and discards the
+    rest: a node watched for what it says (benches, tests, a library caller). Grows with the
+    events, so for bounded runs only."""
+
+    def __init__(self) -> None:
+        self.events: list[dict[str, Any]] = []
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        if suffix == "events":
+            self.events.append(obj)
+
+    def of(self, kind: str) -> list[dict[str, Any]]:
+        """The events of one kind, in order."""
+        return [e for e in self.events if e["kind"] == kind]
 
 
 class RecordingSink:
