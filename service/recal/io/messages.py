@@ -482,15 +482,20 @@ def _multibyte_varints_nonzero(run: np.ndarray, what: str) -> np.ndarray:
     return np.maximum.reduceat(run & 0x7F, starts)
 
 
+def _same_length(t_us: np.ndarray, **columns: np.ndarray) -> None:
+    """ValueError naming the first column whose length is not ``t_us``'s (a malformed message)."""
+    for name, column in columns.items():
+        if len(column) != len(t_us):
+            raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
+
+
 def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
           ) -> tuple[np.ndarray, np.ndarray]:
     """Time stamps and the (N, 3) axis block, with the lengths checked against each other."""
     t_us = np.array(_fixed64(buf, fields.get(_F_T_US), "<i8", "t_us"), dtype=np.int64)
     columns = [_fixed64(buf, fields.get(f), "<f8", name)
                for f, name in zip((_F_X, _F_Y, _F_Z), names, strict=True)]
-    for name, column in zip(names, columns, strict=True):
-        if len(column) != len(t_us):
-            raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
+    _same_length(t_us, **dict(zip(names, columns, strict=True)))
     v = np.empty((len(t_us), 3))
     for i, column in enumerate(columns):
         v[:, i] = column
@@ -528,17 +533,13 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
     detector = np.array(_fixed64(buf, fields.get(_F_CAL_DETECTOR), "<f8", "detector_g"),
                         dtype=np.float64)
-    for name, column in (("quasi_static", quasi), ("detector_g", detector)):
-        if len(column) != len(t_us):
-            raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
+    _same_length(t_us, quasi_static=quasi, detector_g=detector)
     status = sigma = None  # absent: a recording from before statuses (not recorded, NaN)
     if _F_CAL_STATUS in fields or _F_CAL_SIGMA in fields:
         status = _small_varints(buf, fields.get(_F_CAL_STATUS), "status")
         sigma = np.array(_fixed64(buf, fields.get(_F_CAL_SIGMA), "<f8", "sigma_mg"),
                          dtype=np.float64)
-        for name, column in (("status", status), ("sigma_mg", sigma)):
-            if len(column) != len(t_us):
-                raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
+        _same_length(t_us, status=status, sigma_mg=sigma)
     return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
                                                                       status, sigma)
 
