@@ -136,3 +136,25 @@ def test_alignment_request_uses_the_current_still_run() -> None:
     requested = [e for e in sink.events if e["kind"] == "alignment"][before:]
     assert requested and requested[-1]["detail"]["source"] == "request"
     assert not np.isnan(requested[-1]["detail"]["tilt_deg"])
+
+
+def test_a_stream_without_the_channel_the_model_needs_is_said_once_not_per_batch() -> None:
+    """A node (the remote one has no daemon to stop) whose model reads 'vdd' and whose stream
+    has no such channel: one missing_channel event and one operator line, every sample
+    counted as skipped, nothing calibrated and no error raised, however many batches come."""
+    from recal.core.effects import Ratiometric
+    from recal.core.estimator import Prior
+    from recal.core.model import SensorModel
+
+    model = SensorModel.diagonal(1024.0).with_effect(Ratiometric("vdd", 3.3), 0.5)
+    settings = NodeSettings(SID, PipelineSettings(), model, Prior.default(model), RATE_HZ,
+                            None, AlignmentConfig())
+    sink, lines = MemorySink(), []
+    node = CalibrationNode(settings, sink)
+    node.on_note = lines.append
+    raw = sim.simulate(2 / 60, RATE_HZ, 3, sim.SensorSpec()).raw  # no aux channels
+    for i in range(0, len(raw), 100):
+        assert node.process(raw[i:i + 100], 10**9 + i) is None
+    assert sink.kinds().count("missing_channel") == 1
+    assert len(lines) == 1 and "cannot calibrate" in lines[0] and "'vdd'" in lines[0], lines
+    assert node.samples_skipped == len(raw) and node.samples == 0

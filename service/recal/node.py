@@ -716,6 +716,8 @@ class CalibrationNode:
             self.samples_skipped += len(batch)
             self._event("missing_channel", int(batch.t_us[0]), log_ns, {
                 "missing": missing, "stream": list(names), "error": self.failed})
+            if self.on_note is not None:
+                self.on_note(f"cannot calibrate: {self.failed}; its samples are skipped")
             return RawBatch.empty(names)
         tcfg = tb.TimebaseConfig(rate_hz=s.rate_hz)
         state, _ = tb.start(batch.t_us, tcfg)
