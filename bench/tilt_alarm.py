@@ -34,13 +34,11 @@ from typing import Any
 import numpy as np
 
 from recal.config import (
-    AlignmentConfig,
-    PipelineSettings,
     PriorConfig,
     SensorConfig,
-    model_and_prior,
+    ServiceConfig,
 )
-from recal.node import CalibrationNode, EventSink, NodeSettings
+from recal.node import CalibrationNode, EventSink, node_settings
 from recal.sim import MountSlip, SensorSpec, WearerSpec, simulate
 
 RATE_HZ = 25.0
@@ -86,11 +84,8 @@ def run(wearer: WearerSpec, seed: int, hours: float, slip: MountSlip | None) -> 
     sensor = SensorSpec.random(rng, offset_mg=50.0, gain_pct=3.0)
     raw = simulate(hours, RATE_HZ, seed, sensor, wearer, slip=slip).raw
     cfg = SensorConfig("s", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
-    settings = PipelineSettings()
-    model, prior = model_and_prior(cfg, settings)
     sink = EventSink()
-    node = CalibrationNode(NodeSettings("s", settings, model, prior, RATE_HZ, None,
-                                        AlignmentConfig()), sink)
+    node = CalibrationNode(node_settings(cfg, ServiceConfig()), sink)
     step = round(10 * RATE_HZ)
     for i in range(0, len(raw), step):
         b = raw[i:i + step]

@@ -11,14 +11,12 @@ import pytest
 
 from recal import sim
 from recal.config import (
-    AlignmentConfig,
-    PipelineSettings,
     PriorConfig,
     SensorConfig,
-    model_and_prior,
+    ServiceConfig,
 )
 from recal.core import alignment as al
-from recal.node import CalibrationNode, EventSink, NodeSettings
+from recal.node import CalibrationNode, EventSink, NodeSettings, node_settings
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -224,18 +222,20 @@ def test_slip_watch_needs_movement_between_periods() -> None:
 RATE_HZ = 25.0
 
 
+def _settings() -> NodeSettings:
+    """The default service's settings for one sensor at RATE_HZ with a 1024 counts/g prior."""
+    sensor = SensorConfig("s", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
+    return node_settings(sensor, ServiceConfig())
+
+
 def _wear(seed: int, minutes: float, wearer: sim.WearerSpec, slip: sim.MountSlip | None = None,
           batch: int = 250) -> EventSink:
     """A sensor with offsets +-50 mg and gains +-3 % on a simulated wearer, through a node with
     the default alignment settings (reference after an accepted update, 7 deg limit)."""
     spec = sim.SensorSpec.random(np.random.default_rng(seed), offset_mg=50.0, gain_pct=3.0)
     raw = sim.simulate(minutes / 60, RATE_HZ, seed, spec, wearer, slip=slip).raw
-    sensor = SensorConfig("s", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
-    settings = PipelineSettings()
-    model, prior = model_and_prior(sensor, settings)
     sink = EventSink()
-    node = CalibrationNode(NodeSettings("s", settings, model, prior, RATE_HZ, None,
-                                        AlignmentConfig()), sink)
+    node = CalibrationNode(_settings(), sink)
     for i in range(0, len(raw), batch):
         b = raw[i:i + batch]
         node.process(b, int(b.t_us[0]) * 1000)
@@ -335,12 +335,8 @@ def test_the_alarm_stands_in_the_state_and_clears_when_the_sensor_is_reseated() 
                  slipped.truth.a_true_g)
     v = sim.forward_model(a, spec, rng=np.random.default_rng(seed + 100))
     raw = replace(plain.raw, v=v)
-    sensor = SensorConfig("s", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
-    settings = PipelineSettings()
-    model, prior = model_and_prior(sensor, settings)
     sink = EventSink()
-    node = CalibrationNode(NodeSettings("s", settings, model, prior, RATE_HZ, None,
-                                        AlignmentConfig()), sink)
+    node = CalibrationNode(_settings(), sink)
     standing: list[bool] = []
     for i in range(0, len(raw), 250):
         b = raw[i:i + 250]
