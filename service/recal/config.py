@@ -69,6 +69,7 @@ __all__ = [
     "default_state_dir",
     "load_config",
     "load_model_file",
+    "load_priors",
     "model_and_prior",
     "parse_config",
 ]
@@ -322,6 +323,8 @@ class ServiceConfig:
     source: Path | None = None
     discovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
     node: NodeConfig = field(default_factory=NodeConfig)
+    #: the named priors the config defines (``priors_file`` and ``[priors.<name>]``), by name
+    priors: Mapping[str, PriorConfig] = field(default_factory=dict)
 
     def sensor(self, sensor_id: str) -> SensorConfig | None:
         return next((s for s in self.sensors if s.id == sensor_id), None)
@@ -621,8 +624,8 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
-def _priors_file(path: Path) -> dict[str, PriorConfig]:
-    """``[priors.<name>]`` tables of a priors file."""
+def load_priors(path: Path) -> dict[str, PriorConfig]:
+    """``[priors.<name>]`` tables of a priors file (ConfigError if bad)."""
     doc = _read_toml(path)
     ctx = _Ctx(path.name, "", path.parent)
     _table(ctx, doc, ("priors",))
@@ -642,7 +645,7 @@ def parse_config(doc: Mapping[str, Any], base_dir: Path | str = ".",
     priors: dict[str, PriorConfig] = {}
     priors_path = _path(ctx, doc, "priors_file", None)
     if priors_path is not None:
-        priors.update(_priors_file(priors_path))
+        priors.update(load_priors(priors_path))
     inline = _table(ctx.sub("priors"), doc.get("priors", {}), tuple(doc.get("priors", {})))
     priors.update({n: _prior(ctx.sub(f"priors.{n}"), d) for n, d in inline.items()})
     raw_sensors = doc.get("sensors", [])
@@ -664,7 +667,7 @@ def parse_config(doc: Mapping[str, Any], base_dir: Path | str = ".",
         batch_ms=_batch_ms(ctx, doc, "batch_ms", 0.0),
         idle_batch_ms=_batch_ms(ctx, doc, "idle_batch_ms", 0.0),
         discovery=_discovery(ctx.sub("discovery"), doc.get("discovery", {})),
-        node=_node(ctx.sub("node"), doc.get("node", {})))
+        node=_node(ctx.sub("node"), doc.get("node", {})), priors=priors)
 
 
 def load_config(path: str | Path | None) -> ServiceConfig:

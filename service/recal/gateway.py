@@ -84,7 +84,7 @@ from recal.config import (
     SensorConfig,
     ServiceConfig,
     load_config,
-    parse_config,
+    load_priors,
 )
 from recal.core.effects import TIME as TIME_COVARIATE
 from recal.io import messages
@@ -829,25 +829,14 @@ def _with_options(cfg: ServiceConfig, options: dict[str, Any]) -> ServiceConfig:
 
 
 def _named_prior(cfg: ServiceConfig, name: str) -> PriorConfig:
-    """The prior called ``name`` in the config's priors (``priors_file``, ``[priors]``), or
-    in the shipped configs/sensor-priors.toml without a config."""
-    import tomllib
-
-    doc: dict[str, Any] = {"sensors": [{"id": "cli", "prior": name}]}
-    base = Path(".")
-    if cfg.source is not None:
-        base = Path(cfg.source).parent
-        try:
-            raw = tomllib.loads(Path(cfg.source).read_text())
-        except (OSError, ValueError) as exc:
-            raise ConfigError(f"--prior {name}: {exc}") from None
-        doc.update({k: raw[k] for k in ("priors_file", "priors") if k in raw})
-    elif SHIPPED_PRIORS.exists():
-        doc["priors_file"] = str(SHIPPED_PRIORS)
-    try:
-        return parse_config(doc, base, "--prior").sensors[0].prior
-    except ConfigError as exc:
-        raise ConfigError(f"--prior {name}: {str(exc).rsplit('prior: ', 1)[-1]}") from None
+    """The prior called ``name`` among the config's priors (``priors_file``, ``[priors]``), or
+    among the shipped configs/sensor-priors.toml without a config file."""
+    priors = cfg.priors if cfg.source is not None or not SHIPPED_PRIORS.exists() else (
+        load_priors(SHIPPED_PRIORS))
+    if name not in priors:
+        known = ", ".join(sorted(priors)) or "none defined"
+        raise ConfigError(f"--prior {name}: no prior named {name!r} ({known})")
+    return priors[name]
 
 
 def _check_channels(cfg: ServiceConfig, model_path: str | Path | None) -> None:
