@@ -86,7 +86,7 @@ from recal.config import (
     load_config,
     load_priors,
 )
-from recal.core.effects import TIME as TIME_COVARIATE
+from recal.core.pipeline import missing_channels
 from recal.io import messages
 from recal.io.frames import make_parser
 from recal.io.recording import RecordingWriter, WriteHealth, sensor_topic
@@ -848,7 +848,7 @@ def _check_channels(cfg: ServiceConfig, model_path: str | Path | None) -> None:
         if s.aux_names is None or not cfg.run_nodes:
             continue
         model = node_settings(s, cfg, model_path).model
-        missing = [c for c in model.covariates if c not in s.aux_names and c != TIME_COVARIATE]
+        missing = missing_channels(model, s.aux_names)
         if missing:
             raise ConfigError(f"sensor {s.id}: the model needs channel {missing[0]!r}, the "
                               f"sensor's channels are {list(s.aux_names)}")

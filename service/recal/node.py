@@ -82,10 +82,9 @@ from recal.config import (
 )
 from recal.core import alignment as al
 from recal.core import timebase as tb
-from recal.core.effects import TIME as TIME_COVARIATE
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, StepOutput
+from recal.core.pipeline import Pipeline, StepOutput, missing_channels
 from recal.core.status import NOT_FINITE_SIGMA_MG, Status
 from recal.samples import CalibratedBatch, RawBatch
 
@@ -709,7 +708,7 @@ class CalibrationNode:
         batch = RawBatch.concat([b for b in parts if isinstance(b, RawBatch)])
         self._pending, self._pending_n = [], 0
         s = self.settings
-        missing = [c for c in s.model.covariates if c not in names and c != TIME_COVARIATE]
+        missing = missing_channels(s.model, names)
         if missing:  # no batch of this stream can be calibrated: say so once, not per batch
             self.failed = (f"the model needs channel {missing[0]!r}, the stream has "
                            f"{list(names)}")

@@ -59,8 +59,8 @@ from recal.core.triaxial import norm3
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent", "WindowSums",
-           "check_channels", "from_state_dict", "gain_reference", "run_starts", "state_dict",
-           "usable"]
+           "check_channels", "from_state_dict", "gain_reference", "missing_channels", "run_starts",
+           "state_dict", "usable"]
 
 
 @dataclass(frozen=True)
@@ -1205,9 +1205,15 @@ def _joined(head: StepOutput, tail: StepOutput, at: int) -> StepOutput:
                       {**head.states, **{m + at: v for m, v in tail.states.items()}}, watch)
 
 
+def missing_channels(model: SensorModel, aux_names: Sequence[str]) -> list[str]:
+    """The channels the model reads (its covariates, time aside) that ``aux_names`` lack, in
+    the model's order."""
+    return [c for c in model.covariates if c != TIME and c not in aux_names]
+
+
 def check_channels(model: SensorModel, aux_names: tuple[str, ...]) -> None:
     """A model whose covariates the input's channels lack is an error, said before any work."""
-    missing = set(model.covariates) - {TIME, *aux_names}
+    missing = missing_channels(model, aux_names)
     if missing:
         raise ValueError(f"model needs channels {sorted(missing)} that the input lacks "
                          f"(it has {list(aux_names)})")
