@@ -1,0 +1,37 @@
+"""The one root of every error recal reports to a user as one line (`RecalError`).
+
+The command line turns exactly these (and OSError: a file or port the system refused) into
+"recal: error: ..." and exit code 2; anything else is a bug and shows its traceback. Each
+subclass also derives from the built-in error it used to be, so callers that catch ValueError
+keep working.
+"""
+
+from __future__ import annotations
+
+__all__ = ["ConfigError", "InputError", "ModelError", "RecalError", "RecordingError",
+           "UsageError"]
+
+
+class RecalError(Exception):
+    """An error the user can act on: bad input, configuration or usage, said in one line."""
+
+
+class UsageError(RecalError, ValueError):
+    """A command line that cannot be carried out (a bad option value, an output that exists)."""
+
+
+class ConfigError(RecalError, ValueError):
+    """A configuration, prior or model file that is not valid."""
+
+
+class InputError(RecalError, ValueError):
+    """Input data that cannot be used (a table without the columns, a file of another format)."""
+
+
+class RecordingError(RecalError, ValueError):
+    """An MCAP recording that cannot be read or written as asked (not a recording, no such
+    sensor, damaged beyond repair)."""
+
+
+class ModelError(RecalError, ValueError):
+    """A sensor model that does not fit the data it is given (a channel the stream lacks)."""
