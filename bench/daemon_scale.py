@@ -50,10 +50,12 @@ import numpy as np
 from child_process import ChildProcess
 from pty_fleet import FleetProcess
 from recal.demo import free_port
+from recal.errors import RecordingError
 from recal.gateway import READY_PREFIX
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
+from recal.io.repair import repair
 
 __all__ = ["main", "run_rung"]
 
@@ -149,9 +151,9 @@ def verify(mcap: Path, sent: Sequence[int], calibrated: bool = True,
     try:
         parts = rec.recording_parts(mcap)
         return _missing(parts, sent, calibrated, first)
-    except rec.RecordingError:
+    except RecordingError:
         fixed = mcap.with_suffix(".repaired.mcap")
-        rec.repair(mcap, fixed)
+        repair(mcap, fixed)
         return _missing(rec.recording_parts(fixed), sent, calibrated, first)
 
 

@@ -51,12 +51,12 @@ CHILD_TIMEOUT_S = 3600.0
 
 def generate(path: Path, hours: int, seed: int) -> None:
     """The recording, one simulated hour at a time (never all of it in memory)."""
-    from recal.io import recording as rec
+    from recal.io.recording_writer import RecordingWriter
     from recal.sim import SensorSpec, simulate
 
     sensor = SensorSpec.random(np.random.default_rng(seed), offset_mg=40.0, gain_pct=3.0)
-    with rec.RecordingWriter(path, chunk_size=4 << 20, background_flush=False, fsync=False,
-                             overwrite=True) as w:
+    with RecordingWriter(path, chunk_size=4 << 20, background_flush=False, fsync=False,
+                         overwrite=True) as w:
         for h in range(hours):
             raw = simulate(1.0, RATE_HZ, seed * 1000 + h, sensor,
                            start_us=h * 3_600_000_000).raw
@@ -79,16 +79,17 @@ def measure(path: Path, out_dir: Path, warmup_samples: int) -> dict[str, Any]:
     """One run in this (fresh) process: the daemon's code path over the recording."""
     from recal.config import PriorConfig, SensorConfig, ServiceConfig
     from recal.io import recording as rec
+    from recal.io.recording_writer import RecordingWriter
     from recal.node import CalibrationNode, RecordingSink, node_settings
 
     cfg = ServiceConfig()
     m = cfg.mcap
     clock = DeviceClock()
-    writer = rec.RecordingWriter(out_dir / "daemon.mcap", chunk_size=m.chunk_size,
-                                 flush_interval_s=m.flush_interval_s,
-                                 compression=m.compression,  # type: ignore[arg-type]
-                                 fsync=False, clock=clock, background_flush=False,
-                                 overwrite=True)
+    writer = RecordingWriter(out_dir / "daemon.mcap", chunk_size=m.chunk_size,
+                             flush_interval_s=m.flush_interval_s,
+                             compression=m.compression,  # type: ignore[arg-type]
+                             fsync=False, clock=clock, background_flush=False,
+                             overwrite=True)
     sensor = SensorConfig(id=SENSOR, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
     node = CalibrationNode(node_settings(sensor, cfg), RecordingSink(writer))
     done = [0]

@@ -49,6 +49,7 @@ from recal.config import SensorConfig, ServiceConfig, model_and_prior
 from recal.core.pipeline import Pipeline
 from recal.io import messages
 from recal.io import recording as rec
+from recal.io.recording_writer import RecordingWriter
 from recal.replay import replay
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, simulate
@@ -59,7 +60,7 @@ SENSOR = "s1"
 
 def write_recording(path: Path, raw: RawBatch, samples_per_message: int) -> None:
     """The samples as `recal simulate` logs them, in messages of the given size."""
-    with rec.RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
+    with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
         for i in range(0, len(raw), samples_per_message):
             b = raw[i:i + samples_per_message]
             w.write_raw(SENSOR, b, 1_700_000_000_000_000_000 + int(b.t_us[0]) * 1000)

@@ -39,8 +39,8 @@ from pathlib import Path
 from pty_fleet import FleetProcess
 from recal.config import SensorConfig, ServiceConfig, model_and_prior
 from recal.core.pipeline import Pipeline
-from recal.io import recording as rec
 from recal.io.frames import encode_ascii, make_parser
+from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource
 from recal.samples import RawBatch
 from recal.sim import simulate
@@ -63,8 +63,8 @@ class _Handler:
         cfg = ServiceConfig()
         model, prior = model_and_prior(SensorConfig(id="s1"), cfg.pipeline)
         self.pipe = Pipeline(cfg.pipeline.pipeline_config(RATE_HZ), model, prior, ())
-        self.writer = (rec.RecordingWriter(out, background_flush=False, fsync=False,
-                                           overwrite=True) if stage == "log" else None)
+        self.writer = (RecordingWriter(out, background_flush=False, fsync=False,
+                                       overwrite=True) if stage == "log" else None)
         self.samples = 0
 
     def __call__(self, fd: int) -> None:

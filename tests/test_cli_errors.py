@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from recal.io.pty_device import PtyDevice
-from recal.io.recording import RecordingWriter
+from recal.io.recording_writer import RecordingWriter
 from recal.sim import simulate
 
 NO_ZENOH = "[zenoh]\nenabled = false\n"

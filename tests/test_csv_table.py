@@ -188,6 +188,7 @@ def test_cli_import_then_raw_export_keeps_the_unit(tmp_path: Path,
     not counts; a recording without a unit (a live log) exports plain x, y, z."""
     from recal import cli
     from recal.io import recording
+    from recal.io.recording_writer import RecordingWriter
 
     src = tmp_path / "in.csv"
     src.write_text("t_us,x_g,y_g,z_g\n0,0.5,0.25,1.0\n10000,0.5,0.25,1.0\n")
@@ -200,7 +201,7 @@ def test_cli_import_then_raw_export_keeps_the_unit(tmp_path: Path,
     assert (tmp_path / "a.csv").read_text().splitlines()[0] == "t_us,x_g,y_g,z_g"
     back = read_csv(tmp_path / "a.csv")
     assert back.units == "g" and np.array_equal(back.batch.v, [[0.5, 0.25, 1.0]] * 2)
-    with recording.RecordingWriter(tmp_path / "live.mcap", fsync=False) as w:
+    with RecordingWriter(tmp_path / "live.mcap", fsync=False) as w:
         w.write_raw("s1", back.batch, 1)
     assert recording.metadata(tmp_path / "live.mcap").get("units") is None
     assert cli.main(["export", str(tmp_path / "live.mcap"), "--csv", str(tmp_path / "b.csv"),

@@ -24,6 +24,7 @@ from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.io import csv_table
 from recal.io import recording as rec
+from recal.io.recording_writer import RecordingWriter
 from recal.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 
@@ -294,7 +295,7 @@ def test_cli_discover_writes_the_report_and_a_model_replay_accepts(tmp_path: Pat
                                                                    capsys) -> None:
     raw = sim.simulate(0.4, RATE_HZ, 5, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
     mcap = tmp_path / "in.mcap"
-    with rec.RecordingWriter(mcap, overwrite=True) as w:
+    with RecordingWriter(mcap, overwrite=True) as w:
         for i in range(0, len(raw), 1000):
             w.write_raw("wrist", raw[i:i + 1000], int(raw.t_us[i]) * 1000 + 1)
     report, model_file, plots = tmp_path / "r.json", tmp_path / "m.json", tmp_path / "plots"

@@ -30,11 +30,13 @@ from recal import gateway
 from recal.cli import main as recal_main
 from recal.config import ConfigError, parse_config
 from recal.demo import free_port
+from recal.errors import RecordingError
 from recal.gateway import open_recording
 from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_calibrated
 from recal.io.pty_device import PtyDevice
+from recal.io.recording_writer import RecordingWriter
 from recal.node import load_checkpoint, save_checkpoint
 from recal.samples import RawBatch
 from test_gateway import get_json, sim_raw, stream
@@ -190,7 +192,7 @@ def logged_raw(mcap: Path, tmp: Path) -> RawBatch:
     for k, part in enumerate(rec.recording_parts(mcap)):
         try:
             batches.append(rec.read_all_raw(part, SID))
-        except rec.RecordingError:
+        except RecordingError:
             fixed = tmp / f"repaired-{k}.mcap"
             assert recal_main(["repair", str(part), "--out", str(fixed)]) == 0
             batches.append(rec.read_all_raw(fixed, SID))
@@ -232,8 +234,8 @@ def batches(n: int, first: int = 0, size: int = 100) -> list[RawBatch]:
 
 def test_writer_waits_within_its_budget_and_resumes_in_the_same_file(small_disk: Path) -> None:
     budget = 100_000
-    w = rec.RecordingWriter(small_disk / "w.mcap", background_flush=False,
-                            flush_interval_s=1000.0, backlog_bytes=budget)
+    w = RecordingWriter(small_disk / "w.mcap", background_flush=False,
+                        flush_interval_s=1000.0, backlog_bytes=budget)
     sent = batches(2000)
     for b in sent[:50]:
         w.write_raw(SID, b, int(b.t_us[0]) * 1000)
@@ -272,7 +274,7 @@ def test_writer_waits_within_its_budget_and_resumes_in_the_same_file(small_disk:
 
 def test_writer_closed_while_full_leaves_a_repairable_file(small_disk: Path,
                                                             tmp_path: Path) -> None:
-    w = rec.RecordingWriter(small_disk / "c.mcap", flush_interval_s=0.02, backlog_bytes=50_000)
+    w = RecordingWriter(small_disk / "c.mcap", flush_interval_s=0.02, backlog_bytes=50_000)
     sent = batches(200)
     for b in sent[:30]:
         w.write_raw(SID, b, int(b.t_us[0]) * 1000)
@@ -283,7 +285,7 @@ def test_writer_closed_while_full_leaves_a_repairable_file(small_disk: Path,
     w.close()  # does not raise
     h = w.health()
     assert h.unfinished == (small_disk / "c.mcap",) and h.dropped_messages > 0, h
-    with pytest.raises(rec.RecordingError):
+    with pytest.raises(RecordingError):
         rec.read_all_raw(w.paths, SID)
     fixed = tmp_path / "fixed.mcap"
     assert recal_main(["repair", str(w.paths[0]), "--out", str(fixed)]) == 0
@@ -295,7 +297,7 @@ def test_writer_closed_while_full_leaves_a_repairable_file(small_disk: Path,
 
 def test_flush_thread_outlives_the_full_disk_and_writes_when_space_returns(
         small_disk: Path) -> None:
-    w = rec.RecordingWriter(small_disk / "t.mcap", flush_interval_s=0.02, backlog_bytes=10**6)
+    w = RecordingWriter(small_disk / "t.mcap", flush_interval_s=0.02, backlog_bytes=10**6)
     try:
         filler = fill(small_disk)
         for b in batches(30):
@@ -325,8 +327,8 @@ def test_a_checkpoint_the_disk_refuses_leaves_the_old_one_and_no_temporary_file(
 
 def test_the_operator_hears_of_each_outage_once_with_what_it_lost(
         small_disk: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    w = rec.RecordingWriter(small_disk / "o.mcap", background_flush=False,
-                            flush_interval_s=1000.0, backlog_bytes=30_000)
+    w = RecordingWriter(small_disk / "o.mcap", background_flush=False,
+                        flush_interval_s=1000.0, backlog_bytes=30_000)
     lines: list[str] = []
     events: list[tuple[str, dict]] = []
     watch = gateway.RecordingWatch(w, lines.append, 0.03)

@@ -25,6 +25,7 @@ from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
 from recal.io.pty_device import PtyDevice
+from recal.io.repair import repair
 from recal.node import load_checkpoint, run_node
 from recal.replay import replay
 from recal.samples import RawBatch
@@ -272,7 +273,7 @@ def test_kill9_repair_then_restart_resumes_from_checkpoint(tmp_path: Path,
         finally:
             bus.close()
         # repair recovers what was written: at least 99 % of the samples sent before the kill
-        report = rec.repair(run1, tmp_path / "run1-fixed.mcap")
+        report = repair(run1, tmp_path / "run1-fixed.mcap")
         assert report.truncated
         got = rec.read_all_raw(tmp_path / "run1-fixed.mcap", SID)
         assert len(got) >= 0.99 * sent, (len(got), sent)

@@ -248,9 +248,9 @@ def test_per_axis_arithmetic_is_the_broadcast_bit_for_bit(n: int) -> None:
 
 # --- the command ---------------------------------------------------------------------------
 def _recording(path, sensors: dict[str, RawBatch]) -> None:
-    from recal.io import recording as rec
+    from recal.io.recording_writer import RecordingWriter
 
-    with rec.RecordingWriter(path, overwrite=True) as w:
+    with RecordingWriter(path, overwrite=True) as w:
         for sid, raw in sensors.items():
             for i in range(0, len(raw), 1000):
                 w.write_raw(sid, raw[i:i + 1000], int(raw.t_us[i]) * 1000 + 1)

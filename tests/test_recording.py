@@ -19,8 +19,11 @@ from google.protobuf import descriptor_pb2
 from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
 
+from recal.errors import RecordingError
 from recal.io import messages
 from recal.io import recording as rec
+from recal.io.recording_writer import RecordingWriter
+from recal.io.repair import repair
 from recal.samples import CalibratedBatch, RawBatch
 
 T0_NS = 1_700_000_000_000_000_000
@@ -48,10 +51,10 @@ def _calibrated(i: int, n: int = 20) -> CalibratedBatch:
     return CalibratedBatch(t_us, a_g, np.arange(n) % 2 == 0, np.full(n, 0.01 * i))
 
 
-def _writer(path: Path, **kwargs) -> rec.RecordingWriter:
+def _writer(path: Path, **kwargs) -> RecordingWriter:
     kwargs.setdefault("background_flush", False)
     kwargs.setdefault("fsync", False)
-    return rec.RecordingWriter(path, **kwargs)
+    return RecordingWriter(path, **kwargs)
 
 
 def _all_messages(path: Path) -> list:
@@ -234,9 +237,9 @@ def test_invalid_use_is_rejected(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="closed"):
         w.write_raw("s1", _raw(0), T0_NS)
     with pytest.raises(FileExistsError):
-        rec.RecordingWriter(path)
+        RecordingWriter(path)
     with pytest.raises(ValueError, match="compression"):
-        rec.RecordingWriter(tmp_path / "other.mcap", compression="gzip")  # type: ignore[arg-type]
+        RecordingWriter(tmp_path / "other.mcap", compression="gzip")  # type: ignore[arg-type]
 
 
 def test_reading_an_unfinished_file_says_to_repair(tmp_path: Path) -> None:
@@ -245,7 +248,7 @@ def test_reading_an_unfinished_file_says_to_repair(tmp_path: Path) -> None:
     data = path.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
-    with pytest.raises(rec.RecordingError, match="repair"):
+    with pytest.raises(RecordingError, match="repair"):
         list(rec.iter_raw(cut))
 
 
@@ -257,7 +260,7 @@ def _recoverable(path: Path, tmp_path: Path) -> int:
     """Messages a crash right now would keep: repair a snapshot of the open file."""
     snapshot = tmp_path / "snapshot.mcap"
     snapshot.write_bytes(path.read_bytes())
-    return rec.repair(snapshot, tmp_path / "snapshot-fixed.mcap").messages_recovered
+    return repair(snapshot, tmp_path / "snapshot-fixed.mcap").messages_recovered
 
 
 def test_flush_is_driven_by_the_injected_clock(tmp_path: Path) -> None:
@@ -285,7 +288,7 @@ def test_flush_is_driven_by_the_injected_clock(tmp_path: Path) -> None:
 
 def test_background_thread_flushes_a_quiet_writer(tmp_path: Path) -> None:
     path = tmp_path / "rec.mcap"
-    with rec.RecordingWriter(path, flush_interval_s=0.05, fsync=True) as w:
+    with RecordingWriter(path, flush_interval_s=0.05, fsync=True) as w:
         for i in range(3):
             w.write_raw("s1", _raw(i, n=5), T0_NS + i)
         deadline = time.monotonic() + 5.0
@@ -354,7 +357,7 @@ def test_overwrite_removes_stale_parts(tmp_path: Path) -> None:
 _KILLED_WRITER = textwrap.dedent("""
     import sys, time
     import numpy as np
-    from recal.io.recording import RecordingWriter
+    from recal.io.recording_writer import RecordingWriter
     from recal.samples import RawBatch
 
     w = RecordingWriter(sys.argv[1], flush_interval_s=0.1)
@@ -395,7 +398,7 @@ def test_sigkilled_writer_loses_at_most_the_last_flush_interval(tmp_path: Path) 
         proc.stdout.close()  # type: ignore[union-attr]
     assert proc.returncode == -signal.SIGKILL
     fixed = tmp_path / "fixed.mcap"
-    report = rec.repair(path, fixed)
+    report = repair(path, fixed)
     assert report.truncated
     assert report.messages_recovered >= 0.99 * flushed > 0
     with open(fixed, "rb") as f:  # a valid, indexed file
@@ -420,7 +423,7 @@ def good_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_repairing_a_complete_file_copies_everything(good_file: Path, tmp_path: Path) -> None:
-    report = rec.repair(good_file, tmp_path / "copy.mcap")
+    report = repair(good_file, tmp_path / "copy.mcap")
     assert not report.truncated and report.error is None
     assert report.messages_per_topic == {"/s1/raw": 60, "/s1/calibration": 60}
     assert report.bytes_read == report.input_bytes == good_file.stat().st_size
@@ -436,7 +439,7 @@ def test_repair_at_random_truncations_is_monotone(good_file: Path, tmp_path: Pat
     recovered = []
     for offset in offsets:
         cut.write_bytes(data[:offset])
-        report = rec.repair(cut, fixed)
+        report = repair(cut, fixed)
         recovered.append(report.messages_recovered)
         assert report.bytes_read <= offset
         assert report.truncated == (offset < len(data))
@@ -449,5 +452,5 @@ def test_repair_at_random_truncations_is_monotone(good_file: Path, tmp_path: Pat
 def test_repair_refuses_a_file_that_is_not_mcap(tmp_path: Path) -> None:
     bogus = tmp_path / "bogus.mcap"
     bogus.write_bytes(b"hello, world, this is not mcap")
-    with pytest.raises(rec.RecordingError, match="not an MCAP"):
-        rec.repair(bogus, tmp_path / "out.mcap")
+    with pytest.raises(RecordingError, match="not an MCAP"):
+        repair(bogus, tmp_path / "out.mcap")

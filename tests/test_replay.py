@@ -13,9 +13,12 @@ import pytest
 
 from polling import wait_for
 from recal.config import parse_config
+from recal.errors import RecordingError
 from recal.gateway import Gateway, run_gateway
 from recal.io import recording as rec
 from recal.io.pty_device import PtyDevice
+from recal.io.recording_writer import RecordingWriter
+from recal.io.repair import repair
 from recal.replay import replay
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
@@ -85,7 +88,7 @@ def test_replay_reproduces_live_runs_also_after_a_checkpoint_restore(tmp_path: P
 
 
 def _raw_only(path: Path, raw: RawBatch, batch: int = 100, **writer: Any) -> None:
-    with rec.RecordingWriter(path, background_flush=False, fsync=False, **writer) as w:
+    with RecordingWriter(path, background_flush=False, fsync=False, **writer) as w:
         for i in range(0, len(raw), batch):
             w.write_raw(SID, raw[i:i + batch], 1_000_000_000 + int(raw.t_us[i]) * 1000)
 
@@ -165,8 +168,8 @@ def test_replay_of_a_truncated_file_needs_repair(tmp_path: Path) -> None:
     _raw_only(tmp_path / "full.mcap", s.raw, chunk_size=4096)
     data = (tmp_path / "full.mcap").read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[:len(data) // 2])
-    with pytest.raises(rec.RecordingError):
+    with pytest.raises(RecordingError):
         replay(tmp_path / "cut.mcap", tmp_path / "x.mcap", progress=False)
-    rec.repair(tmp_path / "cut.mcap", tmp_path / "fixed.mcap")
+    repair(tmp_path / "cut.mcap", tmp_path / "fixed.mcap")
     out = replay(tmp_path / "fixed.mcap", tmp_path / "y.mcap", progress=False)
     assert 0 < out["samples"] < len(s.raw)

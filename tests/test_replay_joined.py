@@ -22,6 +22,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
 from recal.io import recording as rec
 from recal.io.messages import encode_json
+from recal.io.recording_writer import RecordingWriter
 from recal.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import SensorSpec, WearerSpec, simulate
@@ -134,7 +135,7 @@ def test_replay_joined_equals_replay_one_message_at_a_time(tmp_path: Path,
                                                            ) -> None:
     raw = _raw(20.0, 4)
     src = tmp_path / "in.mcap"
-    with rec.RecordingWriter(src, background_flush=False, fsync=False) as w:
+    with RecordingWriter(src, background_flush=False, fsync=False) as w:
         for batch, log_ns in _messages(raw, np.random.default_rng(4), 30):
             w.write_raw(SID, batch, log_ns)
     joined = replay_mod.replay(src, tmp_path / "joined.mcap", progress=False)

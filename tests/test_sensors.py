@@ -23,6 +23,7 @@ from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig, from_state_dict
 from recal.io import recording as rec
+from recal.io.recording_writer import RecordingWriter
 from recal.samples import RawBatch
 
 RATE = 50.0
@@ -43,7 +44,7 @@ def _sim(kind: str, seed: int, minutes: float = 40.0, wearer: sim.WearerSpec = W
 
 
 def _write_mcap(path: Path, raw: RawBatch) -> Path:
-    with rec.RecordingWriter(path, background_flush=False, fsync=False) as w:
+    with RecordingWriter(path, background_flush=False, fsync=False) as w:
         for i in range(0, len(raw), 250):
             w.write_raw(SID, raw[i:i + 250], 1_000_000_000 + int(raw.t_us[i]) * 1000)
     return path

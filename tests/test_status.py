@@ -25,6 +25,7 @@ from recal.core.status import Status, correction_jacobian, predicted_sigma_mg, s
 from recal.io import messages
 from recal.io import recording as rec
 from recal.io.csv_table import read_csv
+from recal.io.recording_writer import RecordingWriter
 from recal.node import CalibrationNode, NodeSettings
 from recal.replay import replay
 from recal.samples import CalibratedBatch, RawBatch
@@ -170,7 +171,7 @@ def test_upright_wearer_without_prior_is_not_published_as_calibrated_before_it_i
     and export count those samples."""
     res = sim.simulate(30 / 60, RATE_HZ, 3, _spec(3), sim.WearerSpec(upright_only=True))
     src, out, csv, js = (tmp_path / n for n in ("in.mcap", "out.mcap", "cal.csv", "x.json"))
-    with rec.RecordingWriter(src) as w:
+    with RecordingWriter(src) as w:
         for i in range(0, len(res.raw), 1000):
             b = res.raw[i:i + 1000]
             w.write_raw(SID, b, int(b.t_us[0]) * 1000)
@@ -213,7 +214,7 @@ def test_old_recordings_without_statuses_still_read_and_export(tmp_path: Path,
     official = messages.protobuf_message_class("recal.CalibratedBatch")
     src, csv = tmp_path / "old.mcap", tmp_path / "old.csv"
     n = 0
-    with rec.RecordingWriter(src) as w:
+    with RecordingWriter(src) as w:
         for i in range(3):
             t = np.arange(100, dtype=np.int64) * 40_000 + i * 4_000_000
             a, q, d = rng.normal(size=(100, 3)), rng.random(100) > 0.5, rng.random(100)
@@ -500,7 +501,7 @@ def test_hindsight_output_says_calibrated_and_its_predicted_error(tmp_path: Path
     error from the fit's covariance, like the live node's (not 'not recorded')."""
     res = sim.simulate(40 / 60, RATE_HZ, 3, _spec(3))
     src = tmp_path / "in.mcap"
-    with rec.RecordingWriter(src) as w:
+    with RecordingWriter(src) as w:
         for i in range(0, len(res.raw), 500):
             w.write_raw(SID, res.raw[i:i + 500], 1_000_000_000 + int(res.raw.t_us[i]) * 1000)
     out = tmp_path / "h.mcap"

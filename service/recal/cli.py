@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, NoReturn
 import numpy as np
 
 if TYPE_CHECKING:  # the commands import what they need when they run: a fast --help
-    from recal.io.recording import RecordingWriter
+    from recal.io.recording_writer import RecordingWriter
     from recal.samples import RawBatch
 
 __all__ = ["main"]
@@ -77,7 +77,8 @@ def _positive(text: str) -> float:
 # --- simulate --------------------------------------------------------------------------------
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from recal import sim
-    from recal.io import csv_table, recording
+    from recal.io import csv_table
+    from recal.io.recording_writer import RecordingWriter
 
     rng = np.random.default_rng(a.seed)
     sensor = sim.SensorSpec.random(rng, offset_mg=a.offset_mg, gain_pct=a.gain_pct,
@@ -107,7 +108,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     if out.suffix.lower() == ".csv":
         csv_table.write_raw_csv(out, res.raw)
     else:
-        with recording.RecordingWriter(out, overwrite=True) as w:
+        with RecordingWriter(out, overwrite=True) as w:
             _write_raw_messages(w, a.sensor_id, res.raw)
     truth = out.with_suffix(".truth.npz")
     sim.save_truth(truth, res)
@@ -120,10 +121,11 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 def _cmd_import(a: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from recal.io import csv_table, recording
+    from recal.io import csv_table
+    from recal.io.recording_writer import RecordingWriter
 
     _new_output(a.out, a.overwrite, a.input)
-    writer: recording.RecordingWriter | None = None
+    writer: RecordingWriter | None = None
     samples, skipped, bad_lines = 0, 0, []
     units, aux_names = "", ()
     clock = _ImportClock(a.rate)
@@ -145,8 +147,8 @@ def _cmd_import(a: argparse.Namespace) -> int:
             batch = clock.step(batch)  # the file's times as they are checked, then this
             if writer is None:
                 units, aux_names = table.units, batch.aux_names
-                writer = recording.RecordingWriter(a.out, overwrite=True,
-                                                   metadata={"units": table.units})
+                writer = RecordingWriter(a.out, overwrite=True,
+                                         metadata={"units": table.units})
             _write_raw_messages(writer, a.sensor_id, batch)
             samples += len(batch)
     except BaseException:
@@ -467,10 +469,10 @@ def replay_lines(summary: dict) -> list[str]:
 
 
 def _cmd_repair(a: argparse.Namespace) -> int:
-    from recal.io import recording
+    from recal.io.repair import repair
 
     _new_output(a.out, a.overwrite, a.input)
-    rep = recording.repair(a.input, a.out)
+    rep = repair(a.input, a.out)
     print(f"recovered {rep.messages_recovered} messages into {a.out}"
           f" ({'input was truncated' if rep.truncated else 'input was complete'})")
     for topic, n in sorted(rep.messages_per_topic.items()):

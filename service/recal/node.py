@@ -181,7 +181,8 @@ class EventSink(NullSink):
 
 
 class RecordingSink:
-    """Writes to a :class:`recal.io.recording.RecordingWriter` (topic ``/<sensor>/<suffix>``)."""
+    """Writes to a :class:`recal.io.recording_writer.RecordingWriter` (topic
+    ``/<sensor>/<suffix>``)."""
 
     def __init__(self, writer: Any) -> None:
         self.writer = writer

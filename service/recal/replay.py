@@ -38,6 +38,7 @@ from recal.config import (
 )
 from recal.core.pipeline import Pipeline
 from recal.io import recording as rec
+from recal.io.recording_writer import RecordingWriter
 from recal.node import CalibrationNode, NodeSettings, RecordingSink, model_name, node_settings
 from recal.samples import RawBatch
 
@@ -134,7 +135,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
 
     Args:
         in_mcap: a finished recording (its rotated parts are read too). A crashed one must be
-            repaired first (``recal.io.recording.repair``).
+            repaired first (``recal.io.repair.repair``).
         out_mcap: the new recording (an existing file is an error unless ``overwrite``).
         model: a model file for every sensor (see ``recal.config.load_model_file``).
         config: a ServiceConfig or TOML path: per-sensor priors, rates, pipeline settings.
@@ -158,9 +159,9 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     runs: dict[str, _SensorRun] = {}
     # Big chunks, compressed on a thread beside the calibration: a replay can be redone, so
     # it needs no crash-sized chunks or fsyncs.
-    writer = rec.RecordingWriter(out_mcap, chunk_size=1024 * 1024, background_flush=False,
-                                 fsync=False, overwrite=overwrite, background_compression=True,
-                                 metadata={"replay_of": str(Path(in_mcap).name)})
+    writer = RecordingWriter(out_mcap, chunk_size=1024 * 1024, background_flush=False,
+                             fsync=False, overwrite=overwrite, background_compression=True,
+                             metadata={"replay_of": str(Path(in_mcap).name)})
     sink = RecordingSink(writer)
     bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
                disable=not progress, leave=False)
