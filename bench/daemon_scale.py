@@ -53,7 +53,8 @@ from recal.demo import free_port
 from recal.errors import RecordingError
 from recal.gateway import READY_PREFIX
 from recal.io import recording as rec
-from recal.io.bus import Bus, key, zenoh_config
+from recal.io.bus import Bus, key
+from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
 from recal.io.repair import repair
 

@@ -21,7 +21,8 @@ import numpy as np
 from recal.config import parse_config
 from recal.demo import free_port
 from recal.io import recording as rec
-from recal.io.bus import Bus, key, zenoh_config
+from recal.io.bus import Bus, key
+from recal.io.bus_config import zenoh_config
 from recal.io.messages import encode_raw
 from recal.io.router import RouterProcess
 from recal.node import run_node

@@ -60,7 +60,7 @@ from daemon_scale import (
 )
 from pty_fleet import FleetProcess
 from recal.demo import free_port
-from recal.io.bus import zenoh_config
+from recal.io.bus_config import zenoh_config
 from recal.io.router import READY_PREFIX as ROUTER_READY_PREFIX
 from recal.node import NODE_READY_PREFIX
 

@@ -26,12 +26,11 @@ from recal.io.bus import (
     Receiver,
     key,
     key_pattern,
-    loopback_endpoint,
     parse_key,
     sensor_of,
     validate_sensor_id,
-    zenoh_config,
 )
+from recal.io.bus_config import loopback_endpoint, zenoh_config
 from recal.io.router import READY_PREFIX, RouterProcess, run_router
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
@@ -458,7 +457,8 @@ def _run_python(code: str, timeout_s: float) -> subprocess.CompletedProcess[str]
 def test_process_exits_even_if_the_bus_is_never_closed() -> None:
     """Callbacks run on Zenoh threads, not on non-daemon Python threads that block exit."""
     code = (
-        "from recal.io.bus import Bus, key, zenoh_config\n"
+        "from recal.io.bus import Bus, key\n"
+        "from recal.io.bus_config import zenoh_config\n"
         "bus = Bus(zenoh_config())\n"
         "bus.subscribe('recal/**', lambda m: None)\n"
         "rx = bus.receiver('recal/*/raw', capacity=8)\n"

@@ -33,7 +33,8 @@ from recal.demo import free_port
 from recal.errors import RecordingError
 from recal.gateway import open_recording
 from recal.io import recording as rec
-from recal.io.bus import Bus, key, zenoh_config
+from recal.io.bus import Bus, key
+from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated
 from recal.io.pty_device import PtyDevice
 from recal.io.recording_writer import RecordingWriter

@@ -22,7 +22,8 @@ from recal.core.pipeline import Pipeline
 from recal.demo import free_port
 from recal.gateway import NOTE_PREFIX, Gateway, run_gateway
 from recal.io import recording as rec
-from recal.io.bus import Bus, key, zenoh_config
+from recal.io.bus import Bus, key
+from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
 from recal.io.pty_device import PtyDevice
 from recal.io.repair import repair

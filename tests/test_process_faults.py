@@ -20,7 +20,8 @@ from polling import wait_for
 from recal.cli import main as recal_main
 from recal.demo import free_port
 from recal.io import recording as rec
-from recal.io.bus import Bus, key, zenoh_config
+from recal.io.bus import Bus, key
+from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_raw
 from recal.io.pty_device import PtyDevice
 from recal.io.router import RouterProcess

@@ -27,7 +27,8 @@ from polling import wait_for
 from recal.config import ConfigError, load_config, parse_config
 from recal.demo import free_port
 from recal.io import recording as rec
-from recal.io.bus import Bus, key, zenoh_config
+from recal.io.bus import Bus, key
+from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_json, encode_raw
 from recal.io.router import RouterProcess, run_router, security_summary
 from recal.node import (

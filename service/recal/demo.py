@@ -216,7 +216,8 @@ def _live(dev: PtyDevice, sim: SimResult, speed: float, seconds: float, endpoint
           ready: list[Gateway], th: threading.Thread, emit: Callable[[str], None], live: bool,
           t_start: float) -> dict[str, Any]:
     """Stream and show progress until the budget or the data runs out; returns live numbers."""
-    from recal.io.bus import Bus, key, zenoh_config
+    from recal.io.bus import Bus, key
+    from recal.io.bus_config import zenoh_config
     from recal.io.messages import decode_json
 
     deadline = t_start + seconds

@@ -164,7 +164,8 @@ def open_bus(cfg: ServiceConfig) -> Any:
     """A recal.io.bus.Bus from the [zenoh] settings, or None when Zenoh is disabled."""
     if not cfg.zenoh.enabled:
         return None
-    from recal.io.bus import Bus, zenoh_config
+    from recal.io.bus import Bus
+    from recal.io.bus_config import zenoh_config
 
     z = cfg.zenoh
     return Bus(zenoh_config(z.mode, z.listen, z.connect,

@@ -1,4 +1,4 @@
-"""Zenoh adapter: key expressions, session configuration, and a byte-level bus.
+"""Zenoh adapter: key expressions and a byte-level bus.
 
 This module moves bytes and strings. It knows nothing about the calibration algebra or the
 payload codecs (``recal.io.messages`` turns messages into bytes and back).
@@ -16,9 +16,7 @@ Key-expression layout (one sensor id per chunk, see :func:`validate_sensor_id`):
 Wildcards select several sensors at once: ``recal/*/raw`` (every sensor's raw stream; the
 sensor id comes back with :func:`parse_key`) or ``recal/<sensor>/**`` (everything about one).
 
-Networking defaults are loopback only: :func:`zenoh_config` always writes explicit
-``tcp/127.0.0.1:PORT`` endpoints, because Zenoh's own defaults listen on every interface
-(``tcp/[::]:0`` for a peer, ``tcp/[::]:7447`` for a router). Multicast scouting is off.
+Session configuration (loopback unless told otherwise) is `recal.io.bus_config`.
 
 Threading: subscriber and queryable callbacks run directly on Zenoh's network threads
 (``zenoh.handlers.Callback(..., indirect=False)``). A callback that blocks stalls reception on
@@ -28,38 +26,25 @@ work, such as a re-alignment, on a thread of your own. Why not zenoh-python's de
 process that forgets to close its session then never exits (measured: hung until killed).
 :class:`Publisher`, :class:`Receiver` and :class:`Bus` methods may be called from any thread.
 
-Measured with eclipse-zenoh 1.10 on loopback (the behaviours are pinned in tests/test_bus.py):
-
-* A client cannot open while its router is down (``zenoh.ZError``); set
-  ``connect/timeout_ms`` to wait for it. Once open, a client (or a peer) reconnects by itself
-  after the router restarts, with a back-off of ``connect/retry/period_init_ms`` (1 s) doubling
-  up to ``period_max_ms`` (4 s); subscriptions and queryables are re-declared automatically.
-  Samples published while the router is away are lost (no error is raised).
-* Two *peers* connected only to a router do not exchange data unless gossip scouting is on in
-  both peers and the router: the router does not forward peer-to-peer traffic, gossip lets the
-  peers connect to each other directly. Clients always go through the router.
-* Ping-pong round trip between two sessions (Python callback on each side): p50 ~100 us
-  peer to peer, ~150-200 us client-router-client. One :class:`Receiver` takes 35-40k
-  messages/s from another process (zenoh's indirect callbacks did ~2x that, but see the
-  threading note); batch samples into messages for more.
+Reconnection, peers behind a router and the measured latencies: docs/design.md (bus); the
+behaviours are pinned in tests/test_bus.py.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Literal
 
 import zenoh
 
+from recal.io.bus_config import zenoh_config
+
 __all__ = [
-    "DEFAULT_ROUTER_ENDPOINT",
     "KEY_ROOT",
     "QUERYABLE_TOPICS",
     "TOPICS",
@@ -71,11 +56,9 @@ __all__ = [
     "Subscription",
     "key",
     "key_pattern",
-    "loopback_endpoint",
     "parse_key",
     "sensor_of",
     "validate_sensor_id",
-    "zenoh_config",
 ]
 
 log = logging.getLogger(__name__)
@@ -92,16 +75,12 @@ TOPICS: tuple[str, ...] = (
 )
 QUERYABLE_TOPICS: frozenset[str] = frozenset({"status", "align"})
 
-DEFAULT_ROUTER_PORT = 7447
-DEFAULT_ROUTER_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_ROUTER_PORT}"
-
 # Characters with a meaning in Zenoh key expressions (chunk separator, wildcards, DSL markers).
 _FORBIDDEN_SENSOR_CHARS = frozenset("/*$?#")
 _MAX_SENSOR_ID_LEN = 128
 # A Bus keeps one declared publisher per key; sensors are few, so a cap catches key leaks.
 _MAX_PUBLISHERS = 4096
 
-Mode = Literal["peer", "client", "router"]
 Overflow = Literal["block", "drop_oldest"]
 
 
@@ -156,114 +135,6 @@ def parse_key(key_expr: str) -> tuple[str, str]:
 def sensor_of(key_expr: str) -> str:
     """The sensor id in a concrete key ``recal/<sensor>/<topic>``."""
     return parse_key(key_expr)[0]
-
-
-# --------------------------------------------------------------------------- configuration
-
-
-def loopback_endpoint(port: int) -> str:
-    """The Zenoh TCP endpoint ``tcp/127.0.0.1:<port>``."""
-    if not 0 <= int(port) <= 65535:
-        raise ValueError(f"port out of range: {port}")
-    return f"tcp/127.0.0.1:{int(port)}"
-
-
-def _default_listen(mode: str) -> list[str]:
-    # Port 0 lets a peer take any free loopback port; a client needs no listener; a router
-    # needs a well-known port for clients to connect to.
-    return {"peer": ["tcp/127.0.0.1:0"], "client": [], "router": [DEFAULT_ROUTER_ENDPOINT]}[mode]
-
-
-def _default_connect(mode: str) -> list[str]:
-    return [DEFAULT_ROUTER_ENDPOINT] if mode == "client" else []
-
-
-def _listen_is_zenoh_default(config: zenoh.Config) -> bool:
-    """True when nobody set ``listen/endpoints`` (Zenoh then listens on all interfaces)."""
-    value = _get_json(config, "listen/endpoints")
-    # Zenoh reports its per-mode default as a dict {"router": [...], "peer": [...]}.
-    return value is None or (isinstance(value, dict) and "peer" in value and "router" in value)
-
-
-def _get_json(config: zenoh.Config, path: str) -> Any:
-    raw = config.get_json(path)
-    return json.loads(raw) if isinstance(raw, str) else raw
-
-
-def _insert(config: zenoh.Config, path: str, value: Any) -> None:
-    config.insert_json5(path, json.dumps(value))
-
-
-def zenoh_config(
-    mode: Mode | None = None,
-    listen: Sequence[str] | None = None,
-    connect: Sequence[str] | None = None,
-    multicast_scouting: bool | None = None,
-    config_file: str | Path | None = None,
-    *,
-    gossip_scouting: bool | None = None,
-    overrides: Mapping[str, Any] | None = None,
-) -> zenoh.Config:
-    """Build a :class:`zenoh.Config` that stays on loopback unless told otherwise.
-
-    Without ``config_file`` every ``None`` argument takes a recal default: ``mode="peer"``;
-    ``listen`` ``tcp/127.0.0.1:0`` (peer), none (client), ``tcp/127.0.0.1:7447`` (router);
-    ``connect`` the local router for a client, none otherwise; multicast scouting off;
-    gossip scouting on (it only travels over links the session already has, and two peers
-    behind one router need it to find each other).
-
-    With ``config_file`` (JSON5, :meth:`zenoh.Config.from_file`) the file wins for every
-    argument left ``None``; explicit arguments override it. Two safety nets still apply: if the
-    file sets no listen endpoints we use the loopback default instead of Zenoh's all-interfaces
-    one, and if it does not mention multicast scouting we turn it off.
-
-    ``overrides`` maps Zenoh config paths to values inserted last, e.g.
-    ``{"connect/timeout_ms": 5000, "connect/retry": {"period_init_ms": 100,
-    "period_max_ms": 500}}``. Zenoh 1.10 rejects paths below an unset section
-    (``connect/retry/period_max_ms`` raises "unknown key"): insert the whole section.
-
-    Raises ``zenoh.ZError`` for a malformed file or value, ValueError for a bad mode.
-    """
-    if mode is not None and mode not in ("peer", "client", "router"):
-        raise ValueError(f"mode must be 'peer', 'client' or 'router', got {mode!r}")
-    if config_file is not None:
-        config = zenoh.Config.from_file(str(config_file))
-    else:
-        config = zenoh.Config()
-        mode = mode or "peer"
-        listen = _default_listen(mode) if listen is None else listen
-        connect = _default_connect(mode) if connect is None else connect
-        gossip_scouting = True if gossip_scouting is None else gossip_scouting
-    _apply_settings(config, mode, listen, connect, multicast_scouting, gossip_scouting)
-    for path, value in (overrides or {}).items():
-        _insert(config, path, value)
-    return config
-
-
-def _apply_settings(
-    config: zenoh.Config,
-    mode: str | None,
-    listen: Sequence[str] | None,
-    connect: Sequence[str] | None,
-    multicast_scouting: bool | None,
-    gossip_scouting: bool | None,
-) -> None:
-    """Write the explicit settings, then the loopback safety nets, into ``config``."""
-    if mode is not None:
-        _insert(config, "mode", mode)
-    if listen is not None:
-        _insert(config, "listen/endpoints", list(listen))
-    if connect is not None:
-        _insert(config, "connect/endpoints", list(connect))
-    if multicast_scouting is not None:
-        _insert(config, "scouting/multicast/enabled", bool(multicast_scouting))
-    if gossip_scouting is not None:
-        _insert(config, "scouting/gossip/enabled", bool(gossip_scouting))
-    effective_mode = _get_json(config, "mode") or "peer"
-    if _listen_is_zenoh_default(config):
-        _insert(config, "listen/endpoints", _default_listen(effective_mode))
-    if _get_json(config, "scouting/multicast/enabled") is None:
-        _insert(config, "scouting/multicast/enabled", False)
 
 
 # --------------------------------------------------------------------------- bus objects

@@ -38,7 +38,7 @@ from types import FrameType
 
 import zenoh
 
-from recal.io.bus import DEFAULT_ROUTER_ENDPOINT, zenoh_config
+from recal.io.bus_config import DEFAULT_ROUTER_ENDPOINT, zenoh_config
 
 __all__ = ["READY_PREFIX", "RouterProcess", "main", "run_router", "security_summary",
            "start_router_process"]
