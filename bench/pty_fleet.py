@@ -41,7 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
-from recal.io.frames import encode_ascii, encode_cobs
+from recal.io.ascii_lines import encode_ascii
+from recal.io.cobs_frames import encode_cobs
 from recal.io.pty_device import PtyDevice
 from recal.sim import SensorSpec, WearerSpec, simulate
 

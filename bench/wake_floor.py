@@ -39,9 +39,10 @@ from pathlib import Path
 from pty_fleet import FleetProcess
 from recal.config import SensorConfig, ServiceConfig, model_and_prior
 from recal.core.pipeline import Pipeline
-from recal.io.frames import encode_ascii, make_parser
+from recal.io.ascii_lines import encode_ascii
 from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource
+from recal.io.wire_formats import make_parser
 from recal.samples import RawBatch
 from recal.sim import simulate
 

@@ -1,4 +1,4 @@
-"""Wire-format parsers and encoders: recal.io.frames (pure, no I/O)."""
+"""Wire-format parsers and encoders: recal.io.frames, ascii_lines, cobs_frames (pure, no I/O)."""
 
 from __future__ import annotations
 
@@ -10,17 +10,16 @@ from cobs import cobs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from recal.io.frames import (
+from recal.io.ascii_lines import AsciiLineParser, encode_ascii
+from recal.io.cobs_frames import (
     COBS_FLAG_XYZ_FLOAT32,
-    AsciiLineParser,
     CobsFrameParser,
-    ParseErrors,
     cobs_payload_bytes,
     crc16_ccitt_false,
-    encode_ascii,
     encode_cobs,
-    make_parser,
 )
+from recal.io.frames import ParseErrors
+from recal.io.wire_formats import make_parser
 from recal.samples import RawBatch
 
 HYPOTHESIS = settings(max_examples=150, deadline=None,

@@ -1,4 +1,4 @@
-"""Fuzzing the serial input: io/frames.py parsers (ASCII lines, COBS/CRC16 frames) and SerialSource.
+"""Fuzzing the serial input: the parsers (io/ascii_lines.py, io/cobs_frames.py) and SerialSource.
 
 A stream is a sequence of items, each either a valid frame or one hostile item of a known kind
 (garbage, truncated, bad CRC, NaN/inf, huge numbers, wrong column counts, non-UTF-8 bytes,
@@ -28,17 +28,17 @@ from cobs import cobs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from recal.io.frames import (
+from recal.io.ascii_lines import AsciiLineParser
+from recal.io.cobs_frames import (
     COBS_FLAG_XYZ_FLOAT32,
-    AsciiLineParser,
     CobsFrameParser,
-    ParseErrors,
     cobs_payload_bytes,
     encode_cobs,
-    make_parser,
 )
+from recal.io.frames import ParseErrors
 from recal.io.pty_device import PtyDevice
 from recal.io.serial_source import SerialSource
+from recal.io.wire_formats import make_parser
 from recal.samples import RawBatch
 from test_frames import _assert_same, _frame
 from test_frames import _payload as frame_payload

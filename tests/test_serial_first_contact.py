@@ -21,7 +21,7 @@ from polling import wait_for
 from recal.core.effects import Ratiometric
 from recal.core.model import SensorModel
 from recal.io import recording as rec
-from recal.io.frames import encode_ascii
+from recal.io.ascii_lines import encode_ascii
 from recal.io.pty_device import PtyDevice
 from recal.replay import replay
 from recal.samples import RawBatch
@@ -325,7 +325,7 @@ def test_the_port_is_held_exclusively_while_open_and_released_at_close(tmp_path:
     """In process: TIOCEXCL set while a source holds the tty and cleared when it closes (the
     pty's device side keeps it open: a flag left set would lock out the next non-root run);
     a second source gets port_busy naming this PID, then opens once the first closed."""
-    from recal.io.frames import AsciiLineParser
+    from recal.io.ascii_lines import AsciiLineParser
     from recal.io.serial_source import SerialSource
 
     link = str(tmp_path / "tty0")
@@ -355,7 +355,7 @@ def test_the_port_is_held_exclusively_while_open_and_released_at_close(tmp_path:
 
 
 def _parse_after_break(stream: bytes, **kwargs: object) -> tuple[RawBatch, dict]:
-    from recal.io.frames import AsciiLineParser
+    from recal.io.ascii_lines import AsciiLineParser
 
     parser = AsciiLineParser(**kwargs)  # type: ignore[arg-type]
     parser.reset(resync=True)  # as at an open: the first bytes may be any line's tail

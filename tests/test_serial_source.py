@@ -10,9 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recal.io.frames import AsciiLineParser, CobsFrameParser, encode_cobs, make_parser
+from recal.io.ascii_lines import AsciiLineParser
+from recal.io.cobs_frames import CobsFrameParser, encode_cobs
 from recal.io.pty_device import PtyDevice
 from recal.io.serial_source import EVENT_KINDS, SerialSource, SourceEvent
+from recal.io.wire_formats import make_parser
 from recal.samples import RawBatch
 
 AUX = ("temp_c", "vdd_v")

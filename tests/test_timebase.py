@@ -12,7 +12,7 @@ import pytest
 
 from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core import timebase as tb
-from recal.io.frames import AsciiLineParser, encode_ascii
+from recal.io.ascii_lines import AsciiLineParser, encode_ascii
 from recal.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import SensorSpec, SimResult, error_1s_mg, simulate

@@ -88,10 +88,10 @@ from recal.config import (
 )
 from recal.core.pipeline import missing_channels
 from recal.io import messages
-from recal.io.frames import make_parser
 from recal.io.recording import sensor_topic
 from recal.io.recording_writer import RecordingWriter, WriteHealth
 from recal.io.serial_source import SerialSource, SourceEvent, port_busy, port_problem
+from recal.io.wire_formats import make_parser
 from recal.node import (
     CalibrationNode,
     LoggedBusSink,

@@ -30,7 +30,8 @@ from types import TracebackType
 
 import numpy as np
 
-from recal.io.frames import encode_ascii, encode_cobs
+from recal.io.ascii_lines import encode_ascii
+from recal.io.cobs_frames import encode_cobs
 from recal.samples import RawBatch
 
 __all__ = ["PtyDevice"]
@@ -45,7 +46,7 @@ class PtyDevice:
 
     Args:
         link_path: where the symlink to the slave tty goes (replaced if it is a symlink).
-        fmt: "ascii" or "cobs" (see :mod:`recal.io.frames`).
+        fmt: "ascii" or "cobs" (see :mod:`recal.io.wire_formats`).
         header: for ASCII, print a ``#t_us,x,y,z,<aux>`` header before the first samples after
             each (re)plug, as a device does at boot.
         write_timeout_s: how long one write waits for the reader to make room.

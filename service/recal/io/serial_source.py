@@ -1,7 +1,7 @@
 """Samples from a serial port: chunked reads through a streaming parser, reconnect with backoff.
 
 A :class:`SerialSource` owns one pyserial port (``serial.serial_for_url``, so ``/dev/ttyACM0``,
-a pty symlink and ``loop://`` all work) and one parser from :mod:`recal.io.frames`. It reads
+a pty symlink and ``loop://`` all work) and one parser from :mod:`recal.io.wire_formats`. It reads
 in two ways: :meth:`SerialSource.read_batch` waits up to a deadline and reads whatever the
 port has in ``read(max(1, in_waiting))`` chunks (never ``readline()``, which costs a system
 call per byte); :meth:`SerialSource.poll` never waits, reads the non-blocking descriptor
@@ -205,7 +205,7 @@ class SerialSource:
 
     Args:
         port: device path or pyserial URL (``loop://``, ``/tmp/recal-dev0``, ``/dev/ttyUSB0``).
-        parser: a parser from :func:`recal.io.frames.make_parser` (it keeps partial lines).
+        parser: a parser from :func:`recal.io.wire_formats.make_parser` (it keeps partial lines).
         baudrate: line rate (ignored by ptys and ``loop://``).
         read_timeout_s: longest a single read waits for a first byte; bounds the latency of
             noticing the deadline, and is the pyserial ``timeout``.
