@@ -42,6 +42,7 @@ from typing import Any, Literal
 
 import zenoh
 
+from recal.errors import UsageError
 from recal.io.bus_config import zenoh_config
 
 __all__ = [
@@ -88,20 +89,20 @@ Overflow = Literal["block", "drop_oldest"]
 
 
 def validate_sensor_id(sensor: str) -> str:
-    """Return ``sensor`` if it can be one key-expression chunk, else raise ValueError.
+    """Return ``sensor`` if it can be one key-expression chunk, else raise UsageError.
 
     A sensor id must be a non-empty printable string of at most 128 characters without
     ``/``, ``*``, ``$``, ``?`` or ``#`` (Zenoh gives those a meaning).
     """
     if not isinstance(sensor, str) or not sensor:
-        raise ValueError(f"sensor id must be a non-empty string, got {sensor!r}")
+        raise UsageError(f"sensor id must be a non-empty string, got {sensor!r}")
     if len(sensor) > _MAX_SENSOR_ID_LEN:
-        raise ValueError(f"sensor id longer than {_MAX_SENSOR_ID_LEN} characters: {sensor!r}")
+        raise UsageError(f"sensor id longer than {_MAX_SENSOR_ID_LEN} characters: {sensor!r}")
     bad = sorted(set(sensor) & _FORBIDDEN_SENSOR_CHARS)
     if bad:
-        raise ValueError(f"sensor id {sensor!r} contains forbidden characters {bad}")
+        raise UsageError(f"sensor id {sensor!r} contains forbidden characters {bad}")
     if not sensor.isprintable():
-        raise ValueError(f"sensor id {sensor!r} contains non-printable characters")
+        raise UsageError(f"sensor id {sensor!r} contains non-printable characters")
     return sensor
 
 

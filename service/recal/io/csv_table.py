@@ -42,6 +42,7 @@ from typing import IO, Any, Literal
 
 import numpy as np
 
+from recal.errors import InputError, UsageError
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["CsvTable", "iter_csv", "read_csv", "write_calibrated_csv", "write_raw_csv"]
@@ -108,17 +109,17 @@ def _find_axes(lowered: Sequence[str]) -> tuple[tuple[int, int, int], str | None
         if all(w in lowered for w in wanted):
             return (lowered.index(wanted[0]), lowered.index(wanted[1]),
                     lowered.index(wanted[2])), unit
-    raise ValueError(f"no axis columns: expected x,y,z or x_<unit>,y_<unit>,z_<unit> with unit "
+    raise InputError(f"no axis columns: expected x,y,z or x_<unit>,y_<unit>,z_<unit> with unit "
                      f"in {list(UNITS)}; header is {list(lowered)}")
 
 
 def _layout(names: tuple[str, ...]) -> _Layout:
     lowered = [n.lower() for n in names]
     if any(not n for n in names):
-        raise ValueError(f"empty column name in header {list(names)}")
+        raise InputError(f"empty column name in header {list(names)}")
     duplicates = sorted({n for n in lowered if lowered.count(n) > 1})
     if duplicates:
-        raise ValueError(f"duplicate column names {duplicates}")
+        raise InputError(f"duplicate column names {duplicates}")
     time_name = next((t for t in TIME_COLUMNS if t in lowered), "synthesized")
     time = lowered.index(time_name) if time_name in lowered else None
     axes, header_units = _find_axes(lowered)
@@ -129,9 +130,9 @@ def _layout(names: tuple[str, ...]) -> _Layout:
 
 def _resolve_units(declared: str | None, header_units: str | None) -> str:
     if declared is not None and declared not in UNITS:
-        raise ValueError(f"units must be one of {list(UNITS)}, got {declared!r}")
+        raise UsageError(f"units must be one of {list(UNITS)}, got {declared!r}")
     if declared and header_units and declared != header_units:
-        raise ValueError(f"units={declared!r} but the header says {header_units!r}")
+        raise InputError(f"units={declared!r} but the header says {header_units!r}")
     return declared or header_units or "counts"
 
 
@@ -200,7 +201,7 @@ def _times_us(table: np.ndarray, layout: _Layout, rate_hz: float | None, t0_us: 
     """Each row's time: its column, else synthesized (rows ``first`` on, at ``rate_hz``)."""
     if layout.time is None:
         if rate_hz is None or not rate_hz > 0:
-            raise ValueError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
+            raise InputError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
         i = np.arange(first, first + len(table))
         return t0_us + np.round(i * (1e6 / rate_hz)).astype(np.int64)
     return np.round(table[:, layout.time] * TIME_COLUMNS[layout.time_name]).astype(np.int64)
@@ -223,7 +224,7 @@ def _text_lines(f: IO[bytes], path: str | os.PathLike[str], chunk_lines: int,
         try:
             text = raw.decode("utf-8")
         except UnicodeDecodeError as exc:
-            raise ValueError(f"{path}: not UTF-8 text (byte {start + exc.start})") from None
+            raise InputError(f"{path}: not UTF-8 text (byte {start + exc.start})") from None
         start += len(raw)
         if on_bytes is not None:
             on_bytes(len(raw))
@@ -251,14 +252,14 @@ def iter_csv(path: str | os.PathLike[str], units: Units | None = None,
                 break
             number += len(lines)
         if header is None:
-            raise ValueError(f"{path}: no header row")
+            raise InputError(f"{path}: no header row")
         try:  # name the file in the one-line error
             layout = _layout(_split_header(header[1]))
             resolved_units = _resolve_units(units, layout.header_units)
         except ValueError as exc:
-            raise ValueError(f"{path}: {exc}") from None
+            raise InputError(f"{path}: {exc}") from None
         if layout.time is None and (rate_hz is None or not rate_hz > 0):
-            raise ValueError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
+            raise InputError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
         done, reported = 0, 0  # rows kept, bad lines reported
         first_number = header[0] + 1
         for body in itertools.chain([rows], chunks):
@@ -310,10 +311,10 @@ def _check_names(names: Sequence[str], reserved: Sequence[str]) -> None:
     lowered = [n.lower() for n in names]
     for name in names:
         if not name or any(c in name for c in _FORBIDDEN_IN_NAMES):
-            raise ValueError(f"column name {name!r} cannot be written to CSV as is")
+            raise InputError(f"column name {name!r} cannot be written to CSV as is")
     clash = sorted(set(lowered) & {r.lower() for r in reserved})
     if clash or len(set(lowered)) != len(lowered):
-        raise ValueError(f"auxiliary channel names {list(names)} clash with each other or "
+        raise InputError(f"auxiliary channel names {list(names)} clash with each other or "
                          f"with {list(reserved)}")
 
 
@@ -358,14 +359,14 @@ def write_raw_csv(path: str | os.PathLike[str], batch: RawBatch | Iterable[RawBa
     batch or of several with the same channels, read one at a time; returns the rows."""
     axes = list(_AXES) if units is None else [f"{a}_{units}" for a in _AXES]
     if units is not None and units not in UNITS:
-        raise ValueError(f"units must be one of {list(UNITS)}, got {units!r}")
+        raise UsageError(f"units must be one of {list(UNITS)}, got {units!r}")
     first, batches = _batches(batch)
     aux_names = first.aux_names if first is not None else ()
     _check_names(aux_names, ["t_us", *TIME_COLUMNS, *axes])
 
     def columns(b: RawBatch) -> list[np.ndarray]:
         if b.aux_names != aux_names:
-            raise ValueError(f"channels change from {list(aux_names)} to {list(b.aux_names)}: "
+            raise InputError(f"channels change from {list(aux_names)} to {list(b.aux_names)}: "
                              "one CSV has one set of columns")
         return [b.t_us, *b.v.T, *b.aux.T]
 

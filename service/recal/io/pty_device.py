@@ -30,6 +30,7 @@ from types import TracebackType
 
 import numpy as np
 
+from recal.errors import UsageError
 from recal.io.ascii_lines import encode_ascii
 from recal.io.cobs_frames import encode_cobs
 from recal.samples import RawBatch
@@ -63,9 +64,9 @@ class PtyDevice:
                  write_timeout_s: float = 1.0, line_ending: str = "\n",
                  xyz: str = "auto", clock: str = "us", header_prefix: str = "#") -> None:
         if fmt not in ("ascii", "cobs"):
-            raise ValueError(f"unknown wire format {fmt!r}; expected 'ascii' or 'cobs'")
+            raise UsageError(f"unknown wire format {fmt!r}; expected 'ascii' or 'cobs'")
         if clock not in self.CLOCKS or (clock == "none" and fmt != "ascii"):
-            raise ValueError(f"clock must be one of {self.CLOCKS} ('none' for ASCII only)")
+            raise UsageError(f"clock must be one of {self.CLOCKS} ('none' for ASCII only)")
         if os.path.exists(link_path) and not os.path.islink(link_path):
             raise FileExistsError(f"{link_path} exists and is not a symlink")
         self.link_path = link_path
