@@ -226,7 +226,7 @@ class Publisher:
         self._errors = _SparseLog()
 
     def _matching_now(self) -> bool:
-        # Asking costs ~0.3 us, cheaper than a matching listener (which would need a Python
+        # Asking is cheaper than a matching listener (which would need a Python
         # callback thread, and whose news arrive after the routing changed). The 1.10 stub
         # says ``matching_status`` is a bool, but it returns a MatchingStatus object, which is
         # always truthy: read its ``matching`` field.

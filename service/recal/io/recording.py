@@ -194,9 +194,9 @@ def _chunk_messages(f: IO[bytes], index: ChunkIndex, decompressor: Any, path: Pa
                     ) -> Iterator[tuple[int, int, int, int, bytes]]:
     """(channel id, sequence, log ns, publish ns, data) of the messages in one chunk.
 
-    Reads the chunk with one read and walks it with struct, reusing one zstd context: about
-    twice as fast as the mcap reader's per-record stream reads, and reading speed is what
-    replay and tests wait on.
+    Reads the chunk with one read and walks it with struct, reusing one zstd context: faster
+    than the mcap reader's per-record stream reads, and reading speed is what replay and tests
+    wait on (docs/performance.md).
     """
     f.seek(index.chunk_start_offset)
     blob = f.read(index.chunk_length)

@@ -123,7 +123,7 @@ class RecordingWriter:
     Args:
         path: the first file; rotated parts are ``<stem>-0001<suffix>``, ``-0002``, ...
         chunk_size: uncompressed bytes after which a chunk is closed. Small chunks bound what a
-            crash loses; see platform facts (1 MiB chunks lost 45 % of a killed file).
+            crash loses (docs/design.md: what a killed writer loses).
         flush_interval_s: the open chunk is closed, the file flushed and fsynced when this long
             has passed since the last flush, checked on every write and by the flush thread.
         rotate_bytes: start a new part once the current file reached this size (checked before
@@ -522,7 +522,7 @@ class RecordingWriter:
         self._track_failure(now_s)
         if m.failure is not None:
             return  # nothing new in the file: no fsync
-        # The fsync itself (~6 ms here) happens outside the lock, on the flush thread: a
+        # The fsync itself (milliseconds) happens outside the lock, on the flush thread: a
         # writer calling in to log a sample must not wait for the disk (the gateway's
         # latency p99 showed it). The data is with the OS already, so a killed process
         # loses nothing by this; a power cut may lose up to a quarter interval more.
