@@ -97,7 +97,6 @@ class AsciiLineParser(DelimitedParser):
     """
 
     _DELIMITER = b"\n"
-    _KEEPS_LAST_DELIMITER = 1  # a chunk of whole lines ends with its newline
 
     def __init__(self, aux_names: Sequence[str] | None = None, *,
                  max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
@@ -164,8 +163,9 @@ class AsciiLineParser(DelimitedParser):
 
     # -- per-line path (the reference)
 
-    def _parse_records(self, chunk: bytes, rows: Rows) -> None:
-        """Parse complete lines (``chunk`` ends with a newline)."""
+    def _parse_records(self, buf: bytes, last: int, rows: Rows) -> None:
+        """Parse the complete lines of ``buf``, up to and with its newline at ``last``."""
+        chunk = buf[:last + 1]
         if not self.vectorized or chunk.count(b"\n") < self.vectorize_min_lines:
             # Also for a sensor handled as its samples arrive (one line per call): setting up
             # the vectorized path (a dozen numpy calls) costs more than the per-line path,

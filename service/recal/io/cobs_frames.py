@@ -132,7 +132,6 @@ class CobsFrameParser(DelimitedParser):
     """
 
     _DELIMITER = b"\x00"
-    _KEEPS_LAST_DELIMITER = 0  # a chunk of whole frames without its last zero byte
 
     def __init__(self, aux_names: Sequence[str] | None = None, *,
                  max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES,
@@ -146,8 +145,9 @@ class CobsFrameParser(DelimitedParser):
         """Longest encoded frame taken (longer ones are ``too_long``); bounds the partial one."""
         return self.max_record_bytes
 
-    def _parse_records(self, chunk: bytes, rows: Rows) -> None:
-        """Parse the frames of ``chunk`` (zero-separated, the last delimiter stripped)."""
+    def _parse_records(self, buf: bytes, last: int, rows: Rows) -> None:
+        """Parse the frames of ``buf`` before its zero byte at ``last`` (zero-separated)."""
+        chunk = buf[:last]
         arr = np.frombuffer(chunk, np.uint8)
         ends = np.concatenate((np.flatnonzero(arr == 0), [len(arr)]))
         starts = np.concatenate(([0], ends[:-1] + 1))

@@ -38,9 +38,10 @@ path would cost more than it saves. Measurements: docs/performance.md.
 from __future__ import annotations
 
 import math
+import types
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -252,12 +253,11 @@ class DelimitedParser:
     Owns what both wire formats share: the tail after the last delimiter is carried to the
     next :meth:`feed` (at most ``max_record_bytes``; a longer record is counted ``too_long``
     and skipped to its delimiter), :meth:`flush` ends the stream, :meth:`reset` forgets a
-    broken one. A subclass sets ``_DELIMITER``, decodes complete records in
-    :meth:`_parse_records` and may keep the last delimiter (``_KEEPS_LAST_DELIMITER``).
+    broken one. A subclass sets ``_DELIMITER`` and decodes complete records in
+    :meth:`_parse_records`.
     """
 
     _DELIMITER: ClassVar[bytes]
-    _KEEPS_LAST_DELIMITER: ClassVar[int]  # 1: _parse_records gets it, 0: it is cut off
 
     def __init__(self, aux_names: Sequence[str] | None, max_record_bytes: int,
                  max_abs_xyz: float, vectorized: bool) -> None:
@@ -269,6 +269,18 @@ class DelimitedParser:
         self._pending = b""
         self._discarding = False  # inside a too-long record: drop bytes until its end
         self._resync = False  # the next record may be the tail of one cut by a reconnect
+        self._delimiter = self._DELIMITER  # an instance attribute is the faster read
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Give each wire format its own copy of :meth:`feed`: CPython specializes attribute
+        reads per code object, and one ``feed`` shared by an ASCII and a COBS parser in one
+        process (a gateway with both kinds of sensor) would run unspecialized, slower."""
+        super().__init_subclass__(**kwargs)
+        shared = DelimitedParser.feed
+        own = types.FunctionType(shared.__code__.replace(), shared.__globals__,
+                                 shared.__name__, shared.__defaults__, shared.__closure__)
+        own.__qualname__, own.__doc__ = f"{cls.__qualname__}.feed", shared.__doc__
+        cls.feed = own  # type: ignore[method-assign]
 
     @property
     def aux_names(self) -> tuple[str, ...]:
@@ -283,7 +295,7 @@ class DelimitedParser:
     def feed(self, data: bytes) -> RawBatch:
         """Parse the complete records in ``pending + data``; keep the unfinished tail."""
         data = bytes(data)
-        delimiter = self._DELIMITER
+        delimiter = self._delimiter
         if self._discarding:
             end = data.find(delimiter)
             if end < 0:
@@ -293,7 +305,7 @@ class DelimitedParser:
         last = buf.rfind(delimiter)
         rows = Rows()
         if last >= 0:
-            self._parse_records(buf[:last + self._KEEPS_LAST_DELIMITER], rows)
+            self._parse_records(buf, last, rows)
         tail = buf[last + 1:]
         if len(tail) > self.max_record_bytes:
             self.errors.too_long += 1
@@ -305,7 +317,7 @@ class DelimitedParser:
         """Parse the unfinished last record as if it were ended (end of a file or recording)."""
         tail, self._pending = self._pending, b""
         self._discarding = False
-        return self.feed(tail + self._DELIMITER) if tail else RawBatch.empty(self.aux_names)
+        return self.feed(tail + self._delimiter) if tail else RawBatch.empty(self.aux_names)
 
     def reset(self, resync: bool = True) -> None:
         """Forget the partial record (counted ``truncated``) after the byte stream broke;
@@ -319,6 +331,7 @@ class DelimitedParser:
         """Whether a partial record dropped by :meth:`reset` is counted ``truncated``."""
         return bool(pending)
 
-    def _parse_records(self, chunk: bytes, rows: Rows) -> None:
-        """Decode the complete records of ``chunk`` into ``rows``."""
+    def _parse_records(self, buf: bytes, last: int, rows: Rows) -> None:
+        """Decode the complete records of ``buf`` into ``rows``; ``buf[last]`` is the
+        delimiter after the last of them (what follows it waits for the next feed)."""
         raise NotImplementedError
