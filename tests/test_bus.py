@@ -20,6 +20,7 @@ import pytest
 import zenoh
 
 from polling import wait_for as wait_until
+from recal.errors import ConfigError, UsageError
 from recal.io.bus import (
     Bus,
     Message,
@@ -94,9 +95,9 @@ def test_valid_sensor_ids_round_trip_through_keys(sensor: str) -> None:
 
 @pytest.mark.parametrize("sensor", ["", "a/b", "a*", "$x", "q?", "#1", "tab\there", "x" * 129])
 def test_invalid_sensor_ids_are_rejected(sensor: str) -> None:
-    with pytest.raises(ValueError):
+    with pytest.raises(UsageError):
         validate_sensor_id(sensor)
-    with pytest.raises(ValueError):
+    with pytest.raises(UsageError):
         key(sensor, "raw")
 
 
@@ -142,8 +143,10 @@ def test_config_overrides_and_bad_mode() -> None:
     )
     assert _endpoints(config, "connect/endpoints") == ["tcp/127.0.0.1:1234"]
     assert config.get_json("connect/timeout_ms") == "250"
-    with pytest.raises(ValueError):
+    with pytest.raises(ConfigError):
         zenoh_config(mode="broker")  # type: ignore[arg-type]
+    with pytest.raises(UsageError, match="port out of range"):
+        loopback_endpoint(65536)
 
 
 @pytest.mark.parametrize("name", ["peer", "client", "router"])

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from recal.errors import InputError, UsageError
 from recal.io.csv_table import CsvTable, read_csv, write_calibrated_csv, write_raw_csv
 from recal.samples import CalibratedBatch, RawBatch
 
@@ -87,7 +88,7 @@ def test_time_columns_are_converted_to_microseconds(tmp_path: Path, column: str,
 
 def test_without_a_time_column_times_are_synthesized_from_the_rate(tmp_path: Path) -> None:
     path = _write(tmp_path / "no-time.csv", "x,y,z\n1,2,3\n4,5,6\n7,8,9\n")
-    with pytest.raises(ValueError, match="rate_hz"):
+    with pytest.raises(InputError, match="rate_hz"):
         read_csv(path)
     table = read_csv(path, rate_hz=3.0, t0_us=1000)
     assert table.batch.t_us.tolist() == [1000, 334_333, 667_667]
@@ -104,9 +105,9 @@ def test_units_come_from_the_header_and_must_agree(tmp_path: Path) -> None:
     path = _write(tmp_path / "g.csv", "t_us,x_g,y_g,z_g,x\n0,0,0,1,5\n")
     table = read_csv(path, units="g")
     assert table.units == "g" and table.batch.aux_names == ("x",)
-    with pytest.raises(ValueError, match="header says 'g'"):
+    with pytest.raises(InputError, match="header says 'g'"):
         read_csv(path, units="counts")
-    with pytest.raises(ValueError, match="units must be one of"):
+    with pytest.raises(UsageError, match="units must be one of"):
         read_csv(path, units="mg")  # type: ignore[arg-type]
     plain = _write(tmp_path / "plain.csv", "t_us,x,y,z\n0,1,2,3\n")
     assert read_csv(plain).units == "counts" and read_csv(plain, units="ms2").units == "ms2"
@@ -151,7 +152,7 @@ def test_quotes_bom_crlf_and_spaces_are_tolerated(tmp_path: Path) -> None:
 ])
 def test_missing_header_or_columns_are_clear_errors(tmp_path: Path, text: str,
                                                     reason: str) -> None:
-    with pytest.raises(ValueError, match=reason):
+    with pytest.raises(InputError, match=reason):
         read_csv(_write(tmp_path / "broken.csv", text))
 
 
@@ -165,7 +166,7 @@ def test_header_only_gives_an_empty_batch(tmp_path: Path) -> None:
 def test_aux_names_that_cannot_round_trip_are_refused(tmp_path: Path) -> None:
     for names in (("x",), ("T_US",), ("a,b",), ('q"',), ("a", "A")):
         batch = RawBatch([0], [[1, 2, 3]], np.zeros((1, len(names))), names)
-        with pytest.raises(ValueError):
+        with pytest.raises(InputError):
             write_raw_csv(tmp_path / "bad.csv", batch)
 
 
@@ -251,7 +252,7 @@ def test_a_non_utf8_byte_is_reported_at_its_place_in_the_file(tmp_path: Path) ->
     path = tmp_path / "bytes.csv"
     body = b"t_us,x,y,z\n" + b"".join(b"%d,1,2,3\n" % i for i in range(10))
     path.write_bytes(body + b"\xff,1,2,3\n")
-    with pytest.raises(ValueError, match=f"not UTF-8 text \\(byte {len(body)}\\)"):
+    with pytest.raises(InputError, match=f"not UTF-8 text \\(byte {len(body)}\\)"):
         list(iter_csv(path, chunk_lines=3))
 
 

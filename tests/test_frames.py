@@ -10,6 +10,7 @@ from cobs import cobs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from recal.errors import ConfigError
 from recal.io.ascii_lines import AsciiLineParser, encode_ascii
 from recal.io.cobs_frames import (
     COBS_FLAG_XYZ_FLOAT32,
@@ -229,7 +230,7 @@ def test_make_parser() -> None:
     assert isinstance(make_parser("ascii", AUX), AsciiLineParser)
     cobs_parser = make_parser("cobs", AUX, max_frame_bytes=100)
     assert isinstance(cobs_parser, CobsFrameParser) and cobs_parser.max_frame_bytes == 100
-    with pytest.raises(ValueError, match="unknown wire format"):
+    with pytest.raises(ConfigError, match="unknown wire format"):
         make_parser("protobuf")
 
 

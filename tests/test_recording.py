@@ -19,7 +19,7 @@ from google.protobuf import descriptor_pb2
 from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
 
-from recal.errors import RecordingError
+from recal.errors import RecordingError, UsageError
 from recal.io import messages
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
@@ -220,7 +220,7 @@ def test_invalid_use_is_rejected(tmp_path: Path) -> None:
     path = tmp_path / "rec.mcap"
     with _writer(path) as w:
         for bad in ("", "gateway", "a/b", "-x", "a b"):
-            with pytest.raises(ValueError, match="invalid sensor id"):
+            with pytest.raises(UsageError, match="invalid sensor id"):
                 w.write_raw(bad, _raw(0), T0_NS)
         with pytest.raises(ValueError, match="not JSON"):
             w.write_json("/s1/raw", {}, T0_NS)
@@ -238,8 +238,21 @@ def test_invalid_use_is_rejected(tmp_path: Path) -> None:
         w.write_raw("s1", _raw(0), T0_NS)
     with pytest.raises(FileExistsError):
         RecordingWriter(path)
-    with pytest.raises(ValueError, match="compression"):
+    with pytest.raises(UsageError, match="compression"):
         RecordingWriter(tmp_path / "other.mcap", compression="gzip")  # type: ignore[arg-type]
+
+
+def test_a_recording_that_cannot_be_used_as_asked_says_why(tmp_path: Path) -> None:
+    """Errors a user can act on are recal.errors classes (the command line shows their text)."""
+    path = tmp_path / "two.mcap"
+    with _writer(path) as w:
+        w.write_raw("s1", _raw(0), T0_NS)
+        w.write_raw("s2", _raw(1), T0_NS + 1)
+    assert rec.pick_sensor(path, rec.sensors(path), "s2") == "s2"
+    with pytest.raises(RecordingError, match="several sensors"):
+        rec.pick_sensor(path, rec.sensors(path), None)
+    with pytest.raises(UsageError, match="is the input"):
+        rec.refuse_input_as_output(path, path)
 
 
 def test_reading_an_unfinished_file_says_to_repair(tmp_path: Path) -> None:

@@ -256,8 +256,8 @@ def iter_csv(path: str | os.PathLike[str], units: Units | None = None,
         try:  # name the file in the one-line error
             layout = _layout(_split_header(header[1]))
             resolved_units = _resolve_units(units, layout.header_units)
-        except ValueError as exc:
-            raise InputError(f"{path}: {exc}") from None
+        except (InputError, UsageError) as exc:  # the same kind of error, with the file
+            raise type(exc)(f"{path}: {exc}") from None
         if layout.time is None and (rate_hz is None or not rate_hz > 0):
             raise InputError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
         done, reported = 0, 0  # rows kept, bad lines reported
