@@ -243,7 +243,6 @@ def keep_valid(vals: np.ndarray, max_abs_xyz: float, errors: ParseErrors) -> np.
     return finite & in_range
 
 
-
 # --------------------------------------------------------------------------- the byte stream
 
 
