@@ -28,16 +28,10 @@ import numpy as np
 
 from recal.core.bootstrap import off_by
 from recal.core.buffer import Windows
-from recal.core.discovery import (
-    DiscoveryConfig,
-    data_from_windows,
-    fit_model,
-    free_params,
-    nominal,
-    start_params,
-)
+from recal.core.discovery_data import data_from_windows
 from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
+from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline import PipelineConfig
 from recal.core.windowing import Windowing
 from recal.samples import RawBatch, rebatch
@@ -110,7 +104,7 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
     # offset almost freely
     held = ~free_params(model, p, data)
     p[held] = nominal(model, data)[held]
-    cfg = DiscoveryConfig()
+    cfg = FitConfig()
     keep = np.ones(len(data), bool)
     for _ in range(MAX_PASSES):
         fitted = keep  # the windows of this fit: what the report counts
@@ -129,7 +123,7 @@ def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
               cfg: PipelineConfig) -> HindsightFit:
     """Fit a recording read batch by batch (``batches()``: one pass over it, or two) with
     hindsight. The detector runs in units of model.s0 raw per g; when the windows show zero-g
-    far from 0 or the scale far from s0 (`discovery.zero_and_scale`: an analog part on an
+    far from 0 or the scale far from s0 (`bootstrap.zero_and_scale`: an analog part on an
     unsigned ADC, s0 a first sample's norm), once more centred at the zero-g found and in its
     units, and the model's s0 becomes that scale."""
     windows, aux_names, t0_us = _windows(batches, cfg, model, model.s0, None)
