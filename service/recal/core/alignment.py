@@ -25,16 +25,15 @@ wearer's usual upright posture comes back turned, again and again, the same way;
 that merely differ from the reference scatter and rarely agree, and one upright period near
 the reference breaks the streak. Lying and bending (beyond ``upright_max_deg`` of the
 reference) say nothing and are skipped. The alarm clears when ``periods`` upright periods in
-a row are back within the limit (the sensor was re-seated). Why 4 and 3°: on simulated wearers
-leaning anywhere within 30° (bench/tilt_alarm.py), 3 periods raised 3 false alarms in 150
-wearer-hours and 4 none, while every 10° slip of a wearer who stands alike was still caught
-(median 10 min after it; 8 min with 3; an 8° slip, just beyond the limit, in 19 of 20).
+a row are back within the limit (the sensor was re-seated). Why 4 and 3°: the fewest periods
+that raise no false alarm on simulated wearers leaning anywhere within 30° while every 10° slip
+of a wearer who stands alike is still caught (bench/tilt_alarm.py; docs/performance.md).
 While the alarm stands the body frame keeps the reference's rotation (off by the slip, which
 the alarm says); a new reference (a query on ``recal/<sensor>/align``) ends it. What the rule
 cannot see: a wearer whose only upright posture after the reference is a second, steady one
 beyond the limit from it (gravity alone cannot tell that from a slip), a wearer whose upright
-postures scatter more than ``agree_deg`` (0 of 20 slips of 10° caught on the simulated wearers
-leaning anywhere within 30°), and a slip about the vertical.
+postures scatter more than ``agree_deg`` (no slip is caught there), and a slip about the
+vertical.
 
 Also here: :class:`StillTracker`, which finds the moment each quasi-static run has lasted long
 enough to serve as a reference (or as a check of it), and keeps the run's mean calibrated

@@ -11,11 +11,10 @@ A slot holds one window, or the merged mean of up to `merge_max` consecutive win
 still run whose directions agree within `merge_deg` (`k` counts them): a two-minute posture then
 fills a few slots instead of evicting every older posture of its cell with the same 12 s of
 itself. Merging keeps what the windows say (the estimator weighs a slot as its k windows) but not
-their number, which is what made a buffer of single windows forget the first half hour of a
-wearer (the full model on `sim` seed 2 reached 1.5 mg only after 40 min with 6 single windows per
-cell, after 25 min with every window kept; merged slots get there as fast as keeping every
-window). The direction tolerance bounds the norm bias of averaging directions that differ: the
-mean of unit vectors within 1 deg of each other is short by at most 0.15 mg.
+their number: a buffer of single windows forgets the first half hour of a wearer, merged slots
+learn as fast as keeping every window (docs/performance.md). The direction tolerance bounds
+the norm bias of averaging directions that differ: the mean of unit vectors within 1 deg of
+each other is short by at most 0.15 mg.
 """
 
 from __future__ import annotations

@@ -93,9 +93,9 @@ def data_from_windows(windows: Windows, aux_names: tuple[str, ...], t0_us: int,
     """Window means (e.g. a live buffer's) with time measured from t0_us.
 
     A window whose samples scatter more than max_sd_ratio times the median window's is
-    movement the detector let through (its 0.5 Hz low-pass reacts late: on the Xsens
-    recording a few windows straddle a rotation, 60-180 mg against 1 mg still, and their means
-    are tens of mg short of 1 g); it is dropped, so held-out errors are those of still poses.
+    movement the detector let through (its 0.5 Hz low-pass reacts late, so a window may
+    straddle a rotation and its mean fall short of 1 g); it is dropped, so held-out errors are
+    those of still poses.
     """
     if len(windows) == 0:
         raise ValueError("no quasi-static windows to discover effects on")

@@ -290,10 +290,9 @@ class Offset(Effect):
     def process_sd_per_sqrt_h(self, s0, spread):
         # Offsets drift within hours (Lötters sec. 1). A steady drift is the estimator's offset
         # rate (estimator.py); this walk covers what a straight line does not, and is kept small
-        # so that windows from an hour ago still pin the gains and cross-axis terms: worst of
-        # bench/in_use_accuracy.py's 8 cross-axis wearers 2.2 mg at 5 mg/sqrt(h), 1.5 mg at 2.5.
-        # The price: offsets that follow temperature swings (not in the model) are tracked
-        # more slowly (2 mg/degC, 10 degC excursions: 4-10 mg instead of 4-6 mg at 10 mg/sqrt(h)).
+        # so that windows from an hour ago still pin the gains and cross-axis terms; the price:
+        # offsets that follow temperature swings the model lacks are tracked more slowly
+        # (chosen by bench/in_use_accuracy.py; figures in docs/performance.md).
         return np.full(3, OFFSET_WALK_G_PER_SQRT_H * s0) if self.covariate is None else np.zeros(3)
 
     def bounds(self, s0, spread):

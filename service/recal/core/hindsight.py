@@ -8,7 +8,7 @@ and reported. The live service streams instead (`pipeline`: each sample correcte
 was known when it arrived); this module is for a recording already on disk.
 
 1. windows: `windowing.Windowing`, the live detector (Lötters eq. 1-2) and windowing;
-2. the fit (`fit`): from an ellipsoid or sphere fit of the window means (`discovery`'s start),
+2. the fit (`fit`): from an ellipsoid or sphere fit of the window means (`model_fit.start_params`),
    Lötters eq. 11a iterated to convergence (`estimator.solve`, the prior rows at the start
    values with the model's default spreads), over the parameters the poses determine (the
    others held at their nominal values, as the live core holds them), with no process
