@@ -37,6 +37,7 @@ from recal.core.effects import TIME
 from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.residuals import ORIENTATION_FEATURES, ResidualAnalysis, orientation_features
+from recal.errors import RecordingError, UsageError
 from recal.samples import RawBatch
 
 __all__ = [
@@ -65,10 +66,10 @@ def data_from_recording(path: str | Path, sensor_id: str | None = None,
     found = recording.sensors(parts)
     sensor_id = recording.pick_sensor(path, found, sensor_id)
     if not any(len(b) for _, b, _ in recording.iter_raw(parts, sensor_id)):
-        raise ValueError(f"{path}: no raw samples for sensor {sensor_id!r} (sensors: "
-                         f"{', '.join(found) or 'none'})")
+        raise RecordingError(f"{path}: no raw samples for sensor {sensor_id!r} (sensors: "
+                             f"{', '.join(found) or 'none'})")
     data = data_from_batches(lambda: (b for _, b, _ in recording.iter_raw(parts, sensor_id)),
-                                window_s=window_s)
+                             window_s=window_s)
     return data, sensor_id
 
 
@@ -261,7 +262,7 @@ def _pyplot() -> Any:
     try:
         import matplotlib
     except ImportError:
-        raise RuntimeError("--plots needs matplotlib: pip install 'recal[plots]'") from None
+        raise UsageError("--plots needs matplotlib: pip install 'recal[plots]'") from None
     matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
 

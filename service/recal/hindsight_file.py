@@ -30,6 +30,7 @@ from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 from recal.core.pipeline import PipelineConfig, gain_reference, usable
 from recal.core.status import Status, predicted_sigma_mg, sigma_form
+from recal.errors import RecordingError
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
 __all__ = ["Source", "calibrate_file", "open_source", "summary_lines"]
@@ -66,7 +67,7 @@ def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float |
     found = recording.sensors(parts)
     sid = recording.pick_sensor(path, found, sensor_id)
     if sid not in found:
-        raise ValueError(f"{path} has no sensor {sid!r} (it has: {', '.join(found) or 'none'})")
+        raise RecordingError(f"{path} has no sensor {sid!r} (it has: {', '.join(found) or 'none'})")
 
     def raw() -> Iterator[RawBatch]:
         return (b for _, b, _ in recording.iter_raw(parts, sid))

@@ -50,6 +50,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from recal.errors import ConfigError, InputError
+
 __all__ = [
     "DEFAULT_TILT_LIMIT_DEG",
     "Alignment",
@@ -84,7 +86,7 @@ def zheng_angles(g: np.ndarray) -> tuple[float, float]:
     g = np.asarray(g, np.float64).reshape(3)
     norm = float(np.linalg.norm(g))
     if not norm > 0:
-        raise ValueError("gravity vector has zero length")
+        raise InputError("gravity vector has zero length")
     u = g / norm
     return float(np.arcsin(np.clip(u[0], -1, 1))), float(np.arcsin(np.clip(u[1], -1, 1)))
 
@@ -154,7 +156,7 @@ def estimate_alignment(gravity_g: np.ndarray, limit_deg: float = DEFAULT_TILT_LI
     """The mounting from the mean calibrated reading on a reference posture (g, sensor frame)."""
     g = np.asarray(gravity_g, np.float64).reshape(3)
     if not (np.all(np.isfinite(g)) and np.linalg.norm(g) > 0):
-        raise ValueError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
+        raise InputError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
     u = g / np.linalg.norm(g)
     theta_x, theta_y = zheng_angles(u)
     # θ1 zeroes x exactly (eq. 6); the y-z turn by Zheng's θy then zeroes y (eq. 8), because
@@ -182,7 +184,7 @@ def _unit(g: np.ndarray) -> np.ndarray:
     g = np.asarray(g, np.float64).reshape(3)
     norm = float(np.linalg.norm(g))
     if not (np.all(np.isfinite(g)) and norm > 0):
-        raise ValueError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
+        raise InputError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
     return g / norm
 
 
@@ -237,7 +239,7 @@ class SlipWatch:
                  agree_deg: float = SLIP_AGREE_DEG, min_move_s: float = SLIP_MIN_MOVE_S,
                  alarmed: bool = False) -> None:
         if periods < 1 or not limit_deg > 0 or not agree_deg > 0 or min_move_s < 0:
-            raise ValueError("periods >= 1, limit_deg > 0, agree_deg > 0, min_move_s >= 0")
+            raise ConfigError("periods >= 1, limit_deg > 0, agree_deg > 0, min_move_s >= 0")
         self.reference = _unit(reference_g)
         self.limit_deg = float(limit_deg)
         self.upright_max_deg = float(upright_max_deg)
@@ -313,7 +315,7 @@ class StillTracker:
 
     def __init__(self, min_s: float, max_gap_us: int) -> None:
         if not min_s > 0 or not max_gap_us > 0:
-            raise ValueError("min_s and max_gap_us must be positive")
+            raise ConfigError("min_s and max_gap_us must be positive")
         self.min_us = round(min_s * 1e6)
         self.max_gap_us = int(max_gap_us)
         self.start_us: int | None = None  # first sample of the open run (None: no run)

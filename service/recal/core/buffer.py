@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recal.errors import ConfigError, InputError
+
 __all__ = ["BufferConfig", "Coverage", "WindowBuffer", "Windows", "cell_of"]
 
 
@@ -41,7 +43,7 @@ class BufferConfig:
 
     def __post_init__(self) -> None:
         if min(self.grid, self.per_cell, self.merge_max) < 1 or not self.merge_deg >= 0:
-            raise ValueError("grid, per_cell and merge_max must be at least 1, merge_deg >= 0")
+            raise ConfigError("grid, per_cell and merge_max must be at least 1, merge_deg >= 0")
 
     @property
     def cells(self) -> int:
@@ -365,7 +367,7 @@ class WindowBuffer:
         aux = np.asarray(d["aux"], np.float64)
         buf = cls(cfg, aux.shape[1] if aux.ndim == 2 else 0)
         if buf.v.shape != np.asarray(d["v"]).shape:
-            raise ValueError("buffer checkpoint does not match its grid")
+            raise InputError("buffer checkpoint does not match its grid")
         buf.v = np.asarray(d["v"], np.float64)
         buf.aux = aux.reshape(len(buf.v), -1)
         buf.t_us = np.asarray(d["t_us"], np.int64)

@@ -73,6 +73,7 @@ from recal.core.model_fit import (
     start_params,
 )
 from recal.core.residuals import ResidualAnalysis, explained_fraction, residual_analysis
+from recal.errors import ConfigError, InputError
 
 __all__ = [
     "CandidateScore",
@@ -131,10 +132,10 @@ class DiscoveryConfig:
 
     def __post_init__(self) -> None:
         if self.blocks < 3:
-            raise ValueError("discovery needs at least 3 blocks for held-out scoring")
+            raise ConfigError("discovery needs at least 3 blocks for held-out scoring")
         if not (self.min_gain >= 0 and (self.n_se is None or self.n_se >= 0)
                 and self.bootstrap >= 10):
-            raise ValueError("min_gain and n_se must be >= 0 and bootstrap >= 10")
+            raise ConfigError("min_gain and n_se must be >= 0 and bootstrap >= 10")
 
     def fit(self) -> FitConfig:
         """The settings of each fit."""
@@ -528,7 +529,7 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
     """
     n_blocks = min(cfg.blocks, len(data))
     if n_blocks < 3:
-        raise ValueError(f"{len(data)} windows are too few for held-out scoring (need 3)")
+        raise InputError(f"{len(data)} windows are too few for held-out scoring (need 3)")
     if model is None:
         model = SensorModel.diagonal(data.s0)
     blocks = time_blocks(data.windows.t_us, n_blocks)
@@ -537,7 +538,7 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
     base = score_heldout(model, data, blocks, starts, p_all, cfg.fit())
     scored = scorable(data, blocks, model.correct(base.fit.p, data.windows.v, data.cov))
     if not scored.any():
-        raise ValueError("no held-out window lies in a pose the other blocks saw")
+        raise InputError("no held-out window lies in a pose the other blocks saw")
     search = _Search(data, blocks, cfg, model, base, scored)
     steps: list[Step] = []
     last_round: tuple[CandidateScore, ...] = ()

@@ -20,6 +20,7 @@ from recal.core.buffer import Windows
 from recal.core.effects import Covariates
 from recal.core.pipeline import PipelineConfig
 from recal.core.windowing import window_means
+from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
 __all__ = [
@@ -98,7 +99,7 @@ def data_from_windows(windows: Windows, aux_names: tuple[str, ...], t0_us: int,
     those of still poses.
     """
     if len(windows) == 0:
-        raise ValueError("no quasi-static windows to discover effects on")
+        raise InputError("no quasi-static windows to discover effects on")
     keep = np.ones(len(windows), bool)
     if max_sd_ratio is not None:
         sd = np.sqrt(np.maximum(windows.var, 0.0))
@@ -119,7 +120,7 @@ def data_from_batch(batch: RawBatch, cfg: PipelineConfig | None = None,
     1.2e-4; non-finite samples left out).
     """
     if len(batch) < 2:
-        raise ValueError("a recording needs samples to discover effects on")
+        raise InputError("a recording needs samples to discover effects on")
     return data_from_batches(lambda: [batch], cfg, s0)
 
 
@@ -177,11 +178,11 @@ def rate_and_scale(batches: Iterable[RawBatch]) -> tuple[float, float]:
         _count(steps, dt[dt > 0])
         last_t = int(b.t_us[-1])
     if samples < 2:
-        raise ValueError("a recording needs at least two samples")
+        raise InputError("a recording needs at least two samples")
     if not steps:
-        raise ValueError("time stamps never advance: cannot measure the sample rate")
+        raise InputError("time stamps never advance: cannot measure the sample rate")
     if not bins:
-        raise ValueError("no sample has a finite, nonzero reading: nothing to scale by")
+        raise InputError("no sample has a finite, nonzero reading: nothing to scale by")
     lo, hi = _median_keys(bins)
     return 1e6 / _median_of_counts(steps), (_bin_middle(lo) + _bin_middle(hi)) / 2
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recal.core.triaxial import per_axis, per_row
+from recal.errors import ConfigError, ModelError
 
 __all__ = [
     "EFFECT_KINDS",
@@ -62,8 +63,8 @@ class Covariates:
         try:
             return self.aux[:, self.aux_names.index(name)]
         except ValueError:
-            raise KeyError(f"model needs channel {name!r}; recording has "
-                           f"{self.aux_names}") from None
+            raise ModelError(f"model needs channel {name!r}; recording has "
+                             f"{self.aux_names}") from None
 
     def __getitem__(self, index: slice | np.ndarray) -> Covariates:
         return Covariates(self.t_h[index], self.aux[index], self.aux_names)
@@ -493,10 +494,10 @@ def make_effect(kind: str, covariate: str | None = None, ref: float = 0.0,
     try:
         cls = EFFECT_KINDS[kind]
     except KeyError:
-        raise ValueError(f"unknown effect kind {kind!r}; known: {sorted(EFFECT_KINDS)}") from None
+        raise ConfigError(f"unknown effect kind {kind!r}; known: {sorted(EFFECT_KINDS)}") from None
     if reference is not None:
         if cls is not Ratiometric:
-            raise ValueError(f"only a ratiometric effect takes a reference channel, not {kind!r}")
+            raise ConfigError(f"only a ratiometric effect takes a reference channel, not {kind!r}")
         return Ratiometric(covariate=covariate, ref=float(ref), reference=reference,
                            reference_ref=float(reference_ref))
     return cls(covariate=covariate, ref=float(ref))

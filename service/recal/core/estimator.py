@@ -57,6 +57,7 @@ import numpy as np
 from recal.core.buffer import Windows
 from recal.core.effects import Covariates, Offset
 from recal.core.model import SensorModel
+from recal.errors import ConfigError
 
 __all__ = ["Estimate", "EstimatorConfig", "Prior", "UpdateReport", "bounds_around", "consistent",
            "consistent_many", "innovations", "solve", "update"]
@@ -136,13 +137,13 @@ class EstimatorConfig:
 
     def __post_init__(self) -> None:
         if self.mode not in ("all", "offsets"):
-            raise ValueError(f"estimator mode must be 'all' or 'offsets', not {self.mode!r}")
+            raise ConfigError(f"estimator mode must be 'all' or 'offsets', not {self.mode!r}")
         if self.offset_rate_sd_g_per_h < 0 or self.process_scale < 0:
-            raise ValueError("offset_rate_sd_g_per_h and process_scale must be >= 0")
+            raise ConfigError("offset_rate_sd_g_per_h and process_scale must be >= 0")
         if not (self.sigma_floor_g > 0 and self.tol > 0 and 0 < self.observable_ratio <= 1):
-            raise ValueError("sigma_floor_g and tol must be positive, observable_ratio in (0, 1]")
+            raise ConfigError("sigma_floor_g and tol must be positive, observable_ratio in (0, 1]")
         if self.max_iter < 1 or self.min_windows < 1:
-            raise ValueError("max_iter and min_windows must be at least 1")
+            raise ConfigError("max_iter and min_windows must be at least 1")
 
 
 @dataclass(frozen=True, eq=False)

@@ -34,6 +34,7 @@ from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline import PipelineConfig
 from recal.core.windowing import Windowing
+from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
 __all__ = ["HindsightFit", "calibrate", "fit"]
@@ -142,8 +143,8 @@ def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
     for b in rebatch(batches()):  # a recording's small messages, joined: fewer numpy calls
         w.add(b)
     if w.aux_names is None or w.t0_us is None:
-        raise ValueError("a recording needs samples to calibrate")
+        raise InputError("a recording needs samples to calibrate")
     sums = w.kept()
     if not len(sums):
-        raise ValueError("no quasi-static window in the recording: nothing to calibrate on")
+        raise InputError("no quasi-static window in the recording: nothing to calibrate on")
     return sums.means()[0], w.aux_names, w.t0_us
