@@ -24,6 +24,7 @@ from recal.core.effects import Covariates, make_effect
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.residuals import ORIENTATION_FEATURES
+from recal.errors import ConfigError, InputError, ModelError
 from recal.io import csv_table
 from recal.io import recording as rec
 from recal.node import CalibrationNode, NodeSettings
@@ -412,3 +413,23 @@ def test_the_detector_scale_is_the_median_norm_from_counts_per_bin() -> None:
     gappy = dd.data_from_batch(RawBatch(raw.t_us, v, raw.aux, raw.aux_names))
     whole = dd.data_from_batch(raw)
     assert np.isfinite(gappy.s0) and abs(len(gappy) - len(whole)) <= 2 and len(whole) > 50
+
+
+def test_what_a_user_can_act_on_is_raised_as_a_recal_error() -> None:
+    """Bad settings, a bad model spec, data without enough to discover on and a channel the
+    model needs but the data lacks: each a recal.errors subclass the command line reports."""
+    with pytest.raises(ConfigError, match="at least 3 blocks"):
+        dc.DiscoveryConfig(blocks=2)
+    with pytest.raises(ConfigError, match="unknown effect kind 'wobble'"):
+        make_effect("wobble")
+    with pytest.raises(InputError, match="2 windows are too few"):
+        dc.discover(dd.data_from_table(np.array([[1.0, 0, 0], [0, 1.0, 0]])))
+    t = np.arange(5, dtype=np.int64) * 20_000
+    zeros = RawBatch(t, np.zeros((5, 3)), np.zeros((5, 0)), ())
+    with pytest.raises(InputError, match="no sample has a finite, nonzero reading"):
+        dd.rate_and_scale([zeros])
+    frozen = RawBatch(np.full(5, 7, np.int64), np.ones((5, 3)), np.zeros((5, 0)), ())
+    with pytest.raises(InputError, match="time stamps never advance"):
+        dd.rate_and_scale([frozen])
+    with pytest.raises(ModelError, match="model needs channel 'vbat'"):
+        Covariates(np.zeros(2), np.zeros((2, 0)), ()).get("vbat")

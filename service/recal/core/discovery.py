@@ -4,14 +4,15 @@ A still sensor reads 1 g (Lötters 1998, eq. 8 and 14: xi = 1 g - |a|). On the q
 window means of a recording (the live detector and windowing, `windowing.window_means`) or on
 the rows of a static table, `discover`:
 
-1. fits the current model by the batch form of Lötters eq. 11a (`estimator.solve`, iterated
-   Gauss-Newton), with the live estimator's default prior, over the parameters the poses
-   can determine (`free_params`: a gain needs its axis seen from both sides, an offset its axis
-   seen at all);
-2. analyses the residual: xi per window and its correlation with every auxiliary channel, with
-   time and with the gravity direction; and, per candidate effect, the fraction of xi that the
-   candidate's Jacobian columns (eq. 13a at the effect's nominal value, orthogonalized against
-   the model's own columns) explain: a score test of what the residual looks like;
+1. fits the current model by the batch form of Lötters eq. 11a (`model_fit.fit_model`,
+   iterated Gauss-Newton), with the live estimator's default prior, over the parameters the
+   poses can determine (`model_fit.free_params`: a gain needs its axis seen from both sides, an
+   offset its axis seen at all);
+2. analyses the residual (`residuals`): xi per window and its correlation with every auxiliary
+   channel, with time and with the gravity direction; and, per candidate effect, the fraction
+   of xi that the candidate's Jacobian columns (eq. 13a at the effect's nominal value,
+   orthogonalized against the model's own columns) explain: a score test of what the residual
+   looks like;
 3. builds the candidates: for every auxiliary channel c, whatever it is called, an offset
    linear in c (3 parameters), a gain linear in c (3), the whole output ratiometric in c (1),
    and ratiometric in c with every other channel r as the reference rail (2); cross-axis with
@@ -20,8 +21,8 @@ the rows of a static table, `discover`:
    blocks (rows in table order for a table) and each block is predicted by a fit on the
    others, so neighbouring windows, which share posture, temperature and drift, never sit on
    both sides of a split (boundaries move into the movement between still runs); a window in
-   a pose that only its own block covers is not scored (`scorable`): no model can be tested
-   where the others cannot see the gain;
+   a pose that only its own block covers is not scored (`discovery_data.scorable`): no model
+   can be tested where the others cannot see the gain;
 5. accepts by this criterion: the relative reduction of the held-out sum of squares of xi,
    R = 1 - SS_candidate / SS_model, must exceed both t bootstrap standard errors (blocks
    resampled with replacement, so the spread is the block-to-block variation of the paired
@@ -39,7 +40,9 @@ the rows of a static table, `discover`:
    candidate's held-out improvement stands out from its spread, and nothing is added.
 
 The result carries the extended model with its fitted values and a `Prior` (the fitted values,
-the model's default spreads) for the live estimator to start from.
+the model's default spreads) for the live estimator to start from. Why held-out blocks and this
+criterion: docs/design.md ("Effect discovery"); what it finds on measured data:
+docs/performance.md.
 """
 
 from __future__ import annotations
