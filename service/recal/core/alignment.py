@@ -39,7 +39,8 @@ Also here: :class:`StillTracker`, which finds the moment each quasi-static run h
 enough to serve as a reference (or as a check of it), and keeps the run's mean calibrated
 reading.
 
-Pure numpy: arrays in, arrays and small dataclasses out; no I/O, no clocks.
+Pure numpy: arrays in, arrays and small dataclasses out; no I/O, no clocks. See docs/design.md
+("The tilt alarm").
 """
 
 from __future__ import annotations

@@ -14,7 +14,8 @@ itself. Merging keeps what the windows say (the estimator weighs a slot as its k
 their number: a buffer of single windows forgets the first half hour of a wearer, merged slots
 learn as fast as keeping every window (docs/performance.md). The direction tolerance bounds
 the norm bias of averaging directions that differ: the mean of unit vectors within 1 deg of
-each other is short by at most 0.15 mg.
+each other is short by at most 0.15 mg. Why this buffer: docs/design.md ("Why the buffer bins
+windows on a cube-face grid").
 """
 
 from __future__ import annotations

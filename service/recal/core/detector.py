@@ -9,6 +9,7 @@ last sample while idle: zero variance is not stillness, it is no data).
 
 Streaming in the manner of scipy.signal.sosfilt: the filter state travels in `DetectorState`, so a
 recording fed in one batch or sample by sample gives the same gates to the last bit.
+The threshold and why: docs/design.md ("The detector threshold").
 """
 
 from __future__ import annotations

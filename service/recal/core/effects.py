@@ -15,7 +15,8 @@ Stages, in the order they are applied (raw unit = whatever the sensor sends, e.g
   4. cross_axis    a = M x, M unit upper-triangular        Bragge/Georgieva with the rotation fixed
   5. nonlinearity  a = a + q a^2 per axis
 
-A covariate `c` is an auxiliary channel by its recording name, or "time" (hours).
+A covariate `c` is an auxiliary channel by its recording name, or "time" (hours). See
+docs/design.md ("The core, module by module").
 """
 
 from __future__ import annotations

@@ -16,6 +16,9 @@ was known when it arrived); this module is for a recording already on disk.
    further than norm_tol_g from 1 g (movement the detector let through, the live pipeline's
    norm gate) are dropped and the fit repeated until it keeps the same windows;
 3. the correction (inverse of Lötters eq. 3) of every sample: `HindsightFit.correct`.
+
+Why and how it compares with the batch tools: docs/design.md and docs/performance.md
+("Calibration with hindsight").
 """
 
 from __future__ import annotations

@@ -7,6 +7,7 @@
 
 The diagonal model (Lötters, 6 parameters) is `offset + scale`; the full model (Bragge,
 Georgieva: offsets and a 3x3 sensitivity with the rotation gauge fixed) adds `cross_axis`.
+See docs/design.md ("The core, module by module").
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ A table of still readings (one row per position, any unit) is fitted two ways:
   signed sensor axis give the linear least-squares problem z = K a + O for all 12 parameters.
 
 The figure of merit is each row's relative norm error | |a| - g | / g, reported over all rows,
-including rows left out of the fit.
+including rows left out of the fit. Results on measured tables: docs/performance.md ("Static
+tables").
 """
 
 from __future__ import annotations

@@ -21,7 +21,8 @@ only goes forwards. This module makes it, and says what it did:
 Pure (no I/O, no clocks): ``state, t_us, events = step(state, t_dev, cfg)``, like
 ``scipy.signal.sosfilt`` with ``zi``; the state is a small frozen dataclass that round-trips
 through a JSON dict (checkpoints). Vectorized: clean batches are two numpy passes; only samples
-at an anomaly are looked at one by one (there are a handful per day).
+at an anomaly are looked at one by one (there are a handful per day). See docs/design.md
+("Device time").
 """
 
 from __future__ import annotations
