@@ -126,9 +126,9 @@ class DiscoveryConfig:
     bootstrap: int = 2000
     seed: int = 0
     max_steps: int = 6
-    prior_scale: float = 1.0
-    sigma_floor_g: float = 1e-3
-    max_iter: int = 30
+    prior_scale: float = FitConfig.prior_scale
+    sigma_floor_g: float = FitConfig.sigma_floor_g
+    max_iter: int = FitConfig.max_iter
     observable_ratio: float = 0.5
     kinds: tuple[str, ...] = ("offset", "gain", "ratiometric", "cross_axis", "nonlinearity")
     time: bool = True
@@ -143,7 +143,6 @@ class DiscoveryConfig:
     def fit(self) -> FitConfig:
         """The settings of each fit."""
         return FitConfig(self.prior_scale, self.sigma_floor_g, self.max_iter)
-
 
 
 def candidates(model: SensorModel, data: DiscoveryData,
