@@ -1,22 +1,27 @@
 """The numerical core of recal: pure numpy/scipy, no I/O, no clocks; state in, state out.
 
-Where a sample goes, in data-flow order (docs/design.md has the why of each):
+`pipeline` is the streaming core: per batch of samples it runs, in data-flow order
+(docs/design.md, "The core, module by module", has the why of each):
 
-- `detector`: quasi-static detection, a band-passed norm against a threshold (the gate).
-- `windowing`: still runs cut into windows and their means, for a whole recording at once.
-- `pipeline`: the streaming core: detector, windows, buffer and estimator per batch.
-- `buffer`: the bounded set of window means the estimator fits, spread over orientations.
-- `estimator`: the Bayesian update of the parameters (Lötters 1998, eq. 11a/11b).
-- `model`, `effects`: the sensor model as a list of effects (offset, scale, cross-axis, ...).
-- `triaxial`: per-axis arithmetic on (N, 3) readings the others share.
+- `detector`: quasi-static detection, a band-passed norm against a threshold (the gate),
+  whose still runs the pipeline cuts into windows;
+- `buffer`: the bounded set of window means the estimator fits, spread over orientations;
+- `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
+- `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...),
+  with `triaxial` for the per-axis arithmetic on (N, 3) readings;
 - `status`: what the pipeline says about its own calibration (OK, SUSPECT, ...).
+
+Beside it:
+
+- `windowing`: a whole recording's window means at once, by the pipeline's rules;
 - `discovery` (with `discovery_data`, `model_fit`, `residuals`): which effects a recording
-  needs, chosen by held-out error.
-- `hindsight`: one fit on a whole recording, every sample corrected with it.
-- `static`: lab calibration from a table of still positions.
-- `bootstrap`: starting values (ellipsoid and sphere fits) before any estimate.
-- `alignment`: the sensor's mounting relative to the body.
-- `timebase`: device time stamps to host time (wraps, units, drift).
+  needs, chosen by held-out error;
+- `hindsight`: one fit on a whole recording, every sample corrected with it;
+- `static`: lab calibration from a table of still positions;
+- `bootstrap`: zero-g, scale and starting values (sphere, ellipsoid fits) from no prior;
+- `alignment`: the sensor's mounting relative to the body, and the slip alarm (the node's);
+- `timebase`: device time stamps to the service's microseconds (wraps, units, reboots; the
+  node's, before the pipeline).
 
 The names below are the core's public API; each lives in the module named above.
 """
