@@ -24,6 +24,7 @@ import numpy as np
 
 from recal import sim
 from recal.core import discovery as dc
+from recal.core import discovery_data as dd
 
 WEARER = sim.WearerSpec(still_s=(10.0, 40.0), move_s=(3.0, 8.0), always_aux=True,
                         temp_wander_c=3.0, temp_wander_tau_min=5.0, temp_lag_min=1.0)
@@ -46,7 +47,7 @@ def one(kw: dict, seed: int) -> tuple[list[tuple[str, str | None]], float, float
     sensor = sim.SensorSpec.random(np.random.default_rng(3), temp_channel="board_temp",
                                    supply_channel="vbat", **kw)
     raw = sim.simulate(0.5, 25.0, seed, sensor, WEARER).raw
-    r = dc.discover(dc.data_from_batch(raw))
+    r = dc.discover(dd.data_from_batch(raw))
     d = r.data
     a = sim.inverse_model(d.windows.v, sensor, temp_c=d.cov.get("board_temp"),
                           vdd_v=d.cov.get("vbat"), t_h=d.cov.t_h)

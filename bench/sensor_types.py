@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from recal import sim
-from recal.core import discovery, hindsight
+from recal.core import discovery, discovery_data, hindsight
 from recal.core.effects import Covariates, Scale
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, PipelineConfig
@@ -80,7 +80,7 @@ def run(kind: str, seed: int, hours: float, lively: bool) -> dict:
     raw = r.raw
     true_g = _rel_gain_pct(1.0 + np.asarray(spec.gain))
     t0 = time.perf_counter()
-    data = discovery.data_from_batches(lambda: [raw])
+    data = discovery_data.data_from_batches(lambda: [raw])
     res = discovery.discover(data)
     a_d = _correct(res.model, res.p, raw)
     if extra:  # the model discover wrote, replayed (its s0: the mean fitted scale)
@@ -89,9 +89,9 @@ def run(kind: str, seed: int, hours: float, lively: bool) -> dict:
         a_r, pipe = _replay(raw, model, res.prior)
     else:
         a_r, pipe = _replay(raw, SensorModel.diagonal())
-    h_model = (SensorModel(res.model.effects, discovery.rate_and_scale([raw])[1],
+    h_model = (SensorModel(res.model.effects, discovery_data.rate_and_scale([raw])[1],
                            res.model.spreads) if extra  # `recal hindsight --model`
-               else SensorModel.diagonal(discovery.rate_and_scale([raw])[1]))
+               else SensorModel.diagonal(discovery_data.rate_and_scale([raw])[1]))
     fit = hindsight.calibrate(lambda: [raw], h_model, PipelineConfig(rate_hz=RATE))
     a_h = hindsight.HindsightFit.correct(fit, raw)
     sec = time.perf_counter() - t0

@@ -19,9 +19,12 @@ from recal import cli, sim
 from recal import discovery_report as dr
 from recal.config import PipelineSettings, RediscoveryConfig, load_model_file
 from recal.core import discovery as dc
+from recal.core import discovery_data as dd
 from recal.core.effects import Covariates, make_effect
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
+from recal.core.residuals import ORIENTATION_FEATURES
+from recal.errors import ConfigError, InputError, ModelError
 from recal.io import csv_table
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
@@ -51,7 +54,7 @@ def _sensor(**effects: object) -> sim.SensorSpec:
 def _discover(sensor: sim.SensorSpec, seed: int = SEED) -> tuple[dc.DiscoveryResult, float]:
     """Discovery with defaults on the recording, and the floor in mg on its scored windows."""
     raw = sim.simulate(HOURS, RATE_HZ, seed, sensor, WEARER).raw
-    result = dc.discover(dc.data_from_batch(raw))
+    result = dc.discover(dd.data_from_batch(raw))
     data = result.data
     truth = sim.inverse_model(data.windows.v, sensor, temp_c=data.cov.get("board_temp"),
                               vdd_v=data.cov.get("vbat"), t_h=data.cov.t_h)
@@ -136,7 +139,7 @@ def test_residual_analysis_points_at_the_missing_effect() -> None:
     assert best == "offset[board_temp]" and before.explained[best] > 0.8
     assert after.rms_mg < 0.3 * before.rms_mg
     assert set(before.correlation) == {"board_temp", "vbat", "time"}
-    assert set(before.orientation) == set(dc.ORIENTATION_FEATURES)
+    assert set(before.orientation) == set(ORIENTATION_FEATURES)
 
 
 def test_time_blocks_are_contiguous_equal_and_cut_between_postures() -> None:
@@ -149,7 +152,7 @@ def test_time_blocks_are_contiguous_equal_and_cut_between_postures() -> None:
         now = t[-1] + int(rng.integers(5, 30)) * 1_000_000
     t = np.array(t)
     shuffled = rng.permutation(len(t))
-    blocks = dc.time_blocks(t[shuffled], 10)[np.argsort(shuffled)]
+    blocks = dd.time_blocks(t[shuffled], 10)[np.argsort(shuffled)]
     assert np.all(np.diff(blocks) >= 0) and set(blocks) == set(range(10))
     sizes = np.bincount(blocks)
     assert sizes.min() >= 0.5 * len(t) / 10 and sizes.max() <= 1.5 * len(t) / 10
@@ -359,10 +362,10 @@ def test_windows_read_batch_by_batch_are_those_of_the_whole_recording() -> None:
     data_from_batch of the batches joined: s0, the same windows at the same times, their means
     equal but for the order of the sums (a window cut by a batch end adds two partial sums)."""
     raw = sim.simulate(0.3, RATE_HZ, 3, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
-    whole = dc.data_from_batch(raw)
+    whole = dd.data_from_batch(raw)
     cuts = [0, 1, 997, 5000, 5001, 20_000, len(raw)]
     parts = [raw[a:b] for a, b in pairwise(cuts)]
-    split = dc.data_from_batches(lambda: iter(parts))
+    split = dd.data_from_batches(lambda: iter(parts))
     assert split.s0 == whole.s0 and len(split) == len(whole) > 50
     for name in ("t_us", "n"):
         np.testing.assert_array_equal(getattr(split.windows, name), getattr(whole.windows, name))
@@ -381,7 +384,7 @@ def test_the_rate_comes_from_a_median_of_counted_time_steps() -> None:
     for n in range(1, 60):
         steps = rng.integers(9_990, 10_010, n)
         counts = collections.Counter(steps.tolist())
-        assert dc._median_of_counts(counts) == float(np.median(steps))
+        assert dd._median_of_counts(counts) == float(np.median(steps))
 
 
 def test_the_detector_scale_is_the_median_norm_from_counts_per_bin() -> None:
@@ -398,9 +401,9 @@ def test_the_detector_scale_is_the_median_norm_from_counts_per_bin() -> None:
         v *= scale
         counts = collections.Counter()
         for part in np.array_split(v, 7):
-            dc._count(counts, dc._norm_bins(part))
-        lo, hi = dc._median_keys(counts)
-        s0 = (dc._bin_middle(lo) + dc._bin_middle(hi)) / 2
+            dd._count(counts, dd._norm_bins(part))
+        lo, hi = dd._median_keys(counts)
+        s0 = (dd._bin_middle(lo) + dd._bin_middle(hi)) / 2
         exact = float(np.median(np.linalg.norm(v, axis=1)))
         assert abs(s0 / exact - 1) <= 1.23e-4
         assert len(counts) < 20_000 / 4 or len(v) < 5000  # bins, not samples
@@ -408,6 +411,26 @@ def test_the_detector_scale_is_the_median_norm_from_counts_per_bin() -> None:
     v = raw.v.copy()
     v[100:103] = np.nan
     v[500, 1] = np.inf
-    gappy = dc.data_from_batch(RawBatch(raw.t_us, v, raw.aux, raw.aux_names))
-    whole = dc.data_from_batch(raw)
+    gappy = dd.data_from_batch(RawBatch(raw.t_us, v, raw.aux, raw.aux_names))
+    whole = dd.data_from_batch(raw)
     assert np.isfinite(gappy.s0) and abs(len(gappy) - len(whole)) <= 2 and len(whole) > 50
+
+
+def test_what_a_user_can_act_on_is_raised_as_a_recal_error() -> None:
+    """Bad settings, a bad model spec, data without enough to discover on and a channel the
+    model needs but the data lacks: each a recal.errors subclass the command line reports."""
+    with pytest.raises(ConfigError, match="at least 3 blocks"):
+        dc.DiscoveryConfig(blocks=2)
+    with pytest.raises(ConfigError, match="unknown effect kind 'wobble'"):
+        make_effect("wobble")
+    with pytest.raises(InputError, match="2 windows are too few"):
+        dc.discover(dd.data_from_table(np.array([[1.0, 0, 0], [0, 1.0, 0]])))
+    t = np.arange(5, dtype=np.int64) * 20_000
+    zeros = RawBatch(t, np.zeros((5, 3)), np.zeros((5, 0)), ())
+    with pytest.raises(InputError, match="no sample has a finite, nonzero reading"):
+        dd.rate_and_scale([zeros])
+    frozen = RawBatch(np.full(5, 7, np.int64), np.ones((5, 3)), np.zeros((5, 0)), ())
+    with pytest.raises(InputError, match="time stamps never advance"):
+        dd.rate_and_scale([frozen])
+    with pytest.raises(ModelError, match="model needs channel 'vbat'"):
+        Covariates(np.zeros(2), np.zeros((2, 0)), ()).get("vbat")

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from recal.core import discovery as dc
+from recal.core import discovery_data as dd
 from recal.samples import RawBatch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -53,7 +54,7 @@ def test_xsens_multiposition_cross_axis_found_and_held_out_error_falls() -> None
     # unsigned 16-bit ADC counts, zero g at mid-scale (the file's meta says so)
     v = z["acc_counts"].astype(np.float64) - 32768.0
     t_us = np.round(z["t"] * 1e6).astype(np.int64)
-    result = dc.discover(dc.data_from_batch(RawBatch(t_us, v, np.zeros((len(v), 0)))))
+    result = dc.discover(dd.data_from_batch(RawBatch(t_us, v, np.zeros((len(v), 0)))))
     _report("xsens", result)
     assert result.heldout_final_mg < result.heldout_base_mg
     assert result.heldout_final_mg < 0.2 * result.heldout_base_mg
@@ -69,7 +70,7 @@ def test_geneactiv_cooling_temperature_offset_on_the_axis_along_gravity() -> Non
     t_us = np.round(z["t"] * 1e6).astype(np.int64)
     aux = np.stack([z["temp"], z["batt"]], axis=1).astype(np.float64)
     raw = RawBatch(t_us, z["acc_counts"].astype(np.float64), aux, ("temp", "batt"))
-    result = dc.discover(dc.data_from_batch(raw))
+    result = dc.discover(dd.data_from_batch(raw))
     _report("geneactiv", result)
     found = {(e.kind, e.covariate): e for e in result.selected}
     assert ("offset", "temp") in found
@@ -99,7 +100,7 @@ def test_phone_tables_cross_axis_does_not_earn_its_place_for_any_split(phone: in
     v = _phone(phone)
     outcome = {}
     for blocks in (5, 7, 9, 10, 13, len(v)):  # leave-block-of-rows-out, down to one row
-        r = dc.discover(dc.data_from_table(v), cfg=dc.DiscoveryConfig(blocks=blocks))
+        r = dc.discover(dd.data_from_table(v), cfg=dc.DiscoveryConfig(blocks=blocks))
         first = r.steps[0].candidates if r.steps else r.last_round
         cross = next(c for c in first if c.kind == "cross_axis")
         outcome[blocks] = (round(cross.gain, 3), round(cross.se, 3), cross.passed,

@@ -353,7 +353,7 @@ def test_hindsight_on_the_measured_xsens_recording_needs_its_cross_axis_terms() 
     discover finds there) ~0.14 mg, every parameter determined by the poses."""
     from pathlib import Path
 
-    from recal.core.discovery import rate_and_scale
+    from recal.core.discovery_data import rate_and_scale
 
     path = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / \
         "xsens_imutk_multipos.npz"

@@ -372,7 +372,8 @@ def _cmd_static(a: argparse.Namespace) -> int:
 def _cmd_discover(a: argparse.Namespace) -> int:
     from recal import discovery_report as dr
     from recal.config import load_model_file
-    from recal.core.discovery import DiscoveryConfig, data_from_table
+    from recal.core.discovery import DiscoveryConfig
+    from recal.core.discovery_data import data_from_table
 
     _report_paths(a.json, a.write_model, a.plots)
     path = Path(a.input)

@@ -32,9 +32,12 @@ from typing import Any
 import numpy as np
 
 from recal.core import discovery as dc
+from recal.core.discovery_data import DiscoveryData, data_from_batches
 from recal.core.effects import TIME
 from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
+from recal.core.residuals import ORIENTATION_FEATURES, ResidualAnalysis, orientation_features
+from recal.errors import RecordingError, UsageError
 from recal.samples import RawBatch
 
 __all__ = [
@@ -54,19 +57,19 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 
 def data_from_recording(path: str | Path, sensor_id: str | None = None,
-                        window_s: float | None = None) -> tuple[dc.DiscoveryData, str]:
+                        window_s: float | None = None) -> tuple[DiscoveryData, str]:
     """Quasi-static windows of one sensor's raw topic in an MCAP recording (all its parts),
-    read message by message (`core.discovery.data_from_batches`: bounded memory)."""
+    read message by message (`core.discovery_data.data_from_batches`: bounded memory)."""
     from recal.io import recording
 
     parts = recording.recording_parts(path)
     found = recording.sensors(parts)
     sensor_id = recording.pick_sensor(path, found, sensor_id)
     if not any(len(b) for _, b, _ in recording.iter_raw(parts, sensor_id)):
-        raise ValueError(f"{path}: no raw samples for sensor {sensor_id!r} (sensors: "
-                         f"{', '.join(found) or 'none'})")
-    data = dc.data_from_batches(lambda: (b for _, b, _ in recording.iter_raw(parts, sensor_id)),
-                                window_s=window_s)
+        raise RecordingError(f"{path}: no raw samples for sensor {sensor_id!r} (sensors: "
+                             f"{', '.join(found) or 'none'})")
+    data = data_from_batches(lambda: (b for _, b, _ in recording.iter_raw(parts, sensor_id)),
+                             window_s=window_s)
     return data, sensor_id
 
 
@@ -84,7 +87,7 @@ def csv_has_time(path: str | Path) -> bool:
 
 
 def data_from_csv(path: str | Path, rate_hz: float | None = None, units: str | None = None,
-                  window_s: float | None = None) -> dc.DiscoveryData:
+                  window_s: float | None = None) -> DiscoveryData:
     """Quasi-static windows of a CSV time series (see `recal.io.csv_table.read_csv`)."""
     from recal.io.csv_table import iter_csv
 
@@ -92,7 +95,7 @@ def data_from_csv(path: str | Path, rate_hz: float | None = None, units: str | N
         chunks = iter_csv(path, units=units, rate_hz=rate_hz)  # type: ignore[arg-type]
         return (t.batch for t in chunks)
 
-    return dc.data_from_batches(batches, window_s=window_s)
+    return data_from_batches(batches, window_s=window_s)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -136,7 +139,7 @@ def _candidate_dict(c: dc.CandidateScore) -> dict[str, Any]:
             "explained": c.explained, "passed": c.passed}
 
 
-def _analysis_dict(a: dc.ResidualAnalysis) -> dict[str, Any]:
+def _analysis_dict(a: ResidualAnalysis) -> dict[str, Any]:
     return {"rms_mg": a.rms_mg, "correlation": a.correlation, "orientation": a.orientation,
             "explained": a.explained}
 
@@ -259,7 +262,7 @@ def _pyplot() -> Any:
     try:
         import matplotlib
     except ImportError:
-        raise RuntimeError("--plots needs matplotlib: pip install 'recal[plots]'") from None
+        raise UsageError("--plots needs matplotlib: pip install 'recal[plots]'") from None
     matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
 
@@ -278,10 +281,10 @@ def _covariate_axis(result: dc.DiscoveryResult) -> list[tuple[str, np.ndarray]]:
                 out.append((label, data.cov.get(ch)))
     if any(e.covariate is None for e in result.selected) or not out:
         a = result.corrected(final=False)
-        feats = dc.orientation_features(a)
+        feats = orientation_features(a)
         corr = result.analysis_base.orientation
         name = max(corr, key=lambda k: abs(corr[k]) if math.isfinite(corr[k]) else -1)
-        out.append((f"gravity direction u_{name}", feats[:, dc.ORIENTATION_FEATURES.index(name)]))
+        out.append((f"gravity direction u_{name}", feats[:, ORIENTATION_FEATURES.index(name)]))
     return out
 
 
@@ -352,7 +355,7 @@ def write_plots(result: dc.DiscoveryResult, out_dir: str | Path) -> list[Path]:
 # The command
 # ---------------------------------------------------------------------------------------------
 
-def run(data: dc.DiscoveryData, *, model: SensorModel | None = None,
+def run(data: DiscoveryData, *, model: SensorModel | None = None,
         p: np.ndarray | None = None, cfg: dc.DiscoveryConfig | None = None,
         json_path: str | Path | None = None, plots_dir: str | Path | None = None,
         model_path: str | Path | None = None, source: str | None = None,

@@ -4,7 +4,7 @@ Three passes over the input, one batch at a time (a week-long file needs memory 
 windows, about 100 bytes each, not for its samples):
 
 1. the sample rate and the median norm (the detector's first scale and the model's nominal
-   sensitivity unless a model file gives one), from counts (`discovery.rate_and_scale`);
+   sensitivity unless a model file gives one), from counts (`discovery_data.rate_and_scale`);
 2. the quasi-static windows, and one fit of the model on all of them (when the windows show
    zero-g far from 0 or another scale, as an analog part on an unsigned ADC does, the windows
    once more by a detector centred there: `hindsight.calibrate`);
@@ -25,11 +25,12 @@ import numpy as np
 
 from recal.core import detector as det
 from recal.core import hindsight
-from recal.core.discovery import rate_and_scale
+from recal.core.discovery_data import rate_and_scale
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 from recal.core.pipeline import PipelineConfig, gain_reference, usable
 from recal.core.status import Status, predicted_sigma_mg, sigma_form
+from recal.errors import RecordingError
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
 __all__ = ["Source", "calibrate_file", "open_source", "summary_lines"]
@@ -66,7 +67,7 @@ def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float |
     found = recording.sensors(parts)
     sid = recording.pick_sensor(path, found, sensor_id)
     if sid not in found:
-        raise ValueError(f"{path} has no sensor {sid!r} (it has: {', '.join(found) or 'none'})")
+        raise RecordingError(f"{path} has no sensor {sid!r} (it has: {', '.join(found) or 'none'})")
 
     def raw() -> Iterator[RawBatch]:
         return (b for _, b, _ in recording.iter_raw(parts, sid))

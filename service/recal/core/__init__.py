@@ -1,0 +1,126 @@
+"""The numerical core of recal: pure numpy/scipy, no I/O, no clocks; state in, state out.
+
+`pipeline` is the streaming core: per batch of samples it runs, in data-flow order
+(docs/design.md, "The core, module by module", has the why of each):
+
+- `detector`: quasi-static detection, a band-passed norm against a threshold (the gate),
+  whose still runs the pipeline cuts into windows;
+- `buffer`: the bounded set of window means the estimator fits, spread over orientations;
+- `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
+- `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...),
+  with `triaxial` for the per-axis arithmetic on (N, 3) readings;
+- `status`: what the pipeline says about its own calibration (OK, SUSPECT, ...).
+
+Beside it:
+
+- `windowing`: a whole recording's window means at once, by the pipeline's rules;
+- `discovery` (with `discovery_data`, `model_fit`, `residuals`): which effects a recording
+  needs, chosen by held-out error;
+- `hindsight`: one fit on a whole recording, every sample corrected with it;
+- `static`: lab calibration from a table of still positions;
+- `bootstrap`: zero-g, scale and starting values (sphere, ellipsoid fits) from no prior;
+- `alignment`: the sensor's mounting relative to the body, and the slip alarm (the node's);
+- `timebase`: device time stamps to the service's microseconds (wraps, units, reboots; the
+  node's, before the pipeline).
+
+The names below are the core's public API; each lives in the module named above.
+"""
+
+from recal.core.alignment import Alignment
+from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
+from recal.core.detector import DetectorConfig, DetectorOutput, DetectorState, detect, init_state
+from recal.core.discovery import (
+    DiscoveryConfig,
+    DiscoveryResult,
+    discover,
+    discover_pipeline,
+)
+from recal.core.discovery_data import (
+    DiscoveryData,
+    data_from_batch,
+    data_from_batches,
+    data_from_table,
+)
+from recal.core.effects import (
+    EFFECT_KINDS,
+    TIME,
+    Covariates,
+    CrossAxis,
+    Effect,
+    Gain,
+    Nonlinearity,
+    Offset,
+    Ratiometric,
+    Scale,
+    make_effect,
+)
+from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
+from recal.core.hindsight import HindsightFit
+from recal.core.model import AffineCorrection, SensorModel
+from recal.core.pipeline import (
+    Pipeline,
+    PipelineConfig,
+    StepOutput,
+    UpdateEvent,
+    WatchEvent,
+    gain_reference,
+    missing_channels,
+)
+from recal.core.static import StaticFit, fit_known_orientations, fit_unknown_orientations
+from recal.core.status import Status
+from recal.core.timebase import TimebaseConfig, TimebaseState
+from recal.core.windowing import Windowing, window_means
+
+__all__ = [
+    "EFFECT_KINDS",
+    "TIME",
+    "AffineCorrection",
+    "Alignment",
+    "BufferConfig",
+    "Covariates",
+    "Coverage",
+    "CrossAxis",
+    "DetectorConfig",
+    "DetectorOutput",
+    "DetectorState",
+    "DiscoveryConfig",
+    "DiscoveryData",
+    "DiscoveryResult",
+    "Effect",
+    "Estimate",
+    "EstimatorConfig",
+    "Gain",
+    "HindsightFit",
+    "Nonlinearity",
+    "Offset",
+    "Pipeline",
+    "PipelineConfig",
+    "Prior",
+    "Ratiometric",
+    "Scale",
+    "SensorModel",
+    "StaticFit",
+    "Status",
+    "StepOutput",
+    "TimebaseConfig",
+    "TimebaseState",
+    "UpdateEvent",
+    "UpdateReport",
+    "WatchEvent",
+    "WindowBuffer",
+    "Windowing",
+    "Windows",
+    "data_from_batch",
+    "data_from_batches",
+    "data_from_table",
+    "detect",
+    "discover",
+    "discover_pipeline",
+    "fit_known_orientations",
+    "fit_unknown_orientations",
+    "gain_reference",
+    "init_state",
+    "make_effect",
+    "missing_channels",
+    "window_means",
+]

@@ -25,22 +25,22 @@ wearer's usual upright posture comes back turned, again and again, the same way;
 that merely differ from the reference scatter and rarely agree, and one upright period near
 the reference breaks the streak. Lying and bending (beyond ``upright_max_deg`` of the
 reference) say nothing and are skipped. The alarm clears when ``periods`` upright periods in
-a row are back within the limit (the sensor was re-seated). Why 4 and 3°: on simulated wearers
-leaning anywhere within 30° (bench/tilt_alarm.py), 3 periods raised 3 false alarms in 150
-wearer-hours and 4 none, while every 10° slip of a wearer who stands alike was still caught
-(median 10 min after it; 8 min with 3; an 8° slip, just beyond the limit, in 19 of 20).
+a row are back within the limit (the sensor was re-seated). Why 4 and 3°: the fewest periods
+that raise no false alarm on simulated wearers leaning anywhere within 30° while every 10° slip
+of a wearer who stands alike is still caught (bench/tilt_alarm.py; docs/performance.md).
 While the alarm stands the body frame keeps the reference's rotation (off by the slip, which
 the alarm says); a new reference (a query on ``recal/<sensor>/align``) ends it. What the rule
 cannot see: a wearer whose only upright posture after the reference is a second, steady one
 beyond the limit from it (gravity alone cannot tell that from a slip), a wearer whose upright
-postures scatter more than ``agree_deg`` (0 of 20 slips of 10° caught on the simulated wearers
-leaning anywhere within 30°), and a slip about the vertical.
+postures scatter more than ``agree_deg`` (no slip is caught there), and a slip about the
+vertical.
 
 Also here: :class:`StillTracker`, which finds the moment each quasi-static run has lasted long
 enough to serve as a reference (or as a check of it), and keeps the run's mean calibrated
 reading.
 
-Pure numpy: arrays in, arrays and small dataclasses out; no I/O, no clocks.
+Pure numpy: arrays in, arrays and small dataclasses out; no I/O, no clocks. See docs/design.md
+("The tilt alarm").
 """
 
 from __future__ import annotations
@@ -50,6 +50,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+
+from recal.errors import ConfigError, InputError
 
 __all__ = [
     "DEFAULT_TILT_LIMIT_DEG",
@@ -85,7 +87,7 @@ def zheng_angles(g: np.ndarray) -> tuple[float, float]:
     g = np.asarray(g, np.float64).reshape(3)
     norm = float(np.linalg.norm(g))
     if not norm > 0:
-        raise ValueError("gravity vector has zero length")
+        raise InputError("gravity vector has zero length")
     u = g / norm
     return float(np.arcsin(np.clip(u[0], -1, 1))), float(np.arcsin(np.clip(u[1], -1, 1)))
 
@@ -155,7 +157,7 @@ def estimate_alignment(gravity_g: np.ndarray, limit_deg: float = DEFAULT_TILT_LI
     """The mounting from the mean calibrated reading on a reference posture (g, sensor frame)."""
     g = np.asarray(gravity_g, np.float64).reshape(3)
     if not (np.all(np.isfinite(g)) and np.linalg.norm(g) > 0):
-        raise ValueError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
+        raise InputError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
     u = g / np.linalg.norm(g)
     theta_x, theta_y = zheng_angles(u)
     # θ1 zeroes x exactly (eq. 6); the y-z turn by Zheng's θy then zeroes y (eq. 8), because
@@ -183,7 +185,7 @@ def _unit(g: np.ndarray) -> np.ndarray:
     g = np.asarray(g, np.float64).reshape(3)
     norm = float(np.linalg.norm(g))
     if not (np.all(np.isfinite(g)) and norm > 0):
-        raise ValueError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
+        raise InputError(f"gravity vector must be finite and non-zero, got {g.tolist()}")
     return g / norm
 
 
@@ -238,7 +240,7 @@ class SlipWatch:
                  agree_deg: float = SLIP_AGREE_DEG, min_move_s: float = SLIP_MIN_MOVE_S,
                  alarmed: bool = False) -> None:
         if periods < 1 or not limit_deg > 0 or not agree_deg > 0 or min_move_s < 0:
-            raise ValueError("periods >= 1, limit_deg > 0, agree_deg > 0, min_move_s >= 0")
+            raise ConfigError("periods >= 1, limit_deg > 0, agree_deg > 0, min_move_s >= 0")
         self.reference = _unit(reference_g)
         self.limit_deg = float(limit_deg)
         self.upright_max_deg = float(upright_max_deg)
@@ -314,7 +316,7 @@ class StillTracker:
 
     def __init__(self, min_s: float, max_gap_us: int) -> None:
         if not min_s > 0 or not max_gap_us > 0:
-            raise ValueError("min_s and max_gap_us must be positive")
+            raise ConfigError("min_s and max_gap_us must be positive")
         self.min_us = round(min_s * 1e6)
         self.max_gap_us = int(max_gap_us)
         self.start_us: int | None = None  # first sample of the open run (None: no run)

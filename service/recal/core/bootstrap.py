@@ -14,7 +14,8 @@ unsigned 12-bit ADC reads ~2048 counts at 0 g and ~372 counts per g, a phone ~9.
 a digital part 0 at 0 g and 256 to 16 384 counts per g. `locate` finds both from the still
 window means alone (a robust sphere fit), and says whether they are pinned down: orientation
 coverage is judged on the centred readings (v - centre), never on the raw ones, which for an
-unsigned part all lie in one octant.
+unsigned part all lie in one octant. See docs/design.md ("Any accelerometer: zero-g and scale
+from the data").
 """
 
 from __future__ import annotations

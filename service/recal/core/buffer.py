@@ -11,11 +11,11 @@ A slot holds one window, or the merged mean of up to `merge_max` consecutive win
 still run whose directions agree within `merge_deg` (`k` counts them): a two-minute posture then
 fills a few slots instead of evicting every older posture of its cell with the same 12 s of
 itself. Merging keeps what the windows say (the estimator weighs a slot as its k windows) but not
-their number, which is what made a buffer of single windows forget the first half hour of a
-wearer (the full model on `sim` seed 2 reached 1.5 mg only after 40 min with 6 single windows per
-cell, after 25 min with every window kept; merged slots get there as fast as keeping every
-window). The direction tolerance bounds the norm bias of averaging directions that differ: the
-mean of unit vectors within 1 deg of each other is short by at most 0.15 mg.
+their number: a buffer of single windows forgets the first half hour of a wearer, merged slots
+learn as fast as keeping every window (docs/performance.md). The direction tolerance bounds
+the norm bias of averaging directions that differ: the mean of unit vectors within 1 deg of
+each other is short by at most 0.15 mg. Why this buffer: docs/design.md ("Why the buffer bins
+windows on a cube-face grid").
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+from recal.errors import ConfigError, InputError
 
 __all__ = ["BufferConfig", "Coverage", "WindowBuffer", "Windows", "cell_of"]
 
@@ -42,7 +44,7 @@ class BufferConfig:
 
     def __post_init__(self) -> None:
         if min(self.grid, self.per_cell, self.merge_max) < 1 or not self.merge_deg >= 0:
-            raise ValueError("grid, per_cell and merge_max must be at least 1, merge_deg >= 0")
+            raise ConfigError("grid, per_cell and merge_max must be at least 1, merge_deg >= 0")
 
     @property
     def cells(self) -> int:
@@ -366,7 +368,7 @@ class WindowBuffer:
         aux = np.asarray(d["aux"], np.float64)
         buf = cls(cfg, aux.shape[1] if aux.ndim == 2 else 0)
         if buf.v.shape != np.asarray(d["v"]).shape:
-            raise ValueError("buffer checkpoint does not match its grid")
+            raise InputError("buffer checkpoint does not match its grid")
         buf.v = np.asarray(d["v"], np.float64)
         buf.aux = aux.reshape(len(buf.v), -1)
         buf.t_us = np.asarray(d["t_us"], np.int64)

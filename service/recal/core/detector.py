@@ -9,6 +9,7 @@ last sample while idle: zero variance is not stillness, it is no data).
 
 Streaming in the manner of scipy.signal.sosfilt: the filter state travels in `DetectorState`, so a
 recording fed in one batch or sample by sample gives the same gates to the last bit.
+The threshold and why: docs/design.md ("The detector threshold").
 """
 
 from __future__ import annotations
@@ -21,20 +22,17 @@ from scipy import signal
 
 from recal.core.triaxial import all3, any3, norm3
 
-try:  # the Cython kernel behind signal.sosfilt; its checks cost ~10x the filtering per batch
+try:  # the Cython kernel behind signal.sosfilt: its argument checks outweigh a small batch
     from scipy.signal._sosfilt import _sosfilt
 except ImportError:  # pragma: no cover - a scipy that moved it: the public function
     _sosfilt = None
 
 __all__ = ["DetectorConfig", "DetectorOutput", "DetectorState", "detect", "init_state"]
 
-#: Default threshold on the detector output, in g, chosen by `bench/detector_threshold.py`
-#: (a sweep from 3 to 100 mg on simulated wearers with truth and on the Xsens multi-position
-#: recording, ../shared/data/real): below ~5 mg the output of still 4 mg-noise postures (3-4 mg)
-#: crosses it and recall collapses (0.33 at 3 mg); above ~30 mg windows from hand rotations get
-#: into the real data's calibration (1.9-2.4 mg off its lab fit at 50-100 mg, 0.1-0.27 mg up
-#: to 30 mg). 15 mg is the middle of the 5-30 mg range that works on both (simulated: recall
-#: 1.000, precision 0.989, 1.03 mg; Xsens: recall 0.997, precision 0.81, 0.21 mg).
+#: Default threshold on the detector output, in g: the middle of the range that works on both
+#: simulated wearers and the Xsens multi-position recording (lower, still postures' own noise
+#: crosses it; higher, hand rotations get into the calibration). Chosen by
+#: `bench/detector_threshold.py`; the sweep is in docs/performance.md.
 DEFAULT_THRESHOLD_G = 0.015
 
 
@@ -102,8 +100,8 @@ class DetectorOutput:
 @functools.lru_cache(maxsize=64)
 def _butter_pair(order: int, hp_hz: float, lp_hz: float,
                  rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """The high- and low-pass designs, made once per setting: designing them costs ~1 ms,
-    which a live sensor sending one sample per batch would otherwise pay on every batch."""
+    """The high- and low-pass designs, made once per setting: a live sensor sending one sample
+    per batch would otherwise pay for the design on every batch."""
     hp = signal.butter(order, hp_hz, "highpass", fs=rate_hz, output="sos")
     lp = signal.butter(order, lp_hz, "lowpass", fs=rate_hz, output="sos")
     # Shared between callers (never changed in place); not marked read-only because

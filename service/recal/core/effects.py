@@ -15,7 +15,8 @@ Stages, in the order they are applied (raw unit = whatever the sensor sends, e.g
   4. cross_axis    a = M x, M unit upper-triangular        Bragge/Georgieva with the rotation fixed
   5. nonlinearity  a = a + q a^2 per axis
 
-A covariate `c` is an auxiliary channel by its recording name, or "time" (hours).
+A covariate `c` is an auxiliary channel by its recording name, or "time" (hours). See
+docs/design.md ("The core, module by module").
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recal.core.triaxial import per_axis, per_row
+from recal.errors import ConfigError, ModelError
 
 __all__ = [
     "EFFECT_KINDS",
@@ -62,8 +64,8 @@ class Covariates:
         try:
             return self.aux[:, self.aux_names.index(name)]
         except ValueError:
-            raise KeyError(f"model needs channel {name!r}; recording has "
-                           f"{self.aux_names}") from None
+            raise ModelError(f"model needs channel {name!r}; recording has "
+                             f"{self.aux_names}") from None
 
     def __getitem__(self, index: slice | np.ndarray) -> Covariates:
         return Covariates(self.t_h[index], self.aux[index], self.aux_names)
@@ -290,10 +292,9 @@ class Offset(Effect):
     def process_sd_per_sqrt_h(self, s0, spread):
         # Offsets drift within hours (Lötters sec. 1). A steady drift is the estimator's offset
         # rate (estimator.py); this walk covers what a straight line does not, and is kept small
-        # so that windows from an hour ago still pin the gains and cross-axis terms: worst of
-        # bench/in_use_accuracy.py's 8 cross-axis wearers 2.2 mg at 5 mg/sqrt(h), 1.5 mg at 2.5.
-        # The price: offsets that follow temperature swings (not in the model) are tracked
-        # more slowly (2 mg/degC, 10 degC excursions: 4-10 mg instead of 4-6 mg at 10 mg/sqrt(h)).
+        # so that windows from an hour ago still pin the gains and cross-axis terms; the price:
+        # offsets that follow temperature swings the model lacks are tracked more slowly
+        # (chosen by bench/in_use_accuracy.py; figures in docs/performance.md).
         return np.full(3, OFFSET_WALK_G_PER_SQRT_H * s0) if self.covariate is None else np.zeros(3)
 
     def bounds(self, s0, spread):
@@ -494,10 +495,10 @@ def make_effect(kind: str, covariate: str | None = None, ref: float = 0.0,
     try:
         cls = EFFECT_KINDS[kind]
     except KeyError:
-        raise ValueError(f"unknown effect kind {kind!r}; known: {sorted(EFFECT_KINDS)}") from None
+        raise ConfigError(f"unknown effect kind {kind!r}; known: {sorted(EFFECT_KINDS)}") from None
     if reference is not None:
         if cls is not Ratiometric:
-            raise ValueError(f"only a ratiometric effect takes a reference channel, not {kind!r}")
+            raise ConfigError(f"only a ratiometric effect takes a reference channel, not {kind!r}")
         return Ratiometric(covariate=covariate, ref=float(ref), reference=reference,
                            reference_ref=float(reference_ref))
     return cls(covariate=covariate, ref=float(ref))

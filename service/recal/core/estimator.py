@@ -21,8 +21,7 @@ beyond the paper where the paper fails in use:
   with Q per hour (effects.py), so a window of age tau carries B Q B^T tau more variance in
   C_mu. And the offsets move smoothly: their rate of change r (3 values, prior sd
   `offset_rate_sd_g_per_h`) is fitted with them, a window of age tau saw the offsets o - r tau.
-  That is what tracks a steady drift without lag (a random walk alone follows a ramp late: on a
-  15 mg/h drift 9 mg RMS error with the walk below, 1.0 mg with the rate).
+  That is what tracks a steady drift without lag (a random walk alone follows a ramp late).
 * Jumps: when the latest windows contradict the estimate (each one's normalized innovation
   beyond 7 sigma, all to the same side: a knock, a re-mount), the offsets are given a step d at
   that time: older windows saw o - d, and the pre-calibration is then a prior on o - d. They
@@ -39,15 +38,12 @@ beyond the paper where the paper fails in use:
   determined.
 * Offsets-only mode (Lötters: "in case the sensitivities are assumed to be known and stable").
 
-Why the whole buffer, re-linearized, rather than a recursive (Kalman) update of the fresh windows
-(this module's first design): a recursive update keeps each window's information as linearized
-when it arrived, far from the truth early on; and it held the cross-axis and gain terms of an
-axis not yet seen from both sides fixed, so the offsets absorbed them. On a wearer who showed no
-posture with z below -0.3 g for 47 minutes (`sim` seed 5, full model, +-1.5 deg cross-axis)
-that gave 35 mg errors until minute 55 and 12.6 mg over the scored 30-120 min; re-fitting the
-buffer from the current estimate gives 1.06 mg on the same recording (tests/test_core.py).
-Cost: about 1 ms per update on a 2-core build machine (150-400 buffer slots, 2 Gauss-Newton
-iterations). The pipeline tries one every `update_every` committed windows but first asks
+Why the whole buffer, re-linearized, rather than a recursive (Kalman) update of the fresh
+windows: a recursive update keeps each window's information as linearized when it arrived, far
+from the truth early on, and holds the cross-axis and gain terms of an axis not yet seen from
+both sides fixed, so the offsets absorb them (docs/design.md; figures in docs/performance.md).
+
+The pipeline tries an update every `update_every` committed windows but first asks
 `consistent` (the new windows' normalized innovations, eq. 14, a chi-square and a mean test):
 re-fitting windows that agree with the estimate would not move it (core/pipeline.py).
 """
@@ -61,6 +57,7 @@ import numpy as np
 from recal.core.buffer import Windows
 from recal.core.effects import Covariates, Offset
 from recal.core.model import SensorModel
+from recal.errors import ConfigError
 
 __all__ = ["Estimate", "EstimatorConfig", "Prior", "UpdateReport", "bounds_around", "consistent",
            "consistent_many", "innovations", "solve", "update"]
@@ -140,13 +137,13 @@ class EstimatorConfig:
 
     def __post_init__(self) -> None:
         if self.mode not in ("all", "offsets"):
-            raise ValueError(f"estimator mode must be 'all' or 'offsets', not {self.mode!r}")
+            raise ConfigError(f"estimator mode must be 'all' or 'offsets', not {self.mode!r}")
         if self.offset_rate_sd_g_per_h < 0 or self.process_scale < 0:
-            raise ValueError("offset_rate_sd_g_per_h and process_scale must be >= 0")
+            raise ConfigError("offset_rate_sd_g_per_h and process_scale must be >= 0")
         if not (self.sigma_floor_g > 0 and self.tol > 0 and 0 < self.observable_ratio <= 1):
-            raise ValueError("sigma_floor_g and tol must be positive, observable_ratio in (0, 1]")
+            raise ConfigError("sigma_floor_g and tol must be positive, observable_ratio in (0, 1]")
         if self.max_iter < 1 or self.min_windows < 1:
-            raise ValueError("max_iter and min_windows must be at least 1")
+            raise ConfigError("max_iter and min_windows must be at least 1")
 
 
 @dataclass(frozen=True, eq=False)

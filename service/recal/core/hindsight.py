@@ -8,7 +8,7 @@ and reported. The live service streams instead (`pipeline`: each sample correcte
 was known when it arrived); this module is for a recording already on disk.
 
 1. windows: `windowing.Windowing`, the live detector (Lötters eq. 1-2) and windowing;
-2. the fit (`fit`): from an ellipsoid or sphere fit of the window means (`discovery`'s start),
+2. the fit (`fit`): from an ellipsoid or sphere fit of the window means (`model_fit.start_params`),
    Lötters eq. 11a iterated to convergence (`estimator.solve`, the prior rows at the start
    values with the model's default spreads), over the parameters the poses determine (the
    others held at their nominal values, as the live core holds them), with no process
@@ -16,6 +16,9 @@ was known when it arrived); this module is for a recording already on disk.
    further than norm_tol_g from 1 g (movement the detector let through, the live pipeline's
    norm gate) are dropped and the fit repeated until it keeps the same windows;
 3. the correction (inverse of Lötters eq. 3) of every sample: `HindsightFit.correct`.
+
+Why and how it compares with the batch tools: docs/design.md and docs/performance.md
+("Calibration with hindsight").
 """
 
 from __future__ import annotations
@@ -28,18 +31,13 @@ import numpy as np
 
 from recal.core.bootstrap import off_by
 from recal.core.buffer import Windows
-from recal.core.discovery import (
-    DiscoveryConfig,
-    data_from_windows,
-    fit_model,
-    free_params,
-    nominal,
-    start_params,
-)
+from recal.core.discovery_data import data_from_windows
 from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
+from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline import PipelineConfig
 from recal.core.windowing import Windowing
+from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
 __all__ = ["HindsightFit", "calibrate", "fit"]
@@ -110,7 +108,7 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
     # offset almost freely
     held = ~free_params(model, p, data)
     p[held] = nominal(model, data)[held]
-    cfg = DiscoveryConfig()
+    cfg = FitConfig()
     keep = np.ones(len(data), bool)
     for _ in range(MAX_PASSES):
         fitted = keep  # the windows of this fit: what the report counts
@@ -129,7 +127,7 @@ def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
               cfg: PipelineConfig) -> HindsightFit:
     """Fit a recording read batch by batch (``batches()``: one pass over it, or two) with
     hindsight. The detector runs in units of model.s0 raw per g; when the windows show zero-g
-    far from 0 or the scale far from s0 (`discovery.zero_and_scale`: an analog part on an
+    far from 0 or the scale far from s0 (`bootstrap.zero_and_scale`: an analog part on an
     unsigned ADC, s0 a first sample's norm), once more centred at the zero-g found and in its
     units, and the model's s0 becomes that scale."""
     windows, aux_names, t0_us = _windows(batches, cfg, model, model.s0, None)
@@ -148,8 +146,8 @@ def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
     for b in rebatch(batches()):  # a recording's small messages, joined: fewer numpy calls
         w.add(b)
     if w.aux_names is None or w.t0_us is None:
-        raise ValueError("a recording needs samples to calibrate")
+        raise InputError("a recording needs samples to calibrate")
     sums = w.kept()
     if not len(sums):
-        raise ValueError("no quasi-static window in the recording: nothing to calibrate on")
+        raise InputError("no quasi-static window in the recording: nothing to calibrate on")
     return sums.means()[0], w.aux_names, w.t0_us

@@ -7,6 +7,7 @@
 
 The diagonal model (Lötters, 6 parameters) is `offset + scale`; the full model (Bragge,
 Georgieva: offsets and a 3x3 sensitivity with the rotation gauge fixed) adds `cross_axis`.
+See docs/design.md ("The core, module by module").
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 
 from recal.core.effects import Covariates, CrossAxis, Effect, Offset, Scale, make_effect
 from recal.core.triaxial import norm3, per_axis, per_row
+from recal.errors import ConfigError
 
 __all__ = ["AffineCorrection", "SensorModel"]
 
@@ -60,18 +62,18 @@ class SensorModel:
 
     def __post_init__(self) -> None:
         if not self.effects:
-            raise ValueError("a model needs at least one effect (offsets, scale, ...)")
+            raise ConfigError("a model needs at least one effect (offsets, scale, ...)")
         if not self.s0 > 0:
-            raise ValueError(f"s0 (raw units per g) must be positive, not {self.s0}")
+            raise ConfigError(f"s0 (raw units per g) must be positive, not {self.s0}")
         spreads = tuple(self.spreads) or (1.0,) * len(self.effects)
         if len(spreads) != len(self.effects):
-            raise ValueError("one spread per effect")
+            raise ConfigError("one spread per effect")
         # stable sort keeps insertion order within a stage, and spreads stay with their effect
         pairs = sorted(zip(self.effects, map(float, spreads), strict=True),
                        key=lambda es: es[0].stage)
         keys = [e.key for e, _ in pairs]
         if len(set(keys)) != len(keys):
-            raise ValueError(f"duplicate effects in model: {keys}")
+            raise ConfigError(f"duplicate effects in model: {keys}")
         object.__setattr__(self, "effects", tuple(e for e, _ in pairs))
         object.__setattr__(self, "spreads", tuple(sp for _, sp in pairs))
         # Slices and names are asked for many times per estimator update: compute them once.
@@ -275,5 +277,5 @@ class SensorModel:
             return p
         p = np.asarray(values, np.float64)
         if p.shape != (self.size,):
-            raise ValueError(f"expected {self.size} parameters, got {p.shape}")
+            raise ConfigError(f"expected {self.size} parameters, got {p.shape}")
         return p

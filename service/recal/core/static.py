@@ -10,7 +10,8 @@ A table of still readings (one row per position, any unit) is fitted two ways:
   signed sensor axis give the linear least-squares problem z = K a + O for all 12 parameters.
 
 The figure of merit is each row's relative norm error | |a| - g | / g, reported over all rows,
-including rows left out of the fit.
+including rows left out of the fit. Results on measured tables: docs/performance.md ("Static
+tables").
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from recal.core.effects import Covariates
 from recal.core.estimator import EstimatorConfig, Prior, solve
 from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
+from recal.errors import InputError, UsageError
 
 __all__ = ["StaticFit", "fit_known_orientations", "fit_unknown_orientations", "nearest_axes"]
 
@@ -76,13 +78,13 @@ def fit_unknown_orientations(v: np.ndarray, fit_rows: np.ndarray, g: float | Non
     loss: "l2" (Georgieva eq. 17, least squares) or "minimax" (least worst row, from the l2 fit).
     """
     if loss not in ("l2", "minimax"):
-        raise ValueError(f"loss must be 'l2' or 'minimax', not {loss!r}")
+        raise UsageError(f"loss must be 'l2' or 'minimax', not {loss!r}")
     v = np.asarray(v, np.float64)
     g = float(np.median(np.linalg.norm(v, axis=1))) if g is None else float(g)
     base = SensorModel.full(g) if full else SensorModel.diagonal(g)
     n_fit = int(np.count_nonzero(fit_rows))
     if n_fit < base.size:  # fewer rows than unknowns: any table "fits" them exactly
-        raise ValueError(f"{n_fit} fitted rows cannot determine the {base.size} parameters of "
+        raise InputError(f"{n_fit} fitted rows cannot determine the {base.size} parameters of "
                          f"the {'full' if full else 'diagonal'} model; fit at least "
                          f"{base.size} rows" + (" (or 6 with --diagonal)" if full else ""))
     start = initial_params(base, v[fit_rows])
@@ -118,7 +120,7 @@ def nearest_axes(v: np.ndarray, max_angle_deg: float = 25.0) -> np.ndarray:
     cos = np.abs(u[np.arange(len(u)), ax])
     bad = np.flatnonzero(cos < np.cos(np.radians(max_angle_deg)))
     if len(bad):
-        raise ValueError(f"rows {', '.join(str(i + 1) for i in bad)} are not near a sensor axis; "
+        raise InputError(f"rows {', '.join(str(i + 1) for i in bad)} are not near a sensor axis; "
                          "--known-orientations needs rows lying on a face")
     out = np.zeros_like(u)
     out[np.arange(len(u)), ax] = np.sign(u[np.arange(len(u)), ax])
@@ -147,7 +149,7 @@ def fit_known_orientations(v: np.ndarray, fit_rows: np.ndarray,
     a_known = nearest_axes(z - _zero_g(z))  # in g
     H = np.hstack([a_known, np.ones((len(z), 1))])  # rows (a_x, a_y, a_z, 1), eq. 2 per axis
     if np.linalg.matrix_rank(H) < 4:
-        raise ValueError("known orientations must span 4 independent rows (Georgieva eq. 22)")
+        raise InputError("known orientations must span 4 independent rows (Georgieva eq. 22)")
     theta, *_ = np.linalg.lstsq(H, z, rcond=None)  # eq. 3-4 solved for all three axes at once
     K, offset = theta[:3].T, theta[3]
     a = np.linalg.solve(K, (v - offset).T).T  # Bragge eq. 5

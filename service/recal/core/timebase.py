@@ -21,7 +21,8 @@ only goes forwards. This module makes it, and says what it did:
 Pure (no I/O, no clocks): ``state, t_us, events = step(state, t_dev, cfg)``, like
 ``scipy.signal.sosfilt`` with ``zi``; the state is a small frozen dataclass that round-trips
 through a JSON dict (checkpoints). Vectorized: clean batches are two numpy passes; only samples
-at an anomaly are looked at one by one (there are a handful per day).
+at an anomaly are looked at one by one (there are a handful per day). See docs/design.md
+("Device time").
 """
 
 from __future__ import annotations
@@ -155,8 +156,8 @@ def _wrap_period(prev: int, now: int, limit_dev: float, seen: int | None) -> int
 def _clean_continuation(state: TimebaseState, t: np.ndarray, limit_dev: float
                         ) -> tuple[TimebaseState, np.ndarray, list[dict[str, Any]]] | None:
     """:func:`step` for the usual batch (every step forwards and short, after the last one):
-    a few array operations, no state copies beyond one (a sensor handled as it sends steps
-    one sample at a time; the general path costs about 45 us a call there). None otherwise."""
+    a few array operations, no state copies beyond one: a sensor that sends one sample at a
+    time takes this path on every call. None otherwise."""
     if state.last_dev is None or state.last_us is None:
         return None
     first = int(t[0]) - state.last_dev

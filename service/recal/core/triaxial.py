@@ -1,13 +1,11 @@
 """Row-wise reductions of triaxial (N,3) arrays, and per-axis arithmetic, one column at a time.
 
-numpy reduces `axis=1` of an (N,3) array with a generic strided loop that costs 3-5x as much
-as three column operations (100 000 rows: `np.linalg.norm(v, axis=1)` 2.0 ms against 0.55 ms;
-`np.isfinite(v).all(axis=1)` 1.8 ms against 0.35 ms). These run on every sample of a batch.
-The sums are added in the same order as numpy's (x + y) + z, so the results are bit-identical
-to `np.linalg.norm(v, axis=1)` and `np.add.reduce(v * v, axis=1)`. Likewise an (N,3) array
-minus or over one value per axis (3,): broadcast, numpy runs its inner loop once per row of 3;
-column by column it costs about two thirds as much (100 000 rows: 0.84 against 0.53 ms),
-with the same operations on the same numbers.
+These run on every sample of a batch, and numpy reduces `axis=1` of an (N,3) array, or
+broadcasts one value per axis (3,) over it, with a loop per row of 3 that costs several times
+as much as three column operations (docs/performance.md). The sums are added in the same order
+as numpy's (x + y) + z, so the results are bit-identical to `np.linalg.norm(v, axis=1)` and
+`np.add.reduce(v * v, axis=1)`; the per-axis forms do the same operations on the same numbers.
+See docs/design.md ("Smaller decisions").
 """
 
 from __future__ import annotations
