@@ -24,7 +24,7 @@ from recal.io import recording as rec
 from recal.io.bus import Bus, key, zenoh_config
 from recal.io.messages import encode_raw
 from recal.io.router import RouterProcess
-from recal.node import run_node
+from recal.remote_node import run_node
 from recal.samples import RawBatch
 
 RATE_HZ = 50.0

@@ -12,7 +12,8 @@ from typing import TypeVar
 
 import numpy as np
 
-__all__ = ["REBATCH_SAMPLES", "CalibratedBatch", "RawBatch", "batch_groups", "rebatch"]
+__all__ = ["REBATCH_SAMPLES", "CalibratedBatch", "RawBatch", "batch_groups", "join_by_layout",
+           "rebatch"]
 
 T = TypeVar("T")
 
@@ -187,3 +188,15 @@ def rebatch(batches: Iterable[RawBatch], min_samples: int = REBATCH_SAMPLES
     """
     for group in batch_groups(((b, None) for b in batches), min_samples):
         yield group[0][0] if len(group) == 1 else RawBatch.concat([b for b, _ in group])
+
+
+def join_by_layout(batches: list[RawBatch]) -> list[RawBatch]:
+    """Consecutive batches joined where their channel layout is the same (it rarely changes:
+    a device that re-announces a different header)."""
+    groups: list[list[RawBatch]] = []
+    for b in batches:
+        if groups and groups[-1][0].aux_names == b.aux_names:
+            groups[-1].append(b)
+        else:
+            groups.append([b])
+    return [g[0] if len(g) == 1 else RawBatch.concat(g) for g in groups]
