@@ -71,6 +71,7 @@ import numpy as np
 from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation, Slerp
 
+from recal.errors import UsageError
 from recal.samples import RawBatch
 
 __all__ = [
@@ -129,7 +130,7 @@ def sensing_axis_angles_deg(s: np.ndarray) -> dict[str, float]:
 def _vec3(x: Any, name: str) -> Vec3:
     arr = np.asarray(x, np.float64).reshape(-1)
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be 3 finite numbers, got {x!r}")
+        raise UsageError(f"{name} must be 3 finite numbers, got {x!r}")
     return (float(arr[0]), float(arr[1]), float(arr[2]))
 
 
@@ -189,17 +190,17 @@ class SensorSpec:
         for name in _VEC3_FIELDS:
             object.__setattr__(self, name, _vec3(getattr(self, name), name))
         if self.counts_per_g is not None and not self.counts_per_g > 0:
-            raise ValueError("counts_per_g must be positive or None")
+            raise UsageError("counts_per_g must be positive or None")
         if self.full_scale_g is not None and not self.full_scale_g > 0:
-            raise ValueError("full_scale_g must be positive or None")
+            raise UsageError("full_scale_g must be positive or None")
         if self.noise_g < 0:
-            raise ValueError("noise_g must be >= 0")
+            raise UsageError("noise_g must be >= 0")
         if self.temp_channel == self.supply_channel:
-            raise ValueError("temperature and supply channels need different names")
+            raise UsageError("temperature and supply channels need different names")
         if (self.zero_g_counts or self.adc_bits is not None) and self.counts_per_g is None:
-            raise ValueError("zero_g_counts and adc_bits need counts_per_g")
+            raise UsageError("zero_g_counts and adc_bits need counts_per_g")
         if self.adc_bits is not None and not 2 <= self.adc_bits <= 32:
-            raise ValueError("adc_bits must be in 2..32")
+            raise UsageError("adc_bits must be in 2..32")
 
     @property
     def matrix(self) -> np.ndarray:
@@ -275,7 +276,7 @@ def sensor_type(name: str, rng: np.random.Generator, offset_mg: float = 50.0,
     try:
         fields_ = SENSOR_TYPES[name]
     except KeyError:
-        raise ValueError(f"unknown sensor type {name!r}; known: {sorted(SENSOR_TYPES)}") from None
+        raise UsageError(f"unknown sensor type {name!r}; known: {sorted(SENSOR_TYPES)}") from None
     return SensorSpec.random(rng, offset_mg, gain_pct, cross_axis_deg, **(fields_ | overrides))
 
 
@@ -482,11 +483,11 @@ class WearerSpec:
             if isinstance(val, list | np.ndarray):  # from JSON: store tuples again
                 object.__setattr__(self, f.name, tuple(float(x) for x in val))
         if self.still_s[0] <= 2 * self.still_margin_s or self.move_s[0] <= 0:
-            raise ValueError("still_s must exceed twice still_margin_s, move_s must be > 0")
+            raise UsageError("still_s must exceed twice still_margin_s, move_s must be > 0")
         if not self.upright_only and min(self.p_upright, self.p_lying, self.p_any) < 0:
-            raise ValueError("posture probabilities must be >= 0")
+            raise UsageError("posture probabilities must be >= 0")
         if not self.upright_only and self.p_upright + self.p_lying + self.p_any <= 0:
-            raise ValueError("posture probabilities must not all be 0")
+            raise UsageError("posture probabilities must not all be 0")
 
     @property
     def kind_probabilities(self) -> np.ndarray:
@@ -712,7 +713,7 @@ class MountSlip:
         if not (math.isfinite(self.deg) and math.isfinite(self.at_s) and self.at_s >= 0
                 and math.isfinite(self.over_s) and self.over_s >= 0
                 and math.isfinite(self.azimuth_deg)):
-            raise ValueError("slip: deg, azimuth_deg finite; at_s, over_s finite and >= 0")
+            raise UsageError("slip: deg, azimuth_deg finite; at_s, over_s finite and >= 0")
 
     def angle_deg(self, t_s: np.ndarray) -> np.ndarray:
         """The tilt at times t_s (seconds after the first sample), degrees."""
@@ -833,10 +834,10 @@ def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None 
     sensor = SensorSpec() if sensor is None else sensor
     wearer = WearerSpec() if wearer is None else wearer
     if hours <= 0 or rate_hz <= 0:
-        raise ValueError("hours and rate_hz must be positive")
+        raise UsageError("hours and rate_hz must be positive")
     n = round(hours * 3600 * rate_hz)
     if n < 1:
-        raise ValueError("recording shorter than one sample")
+        raise UsageError("recording shorter than one sample")
     r_sched, r_motion, r_temp, r_vdd, r_noise = _streams(seed)
 
     t_s = np.arange(n) / rate_hz
