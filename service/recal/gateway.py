@@ -268,7 +268,7 @@ class Gateway:
         """Read every port from one selector; log, publish and calibrate what arrived.
 
         One thread for all ports: a thread per port costs a wake-up and GIL hand-over per
-        sample and sensor (see the module notes for what that measured). Reading every ready port
+        sample and sensor (docs/design.md, one I/O thread). Reading every ready port
         before handling any batch, and handling all of one port's new samples as one batch,
         makes batches grow by themselves when the loop falls behind, so the per-batch cost
         is paid less often exactly when it matters.

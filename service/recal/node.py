@@ -5,8 +5,10 @@ A :class:`CalibrationNode` takes raw batches and hands everything it derives to 
 happened, the decimated plot topic, events and, once the mounting is known, the acceleration
 rotated into the body frame. The gateway (in-process), a node on another machine
 (`recal.remote_node`) and ``replay`` (no Zenoh) run this same code, so a replay reproduces a
-live run bit for bit. The messages and their fields, device time, missing channels and the
-alignment rules: docs/design.md.
+live run bit for bit. The messages and their fields: `recal.sinks`. Device time goes through
+`recal.core.timebase` right before ``Pipeline.step`` (docs/design.md, device time); a model
+that needs a channel the stream lacks is one ``missing_channel`` event at the stream's first
+batch, then the node skips (``failed``). The alignment rules: `recal.align_requests`.
 
 No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math in
 ``recal.core.alignment``, the time base in ``recal.core.timebase``.
@@ -25,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from recal.align_requests import AlignmentRequests, align_handler
 from recal.checkpoints import (
     CHECKPOINT_FORMAT,
     Checkpoints,
@@ -43,15 +46,14 @@ from recal.config import (
     model_and_prior,
 )
 from recal.core import alignment as al
-from recal.core import discovery
 from recal.core import timebase as tb
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, StepOutput, missing_channels
 from recal.core.rate import infer_rate_hz
 from recal.core.status import NOT_FINITE_SIGMA_MG, Status
-from recal.io import messages
-from recal.samples import CalibratedBatch, RawBatch
+from recal.rediscovery import Rediscovery
+from recal.samples import CalibratedBatch, RawBatch, conform_channels
 from recal.sinks import BusSink, EventSink, LoggedBusSink, NullSink, RecordingSink, Sink
 
 __all__ = [
@@ -81,7 +83,6 @@ ANOMALY_EVENT_US = 60_000_000  # time_anomalies events at most this often (devic
 # samples the clock's unit is read from when the rate is configured: the median of 7 steps
 # (a repeated stamp or a wrap among the first two would decide it alone)
 UNIT_SAMPLES = 8
-ALIGN_NOTE_PREFIX = "recal node:"  # the align query's console lines, unless told otherwise
 
 # ---------------------------------------------------------------------------------------------
 # Small pure helpers
@@ -95,23 +96,6 @@ def model_name(model: SensorModel) -> str:
     if kinds == (("offset", None), ("scale", None), ("cross_axis", None)):
         return "full"
     return "+".join(e.label for e in model.effects)
-
-
-def _conform(batch: RawBatch, names: tuple[str, ...], needed: Sequence[str]) -> RawBatch | str:
-    """The batch with exactly the channels ``names`` (reordered; unused missing ones NaN), or
-    the reason it cannot be calibrated (a channel the model needs is missing)."""
-    if batch.aux_names == names:
-        return batch
-    cols = []
-    for name in names:
-        if name in batch.aux_names:
-            cols.append(batch.aux[:, batch.aux_names.index(name)])
-        elif name in needed:
-            return f"the model needs channel {name!r}, the stream has {list(batch.aux_names)}"
-        else:
-            cols.append(np.full(len(batch), np.nan))
-    aux = np.column_stack(cols) if cols else np.zeros((len(batch), 0))
-    return RawBatch(batch.t_us, batch.v, aux, names)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -144,43 +128,7 @@ class NodeSettings:
     rediscovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
 
 
-class _Rediscovery:
-    """One effect-discovery run on a copy of a node's buffer, in a daemon thread (the core is
-    pure: it shares nothing with the node's pipeline); `result` waits for it."""
-
-    def __init__(self, started_us: int, due_us: int, model_names: tuple[str, ...]) -> None:
-        self.started_us = started_us
-        self.due_us = due_us
-        self.model_names = model_names
-        self._done = threading.Event()
-        self._result: Any = None
-
-    @classmethod
-    def start(cls, sensor_id: str, windows: Any, pipe: Pipeline, started_us: int,
-              due_us: int, blocks: int) -> _Rediscovery:
-        run = cls(started_us, due_us, pipe.model.names)
-        args = (windows, pipe.aux_names, pipe.t0_us or 0, pipe.model, pipe.params.copy(),
-                discovery.DiscoveryConfig(blocks=blocks))
-
-        def work() -> None:
-            try:
-                run._result = discovery.discover_pipeline(*args)
-            except Exception as exc:  # reported as discovery_failed: the waiter must wake
-                if not isinstance(exc, (ValueError, np.linalg.LinAlgError)):
-                    log.exception("rediscovery of %s failed", sensor_id)
-                run._result = exc
-            finally:
-                run._done.set()
-
-        threading.Thread(target=work, name=f"recal-discover-{sensor_id}", daemon=True).start()
-        return run
-
-    def result(self) -> Any:
-        self._done.wait()
-        return self._result
-
-
-class CalibrationNode:
+class CalibrationNode(AlignmentRequests):
     """Runs one sensor's pipeline and publishes what it produces (thread-safe).
 
     Args:
@@ -229,7 +177,7 @@ class CalibrationNode:
         # joined batches one by one; None: the pipeline as it is
         self._view: tuple[SensorModel, Any, dict[str, Any] | None] | None = None
         self._next_discovery_us: int | None = None
-        self._discovery: _Rediscovery | None = None  # a run in its thread
+        self._discovery: Rediscovery | None = None  # a run in its thread
         self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
         self._last_align_request_s: float | None = None  # monotonic time of the last accepted
         self.align_refused = 0  # requests refused by the rate limit, in all
@@ -363,67 +311,6 @@ class CalibrationNode:
         """Samples published with any status but calibrated."""
         return int(self.status_counts.sum() - self.status_counts[Status.CALIBRATED])
 
-    def request_alignment(self, log_time_ns: int | None = None,
-                          now_s: float | None = None) -> dict[str, Any]:
-        """Align now on the current still run if it is long enough, else arm the next one.
-
-        Returns ``{"status": "aligned", "alignment": {...}}`` or ``{"status": "armed", ...}``,
-        or ``{"status": "refused", "retry_after_s": ...}`` within ``[alignment]
-        request_interval_s`` of the last request accepted (``now_s``: a monotonic clock,
-        default ``time.monotonic()``). Why: anyone who may query the key could otherwise
-        reset the mounting reference at will. Accepted requests are events
-        ``align_request``; refusals are counted and reported as ``align_refused`` events, at
-        most one per interval (a flood of queries must not flood the log).
-        """
-        log_ns = time.time_ns() if log_time_ns is None else log_time_ns
-        now = time.monotonic() if now_s is None else now_s
-        with self._lock:
-            wait_s = self._align_wait_s(now)
-            if wait_s > 0:
-                return self._refuse_alignment(wait_s, log_ns)
-            self._last_align_request_s = now
-            reply = self._accept_alignment(log_ns)
-            self._event("align_request", self.last_t_us, log_ns, {
-                "status": reply["status"], "refused_before": self._refused_unreported})
-            self._refused_unreported = 0
-            return reply
-
-    def _align_wait_s(self, now_s: float) -> float:
-        """Seconds until an alignment request may be accepted again (0: now)."""
-        last = self._last_align_request_s
-        if last is None:
-            return 0.0
-        return max(0.0, last + self.settings.alignment.request_interval_s - now_s)
-
-    def _refuse_alignment(self, wait_s: float, log_ns: int) -> dict[str, Any]:
-        self.align_refused += 1
-        self._refused_unreported += 1
-        if self._refused_unreported == 1:  # the first refusal of this interval
-            self._event("align_refused", self.last_t_us, log_ns, {
-                "retry_after_s": wait_s,
-                "interval_s": self.settings.alignment.request_interval_s,
-                "refused_total": self.align_refused})
-        return {"status": "refused", "sensor_id": self.sensor_id,
-                "retry_after_s": round(wait_s, 3), "refused": self._refused_unreported,
-                "detail": f"at most one alignment request per "
-                          f"{self.settings.alignment.request_interval_s:g} s"}
-
-    def _accept_alignment(self, log_ns: int) -> dict[str, Any]:
-        tr = self._tracker
-        if tr is not None and tr.duration_s >= self.settings.request_min_s:
-            mean = tr.mean()
-            if mean is not None:
-                ali = self._set_alignment(mean, tr.n, self.last_t_us, "request", log_ns)
-                return {"status": "aligned", "sensor_id": self.sensor_id,
-                        "alignment": ali.to_dict()}
-        self._align_requested = True
-        if tr is not None:
-            tr.rearm()
-        return {"status": "armed", "sensor_id": self.sensor_id,
-                "detail": f"aligns on the next still period of "
-                          f"{self.settings.alignment.min_still_s:g} s",
-                "still_s": tr.duration_s if tr else 0.0}
-
     def checkpoint(self) -> dict[str, Any] | None:
         """A JSON-able checkpoint of the node (None before its pipeline started)."""
         with self._lock:
@@ -493,7 +380,8 @@ class CalibrationNode:
 
     def _start_pipeline(self, force: bool, log_ns: int) -> RawBatch:
         names = self._pending[0].aux_names
-        parts = [b if b.aux_names == names else _conform(b, names, ()) for b in self._pending]
+        parts = [b if b.aux_names == names else conform_channels(b, names, ())
+                 for b in self._pending]
         batch = RawBatch.concat([b for b in parts if isinstance(b, RawBatch)])
         self._pending, self._pending_n = [], 0
         s = self.settings
@@ -675,7 +563,7 @@ class CalibrationNode:
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
         assert self.pipeline is not None
         names = self.pipeline.aux_names
-        fitted = _conform(batch, names, self.pipeline.model.covariates)
+        fitted = conform_channels(batch, names, self.pipeline.model.covariates)
         if batch.aux_names != self._last_names and batch.aux_names != names:
             self._event("layout_changed", int(batch.t_us[0]), log_ns, {
                 "expected": list(names), "got": list(batch.aux_names),
@@ -688,7 +576,7 @@ class CalibrationNode:
 
     def _maybe_rediscover(self, log_ns: int) -> None:
         """Every ``[discovery] every_h`` device hours, rerun effect discovery on a copy of the
-        window buffer in a thread of its own (`_Rediscovery`); ``adopt_after_s`` device
+        window buffer in a thread of its own (`Rediscovery`); ``adopt_after_s`` device
         seconds later its result is taken on: a model it extends becomes the live one (with
         its fitted values as the estimate) and the state is published with reason
         "discovery"."""
@@ -709,14 +597,14 @@ class CalibrationNode:
         windows = pipe.buffer.windows()  # fresh arrays: the thread's own copy
         if not pipe.bootstrapped or len(windows) < cfg.min_windows:
             return
-        self._discovery = _Rediscovery.start(
+        self._discovery = Rediscovery.start(
             self.sensor_id, windows, pipe, self.last_t_us,
             self.last_t_us + round(cfg.adopt_after_s * 1e6), cfg.blocks)
         if cfg.adopt_after_s <= 0:
             run, self._discovery = self._discovery, None
             self._adopt_discovery(run, log_ns)
 
-    def _adopt_discovery(self, run: _Rediscovery, log_ns: int) -> None:
+    def _adopt_discovery(self, run: Rediscovery, log_ns: int) -> None:
         assert self.pipeline is not None and self.last_t_us is not None
         res = run.result()  # waits if it is still running (a replay gets here sooner)
         if isinstance(res, Exception):
@@ -892,25 +780,6 @@ def make_node(settings: NodeSettings, sink: Sink,
                        on_problem=on_problem)
     return node if node is not None else CalibrationNode(settings, sink)
 
-
-
-def align_handler(node: CalibrationNode, out: Callable[[str], None],
-                  prefix: str = ALIGN_NOTE_PREFIX) -> Callable[[str, bytes | None], bytes]:
-    """The ``recal/<sensor>/align`` queryable's handler: :meth:`CalibrationNode.
-    request_alignment`, and a console line for each accepted request and for the first
-    refusal of an interval (a flood of queries gives one line, not one per query)."""
-    def handle(_key: str, _payload: bytes | None) -> bytes:
-        reply = node.request_alignment()
-        sid = node.sensor_id
-        if reply["status"] != "refused":
-            out(f"{prefix} {sid}: alignment requested on the bus ({reply['status']})")
-        elif reply.get("refused") == 1:
-            out(f"{prefix} {sid}: alignment request refused: at most one per "
-                f"{node.settings.alignment.request_interval_s:g} s (next in "
-                f"{reply['retry_after_s']:.0f} s); further refusals are counted in status")
-        return messages.encode_json(reply)
-
-    return handle
 
 
 if __name__ == "__main__":  # `python -m recal.node`: its arguments are parsed in recal.cli

@@ -5,7 +5,25 @@ A :class:`recal.node.CalibrationNode` hands every message it derives to a :class
 same node then runs in the gateway (:class:`LoggedBusSink`), on a machine of its own
 (:class:`BusSink` or :class:`LoggedBusSink`) and in ``recal replay`` (:class:`RecordingSink`,
 no Zenoh). The sinks are typed against what they use of a recording writer (:class:`Writer`)
-and of a bus (:class:`Bus`), so that replay never loads Zenoh. Topics: docs/design.md.
+and of a bus (:class:`Bus`), so that replay never loads Zenoh.
+
+Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
+``recal/<sensor>/<suffix>`` where the bus layout has one):
+
+* ``calibrated`` (and ``body``): CalibratedBatch protobuf, each sample with its status and
+  predicted error (`recal.core.status`). A sample whose calibrated value is not finite (a NaN
+  or inf reading, a broken estimate) is never published as such: its x_g, y_g, z_g go out as
+  0, its status uncalibrated and its sigma_mg inf, and it is counted (``samples_not_finite``).
+* ``calibration``: JSON, the calibration state: ``sensor_id``, ``t_us`` (device time, us),
+  ``reason`` (start | restored | update | bootstrap | status | discovery), ``model`` (name),
+  ``model_spec``, ``param_names``, ``params`` (by name, raw units), ``described`` (mg, %),
+  ``sd``, ``covariance``, ``residual_rms_mg``, ``residual_g``, ``last_update``, ``coverage``,
+  ``counts``, ``update_count``, ``observable``, ``alignment``.
+* ``events``: JSON ``{t_us, kind, sensor_id, detail}``.
+* ``plot``: one JSON message per decimated sample (log only).
+* ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state
+  (``pipeline_state_json``, so a replay reproduces the run bit for bit), the rate, the
+  alignment, the device clock's time base (``timebase``) (log only).
 """
 
 from __future__ import annotations
