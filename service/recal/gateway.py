@@ -41,19 +41,15 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from recal.align_requests import align_handler
 from recal.checkpoints import Checkpoints, SensorLockedError
-from recal.config import (
-    ConfigError,
-    SensorConfig,
-    ServiceConfig,
-    check_model_channels,
-    load_config,
-)
+from recal.config import SensorConfig, ServiceConfig, check_model_channels, load_config
+from recal.errors import ConfigError
 from recal.io import messages
 from recal.io.frames import make_parser
 from recal.io.recording import RecordingWriter, sensor_topic
 from recal.io.serial_source import SerialSource, SourceEvent, port_busy, port_problem
-from recal.node import CalibrationNode, align_handler, make_node, node_settings
+from recal.node import CalibrationNode, make_node, node_settings
 from recal.runtime import (
     ERROR_PREFIX,
     RecordingWatch,

@@ -17,11 +17,13 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from recal.align_requests import align_handler
 from recal.checkpoints import Checkpoints, SensorLockedError
-from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
+from recal.config import SensorConfig, ServiceConfig, load_config
+from recal.errors import ConfigError
 from recal.io import bus as _bus
 from recal.io import messages
-from recal.node import CalibrationNode, align_handler, make_node, node_settings
+from recal.node import CalibrationNode, make_node, node_settings
 from recal.runtime import (
     ERROR_PREFIX,
     console,

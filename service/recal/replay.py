@@ -36,7 +36,9 @@ from recal.config import (
     load_model_file,
     model_and_prior,
 )
+from recal.core.alignment import Alignment
 from recal.core.pipeline import Pipeline
+from recal.core.timebase import TimebaseState
 from recal.export import status_line
 from recal.io import recording as rec
 from recal.node import CalibrationNode, NodeSettings, model_name, node_settings
@@ -114,9 +116,6 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
                                 pipe.cfg.full_scale_g,
                                 AlignmentConfig(**ali_cfg) if ali_cfg else cfg.alignment,
                                 rediscovery=cfg.discovery)
-        from recal.core.alignment import Alignment
-        from recal.core.timebase import TimebaseState
-
         ali = setup.get("alignment")
         tbd = setup.get("timebase")  # the device clock's time base as the live node began
         node = CalibrationNode(settings, sink, pipeline=pipe, start="recording",
