@@ -601,7 +601,6 @@ def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
     return sensors
 
 
-
 def _nodes(cfg: ServiceConfig, sink: Sink, model_path: str | Path | None,
            checkpoints: Checkpoints) -> dict[str, CalibrationNode | None]:
     nodes: dict[str, CalibrationNode | None] = {}
@@ -745,7 +744,6 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
         fail(f"{ERROR_PREFIX} {gw.fatal}")
         return 2
     return 0
-
 
 
 if __name__ == "__main__":  # `python -m recal.gateway`: its arguments are parsed in recal.cli

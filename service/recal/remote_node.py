@@ -114,7 +114,6 @@ class SensorGate:
         return named
 
 
-
 def run_node(config: ServiceConfig | str | Path | None = None,
              sensor_ids: Sequence[str] = (), mcap_out: str | Path | None = None,
              model_path: str | Path | None = None, stop_event: threading.Event | None = None,
@@ -201,7 +200,6 @@ def _gate(cfg: ServiceConfig, sensor_ids: Sequence[str], accept_any: bool | None
                           "them in [[sensors]] or with --sensor-id, or serve any that "
                           "publishes with [node] accept_any = true (or --accept-any)")
     return SensorGate(named, any_, cap)
-
 
 
 class _NodeRunner:
