@@ -52,7 +52,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, StepOutput, missing_channels
 from recal.core.rate import infer_rate_hz
 from recal.core.status import NOT_FINITE_SIGMA_MG, Status
-from recal.rediscovery import Rediscovery
+from recal.rediscovery import Rediscovery as _Rediscovery
 from recal.samples import CalibratedBatch, RawBatch, conform_channels
 from recal.sinks import BusSink, EventSink, LoggedBusSink, NullSink, RecordingSink, Sink
 
@@ -177,7 +177,7 @@ class CalibrationNode(AlignmentRequests):
         # joined batches one by one; None: the pipeline as it is
         self._view: tuple[SensorModel, Any, dict[str, Any] | None] | None = None
         self._next_discovery_us: int | None = None
-        self._discovery: Rediscovery | None = None  # a run in its thread
+        self._discovery: _Rediscovery | None = None  # a run in its thread
         self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
         self._last_align_request_s: float | None = None  # monotonic time of the last accepted
         self.align_refused = 0  # requests refused by the rate limit, in all
@@ -576,7 +576,7 @@ class CalibrationNode(AlignmentRequests):
 
     def _maybe_rediscover(self, log_ns: int) -> None:
         """Every ``[discovery] every_h`` device hours, rerun effect discovery on a copy of the
-        window buffer in a thread of its own (`Rediscovery`); ``adopt_after_s`` device
+        window buffer in a thread of its own (`_Rediscovery`); ``adopt_after_s`` device
         seconds later its result is taken on: a model it extends becomes the live one (with
         its fitted values as the estimate) and the state is published with reason
         "discovery"."""
@@ -597,14 +597,14 @@ class CalibrationNode(AlignmentRequests):
         windows = pipe.buffer.windows()  # fresh arrays: the thread's own copy
         if not pipe.bootstrapped or len(windows) < cfg.min_windows:
             return
-        self._discovery = Rediscovery.start(
+        self._discovery = _Rediscovery.start(
             self.sensor_id, windows, pipe, self.last_t_us,
             self.last_t_us + round(cfg.adopt_after_s * 1e6), cfg.blocks)
         if cfg.adopt_after_s <= 0:
             run, self._discovery = self._discovery, None
             self._adopt_discovery(run, log_ns)
 
-    def _adopt_discovery(self, run: Rediscovery, log_ns: int) -> None:
+    def _adopt_discovery(self, run: _Rediscovery, log_ns: int) -> None:
         assert self.pipeline is not None and self.last_t_us is not None
         res = run.result()  # waits if it is still running (a replay gets here sooner)
         if isinstance(res, Exception):
