@@ -131,76 +131,15 @@ def _cmd_export(a: argparse.Namespace) -> int:
 
 
 # --- static ----------------------------------------------------------------------------------
-def _parse_rows(spec: str | None, n: int) -> np.ndarray:
-    mask = np.zeros(n, bool)
-    if not spec:
-        mask[:] = True
-        return mask
-    for part in spec.split(","):
-        lo, _, hi = part.partition("-")
-        try:
-            i, j = int(lo), int(hi or lo)
-        except ValueError:
-            raise UsageError(f"--fit-rows: {part!r} is not a row number or range") from None
-        if not 1 <= i <= j <= n:
-            raise UsageError(f"--fit-rows: {part!r} is outside rows 1-{n}")
-        mask[i - 1:j] = True
-    return mask
-
-
-def _read_static_table(path: str) -> np.ndarray:
-    """The three readings of each row: columns x,y,z (any unit, any suffix) by header."""
-    import csv
-
-    try:
-        with open(path, newline="") as f:
-            rows = [r for r in csv.reader(f) if r and not r[0].startswith("#")]
-    except OSError as e:
-        raise UsageError(f"cannot read {path}: {e.strerror}") from None
-    except UnicodeDecodeError as e:
-        raise UsageError(f"{path}: not UTF-8 text (byte {e.start})") from None
-    if len(rows) < 2:
-        raise UsageError(f"{path}: needs a header and at least one row")
-    head = [h.strip().lower() for h in rows[0]]
-    cols = []
-    for axis in "xyz":
-        hit = [i for i, h in enumerate(head) if h == axis or h.startswith(axis + "_")]
-        if not hit:
-            raise UsageError(f"{path}: no column {axis!r} (or {axis}_<unit>) in header {head}")
-        cols.append(hit[0])
-    try:
-        return np.array([[float(r[c]) for c in cols] for r in rows[1:]])
-    except (ValueError, IndexError) as e:
-        raise UsageError(f"{path}: a row is not three numbers ({e})") from None
-
-
 def _cmd_static(a: argparse.Namespace) -> int:
-    from recal.core import static
+    from recal import static_table as st
 
     _report_paths(a.json)
-    v = _read_static_table(a.input)
-    fit_rows = _parse_rows(a.fit_rows, len(v))
-    if a.known_orientations:
-        fit = static.fit_known_orientations(v, fit_rows, a.g)
-    else:
-        fit = static.fit_unknown_orientations(v, fit_rows, a.g, full=not a.diagonal,
-                                              loss=a.loss)
-    err = fit.rel_norm_error
-    rows = [{"row": i + 1, "fitted": bool(fit.fit_rows[i]), "rel_norm_error": float(e)}
-            for i, e in enumerate(err)]
-    report = {"method": fit.method, "g": fit.g, "params": fit.params, "rows": rows,
-              "worst_rel_norm_error": float(err.max()),
-              "worst_rel_norm_error_fitted": float(err[fit.fit_rows].max()),
-              "worst_rel_norm_error_held_out": (float(err[~fit.fit_rows].max())
-                                                if (~fit.fit_rows).any() else None)}
-    print(f"{'row':>4} {'fit':>4} {'|a|/g-1 (%)':>12}")
-    for r in rows:
-        print(f"{r['row']:>4} {'*' if r['fitted'] else '':>4} {100 * r['rel_norm_error']:>12.3f}")
-    print(f"worst relative norm error: {100 * err.max():.3f} % over all rows "
-          f"({100 * err[fit.fit_rows].max():.3f} % on the {fit.fit_rows.sum()} fitted rows)")
-    if "axis_angles_deg" in fit.params:
-        ang = fit.params["axis_angles_deg"]
-        print("angles between sensing axes: " + ", ".join(f"{k} {v:.3f}" for k, v in ang.items()))
+    v = st.read_static_table(a.input)
+    report, lines = st.static_report(v, st.parse_rows(a.fit_rows, len(v)),
+                                     known_orientations=a.known_orientations, g=a.g,
+                                     full=not a.diagonal, loss=a.loss)
+    print("\n".join(lines))
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2))
     return 0
@@ -211,11 +150,12 @@ def _cmd_discover(a: argparse.Namespace) -> int:
     from recal import discovery_report as dr
     from recal.config import load_model_file
     from recal.core.discovery import DiscoveryConfig, data_from_table
+    from recal.static_table import read_static_table
 
     _report_paths(a.json, a.write_model, a.plots)
     path = Path(a.input)
     if path.suffix.lower() == ".csv" and a.rate is None and not dr.csv_has_time(path):
-        data = data_from_table(_read_static_table(a.input))  # one still row per pose
+        data = data_from_table(read_static_table(a.input))  # one still row per pose
     elif path.suffix.lower() == ".csv":
         data = dr.data_from_csv(path, a.rate, a.units, a.window_s)
     else:
