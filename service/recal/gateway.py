@@ -192,7 +192,7 @@ class Gateway:
         for sid, p in self.ports.items():
             if p.node is not None:
                 self.checkpoints.add(sid, p.node.accepted_updates)
-        self._write_watch = RecordingWatch(writer, out, cfg.mcap.backlog_mb)
+        self._write_watch = RecordingWatch(writer, out, cfg.mcap.backlog_mb, prefix=NOTE_PREFIX)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
