@@ -25,7 +25,7 @@ from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import encode_raw
 from recal.io.router import RouterProcess
-from recal.node import run_node
+from recal.remote_node import run_node
 from recal.samples import RawBatch
 
 RATE_HZ = 50.0

@@ -62,7 +62,7 @@ from pty_fleet import FleetProcess
 from recal.demo import free_port
 from recal.io.bus_config import zenoh_config
 from recal.io.router import READY_PREFIX as ROUTER_READY_PREFIX
-from recal.node import NODE_READY_PREFIX
+from recal.remote_node import NODE_READY_PREFIX
 
 __all__ = ["main", "run_row"]
 

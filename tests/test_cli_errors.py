@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from recal.errors import InputError
 from recal.io.pty_device import PtyDevice
 from recal.io.recording_writer import RecordingWriter
 from recal.sim import simulate
@@ -300,3 +301,37 @@ def test_an_input_named_as_output_is_left_intact(tmp_path: Path,
             status, _, _ = _main(_args(args, root), capfd)
             assert status == 2
         assert {name: (root / name).read_bytes() for name in before} == before
+
+
+@pytest.mark.parametrize("bug", [KeyError("t_us"), ValueError("shapes differ"),
+                                 TypeError("not a number")], ids=lambda e: type(e).__name__)
+def test_a_bug_keeps_its_traceback(bug: Exception, capfd: pytest.CaptureFixture[str],
+                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only what the user can act on (recal.errors.RecalError, OSError) is one line: a plain
+    KeyError or ValueError is a bug, and must not read as a user's mistake."""
+    from recal import cli
+
+    def broken(_args: argparse.Namespace) -> int:
+        raise bug
+
+    monkeypatch.setattr(cli, "_cmd_repair", broken)
+    with pytest.raises(type(bug)):
+        cli.main(["repair", "in.mcap", "--out", "out.mcap"])
+    assert "recal: error" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("error", [InputError("bad table"),
+                                   FileNotFoundError(2, "No such file", "in.mcap")],
+                         ids=lambda e: type(e).__name__)
+def test_what_the_user_can_act_on_is_one_line(error: Exception,
+                                              capfd: pytest.CaptureFixture[str],
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    from recal import cli
+
+    def refused(_args: argparse.Namespace) -> int:
+        raise error
+
+    monkeypatch.setattr(cli, "_cmd_repair", refused)
+    status, out, err = _main(["repair", "in.mcap", "--out", "out.mcap"], capfd)
+    want = "bad table" if isinstance(error, ValueError) else "in.mcap: No such file"
+    _assert_one_error_line(status, out, err, 2, want)

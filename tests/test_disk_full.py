@@ -26,7 +26,7 @@ import pytest
 
 from gateway_process import GatewayProcess
 from polling import wait_for
-from recal import gateway
+from recal import runtime
 from recal.cli import main as recal_main
 from recal.config import ConfigError, parse_config
 from recal.demo import free_port
@@ -332,7 +332,7 @@ def test_the_operator_hears_of_each_outage_once_with_what_it_lost(
                         flush_interval_s=1000.0, backlog_bytes=30_000)
     lines: list[str] = []
     events: list[tuple[str, dict]] = []
-    watch = gateway.RecordingWatch(w, lines.append, 0.03)
+    watch = runtime.RecordingWatch(w, lines.append, 0.03)
 
     def check() -> None:
         watch.check(time.time_ns(), lambda kind, detail: events.append((kind, detail)))
@@ -351,10 +351,10 @@ def test_the_operator_hears_of_each_outage_once_with_what_it_lost(
     check()
     check()  # nothing new to say
     assert len(lines) == 1 and "cannot write" in lines[0] and "No space left" in lines[0]
-    monkeypatch.setattr(gateway, "WRITE_NOTE_S", 0.0)
+    monkeypatch.setattr(runtime, "WRITE_NOTE_S", 0.0)
     check()
     assert len(lines) == 2 and "still cannot write" in lines[1], lines
-    monkeypatch.setattr(gateway, "WRITE_NOTE_S", 60.0)
+    monkeypatch.setattr(runtime, "WRITE_NOTE_S", 60.0)
     os.unlink(filler)
     w.flush()
     check()

@@ -27,7 +27,8 @@ from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
 from recal.io.pty_device import PtyDevice
 from recal.io.repair import repair
-from recal.node import load_checkpoint, run_node
+from recal.node import load_checkpoint
+from recal.remote_node import run_node
 from recal.replay import replay
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, WearerSpec, simulate

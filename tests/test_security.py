@@ -32,16 +32,14 @@ from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_json, encode_raw
 from recal.io.router import RouterProcess, run_router, security_summary
 from recal.node import (
-    REJECT_IDS_KEPT,
     CalibrationNode,
     EventSink,
     NodeSettings,
-    SensorGate,
     align_handler,
     load_checkpoint,
     node_settings,
-    run_node,
 )
+from recal.remote_node import REJECT_IDS_KEPT, SensorGate, run_node
 from recal.samples import RawBatch
 
 REPO = Path(__file__).resolve().parents[1]

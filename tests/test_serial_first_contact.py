@@ -418,23 +418,23 @@ def test_run_options_set_what_the_config_would(tmp_path: Path) -> None:
     """--rate, --aux-names, --prior NAME (the config's priors, else the shipped ones),
     --counts-per-g and --zero-g, for every sensor served; an unknown name is one error."""
     from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
-    from recal.gateway import _with_options
+    from recal.sensor_options import SensorOptions, with_options
 
     cfg = ServiceConfig(sensors=(SensorConfig("a", port="x"), SensorConfig("b", port="y")))
-    got = _with_options(cfg, {"rate_hz": 50.0, "aux_names": ("vdd",),
-                              "prior": "adxl345-10bit-4mg"})
+    got = with_options(cfg, SensorOptions(rate_hz=50.0, aux_names=("vdd",),
+                                          prior="adxl345-10bit-4mg"))
     assert all(s.rate_hz == 50.0 and s.aux_names == ("vdd",) for s in got.sensors)
     assert all(s.prior.counts_per_g == 256.0 and s.prior.sd["o_z"] == 15.0
                for s in got.sensors)
-    got = _with_options(cfg, {"counts_per_g": 2185.0, "zero_g": 4096.0})
+    got = with_options(cfg, SensorOptions(counts_per_g=2185.0, zero_g=4096.0))
     assert got.sensors[1].prior.counts_per_g == 2185.0
     assert got.sensors[1].prior.zero_g == (4096.0, 4096.0, 4096.0)
     (tmp_path / "p.toml").write_text("[priors.mine]\ncounts_per_g = 512.0\nzero_g = 7\n")
     (tmp_path / "g.toml").write_text('priors_file = "p.toml"\n[zenoh]\nenabled = false\n')
     own = load_config(tmp_path / "g.toml").with_sensors(cfg.sensors)
-    assert _with_options(own, {"prior": "mine"}).sensors[0].prior.zero_g == (7.0,) * 3
+    assert with_options(own, SensorOptions(prior="mine")).sensors[0].prior.zero_g == (7.0,) * 3
     with pytest.raises(ConfigError, match="--prior adxl345-10bit-4mg: no prior named"):
-        _with_options(own, {"prior": "adxl345-10bit-4mg"})  # not among the config's
+        with_options(own, SensorOptions(prior="adxl345-10bit-4mg"))  # not among the config's
     status, line, _ = one_error_line(
         ["--config", str(config(tmp_path)), "--mcap", str(tmp_path / "x.mcap"), "--port",
          str(tmp_path / "absent"), "--prior", "nosuch"], tmp_path)

@@ -464,9 +464,8 @@ class CheckpointSchedule:
     """When each sensor's checkpoint is next due: every ``interval_s``, the sensors spread over
     the interval (the k-th added at phase k * 0.618... of it, evenly for any count).
 
-    Why: one checkpoint is a ~75 kB JSON document; 200 sensors written at once held the GIL
-    for ~3 s of CPU every minute, and the I/O loop's latency p99 went from 0.5 s to 3 s.
-    Spread out, each sensor's turn costs tens of milliseconds, shared with the loop.
+    Why: every sensor's checkpoint written at once holds the GIL long enough to stall the I/O
+    loop (figures: docs/performance.md); spread out, each turn is short, shared with the loop.
     """
 
     _PHASE_STEP = (5 ** 0.5 - 1) / 2  # golden-ratio steps stay evenly spread as sensors come

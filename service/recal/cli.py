@@ -1,32 +1,31 @@
 """`recal`: the command line. Thin: every command parses arguments and calls one function.
 
-Bad input (a missing file, a malformed table, a bad config) ends in one line on stderr and exit
-status 2, never a traceback.
+Every argument parser of recal is here (also those of ``python -m recal.gateway`` and
+``python -m recal.node``); nothing imports this module. An error the user can act on
+(`recal.errors.RecalError`, or an OSError: a file or port the system refused) ends in one line
+on stderr and exit status 2; anything else is a bug and shows its traceback. The commands
+import the modules that do their work when they run: ``recal --help`` stays fast.
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 import textwrap
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import numpy as np
 
-if TYPE_CHECKING:  # the commands import what they need when they run: a fast --help
-    from recal.io.recording_writer import RecordingWriter
-    from recal.samples import RawBatch
+from recal.errors import RecalError, UsageError
 
-__all__ = ["main"]
+if TYPE_CHECKING:
+    from recal.sensor_options import SensorOptions
 
-
-class UsageError(Exception):
-    """An error the user can fix; printed as one line."""
+__all__ = ["build_parser", "gateway_main", "main", "node_main"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -45,14 +44,6 @@ def _new_output(path: str, overwrite: bool, source: str | None = None) -> None:
         refuse_input_as_output(path, source)
     if Path(path).exists() and not overwrite:
         raise UsageError(f"{path} exists; pass --overwrite to replace it")
-
-
-def _write_raw_messages(writer: RecordingWriter, sensor_id: str, batch: RawBatch) -> None:
-    """A batch as raw messages of 1000 samples (`recal simulate`, `recal import`), each logged
-    at its first sample's device time."""
-    for i in range(0, len(batch), 1000):
-        b = batch[i:i + 1000]
-        writer.write_raw(sensor_id, b, int(b.t_us[0]) * 1000)
 
 
 def _report_paths(*paths: str | None) -> None:
@@ -77,6 +68,7 @@ def _positive(text: str) -> float:
 # --- simulate --------------------------------------------------------------------------------
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from recal import sim
+    from recal.importer import write_raw_messages
     from recal.io import csv_table
     from recal.io.recording_writer import RecordingWriter
 
@@ -109,7 +101,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         csv_table.write_raw_csv(out, res.raw)
     else:
         with RecordingWriter(out, overwrite=True) as w:
-            _write_raw_messages(w, a.sensor_id, res.raw)
+            write_raw_messages(w, a.sensor_id, res.raw)
     truth = out.with_suffix(".truth.npz")
     sim.save_truth(truth, res)
     print(f"wrote {out} ({len(res.raw)} samples, {a.hours:g} h at {a.rate:g} Hz, channels "
@@ -119,250 +111,36 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 
 # --- import / export -------------------------------------------------------------------------
 def _cmd_import(a: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from recal.io import csv_table
-    from recal.io.recording_writer import RecordingWriter
+    from recal.importer import import_csv
 
     _new_output(a.out, a.overwrite, a.input)
-    writer: RecordingWriter | None = None
-    samples, skipped, bad_lines = 0, 0, []
-    units, aux_names = "", ()
-    clock = _ImportClock(a.rate)
-    # a bar on a terminal only: not in a pipe, a log or a test's captured stderr
-    bar = tqdm(total=Path(a.input).stat().st_size, unit="B", unit_scale=True, desc="import",
-               disable=a.quiet or not sys.stderr.isatty(), leave=False)
-    try:  # a chunk at a time: a week-long CSV must not have to fit in memory
-        for table in csv_table.iter_csv(a.input, units=a.units, rate_hz=a.rate,
-                                        on_bytes=bar.update):
-            skipped += table.skipped_rows
-            bad_lines += table.skipped_lines
-            batch = table.batch
-            if not len(batch):
-                continue
-            t_us = batch.t_us
-            if t_us.min() < 0 or t_us.max() >= 2**64 // 1000:  # MCAP log time = t_us * 1000 ns
-                raise UsageError(f"{a.input}: times must be from 0 to 584 years in "
-                                 f"microseconds (found {t_us.min()} to {t_us.max()})")
-            batch = clock.step(batch)  # the file's times as they are checked, then this
-            if writer is None:
-                units, aux_names = table.units, batch.aux_names
-                writer = RecordingWriter(a.out, overwrite=True,
-                                         metadata={"units": table.units})
-            _write_raw_messages(writer, a.sensor_id, batch)
-            samples += len(batch)
-    except BaseException:
-        if writer is not None:  # nothing half-imported is left behind
-            writer.close()
-            Path(a.out).unlink(missing_ok=True)
-        raise
-    finally:
-        bar.close()
-    if writer is None:
-        lines = ", ".join(map(str, bad_lines[:5]))
-        raise UsageError(f"{a.input}: no valid rows ({skipped} bad"
-                         + (f", first at lines {lines})" if lines else ")"))
-    writer.close()
-    print(f"imported {samples} samples ({units}, channels {list(aux_names) or 'none'}) into "
-          f"{a.out}; {skipped} bad rows skipped")
-    for line in clock.lines():
-        print(line)
+    print("\n".join(import_csv(a.input, a.out, units=a.units, rate_hz=a.rate,
+                                sensor_id=a.sensor_id, quiet=a.quiet)))
     return 0
 
 
-class _ImportClock:
-    """`recal import`'s time base (recal.core.timebase), chunk by chunk: a time column in
-    milliseconds under a microsecond name, a wrapping counter, a reboot are written as the
-    live node would calibrate them (unwrapped microseconds, never backwards) and said."""
-
-    def __init__(self, rate_hz: float | None) -> None:
-        from recal.core import timebase as tb
-
-        self._tb = tb
-        self.cfg = tb.TimebaseConfig(rate_hz=rate_hz)
-        self.state: tb.TimebaseState | None = None
-        self.events: list[dict] = []
-
-    def step(self, batch: RawBatch) -> RawBatch:
-        from recal.samples import RawBatch
-
-        if self.state is None:
-            self.state, self.events = self._tb.start(batch.t_us, self.cfg)
-        self.state, t_us, events = self._tb.step(self.state, batch.t_us, self.cfg)
-        self.events += [e for e in events if e["kind"] != "time_anomalies"]
-        if np.array_equal(t_us, batch.t_us):
-            return batch
-        return RawBatch(t_us, batch.v, batch.aux, batch.aux_names)
-
-    def lines(self) -> list[str]:
-        """What the time base did, for a person (nothing when the times were clean)."""
-        out = []
-        for e in self.events:
-            d = e["detail"]
-            if e["kind"] == "time_units":
-                out.append(f"time: the time column counts {d['unit']}, not microseconds (as "
-                           f"microseconds it implies {d['implied_rate_hz_as_us']:.0f} Hz); "
-                           f"written as {d['rate_hz']:.4g} Hz in microseconds")
-            elif e["kind"] == "time_implausible":
-                out.append(f"time: the time column implies {d['implied_rate_hz']:.4g} Hz in "
-                           "any unit; written as it is (check it)")
-        s = self.state
-        if s is not None and s.wraps:
-            out.append(f"time: the counter wrapped {s.wraps} time(s) (period {s.period} "
-                       f"{s.unit}); written unwrapped")
-        if s is not None and s.reboots:
-            out.append(f"time: the device time restarted near 0 {s.reboots} time(s) (a "
-                       "reboot); written continuing")
-        if s is not None and s.backwards + s.duplicates + s.jumps:
-            out.append(f"time: {s.backwards} steps back, {s.duplicates} repeated and "
-                       f"{s.jumps} jumps over 2 s; written never going back")
-        return out
-
-
 def _cmd_export(a: argparse.Namespace) -> int:
-    from recal.io import csv_table, recording
+    from recal.export import export_csv
 
     _new_output(a.csv, a.overwrite, a.input)
     _report_paths(a.json)
-    sensors = recording.sensors(a.input)
-    if not sensors:
-        raise UsageError(f"{a.input} holds no sensor topics")
-    if a.sensor_id is not None and a.sensor_id not in sensors:
-        raise UsageError(f"{a.input} has no sensor {a.sensor_id!r} (it has: "
-                         f"{', '.join(sensors)})")
-    sid = a.sensor_id or sensors[0]
-    # message by message: a week-long recording must not have to fit in memory
-    if a.topic == "raw":
-        units = recording.metadata(a.input).get("units")  # set by `recal import`
-        rows = csv_table.write_raw_csv(a.csv, (b for _, b, _ in recording.iter_raw(a.input, sid)),
-                                       units if units in csv_table.UNITS else None)
-    else:
-        counts = _StatusCounts()
-        batches = (counts.add(b) for _, b, _ in recording.iter_calibrated(a.input, sid))
-        first = next(batches, None)
-        if first is None:
-            raise UsageError(f"{a.input} has no calibrated data for {sid!r}; run recal replay")
-        rows = csv_table.write_calibrated_csv(a.csv, itertools.chain([first], batches))
-    print(f"wrote {rows} rows of {sid}/{a.topic} to {a.csv}")
-    report = {"in": a.input, "csv": a.csv, "sensor_id": sid, "topic": a.topic, "rows": rows}
-    if a.topic != "raw":
-        report.update(counts.to_dict())
-        print(f"  {counts.line()}")
+    report, lines = export_csv(a.input, a.csv, a.sensor_id, a.topic)
+    print("\n".join(lines))
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2))
     return 0
 
 
-class _StatusCounts:
-    """Samples per status (`recal.core.status.Status`) of the calibrated batches it sees."""
-
-    def __init__(self) -> None:
-        from recal.core.status import Status
-
-        self.status = Status
-        self.counts = np.zeros(256, np.int64)
-
-    def add(self, batch: Any) -> Any:
-        self.counts += np.bincount(batch.status, minlength=256)
-        return batch
-
-    def to_dict(self) -> dict:
-        S = self.status
-        by = {S(i).label if i in S._value2member_map_ else str(i): int(n)
-              for i, n in enumerate(self.counts.tolist()) if n}
-        recorded = int(self.counts.sum() - self.counts[S.NOT_RECORDED])
-        return {"samples_by_status": by,
-                "samples_uncalibrated": recorded - int(self.counts[S.CALIBRATED]),
-                "samples_status_not_recorded": int(self.counts[S.NOT_RECORDED])}
-
-    def line(self) -> str:
-        return status_line(self.to_dict())
-
-
-def status_line(d: dict) -> str:
-    """How many samples went out with a status other than calibrated, said for a person."""
-    by = d.get("samples_by_status") or {}
-    others = ", ".join(f"{k} {v}" for k, v in by.items() if k not in ("calibrated",
-                                                                        "not_recorded"))
-    text = (f"{by.get('calibrated', 0)} samples out calibrated, {d['samples_uncalibrated']} "
-            "with another status" + (f" ({others})" if others else ""))
-    if d.get("samples_status_not_recorded"):
-        text += (f"; {d['samples_status_not_recorded']} without a status (recorded before "
-                 "statuses existed)")
-    return text
-
-
 # --- static ----------------------------------------------------------------------------------
-def _parse_rows(spec: str | None, n: int) -> np.ndarray:
-    mask = np.zeros(n, bool)
-    if not spec:
-        mask[:] = True
-        return mask
-    for part in spec.split(","):
-        lo, _, hi = part.partition("-")
-        try:
-            i, j = int(lo), int(hi or lo)
-        except ValueError:
-            raise UsageError(f"--fit-rows: {part!r} is not a row number or range") from None
-        if not 1 <= i <= j <= n:
-            raise UsageError(f"--fit-rows: {part!r} is outside rows 1-{n}")
-        mask[i - 1:j] = True
-    return mask
-
-
-def _read_static_table(path: str) -> np.ndarray:
-    """The three readings of each row: columns x,y,z (any unit, any suffix) by header."""
-    import csv
-
-    try:
-        with open(path, newline="") as f:
-            rows = [r for r in csv.reader(f) if r and not r[0].startswith("#")]
-    except OSError as e:
-        raise UsageError(f"cannot read {path}: {e.strerror}") from None
-    except UnicodeDecodeError as e:
-        raise UsageError(f"{path}: not UTF-8 text (byte {e.start})") from None
-    if len(rows) < 2:
-        raise UsageError(f"{path}: needs a header and at least one row")
-    head = [h.strip().lower() for h in rows[0]]
-    cols = []
-    for axis in "xyz":
-        hit = [i for i, h in enumerate(head) if h == axis or h.startswith(axis + "_")]
-        if not hit:
-            raise UsageError(f"{path}: no column {axis!r} (or {axis}_<unit>) in header {head}")
-        cols.append(hit[0])
-    try:
-        return np.array([[float(r[c]) for c in cols] for r in rows[1:]])
-    except (ValueError, IndexError) as e:
-        raise UsageError(f"{path}: a row is not three numbers ({e})") from None
-
-
 def _cmd_static(a: argparse.Namespace) -> int:
-    from recal.core import static
+    from recal import static_table as st
 
     _report_paths(a.json)
-    v = _read_static_table(a.input)
-    fit_rows = _parse_rows(a.fit_rows, len(v))
-    if a.known_orientations:
-        fit = static.fit_known_orientations(v, fit_rows, a.g)
-    else:
-        fit = static.fit_unknown_orientations(v, fit_rows, a.g, full=not a.diagonal,
-                                              loss=a.loss)
-    err = fit.rel_norm_error
-    rows = [{"row": i + 1, "fitted": bool(fit.fit_rows[i]), "rel_norm_error": float(e)}
-            for i, e in enumerate(err)]
-    report = {"method": fit.method, "g": fit.g, "params": fit.params, "rows": rows,
-              "worst_rel_norm_error": float(err.max()),
-              "worst_rel_norm_error_fitted": float(err[fit.fit_rows].max()),
-              "worst_rel_norm_error_held_out": (float(err[~fit.fit_rows].max())
-                                                if (~fit.fit_rows).any() else None)}
-    print(f"{'row':>4} {'fit':>4} {'|a|/g-1 (%)':>12}")
-    for r in rows:
-        print(f"{r['row']:>4} {'*' if r['fitted'] else '':>4} {100 * r['rel_norm_error']:>12.3f}")
-    print(f"worst relative norm error: {100 * err.max():.3f} % over all rows "
-          f"({100 * err[fit.fit_rows].max():.3f} % on the {fit.fit_rows.sum()} fitted rows)")
-    if "axis_angles_deg" in fit.params:
-        ang = fit.params["axis_angles_deg"]
-        print("angles between sensing axes: " + ", ".join(f"{k} {v:.3f}" for k, v in ang.items()))
+    v = st.read_static_table(a.input)
+    report, lines = st.static_report(v, st.parse_rows(a.fit_rows, len(v)),
+                                     known_orientations=a.known_orientations, g=a.g,
+                                     full=not a.diagonal, loss=a.loss)
+    print("\n".join(lines))
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2))
     return 0
@@ -374,11 +152,12 @@ def _cmd_discover(a: argparse.Namespace) -> int:
     from recal.config import load_model_file
     from recal.core.discovery import DiscoveryConfig
     from recal.core.discovery_data import data_from_table
+    from recal.static_table import read_static_table
 
     _report_paths(a.json, a.write_model, a.plots)
     path = Path(a.input)
     if path.suffix.lower() == ".csv" and a.rate is None and not dr.csv_has_time(path):
-        data = data_from_table(_read_static_table(a.input))  # one still row per pose
+        data = data_from_table(read_static_table(a.input))  # one still row per pose
     elif path.suffix.lower() == ".csv":
         data = dr.data_from_csv(path, a.rate, a.units, a.window_s)
     else:
@@ -419,7 +198,7 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
 
 # --- replay / repair / run / demo / router ---------------------------------------------------
 def _cmd_replay(a: argparse.Namespace) -> int:
-    from recal.replay import replay
+    from recal.replay import replay, replay_lines
 
     _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json)
@@ -429,44 +208,6 @@ def _cmd_replay(a: argparse.Namespace) -> int:
         Path(a.json).write_text(json.dumps(summary, indent=2, default=str))
     print("\n".join(replay_lines(summary)))
     return 0
-
-
-def replay_lines(summary: dict) -> list[str]:
-    """`recal replay`'s summary for a person: one block per sensor (--json has it all)."""
-    sensors = summary["sensors"]
-    lines = [f"replayed {summary['samples']} samples of {len(sensors)} sensor(s) in "
-             f"{summary['seconds']:.2f} s ({summary['samples_per_s'] / 1e6:.2f} M samples/s) "
-             f"into {summary['out']}"]
-    for sid, info in sensors.items():
-        c = info["counts"]
-        rms = info.get("residual_rms_mg")
-        lines.append(f"  {sid}: started from {info['start']}, model {info['model']}; "
-                     f"{c['quasi_static']} quasi-static samples, {c['windows']} windows, "
-                     f"{c['updates']} updates ({c['updates_rejected']} rejected)"
-                     + (f"; residual {rms:.2f} mg" if rms is not None else ""))
-        if "samples_by_status" in info:
-            lines.append(f"    {status_line(info)}"
-                         + (f"; {info['samples_not_finite']} not finite, published zeroed"
-                            if info.get("samples_not_finite") else ""))
-        if not info["bootstrapped"]:
-            lines.append("    not calibrated: without a prior the recording must first cover "
-                         "enough orientations (5 half-axes); give one with --config or --model")
-            continue
-        ref = info.get("gain_reference")
-        if ref:
-            lines.append(f"    gains against {ref['counts_per_g']:.6g} counts per g "
-                         f"(from the {ref['source']}); status at the end: {info.get('status')}")
-        for effect, values in info["described"].items():
-            lines.append(f"    {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in
-                                                        values.items()))
-        al = info.get("alignment")
-        if al:
-            moved = al.get("moved_deg")
-            lines.append(f"    mounting tilt {al['tilt_deg']:.1f} deg at the reference; "
-                         + (f"tilt alarm: moved {moved:.1f} deg since (limit {al['limit_deg']:g} "
-                            "deg)" if moved is not None else "no slip beyond "
-                            f"{al['limit_deg']:g} deg"))
-    return lines
 
 
 def _cmd_repair(a: argparse.Namespace) -> int:
@@ -481,7 +222,7 @@ def _cmd_repair(a: argparse.Namespace) -> int:
     return 0
 
 
-def add_run_arguments(p: argparse.ArgumentParser) -> None:
+def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     """The daemon's options: `recal run` and `python -m recal.gateway` take the same ones."""
     p.add_argument("--port", action="append", default=[], help="serial port (repeatable)")
     p.add_argument("--sensor-id", action="append", default=[], help="id per --port")
@@ -514,18 +255,32 @@ def _names(text: str) -> tuple[str, ...]:
     return names
 
 
-def run_from_args(a: argparse.Namespace) -> int:
-    """The daemon, with the options of `add_run_arguments`."""
+def _sensor_options(a: argparse.Namespace) -> SensorOptions:
+    from recal.sensor_options import SensorOptions
+
+    return SensorOptions(rate_hz=a.rate, aux_names=a.aux_names, prior=a.prior,
+                         counts_per_g=a.counts_per_g, zero_g=a.zero_g)
+
+
+def _cmd_run(a: argparse.Namespace) -> int:
+    """The daemon, with the options of `_add_run_arguments`."""
     from recal.gateway import run_gateway
 
-    options = {"rate_hz": a.rate, "aux_names": a.aux_names, "prior": a.prior,
-               "counts_per_g": a.counts_per_g, "zero_g": a.zero_g}
     return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model,
                        batch_s=None if a.batch_ms is None else a.batch_ms / 1e3,
-                       sensor_options=options)
+                       sensor_options=_sensor_options(a))
 
 
-def add_serving_arguments(ap: argparse.ArgumentParser) -> None:
+def _add_node_arguments(ap: argparse.ArgumentParser, config_help: str, mcap_help: str,
+                        model_help: str) -> None:
+    """`recal node`'s options (also `python -m recal.node`'s)."""
+    ap.add_argument("--config", help=config_help)
+    _add_serving_arguments(ap)
+    ap.add_argument("--mcap", help=mcap_help)
+    ap.add_argument("--model", help=model_help)
+
+
+def _add_serving_arguments(ap: argparse.ArgumentParser) -> None:
     """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node`` and
     ``python -m recal.node``)."""
     ap.add_argument("--sensor-id", action="append", default=[],
@@ -539,7 +294,7 @@ def add_serving_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def _cmd_node(a: argparse.Namespace) -> int:
-    from recal.node import run_node
+    from recal.remote_node import run_node
 
     return run_node(a.config, a.sensor_id, a.mcap, a.model, accept_any=a.accept_any,
                     max_sensors=a.max_sensors)
@@ -682,16 +437,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_demo)
 
     s = _add_command(sub, "run", "the daemon: serial ports -> Zenoh -> calibration -> MCAP")
-    add_run_arguments(s)
-    s.set_defaults(func=run_from_args)
+    _add_run_arguments(s)
+    s.set_defaults(func=_cmd_run)
 
     s = _add_command(sub, "node", "a calibration node on its own: subscribes to recal/*/raw "
                        "(gateways elsewhere run with run_nodes = false)")
-    s.add_argument("--config", help="service config (TOML): [zenoh], [[sensors]] priors, "
-                   "[pipeline]")
-    add_serving_arguments(s)
-    s.add_argument("--mcap", help="also log raw and calibrated here")
-    s.add_argument("--model", help="model file for every sensor (recal discover --write-model)")
+    _add_node_arguments(s, "service config (TOML): [zenoh], [[sensors]] priors, [pipeline]",
+                        "also log raw and calibrated here",
+                        "model file for every sensor (recal discover --write-model)")
     s.set_defaults(func=_cmd_node)
 
     s = _add_command(sub, "replay", "re-run the raw topic of a recording through the "
@@ -828,17 +581,48 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    return _dispatch(args.func, args)
+
+
+def _dispatch(func: Callable[[argparse.Namespace], int | None], args: argparse.Namespace
+              ) -> int:
+    """Run a command: what the user can act on is one line and exit status 2; a bug (any
+    other exception) keeps its traceback."""
     try:
-        return int(args.func(args) or 0)
+        return int(func(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (UsageError, ValueError, OSError, KeyError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+    except (RecalError, OSError) as e:
+        msg: object = e
         if isinstance(e, OSError) and e.filename:
             msg = f"{e.filename}: {e.strerror or e}"
         print(f"recal: error: {msg}", file=sys.stderr)
         return 2
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def _logging() -> None:
+    """The daemons' warnings (a node that failed on a batch, ...) on stderr."""
+    import logging
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+
+
+def gateway_main(argv: Sequence[str] | None = None) -> int:
+    """``python -m recal.gateway --config gateway.toml [--port P --sensor-id ID ...]``."""
+    ap = argparse.ArgumentParser(prog="python -m recal.gateway", description=(
+        "The gateway daemon: serial ports -> raw log + bus -> calibration nodes -> log + bus."))
+    _add_run_arguments(ap)
+    args = ap.parse_args(argv)
+    _logging()
+    return _cmd_run(args)
+
+
+def node_main(argv: Sequence[str] | None = None) -> int:
+    """``python -m recal.node --config node.toml [--sensor-id ID ...] [--mcap out.mcap]``."""
+    ap = argparse.ArgumentParser(prog="python -m recal.node",
+                                 description="calibration node subscribed to recal/*/raw")
+    _add_node_arguments(ap, "service TOML: [zenoh], [[sensors]] priors, [pipeline]",
+                        "also log everything to this recording", "model file for every sensor")
+    args = ap.parse_args(argv)
+    _logging()
+    return _cmd_node(args)

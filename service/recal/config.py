@@ -52,7 +52,8 @@ import numpy as np
 from recal.core.buffer import BufferConfig
 from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig
+from recal.core.pipeline import PipelineConfig, missing_channels
+from recal.errors import ConfigError
 
 __all__ = [
     "AlignmentConfig",
@@ -66,6 +67,7 @@ __all__ = [
     "SensorConfig",
     "ServiceConfig",
     "ZenohSettings",
+    "check_model_channels",
     "default_state_dir",
     "load_config",
     "load_model_file",
@@ -79,10 +81,6 @@ MODELS = ("diagonal", "full")
 MODES = ("all", "offsets")
 ZENOH_MODES = ("peer", "client", "router")
 COMPRESSIONS = ("zstd", "lz4", "none")
-
-
-class ConfigError(ValueError):
-    """A configuration file or value that cannot be used; the message is one line."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -141,7 +139,8 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class ZenohSettings:
-    """Zenoh session settings (see recal.io.bus.zenoh_config; loopback unless told otherwise)."""
+    """Zenoh session settings (see recal.io.bus_config.zenoh_config; loopback unless told
+    otherwise)."""
 
     enabled: bool = True
     mode: str | None = None
@@ -761,3 +760,17 @@ def model_and_prior(sensor: SensorConfig, settings: PipelineSettings,
         raise ConfigError(f"sensor {sensor.id}: prior: {exc} (parameters: "
                           f"{', '.join(model.names)})") from None
     return model, Prior.from_sd(mean, sd)
+
+
+def check_model_channels(cfg: ServiceConfig, model_path: str | Path | None = None) -> None:
+    """ConfigError if a sensor's model reads a channel its configured channels lack: said at
+    the start, not at the first batch (channels learnt from the stream are checked at its
+    first batch, by the node)."""
+    for s in cfg.sensors:
+        if s.aux_names is None:
+            continue
+        model = model_and_prior(s, cfg.pipeline, model_path)[0]
+        missing = missing_channels(model, s.aux_names)
+        if missing:
+            raise ConfigError(f"sensor {s.id}: the model needs channel {missing[0]!r}, the "
+                              f"sensor's channels are {list(s.aux_names)}")

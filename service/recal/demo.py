@@ -33,9 +33,10 @@ from typing import Any
 import numpy as np
 
 from recal.config import parse_config
-from recal.gateway import ERROR_PREFIX, Gateway, run_gateway
+from recal.gateway import Gateway, run_gateway
 from recal.io import recording as rec
 from recal.io.pty_device import PtyDevice
+from recal.runtime import ERROR_PREFIX
 from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
 
 __all__ = ["free_port", "new_run_dir", "run_demo"]

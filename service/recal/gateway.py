@@ -1,124 +1,81 @@
 """The gateway daemon: serial ports -> raw log + bus -> calibration nodes -> log + bus.
 
-One I/O thread serves every port (one serial port per sensor) from a selector:
-
-* it reads whatever the ready ports hold (``SerialSource.poll``: non-blocking, never waits on
-  one device), then, per port, handles all the new samples as one batch: written to the MCAP
-  log at once (``/<sensor>/raw``), the same bytes published on ``recal/<sensor>/raw``, then
-  calibrated by the sensor's :class:`recal.node.CalibrationNode` (calibrated, body,
-  calibration state, plot, events to the log and the bus). Logging before calibrating means a
-  sample that reached the service is in the log exactly once, whatever happens to the node or
-  the bus; the recording writer flushes small chunks every ``flush_interval_s``, so a crash
-  loses at most that much.
-* when calibration takes longer, the next round simply finds more bytes waiting, so batches
-  grow with the load and the per-batch cost is paid less often; the serial ports (their
-  kernel buffers) are the back-pressure point, as with a real UART.
-* ``batch_s`` > 0 (``--batch-ms``) makes the loop wake on a fixed tick instead of on every
-  arrival: CPU per sample falls, latency rises by up to one tick.
-* latency on demand (config ``idle_batch_ms``, off by default, 200 ms in
-  configs/gateway.toml): with ``batch_s`` = 0, while nobody subscribes to any sensor's live
-  topics (raw, calibrated, body; e.g. a wearable gateway that only logs), the loop runs on an
-  ``idle_batch_s`` tick, since nobody would see the lower latency; the first subscriber
-  switches it to handling every arrival at once (within ``LISTEN_CHECK_S``). Per arrival, the
-  wake-up, parse, log, publish and pipeline step cost about 1 ms of CPU, so 100 Hz handled at
-  once is ~12 % of a core and 100 ms ticks ~2 %. A tick also delays logging: a crash loses
-  up to a tick more than ``flush_interval_s``.
-
-Measured with ``bench/daemon_scale.py`` (10 sensors at 100 Hz, on the same shared 2-core
-machine): the former design, two threads per port, used 90 % of a core with a latency p99 of
-450 ms; this loop 60-70 % and 20-30 ms.
+One I/O thread serves every port (one serial port per sensor) from a selector: it reads what
+the ready ports hold (never waiting on one device), then, per port, handles all the new
+samples as one batch: logged at once (``/<sensor>/raw``), the same bytes published on
+``recal/<sensor>/raw``, then calibrated by the sensor's :class:`recal.node.CalibrationNode`.
+Logging before calibrating means a sample that reached the service is in the log exactly
+once, whatever happens to the node or the bus. When calibration takes longer, the next round
+finds more bytes waiting, so batches grow with the load; the serial ports' kernel buffers are
+the back-pressure point. ``batch_s`` (``--batch-ms``) and ``idle_batch_s`` (config
+``idle_batch_ms``: a tick while nobody subscribes live) trade latency for CPU. Why one thread
+and what each choice costs: docs/design.md and docs/performance.md.
 
 With ``run_nodes = false`` the gateway only logs and publishes raw; a node elsewhere
-(``recal.node.run_node``) subscribes to ``recal/*/raw``.
+(`recal.remote_node`) subscribes to ``recal/*/raw``.
 
-The main thread checkpoints every pipeline atomically (recal.checkpoints) every
-``checkpoint.interval_s``, within ``after_update_s`` of an accepted update and at stop,
-reports aggregated counts (parse errors, dropped publishes) once a second as events, and waits
-for SIGINT/SIGTERM or a stop event. Stopping reads what the ports still hold, calibrates it,
-writes the checkpoints, closes (and indexes) the MCAP and the Zenoh session. A restart resumes
-each pipeline from its checkpoint once it has been checked (the checkpoint wins over a changed
-prior in the config; delete ``<checkpoint dir>/<sensor>.json`` to start from the prior again;
-one that cannot be trusted, or whose model kind differs from the config's, is moved aside with
-a console line and an event, and the previous generation or the prior is used). Before
-anything is opened, each calibrated sensor's lock in the state folder is taken: a second
-daemon for the same sensor id exits with one line naming the holder.
-
-A full disk never stops reading, calibrating or publishing: the recording writer keeps what the
-disk refuses in memory, compressed, up to ``[mcap] backlog_mb``, drops the oldest beyond that
-(counted), and writes again by itself when space returns. The operator gets one line when
-writing stops, one when it resumes (with the samples and messages lost; also a
-``write_resumed`` event in the log), and a reminder every ``WRITE_NOTE_S`` in between; a part
-the disk would not let the daemon finish at the stop is named with its ``recal repair`` line.
+The main thread checkpoints every pipeline (recal.checkpoints), reports aggregated counts
+(parse errors, dropped publishes) once a second as events, and waits for SIGINT/SIGTERM or a
+stop event. Stopping reads what the ports still hold, calibrates it, writes the checkpoints,
+closes (and indexes) the MCAP and the Zenoh session. A restart resumes each pipeline from its
+checked checkpoint; each calibrated sensor's lock in the state folder is taken before anything
+is opened, so a second daemon for the same sensor id exits with one line naming the holder.
+A full disk never stops reading, calibrating or publishing (`recal.runtime.RecordingWatch`).
 
 Queries: ``recal/<sensor>/status`` answers the node's calibration state plus a ``gateway``
 section (port, samples logged, parse errors, ...); ``recal/<sensor>/align`` requests a
-mounting alignment.
-
-Memory is bounded: per sensor at most ``max_batch_bytes`` read per round, the parser's
-partial line, the pipeline's bounded buffer; counters only.
+mounting alignment. Memory is bounded: per sensor at most ``max_batch_bytes`` read per round,
+the parser's partial line, the pipeline's bounded buffer; counters only.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import logging
 import os
 import selectors
-import signal
-import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from datetime import UTC, datetime
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
+from recal.align_requests import align_handler
 from recal.checkpoints import Checkpoints, SensorLockedError
-from recal.cli import add_run_arguments, run_from_args
-from recal.config import (
-    ConfigError,
-    PriorConfig,
-    SensorConfig,
-    ServiceConfig,
-    load_config,
-    load_priors,
-)
-from recal.core.pipeline import missing_channels
+from recal.config import SensorConfig, ServiceConfig, check_model_channels, load_config
+from recal.errors import ConfigError
 from recal.io import messages
 from recal.io.recording import sensor_topic
-from recal.io.recording_writer import RecordingWriter, WriteHealth
+from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource, SourceEvent, port_busy, port_problem
 from recal.io.wire_formats import make_parser
-from recal.node import (
-    CalibrationNode,
-    LoggedBusSink,
-    RecordingSink,
-    Sink,
-    align_handler,
-    make_node,
-    node_settings,
+from recal.node import CalibrationNode, make_node, node_settings
+from recal.runtime import (
+    ERROR_PREFIX,
+    RecordingWatch,
+    console,
+    install_stop_signals,
+    open_bus,
+    open_recording,
 )
-from recal.samples import RawBatch
+from recal.samples import RawBatch, join_by_layout
+from recal.sensor_options import SensorOptions, with_options
+from recal.sinks import LoggedBusSink, RecordingSink, Sink
 
 __all__ = [
+    "ERROR_PREFIX",
+    "NOTE_PREFIX",
     "READY_PREFIX",
     "Gateway",
-    "RecordingWatch",
-    "install_stop_signals",
-    "main",
-    "open_bus",
+    "RecordingWatch",  # recal.runtime's, named here too: the gateway's recording watch
     "open_recording",
-    "recording_path",
     "run_gateway",
 ]
 
 log = logging.getLogger(__name__)
 
 READY_PREFIX = "recal gateway ready"
-ERROR_PREFIX = "recal: error:"  # the one line a start-up failure prints (as the CLI's errors)
 STOPPED_PREFIX = "recal gateway stopped"
 READ_WAIT_S = 0.05  # longest selector wait: bounds how fast a stop is noticed
 POLL_QUIET_S = 0.25  # an open port that sent nothing is polled this often (unplug check)
@@ -129,78 +86,11 @@ LIVE_TOPICS = ("raw", "calibrated", "body")  # a subscriber to any of these want
 REPORT_INTERVAL_S = 1.0  # aggregated events (parse errors, dropped publishes) at most this often
 NOTE_PREFIX = "recal gateway:"  # a line for the operator (stdout: the journal under systemd)
 NOTE_KINDS = ("port_opened", "port_found", "port_lost", "port_missing", "port_busy")  # a line each
-#: the priors `recal run --prior NAME` looks in without a --config (the shipped ones)
-SHIPPED_PRIORS = Path(__file__).resolve().parents[2] / "configs" / "sensor-priors.toml"
 PARSE_NOTE_S = 60.0  # bad input is summed up for the operator at most this often per sensor
 # a partial line cut at a (re)connect is expected: an event in the log, no line for the operator
 PARSE_NOT_NOTED = frozenset({"resync_dropped", "truncated"})
 STOP_JOIN_S = 10.0
 FINAL_LINE_S = 0.1  # at stop, how long a partial line may take to end
-WRITE_NOTE_S = 60.0  # while the recording cannot be written, a reminder at most this often
-
-
-# ---------------------------------------------------------------------------------------------
-# Shared shell helpers (also used by recal.node.run_node and recal.demo)
-# ---------------------------------------------------------------------------------------------
-
-def install_stop_signals(stop: threading.Event) -> Callable[[], None]:
-    """SIGINT/SIGTERM set ``stop`` (main thread only); returns a function that undoes it."""
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-
-    def handler(_signum: int, _frame: FrameType | None) -> None:
-        stop.set()
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-
-    def restore() -> None:
-        for s, old in previous.items():
-            signal.signal(s, old)
-
-    return restore
-
-
-def open_bus(cfg: ServiceConfig) -> Any:
-    """A recal.io.bus.Bus from the [zenoh] settings, or None when Zenoh is disabled."""
-    if not cfg.zenoh.enabled:
-        return None
-    from recal.io.bus import Bus
-    from recal.io.bus_config import zenoh_config
-
-    z = cfg.zenoh
-    return Bus(zenoh_config(z.mode, z.listen, z.connect,
-                            config_file=str(z.config_file) if z.config_file else None))
-
-
-def recording_path(cfg: ServiceConfig, mcap_out: str | Path | None) -> Path:
-    """Where to log: ``mcap_out`` (a file, or a directory for an auto-named file), else the
-    config's path or dir. An existing file is never overwritten: a time-stamped sibling
-    ``<stem>-<UTC>.mcap`` is used instead (e.g. after a crash, for the repair to read)."""
-    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    target = Path(mcap_out) if mcap_out is not None else cfg.mcap.path
-    if target is None or target.is_dir() or str(target).endswith(("/", "\\")):
-        directory = target if target is not None else cfg.mcap.dir
-        return Path(directory) / f"recal-{stamp}.mcap"
-    if not target.exists():
-        return target
-    for i in range(1000):
-        alt = target.with_name(f"{target.stem}-{stamp}{'' if i == 0 else f'-{i}'}"
-                               f"{target.suffix}")
-        if not alt.exists():
-            return alt
-    raise FileExistsError(f"no free name next to {target}")
-
-
-def open_recording(cfg: ServiceConfig, mcap_out: str | Path | None) -> RecordingWriter:
-    """A RecordingWriter with the [mcap] settings at :func:`recording_path`."""
-    m = cfg.mcap
-    return RecordingWriter(
-        recording_path(cfg, mcap_out), chunk_size=m.chunk_size,
-        flush_interval_s=m.flush_interval_s,
-        rotate_bytes=None if m.rotate_mb is None else int(m.rotate_mb * 1e6),
-        rotate_s=None if m.rotate_hours is None else m.rotate_hours * 3600.0,
-        compression=m.compression, fsync=m.fsync,  # type: ignore[arg-type]
-        backlog_bytes=int(m.backlog_mb * 1e6))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -303,7 +193,7 @@ class Gateway:
         for sid, p in self.ports.items():
             if p.node is not None:
                 self.checkpoints.add(sid, p.node.accepted_updates)
-        self._write_watch = RecordingWatch(writer, out, cfg.mcap.backlog_mb)
+        self._write_watch = RecordingWatch(writer, out, cfg.mcap.backlog_mb, prefix=NOTE_PREFIX)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -375,7 +265,7 @@ class Gateway:
         """Read every port from one selector; log, publish and calibrate what arrived.
 
         One thread for all ports: a thread per port costs a wake-up and GIL hand-over per
-        sample and sensor (see the module notes for what that measured). Reading every ready port
+        sample and sensor (docs/design.md, one I/O thread). Reading every ready port
         before handling any batch, and handling all of one port's new samples as one batch,
         makes batches grow by themselves when the loop falls behind, so the per-batch cost
         is paid less often exactly when it matters.
@@ -645,99 +535,6 @@ class Gateway:
         self.checkpoints.save(self._nodes(), sensor_ids)
 
 
-class RecordingWatch:
-    """Tells the operator when a RecordingWriter stops being written (a full disk) and when it
-    resumes, with what was lost: one line each (and an event), a reminder every WRITE_NOTE_S
-    between, fsync failures at most as often, and at the close each part left unfinished with
-    its repair command. Call :meth:`check` now and then (the gateway: once a second) and
-    :meth:`closed` after the writer's close. Reading, calibrating and publishing never wait
-    for the recording: the writer keeps what the disk refuses within its budget.
-
-    Args:
-        writer: the RecordingWriter (its ``health()`` is read).
-        out: where the lines go (``NOTE_PREFIX`` lines).
-        budget_mb: the writer's ``backlog_bytes`` in MB, for the first line.
-        prefix: what each line starts with (the gateway's ``NOTE_PREFIX``; a node has its own).
-    """
-
-    def __init__(self, writer: RecordingWriter, out: Callable[[str], None],
-                 budget_mb: float, prefix: str = NOTE_PREFIX) -> None:
-        self.writer, self.out, self.budget_mb, self.prefix = writer, out, budget_mb, prefix
-        self.failing = False
-        self.failures = 0  # the writer's refusal count as of the last line
-        self.error = ""
-        self.since_s = 0.0
-        self.since_ns = 0
-        self.dropped = (0, 0)  # messages, samples dropped as of the last resume line
-        self.noted_s = float("-inf")
-        self.fsync_errors = 0
-        self.fsync_noted_s = float("-inf")
-
-    def check(self, now: int, event: Callable[[str, dict[str, Any]], None]) -> None:
-        """Lines and ``event(kind, detail)`` calls for what changed since the last check."""
-        h = self.writer.health()
-        now_s = time.monotonic()
-        if self.failing and (not h.failing or h.failures > self.failures):
-            lost = (h.dropped_samples - self.dropped[1], h.dropped_messages - self.dropped[0])
-            self.out(f"{self.prefix} recording: writing again after "
-                     f"{now_s - self.since_s:.1f} s ({self.error}); lost {lost[0]} raw "
-                     f"samples ({lost[1]} messages)")
-            event("write_resumed", {
-                "error": self.error, "failed_s": now_s - self.since_s,
-                "since_ns": self.since_ns, "lost_samples": lost[0], "lost_messages": lost[1]})
-            # drops happen only while writing is refused: all since the last line are this one's
-            self.failing, self.dropped = False, (h.dropped_messages, h.dropped_samples)
-        if not self.failing and h.failures > self.failures:
-            self._began(h, now, now_s, event)
-            if not h.failing:  # over within one check: say so now
-                self.check(now, event)
-        elif self.failing and now_s >= self.noted_s + WRITE_NOTE_S:
-            self.noted_s = now_s
-            self.out(f"{self.prefix} recording: still cannot write ({h.error}) for "
-                     f"{now_s - self.since_s:.0f} s; dropped so far "
-                     f"{h.dropped_samples - self.dropped[1]} raw samples "
-                     f"({h.dropped_messages - self.dropped[0]} messages)")
-        if h.fsync_errors > self.fsync_errors and now_s >= self.fsync_noted_s + WRITE_NOTE_S:
-            self.out(f"{self.prefix} recording: fsync failed "
-                     f"{h.fsync_errors - self.fsync_errors} times ({h.error}); the last "
-                     "second may not be on the disk")
-            self.fsync_errors, self.fsync_noted_s = h.fsync_errors, now_s
-
-    def _began(self, h: WriteHealth, now: int, now_s: float,
-               event: Callable[[str, dict[str, Any]], None]) -> None:
-        self.failing, self.failures, self.error = True, h.failures, h.error or "write refused"
-        self.since_s = h.failing_since_s if h.failing_since_s is not None else now_s
-        self.since_ns = now - int((now_s - self.since_s) * 1e9)
-        self.noted_s = now_s
-        path = self.writer.paths[-1]
-        self.out(f"{self.prefix} recording: cannot write {path}: {self.error}; reading, "
-                 f"calibrating and publishing go on, up to {self.budget_mb:g} MB of it wait "
-                 "in memory, then the oldest is dropped")
-        event("write_failed", {"error": self.error, "path": str(path),
-                               "backlog_mb": self.budget_mb})
-
-    def closed(self) -> None:
-        """After the writer's close: each part the disk would not let it finish, with its
-        repair (the file ends at its last whole record)."""
-        h = self.writer.health()
-        for path in h.unfinished:
-            self.out(f"{self.prefix} recording: {path} not finished ({h.error}); "
-                     f"{h.dropped_samples} raw samples ({h.dropped_messages} messages) lost "
-                     f"in all; recover the rest with: recal repair {path} --out FIXED.mcap")
-
-
-def join_by_layout(batches: list[RawBatch]) -> list[RawBatch]:
-    """Consecutive batches joined where their channel layout is the same (it rarely changes:
-    a device that re-announces a different header)."""
-    groups: list[list[RawBatch]] = []
-    for b in batches:
-        if groups and groups[-1][0].aux_names == b.aux_names:
-            groups[-1].append(b)
-        else:
-            groups.append([b])
-    return [g[0] if len(g) == 1 else RawBatch.concat(g) for g in groups]
-
-
 # ---------------------------------------------------------------------------------------------
 # Entry points
 # ---------------------------------------------------------------------------------------------
@@ -805,57 +602,6 @@ def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
     return sensors
 
 
-def _with_options(cfg: ServiceConfig, options: dict[str, Any]) -> ServiceConfig:
-    """Every served sensor with the command line's ``rate_hz``, ``aux_names`` and prior
-    (``prior``: a name in the config's priors, else the shipped ones; or ``counts_per_g``
-    and ``zero_g``), as if the config said so."""
-    changes: dict[str, Any] = {}
-    if options.get("rate_hz") is not None:
-        changes["rate_hz"] = float(options["rate_hz"])
-    if options.get("aux_names") is not None:
-        changes["aux_names"] = tuple(options["aux_names"])
-    name = options.get("prior")
-    named = _named_prior(cfg, name) if name is not None else None
-    cpg, zero = options.get("counts_per_g"), options.get("zero_g")
-
-    def prior(s: SensorConfig) -> PriorConfig:
-        base = named or s.prior
-        if cpg is None and zero is None:
-            return base
-        return replace(base, counts_per_g=cpg if cpg is not None else base.counts_per_g,
-                       zero_g=(float(zero),) * 3 if zero is not None else base.zero_g)
-
-    if not changes and named is None and cpg is None and zero is None:
-        return cfg
-    return cfg.with_sensors([replace(s, **changes, prior=prior(s)) for s in cfg.sensors])
-
-
-def _named_prior(cfg: ServiceConfig, name: str) -> PriorConfig:
-    """The prior called ``name`` among the config's priors (``priors_file``, ``[priors]``), or
-    among the shipped configs/sensor-priors.toml without a config file."""
-    priors = cfg.priors if cfg.source is not None or not SHIPPED_PRIORS.exists() else (
-        load_priors(SHIPPED_PRIORS))
-    if name not in priors:
-        known = ", ".join(sorted(priors)) or "none defined"
-        raise ConfigError(f"--prior {name}: no prior named {name!r} ({known})")
-    return priors[name]
-
-
-def _check_channels(cfg: ServiceConfig, model_path: str | Path | None) -> None:
-    """A model that reads a channel the sensor's configured channels lack is an error now
-    (channels learnt from the stream are checked at its first batch, by the node)."""
-    from recal.node import node_settings
-
-    for s in cfg.sensors:
-        if s.aux_names is None or not cfg.run_nodes:
-            continue
-        model = node_settings(s, cfg, model_path).model
-        missing = missing_channels(model, s.aux_names)
-        if missing:
-            raise ConfigError(f"sensor {s.id}: the model needs channel {missing[0]!r}, the "
-                              f"sensor's channels are {list(s.aux_names)}")
-
-
 def _nodes(cfg: ServiceConfig, sink: Sink, model_path: str | Path | None,
            checkpoints: Checkpoints) -> dict[str, CalibrationNode | None]:
     nodes: dict[str, CalibrationNode | None] = {}
@@ -885,7 +631,7 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
                 out: Callable[[str], None] | None = None,
                 on_ready: Callable[[Gateway], None] | None = None,
                 batch_s: float | None = None, idle_batch_s: float | None = None,
-                sensor_options: dict[str, Any] | None = None) -> int:
+                sensor_options: SensorOptions | None = None) -> int:
     """Run the daemon until ``stop_event`` is set or SIGINT/SIGTERM arrives.
 
     Args:
@@ -902,20 +648,20 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
             None: the config's ``batch_ms``.
         idle_batch_s: the tick while nobody subscribes live (see Gateway); None: the config's
             ``idle_batch_ms``.
-        sensor_options: the command line's ``rate_hz``, ``aux_names``, ``prior`` (a name),
-            ``counts_per_g``, ``zero_g`` for every served sensor (see ``_with_options``).
+        sensor_options: the command line's rate, channels and prior for every served sensor
+            (`recal.config.with_options`).
     Returns 0 on a clean stop, 2 for a configuration error (also one found at a sensor's first
     batch: a channel its model needs is not in the stream), 1 if the log or bus cannot open.
     """
-    emit = out or (lambda s: print(s, flush=True))
-    fail = out or (lambda s: print(s, file=sys.stderr, flush=True))
+    emit, fail = console(out)
     try:
         if batch_s is not None and not batch_s >= 0:
             raise ConfigError(f"--batch-ms must be 0 or more, not {batch_s * 1e3:g}")
         cfg = config if isinstance(config, ServiceConfig) else load_config(config)
-        cfg = _with_options(cfg.with_sensors(_sensors(cfg, ports, sensor_ids)),
-                            sensor_options or {})
-        _check_channels(cfg, model_path)
+        cfg = with_options(cfg.with_sensors(_sensors(cfg, ports, sensor_ids)),
+                           sensor_options or SensorOptions())
+        if cfg.run_nodes:
+            check_model_channels(cfg, model_path)
         batch_s = cfg.batch_ms / 1e3 if batch_s is None else batch_s
         idle_batch_s = cfg.idle_batch_ms / 1e3 if idle_batch_s is None else idle_batch_s
         if not cfg.sensors:
@@ -1001,15 +747,7 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m recal.gateway --config gateway.toml [--port P --sensor-id ID ...]``."""
-    ap = argparse.ArgumentParser(prog="python -m recal.gateway", description=__doc__.split(
-        "\n")[0])
-    add_run_arguments(ap)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return run_from_args(args)
+if __name__ == "__main__":  # `python -m recal.gateway`: its arguments are parsed in recal.cli
+    from recal.cli import gateway_main
 
-
-if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(gateway_main())

@@ -1,70 +1,37 @@
 """Calibration node: one per sensor, between the bus or a recording and ``Pipeline.step``.
 
 A :class:`CalibrationNode` takes raw batches and hands everything it derives to a
-:class:`Sink`: the calibrated batch, the calibration state (``pipeline.summary()`` plus the
-sensor id) whenever an update happened, the decimated per-sample plot topic, events (rejected
-updates, bootstrap, alignment, tilt alarm) and, once the mounting is known, the acceleration
-rotated into the body frame. Sinks exist for a recording (:class:`RecordingSink`), for Zenoh
-(:class:`BusSink`) and for both (:class:`LoggedBusSink`, each message encoded once), so the
-gateway (in-process), a node on another machine (:func:`run_node`, subscribed to
-``recal/*/raw``) and ``replay`` (no Zenoh) run this same code.
+:class:`recal.sinks.Sink`: the calibrated batch, the calibration state whenever an update
+happened, the decimated plot topic, events and, once the mounting is known, the acceleration
+rotated into the body frame. The gateway (in-process), a node on another machine
+(`recal.remote_node`) and ``replay`` (no Zenoh) run this same code, so a replay reproduces a
+live run bit for bit. The messages and their fields: `recal.sinks`. Device time goes through
+`recal.core.timebase` right before ``Pipeline.step`` (docs/design.md, device time); a model
+that needs a channel the stream lacks is one ``missing_channel`` event at the stream's first
+batch, then the node skips (``failed``). The alignment rules: `recal.align_requests`.
 
 No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math in
-``recal.core.alignment``.
-
-Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
-``recal/<sensor>/<suffix>`` where the bus layout has one):
-
-* ``calibrated`` (and ``body``): CalibratedBatch protobuf, each sample with its status and
-  predicted error (`recal.core.status`). A sample whose calibrated value is not finite (a NaN
-  or inf reading, a broken estimate) is never published as such: its x_g, y_g, z_g go out as
-  0, its status uncalibrated and its sigma_mg inf, and it is counted (``samples_not_finite``).
-* ``calibration``: JSON, the calibration state: ``sensor_id``, ``t_us`` (device time, us),
-  ``reason`` (start | restored | update | bootstrap | status | discovery), ``model`` (name),
-  ``model_spec``, ``param_names``, ``params`` (by name, raw units), ``described`` (mg, %),
-  ``sd``, ``covariance``, ``residual_rms_mg``, ``residual_g``, ``last_update``, ``coverage``,
-  ``counts``, ``update_count``, ``observable``, ``alignment``.
-* ``events``: JSON ``{t_us, kind, sensor_id, detail}``.
-* ``plot``: one JSON message per decimated sample (log only).
-* ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state
-  (``pipeline_state_json``, so a replay reproduces the run bit for bit), the rate, the
-  alignment, the device clock's time base (``timebase``) (log only).
-
-Device time goes through :mod:`recal.core.timebase` right before ``Pipeline.step``: events
-``time_units`` (a clock in ms or s), ``time_implausible``, ``time_wrap``, ``time_reboot``,
-``time_anomalies`` (steps back, duplicates, jumps, counted per batch); the raw topic keeps
-the device's values. A model that needs a channel the stream lacks is one ``missing_channel``
-event at the stream's first batch; the node then skips (``failed``) instead of failing on
-every batch.
-
-Alignment (Zheng et al. sec. II.B): the reference posture is the first quasi-static run of
-``min_still_s`` (10 s) within ``upright_max_deg`` of +z, after at least one accepted update;
-a query on ``recal/<sensor>/align`` aligns at once on the current still run (if it lasted
-``request_min_s``) or arms the next run of ``min_still_s`` as the reference. Every later
-still run of ``min_still_s`` is checked for a slip of the mounting (``tilt_alarm`` and
-``tilt_cleared`` events; the rule is ``recal.core.alignment.SlipWatch``'s).
+``recal.core.alignment``, the time base in ``recal.core.timebase``.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from recal.align_requests import AlignmentRequests, align_handler
 from recal.checkpoints import (
     CHECKPOINT_FORMAT,
     Checkpoints,
     CheckpointSchedule,
-    SensorLockedError,
     checkpoint_path,
     load_checkpoint,
     restore_pipeline,
@@ -72,12 +39,10 @@ from recal.checkpoints import (
 )
 from recal.config import (
     AlignmentConfig,
-    ConfigError,
     PipelineSettings,
     RediscoveryConfig,
     SensorConfig,
     ServiceConfig,
-    load_config,
     model_and_prior,
 )
 from recal.core import alignment as al
@@ -85,11 +50,14 @@ from recal.core import timebase as tb
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline, StepOutput, missing_channels
+from recal.core.rate import infer_rate_hz
 from recal.core.status import NOT_FINITE_SIGMA_MG, Status
-from recal.samples import CalibratedBatch, RawBatch
+from recal.rediscovery import Rediscovery as _Rediscovery
+from recal.samples import CalibratedBatch, RawBatch, conform_channels
+from recal.sinks import BusSink, EventSink, LoggedBusSink, NullSink, RecordingSink, Sink
 
 __all__ = [
-    "BusSink",
+    "BusSink",  # the sinks live in recal.sinks; named here too, as the node's outputs
     "CalibrationNode",
     "CheckpointSchedule",  # re-exported from recal.checkpoints, where the checkpoint code lives
     "EventSink",
@@ -97,205 +65,28 @@ __all__ = [
     "NodeSettings",
     "NullSink",
     "RecordingSink",
-    "SensorGate",
     "Sink",
     "align_handler",
     "checkpoint_path",
     "infer_rate_hz",
     "load_checkpoint",
-    "main",
     "make_node",
     "model_name",
     "node_settings",
-    "run_node",
     "save_checkpoint",
 ]
 
 log = logging.getLogger(__name__)
 
-NODE_READY_PREFIX = "recal node ready"
-RECV_ROUND = 4096  # most raw messages a remote node takes from its receiver per round
-# Raw messages a remote node buffers before Zenoh's thread waits (and after its 1 s wait,
-# drops): gateways handling every arrival at once send a message per sample, so 1024 was
-# 0.2 s of 50 sensors, and a node a second behind lost samples (bench/scale_out.py).
-RECV_CAPACITY = 1 << 17
 DEFAULT_RATE_HZ = 100.0  # only when a stream ends before its rate could be measured
 ANOMALY_EVENT_US = 60_000_000  # time_anomalies events at most this often (device time)
 # samples the clock's unit is read from when the rate is configured: the median of 7 steps
 # (a repeated stamp or a wrap among the first two would decide it alone)
 UNIT_SAMPLES = 8
 
-
-# ---------------------------------------------------------------------------------------------
-# Sinks: where a node's output goes
-# ---------------------------------------------------------------------------------------------
-
-class Sink(Protocol):
-    """Receives a node's output; ``log_time_ns`` is the service clock (ns since the epoch)."""
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None: ...
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   suffix: str = "calibrated") -> None: ...
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None: ...
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any],
-             log_time_ns: int) -> None: ...
-
-
-class NullSink:
-    """Discards everything (a node used only for its state)."""
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        pass
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   suffix: str = "calibrated") -> None:
-        pass
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None:
-        pass
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        pass
-
-
-class EventSink(NullSink):
-    """Keeps the node's events (``{t_us, kind, sensor_id, detail}``) in a list and discards the
-    rest: a node watched for what it says (benches, tests, a library caller). Grows with the
-    events, so for bounded runs only."""
-
-    def __init__(self) -> None:
-        self.events: list[dict[str, Any]] = []
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix == "events":
-            self.events.append(obj)
-
-    def of(self, kind: str) -> list[dict[str, Any]]:
-        """The events of one kind, in order."""
-        return [e for e in self.events if e["kind"] == kind]
-
-
-class RecordingSink:
-    """Writes to a :class:`recal.io.recording_writer.RecordingWriter` (topic
-    ``/<sensor>/<suffix>``)."""
-
-    def __init__(self, writer: Any) -> None:
-        self.writer = writer
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        self.writer.write_raw(sensor_id, batch, log_time_ns)
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   suffix: str = "calibrated") -> None:
-        self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix)
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None:
-        self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
-
-
-class BusSink:
-    """Publishes on a :class:`recal.io.bus.Bus` (``recal/<sensor>/<suffix>``).
-
-    Suffixes without a bus key (plot, setup) are not published. A publish Zenoh refuses, or
-    one after the bus closed, is counted in ``dropped`` and never raises.
-    """
-
-    def __init__(self, bus: Any) -> None:
-        from recal.io import bus as _bus
-        from recal.io import messages
-
-        self.bus = bus
-        self._key = _bus.key
-        self._publishers: dict[tuple[str, str], Any] = {}
-        self.topics = frozenset(_bus.TOPICS)
-        self._messages = messages
-        self.dropped = 0
-
-    def put(self, sensor_id: str, suffix: str, data: bytes) -> None:
-        """Publish encoded bytes on ``recal/<sensor>/<suffix>`` (counted in ``dropped`` if
-        refused). The key is validated and the publisher looked up once per (sensor, suffix),
-        not per message: with samples handled as they arrive, that is per sample."""
-        pub = self._publishers.get((sensor_id, suffix))
-        try:
-            if self.bus.closed:
-                raise RuntimeError("bus is closed")
-            if pub is None:
-                pub = self._publishers[(sensor_id, suffix)] = self.bus.publisher(
-                    self._key(sensor_id, suffix))
-            ok = pub.put(data)
-        except RuntimeError:  # the bus closed under us (shutdown)
-            ok = False
-        if not ok:
-            self.dropped += 1
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        self.put(sensor_id, "raw", self._messages.encode_raw(sensor_id, batch))
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   suffix: str = "calibrated") -> None:
-        self.put(sensor_id, suffix, self._messages.encode_calibrated(sensor_id, batch))
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None:
-        pass  # the plot topic is for the log's Plot panel; the bus carries whole batches
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix in self.topics:
-            self.put(sensor_id, suffix, self._messages.encode_json(obj))
-
-
-class LoggedBusSink:
-    """Logs to a recording, then publishes the very bytes it logged: a RecordingSink and a
-    BusSink in one, with each message encoded once instead of twice (the gateway's sink; per
-    sample at 100 Hz, the second encoding of a calibrated sample cost as much as its bus put)."""
-
-    def __init__(self, writer: Any, bus: Any) -> None:
-        self.writer = writer
-        self.bus = BusSink(bus)
-
-    @property
-    def dropped(self) -> int:
-        return self.bus.dropped
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        self.bus.put(sensor_id, "raw", self.writer.write_raw(sensor_id, batch, log_time_ns))
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   suffix: str = "calibrated") -> None:
-        self.bus.put(sensor_id, suffix,
-                     self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix))
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None:
-        self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
-        if suffix in self.bus.topics:
-            self.bus.put(sensor_id, suffix, data)
-
-
 # ---------------------------------------------------------------------------------------------
 # Small pure helpers
 # ---------------------------------------------------------------------------------------------
-
-def infer_rate_hz(t_us: np.ndarray) -> float | None:
-    """Sample rate in Hz from device time stamps (median positive step), None if unknown."""
-    dt = np.diff(np.asarray(t_us, np.int64))
-    dt = dt[dt > 0]
-    if len(dt) == 0:
-        return None
-    return float(1e6 / np.median(dt))
-
 
 def model_name(model: SensorModel) -> str:
     """"diagonal", "full", or the effect labels joined by "+" for discovered models."""
@@ -305,23 +96,6 @@ def model_name(model: SensorModel) -> str:
     if kinds == (("offset", None), ("scale", None), ("cross_axis", None)):
         return "full"
     return "+".join(e.label for e in model.effects)
-
-
-def _conform(batch: RawBatch, names: tuple[str, ...], needed: Sequence[str]) -> RawBatch | str:
-    """The batch with exactly the channels ``names`` (reordered; unused missing ones NaN), or
-    the reason it cannot be calibrated (a channel the model needs is missing)."""
-    if batch.aux_names == names:
-        return batch
-    cols = []
-    for name in names:
-        if name in batch.aux_names:
-            cols.append(batch.aux[:, batch.aux_names.index(name)])
-        elif name in needed:
-            return f"the model needs channel {name!r}, the stream has {list(batch.aux_names)}"
-        else:
-            cols.append(np.full(len(batch), np.nan))
-    aux = np.column_stack(cols) if cols else np.zeros((len(batch), 0))
-    return RawBatch(batch.t_us, batch.v, aux, names)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -354,45 +128,7 @@ class NodeSettings:
     rediscovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
 
 
-class _Rediscovery:
-    """One effect-discovery run on a copy of a node's buffer, in a daemon thread (the core is
-    pure: it shares nothing with the node's pipeline); `result` waits for it."""
-
-    def __init__(self, started_us: int, due_us: int, model_names: tuple[str, ...]) -> None:
-        self.started_us = started_us
-        self.due_us = due_us
-        self.model_names = model_names
-        self._done = threading.Event()
-        self._result: Any = None
-
-    @classmethod
-    def start(cls, sensor_id: str, windows: Any, pipe: Pipeline, started_us: int,
-              due_us: int, blocks: int) -> _Rediscovery:
-        from recal.core import discovery
-
-        run = cls(started_us, due_us, pipe.model.names)
-        args = (windows, pipe.aux_names, pipe.t0_us or 0, pipe.model, pipe.params.copy(),
-                discovery.DiscoveryConfig(blocks=blocks))
-
-        def work() -> None:
-            try:
-                run._result = discovery.discover_pipeline(*args)
-            except Exception as exc:  # reported as discovery_failed: the waiter must wake
-                if not isinstance(exc, (ValueError, np.linalg.LinAlgError)):
-                    log.exception("rediscovery of %s failed", sensor_id)
-                run._result = exc
-            finally:
-                run._done.set()
-
-        threading.Thread(target=work, name=f"recal-discover-{sensor_id}", daemon=True).start()
-        return run
-
-    def result(self) -> Any:
-        self._done.wait()
-        return self._result
-
-
-class CalibrationNode:
+class CalibrationNode(AlignmentRequests):
     """Runs one sensor's pipeline and publishes what it produces (thread-safe).
 
     Args:
@@ -575,67 +311,6 @@ class CalibrationNode:
         """Samples published with any status but calibrated."""
         return int(self.status_counts.sum() - self.status_counts[Status.CALIBRATED])
 
-    def request_alignment(self, log_time_ns: int | None = None,
-                          now_s: float | None = None) -> dict[str, Any]:
-        """Align now on the current still run if it is long enough, else arm the next one.
-
-        Returns ``{"status": "aligned", "alignment": {...}}`` or ``{"status": "armed", ...}``,
-        or ``{"status": "refused", "retry_after_s": ...}`` within ``[alignment]
-        request_interval_s`` of the last request accepted (``now_s``: a monotonic clock,
-        default ``time.monotonic()``). Why: anyone who may query the key could otherwise
-        reset the mounting reference at will. Accepted requests are events
-        ``align_request``; refusals are counted and reported as ``align_refused`` events, at
-        most one per interval (a flood of queries must not flood the log).
-        """
-        log_ns = time.time_ns() if log_time_ns is None else log_time_ns
-        now = time.monotonic() if now_s is None else now_s
-        with self._lock:
-            wait_s = self._align_wait_s(now)
-            if wait_s > 0:
-                return self._refuse_alignment(wait_s, log_ns)
-            self._last_align_request_s = now
-            reply = self._accept_alignment(log_ns)
-            self._event("align_request", self.last_t_us, log_ns, {
-                "status": reply["status"], "refused_before": self._refused_unreported})
-            self._refused_unreported = 0
-            return reply
-
-    def _align_wait_s(self, now_s: float) -> float:
-        """Seconds until an alignment request may be accepted again (0: now)."""
-        last = self._last_align_request_s
-        if last is None:
-            return 0.0
-        return max(0.0, last + self.settings.alignment.request_interval_s - now_s)
-
-    def _refuse_alignment(self, wait_s: float, log_ns: int) -> dict[str, Any]:
-        self.align_refused += 1
-        self._refused_unreported += 1
-        if self._refused_unreported == 1:  # the first refusal of this interval
-            self._event("align_refused", self.last_t_us, log_ns, {
-                "retry_after_s": wait_s,
-                "interval_s": self.settings.alignment.request_interval_s,
-                "refused_total": self.align_refused})
-        return {"status": "refused", "sensor_id": self.sensor_id,
-                "retry_after_s": round(wait_s, 3), "refused": self._refused_unreported,
-                "detail": f"at most one alignment request per "
-                          f"{self.settings.alignment.request_interval_s:g} s"}
-
-    def _accept_alignment(self, log_ns: int) -> dict[str, Any]:
-        tr = self._tracker
-        if tr is not None and tr.duration_s >= self.settings.request_min_s:
-            mean = tr.mean()
-            if mean is not None:
-                ali = self._set_alignment(mean, tr.n, self.last_t_us, "request", log_ns)
-                return {"status": "aligned", "sensor_id": self.sensor_id,
-                        "alignment": ali.to_dict()}
-        self._align_requested = True
-        if tr is not None:
-            tr.rearm()
-        return {"status": "armed", "sensor_id": self.sensor_id,
-                "detail": f"aligns on the next still period of "
-                          f"{self.settings.alignment.min_still_s:g} s",
-                "still_s": tr.duration_s if tr else 0.0}
-
     def checkpoint(self) -> dict[str, Any] | None:
         """A JSON-able checkpoint of the node (None before its pipeline started)."""
         with self._lock:
@@ -705,7 +380,8 @@ class CalibrationNode:
 
     def _start_pipeline(self, force: bool, log_ns: int) -> RawBatch:
         names = self._pending[0].aux_names
-        parts = [b if b.aux_names == names else _conform(b, names, ()) for b in self._pending]
+        parts = [b if b.aux_names == names else conform_channels(b, names, ())
+                 for b in self._pending]
         batch = RawBatch.concat([b for b in parts if isinstance(b, RawBatch)])
         self._pending, self._pending_n = [], 0
         s = self.settings
@@ -887,7 +563,7 @@ class CalibrationNode:
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
         assert self.pipeline is not None
         names = self.pipeline.aux_names
-        fitted = _conform(batch, names, self.pipeline.model.covariates)
+        fitted = conform_channels(batch, names, self.pipeline.model.covariates)
         if batch.aux_names != self._last_names and batch.aux_names != names:
             self._event("layout_changed", int(batch.t_us[0]), log_ns, {
                 "expected": list(names), "got": list(batch.aux_names),
@@ -1105,382 +781,7 @@ def make_node(settings: NodeSettings, sink: Sink,
     return node if node is not None else CalibrationNode(settings, sink)
 
 
-# ---------------------------------------------------------------------------------------------
-# A node on its own: subscribe to recal/*/raw (another process or machine)
-# ---------------------------------------------------------------------------------------------
+if __name__ == "__main__":  # `python -m recal.node`: its arguments are parsed in recal.cli
+    from recal.cli import node_main
 
-REJECT_REPORT_S = 10.0  # at most one console line and event this often about turned-away ids
-REJECT_IDS_KEPT = 16  # example ids named in that line and event (bounded, whatever comes in)
-NOTE_PREFIX = "recal node:"
-
-
-class SensorGate:
-    """Which sensor ids a node on the bus serves, and a count of what it turned away.
-
-    Served: the ``named`` ids (config ``[[sensors]]`` or ``--sensor-id``) and, with
-    ``accept_any``, up to ``max_sensors`` other ids, first come first served. Anything else
-    is counted by reason (``not_served``, ``over_cap``, ``key_mismatch``: the payload names
-    another sensor than its key) and dropped before it gets a node, a log channel, a topic or
-    a checkpoint. Memory is bounded: counts, and at most ``REJECT_IDS_KEPT`` example ids
-    between two reports.
-    """
-
-    REASONS = ("not_served", "over_cap", "key_mismatch")
-
-    def __init__(self, named: Iterable[str], accept_any: bool = False,
-                 max_sensors: int = 16) -> None:
-        self.named = frozenset(named)
-        self.accept_any = bool(accept_any)
-        self.max_sensors = int(max_sensors)
-        self.served: set[str] = set()
-        self._extra = 0  # served ids not named (accept_any)
-        self.rejected = dict.fromkeys(self.REASONS, 0)  # messages turned away, in all
-        self._pending = dict.fromkeys(self.REASONS, 0)  # ... since the last report
-        self._ids: set[str] = set()
-
-    def admit(self, sid: str) -> bool:
-        """Whether ``sid`` is served (counting it as turned away if not)."""
-        if sid in self.served:
-            return True
-        if sid in self.named:
-            self.served.add(sid)
-            return True
-        if self.accept_any and self._extra < self.max_sensors:
-            self._extra += 1
-            self.served.add(sid)
-            return True
-        self.reject(sid, "over_cap" if self.accept_any else "not_served")
-        return False
-
-    def reject(self, sid: str, reason: str) -> None:
-        self.rejected[reason] += 1
-        self._pending[reason] += 1
-        if len(self._ids) < REJECT_IDS_KEPT:
-            self._ids.add(sid)
-
-    def take_report(self) -> dict[str, Any] | None:
-        """What was turned away since the last call (None: nothing)."""
-        n = sum(self._pending.values())
-        if n == 0:
-            return None
-        report = {"messages": n, "by_reason": {k: v for k, v in self._pending.items() if v},
-                  "sensor_ids": sorted(self._ids), "ids_listed_max": REJECT_IDS_KEPT,
-                  "messages_total": sum(self.rejected.values())}
-        self._pending = dict.fromkeys(self.REASONS, 0)
-        self._ids = set()
-        return report
-
-    def describe(self) -> str:
-        """One phrase for the console: what this gate lets in."""
-        named = ", ".join(sorted(self.named)) or "none named"
-        if self.accept_any:
-            return f"{named}, and any other sensor up to {self.max_sensors} (accept_any)"
-        return named
-
-
-def align_handler(node: CalibrationNode, out: Callable[[str], None],
-                  prefix: str = NOTE_PREFIX) -> Callable[[str, bytes | None], bytes]:
-    """The ``recal/<sensor>/align`` queryable's handler: :meth:`CalibrationNode.
-    request_alignment`, and a console line for each accepted request and for the first
-    refusal of an interval (a flood of queries gives one line, not one per query)."""
-    from recal.io import messages
-
-    def handle(_key: str, _payload: bytes | None) -> bytes:
-        reply = node.request_alignment()
-        sid = node.sensor_id
-        if reply["status"] != "refused":
-            out(f"{prefix} {sid}: alignment requested on the bus ({reply['status']})")
-        elif reply.get("refused") == 1:
-            out(f"{prefix} {sid}: alignment request refused: at most one per "
-                f"{node.settings.alignment.request_interval_s:g} s (next in "
-                f"{reply['retry_after_s']:.0f} s); further refusals are counted in status")
-        return messages.encode_json(reply)
-
-    return handle
-
-
-def run_node(config: ServiceConfig | str | Path | None = None,
-             sensor_ids: Sequence[str] = (), mcap_out: str | Path | None = None,
-             model_path: str | Path | None = None, stop_event: threading.Event | None = None,
-             *, bus: Any = None, out: Callable[[str], None] | None = None,
-             accept_any: bool | None = None, max_sensors: int | None = None) -> int:
-    """Calibrate the sensors it serves whose raw streams arrive on ``recal/*/raw`` until stopped.
-
-    Serves the sensors ``sensor_ids`` names, else those of the config's ``[[sensors]]``; with
-    ``accept_any`` (default: config ``[node] accept_any``) any other sensor as well, at most
-    ``max_sensors`` of them (default ``[node] max_sensors``). Other ids are counted and dropped
-    (see :class:`SensorGate`), with a console line and a ``sensors_ignored`` event in the
-    recording at most every ``REJECT_REPORT_S``. A node with nothing to serve is a
-    configuration error. Publishes calibrated, body, calibration and events on the bus,
-    answers ``recal/<sensor>/status`` and ``recal/<sensor>/align`` (rate-limited), optionally
-    logs everything (raw included) to ``mcap_out``, and checkpoints like the gateway. Stops on
-    ``stop_event`` or SIGINT/SIGTERM (main thread). Returns 0, or 2 for a configuration error.
-    """
-    from recal.gateway import ERROR_PREFIX, install_stop_signals, open_bus, open_recording
-
-    emit = out or (lambda line: print(line, flush=True))
-    fail = out or (lambda line: print(line, file=sys.stderr, flush=True))
-    try:
-        cfg = config if isinstance(config, ServiceConfig) else load_config(config)
-    except ConfigError as exc:
-        fail(f"{ERROR_PREFIX} {exc}")
-        return 2
-    own_bus = bus is None
-    if own_bus and not cfg.zenoh.enabled:
-        fail(f"{ERROR_PREFIX} a calibration node takes its samples from Zenoh, but the "
-             f"config's [zenoh] enabled = false")
-        return 2
-    try:
-        gate = _gate(cfg, sensor_ids, accept_any, max_sensors)
-    except ConfigError as exc:
-        fail(f"{ERROR_PREFIX} {exc}")
-        return 2
-    try:
-        bus = open_bus(cfg) if own_bus else bus
-    except Exception as exc:  # zenoh.ZError: bad endpoint, port in use, router down
-        fail(f"{ERROR_PREFIX} cannot open Zenoh: {exc}")
-        return 1
-    try:
-        writer = open_recording(cfg, mcap_out) if mcap_out is not None else None
-    except (OSError, ValueError) as exc:
-        if own_bus:
-            bus.close()
-        fail(f"{ERROR_PREFIX} cannot open the recording: {exc}")
-        return 1
-    stop = stop_event or threading.Event()
-    restore = install_stop_signals(stop)
-    runner = _NodeRunner(cfg, bus, writer, gate, model_path, emit)
-    emit(f"{NOTE_PREFIX} checkpoints in {cfg.checkpoint.dir or '(none)'}")
-    emit(f"{NODE_READY_PREFIX} mcap={writer.paths[0] if writer is not None else None}")
-    emit(f"{NOTE_PREFIX} serving {gate.describe()}")
-    watch = None if writer is None else _watch_recording(writer, emit, cfg.mcap.backlog_mb,
-                                                         stop)
-    try:
-        runner.run(stop)
-    finally:
-        runner.close()
-        if writer is not None:
-            writer.close()
-        if watch is not None:
-            watch.closed()
-        if own_bus:
-            bus.close()
-        restore()
-    return 0
-
-
-def _gate(cfg: ServiceConfig, sensor_ids: Sequence[str], accept_any: bool | None,
-          max_sensors: int | None) -> SensorGate:
-    """The node's SensorGate from the arguments and the config (ConfigError if it would
-    serve nothing, or for a bad cap)."""
-    from recal.io.bus import validate_sensor_id
-
-    named = list(sensor_ids) or [s.id for s in cfg.sensors]
-    for sid in named:
-        try:
-            validate_sensor_id(sid)
-        except ValueError as exc:
-            raise ConfigError(f"--sensor-id: {exc}") from None
-    any_ = cfg.node.accept_any if accept_any is None else accept_any
-    cap = cfg.node.max_sensors if max_sensors is None else max_sensors
-    if cap < 1:
-        raise ConfigError(f"--max-sensors: expected an integer >= 1, got {cap}")
-    if not named and not any_:
-        raise ConfigError("a calibration node serves only the sensors it is told about: name "
-                          "them in [[sensors]] or with --sensor-id, or serve any that "
-                          "publishes with [node] accept_any = true (or --accept-any)")
-    return SensorGate(named, any_, cap)
-
-
-def _watch_recording(writer: Any, emit: Callable[[str], None], budget_mb: float,
-                     stop: threading.Event) -> Any:
-    """A thread that tells the operator, once a second at most, when the node's recording
-    stops being written (a full disk) and when it resumes (see gateway.RecordingWatch)."""
-    from recal.gateway import RecordingWatch  # the gateway imports this module
-
-    watch = RecordingWatch(writer, emit, budget_mb, prefix=NOTE_PREFIX)
-
-    def event(kind: str, detail: dict[str, Any]) -> None:
-        with contextlib.suppress(ValueError):  # the writer closed under us (the stop)
-            writer.write_event(kind, time.time_ns(), detail=detail)
-
-    def loop() -> None:
-        while not stop.wait(1.0):
-            watch.check(time.time_ns(), event)
-
-    threading.Thread(target=loop, name="recal-recording-watch", daemon=True).start()
-    return watch
-
-
-class _NodeRunner:
-    """The loop of :func:`run_node`: bus messages -> nodes, checkpoints on a timer.
-
-    Messages are taken in rounds of whatever has arrived (up to ``RECV_ROUND``), and each
-    sensor's messages of a round are logged and calibrated as one batch (the pipeline is
-    batch-size invariant): under load, rounds grow and the per-batch costs are paid less
-    often, as in the gateway's read loop. Only the sensors the :class:`SensorGate` admits get
-    that far.
-    """
-
-    def __init__(self, cfg: ServiceConfig, bus: Any, writer: Any, gate: SensorGate,
-                 model_path: str | Path | None, emit: Callable[[str], None]) -> None:
-        from recal.io import bus as _bus
-        from recal.io import messages
-
-        self.cfg, self.bus, self.writer, self.gate = cfg, bus, writer, gate
-        self.model_path, self.emit = model_path, emit
-        self.nodes: dict[str, CalibrationNode] = {}
-        self.sink: Sink = LoggedBusSink(writer, bus) if writer is not None else BusSink(bus)
-        self._messages = messages
-        self._bus_mod = _bus
-        self.receiver = bus.receiver(_bus.key_pattern("raw"), capacity=RECV_CAPACITY)
-        self.bad_messages = 0
-        self.checkpoints = Checkpoints(cfg.checkpoint.dir, cfg.checkpoint.interval_s,
-                                       cfg.checkpoint.after_update_s, out=emit,
-                                       event=self._sensor_event, prefix=NOTE_PREFIX)
-        self.refused: set[str] = set()  # sensors another process calibrates (locked)
-        self._drops_reported = 0
-        self._next_drop_report_s = 0.0
-        self._next_reject_report_s = 0.0
-        # key -> sensor id of served sensors only (bounded by the gate): parsing and
-        # validating the key cost a tenth of decoding a one-sample message
-        self._key_sid: dict[str, str] = {}
-
-    def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            self._handle_round(self.receiver.recv_batch(RECV_ROUND, timeout=0.1))
-            self.checkpoints.save_due(self.nodes)  # a few sensors at a time, and after updates
-            self._report_drops()
-            self._report_rejects()
-        while True:  # what already arrived
-            msgs = self.receiver.recv_batch(RECV_ROUND, timeout=0.0)
-            if not msgs:
-                break
-            self._handle_round(msgs)
-        self._report_rejects(force=True)
-
-    def _report_drops(self) -> None:
-        """Say so (at most once a second) when the receive buffer overflowed: samples lost
-        here are still in the gateways' logs, but this node's log and calibration miss them
-        (it is slower than the gateways; give them a --batch-ms)."""
-        dropped = self.receiver.dropped
-        if dropped == self._drops_reported or time.monotonic() < self._next_drop_report_s:
-            return
-        self._next_drop_report_s = time.monotonic() + 1.0
-        log.warning("%d raw messages dropped: the node is behind the gateways",
-                    dropped - self._drops_reported)
-        self.emit(f"recal node: {dropped} raw messages dropped so far (node behind)")
-        self._drops_reported = dropped
-
-    def _report_rejects(self, force: bool = False) -> None:
-        """At most every REJECT_REPORT_S: one console line and one ``sensors_ignored`` event
-        (the recording's service events, ``/gateway/events``; not on the bus, where it would
-        need a key of its own) about the raw messages the gate turned away."""
-        now = time.monotonic()
-        if not force and now < self._next_reject_report_s:
-            return
-        report = self.gate.take_report()
-        if report is None:
-            return
-        self._next_reject_report_s = now + REJECT_REPORT_S
-        why = ", ".join(f"{k} {v}" for k, v in report["by_reason"].items())
-        self.emit(f"{NOTE_PREFIX} ignored {report['messages']} raw messages ({why}) from "
-                  f"sensor ids it does not serve: {', '.join(report['sensor_ids'])}"
-                  f"{' ...' if len(report['sensor_ids']) >= REJECT_IDS_KEPT else ''} "
-                  f"(serving {self.gate.describe()})")
-        if self.writer is not None:
-            self.writer.write_event("sensors_ignored", time.time_ns(), detail=report)
-
-    def _handle_round(self, msgs: list[Any]) -> None:
-        """Decode a round of messages and hand each served sensor its samples, in order."""
-        from recal.gateway import join_by_layout
-
-        by_sensor: dict[str, list[RawBatch]] = {}
-        for msg in msgs:
-            try:
-                key_sid = self._key_sid.get(msg.key) or msg.sensor
-                sid, batch = self._messages.decode_raw(msg.payload)
-            except ValueError:
-                self.bad_messages += 1
-                continue
-            if sid and sid != key_sid:
-                # the key is what access control checks: a payload naming another sensor
-                # would let a gateway allowed on one key write into another sensor's state
-                self.gate.reject(key_sid, "key_mismatch")
-                continue
-            if self.gate.admit(key_sid):
-                self._key_sid[msg.key] = key_sid
-                by_sensor.setdefault(key_sid, []).append(batch)
-        for sid, batches in by_sensor.items():
-            for batch in join_by_layout(batches):
-                self._handle(sid, batch)
-
-    def _handle(self, sid: str, batch: RawBatch) -> None:
-        node = self.nodes.get(sid) or self._add(sid)
-        log_ns = time.time_ns()
-        if self.writer is not None:
-            self.writer.write_raw(sid, batch, log_ns)
-        if node is not None:
-            node.process(batch, log_ns)
-
-    def _sensor_event(self, sid: str, kind: str, detail: Any) -> None:
-        self.sink.json(sid, "events", {"t_us": None, "kind": kind, "sensor_id": sid,
-                                       "detail": detail}, time.time_ns())
-
-    def _add(self, sid: str) -> CalibrationNode | None:
-        """A node for a sensor first heard; None (said once) when another process holds its
-        checkpoint lock in the same state folder: it calibrates that sensor, not this one."""
-        if sid in self.refused:
-            return None
-        try:
-            self.checkpoints.acquire([sid])
-        except (SensorLockedError, OSError) as exc:
-            self.refused.add(sid)
-            self.emit(f"{NOTE_PREFIX} not calibrating {sid}: {exc}")
-            return None
-        sensor = self.cfg.sensor(sid) or SensorConfig(id=sid)
-        settings = node_settings(sensor, self.cfg, self.model_path)
-        node = make_node(settings, self.sink, self.checkpoints)
-        self.nodes[sid] = node
-        self.checkpoints.add(sid, node.accepted_updates)
-        k = self._bus_mod.key
-        self.bus.queryable(k(sid, "status"),
-                           lambda _k, _p, n=node: self._messages.encode_json(n.status()))
-        self.bus.queryable(k(sid, "align"), align_handler(node, self.emit))
-        node.on_note = lambda line, sid=sid: self.emit(f"{NOTE_PREFIX} {sid}: {line}")
-        self.emit(f"recal node: calibrating {sid} (start: {node.start})")
-        return node
-
-    def checkpoint(self, sensor_ids: Sequence[str] | None = None) -> None:
-        """Checkpoint these sensors (default: all); failures are reported, never raised."""
-        self.checkpoints.save(self.nodes, sensor_ids)
-
-    def close(self) -> None:
-        now = time.time_ns()
-        for node in self.nodes.values():
-            node.flush(now)
-        self.checkpoint()
-        self.checkpoints.release()
-        self.receiver.close()
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m recal.node --config node.toml [--sensor-id ID ...] [--mcap out.mcap]``."""
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="python -m recal.node",
-                                 description="calibration node subscribed to recal/*/raw")
-    ap.add_argument("--config", help="service TOML: [zenoh], [[sensors]] priors, [pipeline]")
-    from recal.cli import add_serving_arguments
-
-    add_serving_arguments(ap)
-    ap.add_argument("--mcap", help="also log everything to this recording")
-    ap.add_argument("--model", help="model file for every sensor")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return run_node(args.config, args.sensor_id, args.mcap, args.model,
-                    accept_any=args.accept_any, max_sensors=args.max_sensors)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(node_main())

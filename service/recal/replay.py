@@ -36,13 +36,17 @@ from recal.config import (
     load_model_file,
     model_and_prior,
 )
+from recal.core.alignment import Alignment
 from recal.core.pipeline import Pipeline
+from recal.core.timebase import TimebaseState
+from recal.export import status_line
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
-from recal.node import CalibrationNode, NodeSettings, RecordingSink, model_name, node_settings
+from recal.node import CalibrationNode, NodeSettings, model_name, node_settings
 from recal.samples import RawBatch
+from recal.sinks import RecordingSink
 
-__all__ = ["replay"]
+__all__ = ["replay", "replay_lines"]
 
 
 #: Raw samples of consecutive messages handed to the node together (one pipeline step; the
@@ -113,9 +117,6 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
                                 pipe.cfg.full_scale_g,
                                 AlignmentConfig(**ali_cfg) if ali_cfg else cfg.alignment,
                                 rediscovery=cfg.discovery)
-        from recal.core.alignment import Alignment
-        from recal.core.timebase import TimebaseState
-
         ali = setup.get("alignment")
         tbd = setup.get("timebase")  # the device clock's time base as the live node began
         node = CalibrationNode(settings, sink, pipeline=pipe, start="recording",
@@ -160,8 +161,8 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     # Big chunks, compressed on a thread beside the calibration: a replay can be redone, so
     # it needs no crash-sized chunks or fsyncs.
     writer = RecordingWriter(out_mcap, chunk_size=1024 * 1024, background_flush=False,
-                             fsync=False, overwrite=overwrite, background_compression=True,
-                             metadata={"replay_of": str(Path(in_mcap).name)})
+                                 fsync=False, overwrite=overwrite, background_compression=True,
+                                 metadata={"replay_of": str(Path(in_mcap).name)})
     sink = RecordingSink(writer)
     bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
                disable=not progress, leave=False)
@@ -212,3 +213,41 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
                     "status": s["status"],
                     "alignment": node.alignment.to_dict() if node.alignment else None})
     return out
+
+
+def replay_lines(summary: dict) -> list[str]:
+    """`recal replay`'s summary for a person: one block per sensor (--json has it all)."""
+    sensors = summary["sensors"]
+    lines = [f"replayed {summary['samples']} samples of {len(sensors)} sensor(s) in "
+             f"{summary['seconds']:.2f} s ({summary['samples_per_s'] / 1e6:.2f} M samples/s) "
+             f"into {summary['out']}"]
+    for sid, info in sensors.items():
+        c = info["counts"]
+        rms = info.get("residual_rms_mg")
+        lines.append(f"  {sid}: started from {info['start']}, model {info['model']}; "
+                     f"{c['quasi_static']} quasi-static samples, {c['windows']} windows, "
+                     f"{c['updates']} updates ({c['updates_rejected']} rejected)"
+                     + (f"; residual {rms:.2f} mg" if rms is not None else ""))
+        if "samples_by_status" in info:
+            lines.append(f"    {status_line(info)}"
+                         + (f"; {info['samples_not_finite']} not finite, published zeroed"
+                            if info.get("samples_not_finite") else ""))
+        if not info["bootstrapped"]:
+            lines.append("    not calibrated: without a prior the recording must first cover "
+                         "enough orientations (5 half-axes); give one with --config or --model")
+            continue
+        ref = info.get("gain_reference")
+        if ref:
+            lines.append(f"    gains against {ref['counts_per_g']:.6g} counts per g "
+                         f"(from the {ref['source']}); status at the end: {info.get('status')}")
+        for effect, values in info["described"].items():
+            lines.append(f"    {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in
+                                                        values.items()))
+        al = info.get("alignment")
+        if al:
+            moved = al.get("moved_deg")
+            lines.append(f"    mounting tilt {al['tilt_deg']:.1f} deg at the reference; "
+                         + (f"tilt alarm: moved {moved:.1f} deg since (limit {al['limit_deg']:g} "
+                            "deg)" if moved is not None else "no slip beyond "
+                            f"{al['limit_deg']:g} deg"))
+    return lines

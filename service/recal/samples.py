@@ -12,7 +12,9 @@ from typing import TypeVar
 
 import numpy as np
 
-__all__ = ["REBATCH_SAMPLES", "CalibratedBatch", "RawBatch", "batch_groups", "rebatch"]
+__all__ = ["REBATCH_SAMPLES", "CalibratedBatch", "RawBatch", "batch_groups", "conform_channels",
+           "join_by_layout",
+           "rebatch"]
 
 T = TypeVar("T")
 
@@ -178,12 +180,41 @@ def rebatch(batches: Iterable[RawBatch], min_samples: int = REBATCH_SAMPLES
     """Consecutive batches joined into batches of at least ``min_samples`` (`batch_groups`);
     a batch that is big enough passes through as it is.
 
-    Batch work in numpy costs per call as well as per sample: the detector and the windows
-    (`core.windowing`) of 24 h at 50 Hz in messages of 1000 samples took 0.53 s, joined into
-    batches of 65 536 0.20 s, with the same windows (their state carries across batches; bit
-    for bit on integer readings such as ADC counts, else a window cut by a batch end may
+    Batch work in numpy costs per call as well as per sample, so fewer, larger batches cost
+    less (docs/performance.md), with the same windows (their state carries across batches;
+    bit for bit on integer readings such as ADC counts, else a window cut by a batch end may
     differ in its last bit, `core.windowing`). `recal hindsight` and `recal discover` read
     recordings this way.
     """
     for group in batch_groups(((b, None) for b in batches), min_samples):
         yield group[0][0] if len(group) == 1 else RawBatch.concat([b for b, _ in group])
+
+
+def join_by_layout(batches: list[RawBatch]) -> list[RawBatch]:
+    """Consecutive batches joined where their channel layout is the same (it rarely changes:
+    a device that re-announces a different header)."""
+    groups: list[list[RawBatch]] = []
+    for b in batches:
+        if groups and groups[-1][0].aux_names == b.aux_names:
+            groups[-1].append(b)
+        else:
+            groups.append([b])
+    return [g[0] if len(g) == 1 else RawBatch.concat(g) for g in groups]
+
+
+def conform_channels(batch: RawBatch, names: tuple[str, ...], needed: Sequence[str]
+                     ) -> RawBatch | str:
+    """The batch with exactly the channels ``names`` (reordered; unused missing ones NaN), or
+    the reason it cannot be calibrated (a channel the model needs is missing)."""
+    if batch.aux_names == names:
+        return batch
+    cols = []
+    for name in names:
+        if name in batch.aux_names:
+            cols.append(batch.aux[:, batch.aux_names.index(name)])
+        elif name in needed:
+            return f"the model needs channel {name!r}, the stream has {list(batch.aux_names)}"
+        else:
+            cols.append(np.full(len(batch), np.nan))
+    aux = np.column_stack(cols) if cols else np.zeros((len(batch), 0))
+    return RawBatch(batch.t_us, batch.v, aux, names)

@@ -1,0 +1,82 @@
+"""``recal export``: one sensor's raw or calibrated samples of a recording to CSV, message by
+message (a week-long recording must not have to fit in memory), with the samples counted per
+status (`recal.core.status.Status`)."""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any
+
+import numpy as np
+
+from recal.core.status import Status
+from recal.errors import UsageError
+from recal.io import csv_table, recording
+
+__all__ = ["StatusCounts", "export_csv", "status_line"]
+
+
+def export_csv(source: str, csv_out: str, sensor_id: str | None, topic: str
+               ) -> tuple[dict[str, Any], list[str]]:
+    """Write ``topic`` ("raw" or "calibrated") of one sensor (default: the first) to
+    ``csv_out``: the report (rows, counts per status) and the lines that say it."""
+    sensors = recording.sensors(source)
+    if not sensors:
+        raise UsageError(f"{source} holds no sensor topics")
+    if sensor_id is not None and sensor_id not in sensors:
+        raise UsageError(f"{source} has no sensor {sensor_id!r} (it has: "
+                         f"{', '.join(sensors)})")
+    sid = sensor_id or sensors[0]
+    if topic == "raw":
+        units = recording.metadata(source).get("units")  # set by `recal import`
+        rows = csv_table.write_raw_csv(csv_out, (b for _, b, _ in recording.iter_raw(source, sid)),
+                                       units if units in csv_table.UNITS else None)
+    else:
+        counts = StatusCounts()
+        batches = (counts.add(b) for _, b, _ in recording.iter_calibrated(source, sid))
+        first = next(batches, None)
+        if first is None:
+            raise UsageError(f"{source} has no calibrated data for {sid!r}; run recal replay")
+        rows = csv_table.write_calibrated_csv(csv_out, itertools.chain([first], batches))
+    lines = [f"wrote {rows} rows of {sid}/{topic} to {csv_out}"]
+    report = {"in": source, "csv": csv_out, "sensor_id": sid, "topic": topic, "rows": rows}
+    if topic != "raw":
+        report.update(counts.to_dict())
+        lines.append(f"  {counts.line()}")
+    return report, lines
+
+
+class StatusCounts:
+    """Samples per status (`recal.core.status.Status`) of the calibrated batches it sees."""
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(256, np.int64)
+
+    def add(self, batch: Any) -> Any:
+        self.counts += np.bincount(batch.status, minlength=256)
+        return batch
+
+    def to_dict(self) -> dict:
+        S = Status
+        by = {S(i).label if i in S._value2member_map_ else str(i): int(n)
+              for i, n in enumerate(self.counts.tolist()) if n}
+        recorded = int(self.counts.sum() - self.counts[S.NOT_RECORDED])
+        return {"samples_by_status": by,
+                "samples_uncalibrated": recorded - int(self.counts[S.CALIBRATED]),
+                "samples_status_not_recorded": int(self.counts[S.NOT_RECORDED])}
+
+    def line(self) -> str:
+        return status_line(self.to_dict())
+
+
+def status_line(d: dict) -> str:
+    """How many samples went out with a status other than calibrated, said for a person."""
+    by = d.get("samples_by_status") or {}
+    others = ", ".join(f"{k} {v}" for k, v in by.items() if k not in ("calibrated",
+                                                                        "not_recorded"))
+    text = (f"{by.get('calibrated', 0)} samples out calibrated, {d['samples_uncalibrated']} "
+            "with another status" + (f" ({others})" if others else ""))
+    if d.get("samples_status_not_recorded"):
+        text += (f"; {d['samples_status_not_recorded']} without a status (recorded before "
+                 "statuses existed)")
+    return text

@@ -1,0 +1,222 @@
+"""Where a calibration node's output goes: nowhere, a list of events, a recording, the bus,
+or the recording and the bus at once.
+
+A :class:`recal.node.CalibrationNode` hands every message it derives to a :class:`Sink`; the
+same node then runs in the gateway (:class:`LoggedBusSink`), on a machine of its own
+(:class:`BusSink` or :class:`LoggedBusSink`) and in ``recal replay`` (:class:`RecordingSink`,
+no Zenoh). The sinks are typed against what they use of a recording writer (:class:`Writer`)
+and of a bus (:class:`Bus`), so that replay never loads Zenoh.
+
+Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
+``recal/<sensor>/<suffix>`` where the bus layout has one):
+
+* ``calibrated`` (and ``body``): CalibratedBatch protobuf, each sample with its status and
+  predicted error (`recal.core.status`). A sample whose calibrated value is not finite (a NaN
+  or inf reading, a broken estimate) is never published as such: its x_g, y_g, z_g go out as
+  0, its status uncalibrated and its sigma_mg inf, and it is counted (``samples_not_finite``).
+* ``calibration``: JSON, the calibration state: ``sensor_id``, ``t_us`` (device time, us),
+  ``reason`` (start | restored | update | bootstrap | status | discovery), ``model`` (name),
+  ``model_spec``, ``param_names``, ``params`` (by name, raw units), ``described`` (mg, %),
+  ``sd``, ``covariance``, ``residual_rms_mg``, ``residual_g``, ``last_update``, ``coverage``,
+  ``counts``, ``update_count``, ``observable``, ``alignment``.
+* ``events``: JSON ``{t_us, kind, sensor_id, detail}``.
+* ``plot``: one JSON message per decimated sample (log only).
+* ``setup``: JSON, once when the pipeline starts: the pipeline's full starting state
+  (``pipeline_state_json``, so a replay reproduces the run bit for bit), the rate, the
+  alignment, the device clock's time base (``timebase``) (log only).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+from recal.io import messages
+from recal.samples import CalibratedBatch, RawBatch
+
+__all__ = ["Bus", "BusSink", "EventSink", "LoggedBusSink", "NullSink", "RecordingSink", "Sink",
+           "Writer"]
+
+
+class Sink(Protocol):
+    """Receives a node's output; ``log_time_ns`` is the service clock (ns since the epoch)."""
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None: ...
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None: ...
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None: ...
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any],
+             log_time_ns: int) -> None: ...
+
+
+class Writer(Protocol):
+    """What a sink uses of a :class:`recal.io.recording_writer.RecordingWriter`: each write returns
+    the bytes it logged (so they can be published as they are)."""
+
+    def write_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> bytes: ...
+
+    def write_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                         topic_suffix: str = "calibrated") -> bytes: ...
+
+    def write_plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   every_n: int = 10) -> int: ...
+
+    def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes: ...
+
+
+class Publisher(Protocol):
+    """What a sink uses of a :class:`recal.io.bus.Publisher`."""
+
+    def put(self, payload: bytes) -> bool: ...
+
+
+class Bus(Protocol):
+    """What a sink uses of a :class:`recal.io.bus.Bus`."""
+
+    @property
+    def closed(self) -> bool: ...
+
+    def publisher(self, key_expr: str) -> Publisher: ...
+
+
+class NullSink:
+    """Discards everything (a node used only for its state)."""
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        pass
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        pass
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        pass
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        pass
+
+
+class EventSink(NullSink):
+    """Keeps the node's events (``{t_us, kind, sensor_id, detail}``) in a list and discards the
+    rest: a node watched for what it says (benches, tests, a library caller). Grows with the
+    events, so for bounded runs only."""
+
+    def __init__(self) -> None:
+        self.events: list[dict[str, Any]] = []
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        if suffix == "events":
+            self.events.append(obj)
+
+    def of(self, kind: str) -> list[dict[str, Any]]:
+        """The events of one kind, in order."""
+        return [e for e in self.events if e["kind"] == kind]
+
+
+class RecordingSink:
+    """Writes to a :class:`recal.io.recording_writer.RecordingWriter` (topic
+    ``/<sensor>/<suffix>``)."""
+
+    def __init__(self, writer: Writer) -> None:
+        self.writer = writer
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        self.writer.write_raw(sensor_id, batch, log_time_ns)
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix)
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+
+
+class BusSink:
+    """Publishes on a :class:`recal.io.bus.Bus` (``recal/<sensor>/<suffix>``).
+
+    Suffixes without a bus key (plot, setup) are not published. A publish Zenoh refuses, or
+    one after the bus closed, is counted in ``dropped`` and never raises.
+    """
+
+    def __init__(self, bus: Bus) -> None:
+        # the key rule is recal.io.bus's; imported here, where a bus already exists, so that
+        # this module (and replay, through RecordingSink) does not load Zenoh
+        from recal.io import bus as _bus
+
+        self.bus = bus
+        self._key = _bus.key
+        self._publishers: dict[tuple[str, str], Publisher] = {}
+        self.topics = frozenset(_bus.TOPICS)
+        self.dropped = 0
+
+    def put(self, sensor_id: str, suffix: str, data: bytes) -> None:
+        """Publish encoded bytes on ``recal/<sensor>/<suffix>`` (counted in ``dropped`` if
+        refused). The key is validated and the publisher looked up once per (sensor, suffix),
+        not per message: with samples handled as they arrive, that is per sample."""
+        pub = self._publishers.get((sensor_id, suffix))
+        try:
+            if self.bus.closed:
+                raise RuntimeError("bus is closed")
+            if pub is None:
+                pub = self._publishers[(sensor_id, suffix)] = self.bus.publisher(
+                    self._key(sensor_id, suffix))
+            ok = pub.put(data)
+        except RuntimeError:  # the bus closed under us (shutdown)
+            ok = False
+        if not ok:
+            self.dropped += 1
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        self.put(sensor_id, "raw", messages.encode_raw(sensor_id, batch))
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self.put(sensor_id, suffix, messages.encode_calibrated(sensor_id, batch))
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        pass  # the plot topic is for the log's Plot panel; the bus carries whole batches
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        if suffix in self.topics:
+            self.put(sensor_id, suffix, messages.encode_json(obj))
+
+
+class LoggedBusSink:
+    """Logs to a recording, then publishes the very bytes it logged: a RecordingSink and a
+    BusSink in one, with each message encoded once instead of twice (the gateway's sink;
+    why it matters per sample: docs/performance.md)."""
+
+    def __init__(self, writer: Writer, bus: Bus) -> None:
+        self.writer = writer
+        self.bus = BusSink(bus)
+
+    @property
+    def dropped(self) -> int:
+        return self.bus.dropped
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        self.bus.put(sensor_id, "raw", self.writer.write_raw(sensor_id, batch, log_time_ns))
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self.bus.put(sensor_id, suffix,
+                     self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix))
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+        if suffix in self.bus.topics:
+            self.bus.put(sensor_id, suffix, data)
+
