@@ -4,7 +4,7 @@ For each rung of a sensor-count ladder this starts three processes on this machi
 
 * the sensors: ``bench/pty_fleet.py``, N simulated devices on pseudo-terminals, every byte
   simulated and encoded up front, written at the real rate (one sample per write by default);
-* the daemon: ``python -m recal.gateway`` reading the N ports, calibrating every sensor in
+* the daemon: ``recal run`` reading the N ports, calibrating every sensor in
   process, logging everything to MCAP on disk and publishing on Zenoh (a peer on 127.0.0.1);
 * this script: a Zenoh peer subscribed to ``recal/<sensor>/calibrated`` of the first
   ``--probe`` sensors, stamping each message's arrival.
@@ -189,7 +189,7 @@ def run_rung(n: int, batch_ms: float, a: argparse.Namespace, root: Path) -> dict
     cfg = work / "gateway.toml"
     cfg.write_text(gateway_toml(fleet.links, zport, work, extra=a.extra_toml))
     mcap = work / "gw.mcap"
-    daemon = ChildProcess([sys.executable, "-m", "recal.gateway", "--config", str(cfg),
+    daemon = ChildProcess([sys.executable, "-m", "recal", "run", "--config", str(cfg),
                            "--mcap", str(mcap), "--batch-ms", str(batch_ms)],
                           work / "gateway.log")
     probe: LatencyProbe | None = None

@@ -3,10 +3,10 @@
 For each number of gateways G in ``--gateways`` (default 1,2,3) this starts:
 
 * one ``recal router`` (``python -m recal.io.router``) on 127.0.0.1;
-* G gateway processes (``python -m recal.gateway``, ``run_nodes = false``: they read their
+* G gateway processes (``recal run``, ``run_nodes = false``: they read their
   ports, log raw to their own MCAP and publish ``recal/<sensor>/raw``), each a Zenoh client
   of the router, each serving ``--sensors-per-gateway`` 100 Hz sensors;
-* one calibration node (``python -m recal.node --mcap node.mcap``), a client of the router,
+* one calibration node (``recal node --mcap node.mcap``), a client of the router,
   subscribed to ``recal/*/raw``: it logs raw and calibrated and publishes calibrated;
 * one writer process for every simulated sensor (``bench/pty_fleet.py``, data made up front);
 * this script: a client of the router subscribed to the calibrated stream of a few sensors
@@ -99,12 +99,12 @@ class _Deployment:
             self.mcaps.append(work / f"gw{g}.mcap")
             self.slices.append(part)
             self.gateways.append(ChildProcess.python(
-                "recal.gateway", ["--config", str(cfg), "--mcap", str(self.mcaps[-1]),
+                "recal", ["run", "--config", str(cfg), "--mcap", str(self.mcaps[-1]),
                                   "--batch-ms", str(batch_ms)], work / f"gw{g}.log"))
         ncfg = work / "node.toml"
         ncfg.write_text(node_toml(len(links), self.router_ep, work))
         self.node_mcap = work / "node.mcap"
-        self.node = ChildProcess.python("recal.node", ["--config", str(ncfg), "--mcap",
+        self.node = ChildProcess.python("recal", ["node", "--config", str(ncfg), "--mcap",
                                                        str(self.node_mcap)], work / "node.log")
         for gw in self.gateways:
             gw.wait_line(READY_PREFIX, 120)

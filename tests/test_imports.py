@@ -3,8 +3,8 @@ function, and each module imports on its own in a fresh interpreter.
 
 A cycle hidden in a function-level import is still a cycle (a newcomer cannot tell the layers
 apart, and the order of first use decides what works). Imports in an ``if __name__ ==
-"__main__":`` block are left out: they run only when the file is the program (``python -m
-recal.gateway``), as a module of its own (``__main__``), never as the imported one.
+"__main__":`` block are left out: they run only when the file is the program, as a module of
+its own (``__main__``), never as the imported one.
 """
 
 from __future__ import annotations

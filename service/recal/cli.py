@@ -25,7 +25,7 @@ from recal.errors import RecalError, UsageError
 if TYPE_CHECKING:
     from recal.sensor_options import SensorOptions
 
-__all__ = ["build_parser", "gateway_main", "main", "node_main"]
+__all__ = ["build_parser", "main"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -598,31 +598,3 @@ def _dispatch(func: Callable[[argparse.Namespace], int | None], args: argparse.N
             msg = f"{e.filename}: {e.strerror or e}"
         print(f"recal: error: {msg}", file=sys.stderr)
         return 2
-
-
-def _logging() -> None:
-    """The daemons' warnings (a node that failed on a batch, ...) on stderr."""
-    import logging
-
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-
-
-def gateway_main(argv: Sequence[str] | None = None) -> int:
-    """``python -m recal.gateway --config gateway.toml [--port P --sensor-id ID ...]``."""
-    ap = argparse.ArgumentParser(prog="python -m recal.gateway", description=(
-        "The gateway daemon: serial ports -> raw log + bus -> calibration nodes -> log + bus."))
-    _add_run_arguments(ap)
-    args = ap.parse_args(argv)
-    _logging()
-    return _cmd_run(args)
-
-
-def node_main(argv: Sequence[str] | None = None) -> int:
-    """``python -m recal.node --config node.toml [--sensor-id ID ...] [--mcap out.mcap]``."""
-    ap = argparse.ArgumentParser(prog="python -m recal.node",
-                                 description="calibration node subscribed to recal/*/raw")
-    _add_node_arguments(ap, "service TOML: [zenoh], [[sensors]] priors, [pipeline]",
-                        "also log everything to this recording", "model file for every sensor")
-    args = ap.parse_args(argv)
-    _logging()
-    return _cmd_node(args)

@@ -746,8 +746,3 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
         return 2
     return 0
 
-
-if __name__ == "__main__":  # `python -m recal.gateway`: its arguments are parsed in recal.cli
-    from recal.cli import gateway_main
-
-    raise SystemExit(gateway_main())

@@ -780,8 +780,3 @@ def make_node(settings: NodeSettings, sink: Sink,
                        on_problem=on_problem)
     return node if node is not None else CalibrationNode(settings, sink)
 
-
-if __name__ == "__main__":  # `python -m recal.node`: its arguments are parsed in recal.cli
-    from recal.cli import node_main
-
-    raise SystemExit(node_main())
