@@ -21,8 +21,9 @@ import numpy as np
 
 from recal.checkpoints import Checkpoints, load_checkpoint, restore_pipeline, save_checkpoint
 from recal.config import PriorConfig, SensorConfig, ServiceConfig
-from recal.node import CalibrationNode, NullSink, node_settings
+from recal.node import CalibrationNode, node_settings
 from recal.sim import SensorSpec, simulate
+from recal.sinks import NullSink
 
 
 def median_ms(f: Callable[[], object], runs: int) -> float:

@@ -24,9 +24,10 @@ import numpy as np
 from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core import timebase as tb
 from recal.io.ascii_lines import AsciiLineParser, encode_ascii
-from recal.node import CalibrationNode, NodeSettings, NullSink
+from recal.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import SensorSpec, SimResult, error_1s_mg, simulate
+from recal.sinks import NullSink
 
 WRAP = 2**32
 

@@ -80,7 +80,8 @@ def measure(path: Path, out_dir: Path, warmup_samples: int) -> dict[str, Any]:
     from recal.config import PriorConfig, SensorConfig, ServiceConfig
     from recal.io import recording as rec
     from recal.io.recording_writer import RecordingWriter
-    from recal.node import CalibrationNode, RecordingSink, node_settings
+    from recal.node import CalibrationNode, node_settings
+    from recal.sinks import RecordingSink
 
     cfg = ServiceConfig()
     m = cfg.mcap

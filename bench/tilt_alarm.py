@@ -38,8 +38,9 @@ from recal.config import (
     SensorConfig,
     ServiceConfig,
 )
-from recal.node import CalibrationNode, EventSink, node_settings
+from recal.node import CalibrationNode, node_settings
 from recal.sim import MountSlip, SensorSpec, WearerSpec, simulate
+from recal.sinks import EventSink
 
 RATE_HZ = 25.0
 SLIP_AFTER_REF_S = 300.0

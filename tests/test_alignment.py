@@ -16,7 +16,8 @@ from recal.config import (
     ServiceConfig,
 )
 from recal.core import alignment as al
-from recal.node import CalibrationNode, EventSink, NodeSettings, node_settings
+from recal.node import CalibrationNode, NodeSettings, node_settings
+from recal.sinks import EventSink
 
 Z = np.array([0.0, 0.0, 1.0])
 

@@ -51,11 +51,12 @@ from recal.config import (
     load_config,
 )
 from recal.demo import free_port
-from recal.gateway import ERROR_PREFIX, NOTE_PREFIX, READY_PREFIX, run_gateway
+from recal.gateway import NOTE_PREFIX, READY_PREFIX, run_gateway
 from recal.io import recording as rec
 from recal.io.bus import key
 from recal.io.pty_device import PtyDevice
 from recal.node import CalibrationNode, NodeSettings, make_node, node_settings
+from recal.runtime import ERROR_PREFIX
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import SensorSpec, SimResult, error_1s_mg, simulate
 from test_gateway import get_json, peer, sim_raw, stream

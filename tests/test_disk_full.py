@@ -27,18 +27,18 @@ import pytest
 from gateway_process import GatewayProcess
 from polling import wait_for
 from recal import runtime
+from recal.checkpoints import load_checkpoint, save_checkpoint
 from recal.cli import main as recal_main
 from recal.config import ConfigError, parse_config
 from recal.demo import free_port
 from recal.errors import RecordingError
-from recal.gateway import open_recording
 from recal.io import recording as rec
 from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated
 from recal.io.pty_device import PtyDevice
 from recal.io.recording_writer import RecordingWriter
-from recal.node import load_checkpoint, save_checkpoint
+from recal.runtime import open_recording
 from recal.samples import RawBatch
 from test_gateway import get_json, sim_raw, stream
 

@@ -17,6 +17,7 @@ import pytest
 
 from gateway_process import GatewayProcess, write_config
 from polling import wait_for
+from recal.checkpoints import load_checkpoint
 from recal.config import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
 from recal.demo import free_port
@@ -27,7 +28,6 @@ from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
 from recal.io.pty_device import PtyDevice
 from recal.io.repair import repair
-from recal.node import load_checkpoint
 from recal.remote_node import run_node
 from recal.replay import replay
 from recal.samples import RawBatch
@@ -506,7 +506,7 @@ def test_latency_on_demand_ticks_until_someone_subscribes(tmp_path: Path) -> Non
 
 
 def test_checkpoints_are_spread_over_the_interval() -> None:
-    from recal.node import CheckpointSchedule
+    from recal.checkpoints import CheckpointSchedule
 
     now = [0.0]
     schedule = CheckpointSchedule(60.0, clock=lambda: now[0])

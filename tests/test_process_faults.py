@@ -17,6 +17,7 @@ import numpy as np
 
 from gateway_process import GatewayProcess, write_config
 from polling import wait_for
+from recal.checkpoints import checkpoint_path, load_checkpoint
 from recal.cli import main as recal_main
 from recal.demo import free_port
 from recal.io import recording as rec
@@ -25,7 +26,6 @@ from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_raw
 from recal.io.pty_device import PtyDevice
 from recal.io.router import RouterProcess
-from recal.node import checkpoint_path, load_checkpoint
 from recal.samples import RawBatch
 from test_gateway import sim_raw, stream
 

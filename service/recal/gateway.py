@@ -64,12 +64,9 @@ from recal.sensor_options import SensorOptions, with_options
 from recal.sinks import LoggedBusSink, RecordingSink, Sink
 
 __all__ = [
-    "ERROR_PREFIX",
     "NOTE_PREFIX",
     "READY_PREFIX",
     "Gateway",
-    "RecordingWatch",  # recal.runtime's, named here too: the gateway's recording watch
-    "open_recording",
     "run_gateway",
 ]
 

@@ -27,15 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from recal.align_requests import AlignmentRequests, align_handler
+from recal.align_requests import AlignmentRequests
 from recal.checkpoints import (
     CHECKPOINT_FORMAT,
     Checkpoints,
-    CheckpointSchedule,
-    checkpoint_path,
-    load_checkpoint,
     restore_pipeline,
-    save_checkpoint,
 )
 from recal.config import (
     AlignmentConfig,
@@ -54,26 +50,14 @@ from recal.core.rate import infer_rate_hz
 from recal.core.status import NOT_FINITE_SIGMA_MG, Status
 from recal.rediscovery import Rediscovery as _Rediscovery
 from recal.samples import CalibratedBatch, RawBatch, conform_channels
-from recal.sinks import BusSink, EventSink, LoggedBusSink, NullSink, RecordingSink, Sink
+from recal.sinks import Sink
 
 __all__ = [
-    "BusSink",  # the sinks live in recal.sinks; named here too, as the node's outputs
     "CalibrationNode",
-    "CheckpointSchedule",  # re-exported from recal.checkpoints, where the checkpoint code lives
-    "EventSink",
-    "LoggedBusSink",
     "NodeSettings",
-    "NullSink",
-    "RecordingSink",
-    "Sink",
-    "align_handler",
-    "checkpoint_path",
-    "infer_rate_hz",
-    "load_checkpoint",
     "make_node",
     "model_name",
     "node_settings",
-    "save_checkpoint",
 ]
 
 log = logging.getLogger(__name__)
