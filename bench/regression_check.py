@@ -249,7 +249,8 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
         meta += [f"metadata {name}.{k} {x.get(k)!r} vs {y.get(k)!r}"
                  for k in sorted(set(x) | set(y)) if x.get(k) != y.get(k)]
     note = "file bytes differ" + (f" in: {'; '.join(meta)}" if meta else
-                                  " (same messages and metadata: layout/chunking)")
+                                  " (same messages and metadata: layout/chunking)"
+                                  if verdict == "identical" else " (metadata the same)")
     if verdict == "identical" and meta and not all("version" in m or "library" in m
                                                     for m in meta):
         verdict = "metadata differs: " + "; ".join(meta)
@@ -592,6 +593,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--old", type=Path, default=OLD_DEFAULT, help="old tree (default %(default)s)")
     ap.add_argument("--new", type=Path, default=NEW_DEFAULT, help="new tree (default: this one)")
+    ap.add_argument("--recordings", type=Path, default=NEW_DEFAULT / "recordings",
+                    help="where wearer-10min.mcap and wearer-temp-30min.mcap are (default: "
+                    "this checkout's recordings/)")
     ap.add_argument("--sim-hours", type=float, default=6.0,
                     help="hours of each simulated recording (default 6)")
     ap.add_argument("--core-hours", type=float, default=6.0,
@@ -616,7 +620,7 @@ def main(argv: list[str] | None = None) -> int:
         CHILDREN[a.child](json.loads(a.child_args))
         return 0
     old, new = Tree("old", a.old.resolve()), Tree("new", a.new.resolve())
-    recordings = new.root / "recordings"
+    recordings = a.recordings
     only = set(a.only.split(",")) if a.only else None
     groups: list[tuple[str, str, Callable[[], list[Row]]]] = []
     for name in ("wearer-10min.mcap", "wearer-temp-30min.mcap"):
