@@ -17,7 +17,9 @@ Timed:
               messages, as `recal simulate` logs them)
   hindsight   `recal hindsight` of that recording (wall time of the command)
   discover    `recal discover` of that recording (wall time of the command)
-Reported per tree: median and min over the repeats, and new/old of each; a markdown table
+Reported per tree: median and min of the wall time over the repeats, the median CPU time
+(user + system of the timed process, all threads: less inflated by other work than the wall
+time), and new/old of each; a markdown table
 ready for docs/performance.md with the date, both commits, the machine and the command line.
 """
 
@@ -27,6 +29,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -55,19 +58,23 @@ class Tree:
     def env(self) -> dict[str, str]:
         return {**os.environ, "PYTHONPATH": str(self.root / "service")}
 
-    def run(self, argv: list[str], cwd: Path, timeout_s: float = 3600) -> tuple[float, str]:
-        """(wall seconds, stdout) of ``python <argv>``; fails loudly on a non-zero exit."""
+    def run(self, argv: list[str], cwd: Path, timeout_s: float = 3600
+            ) -> tuple[float, float, str]:
+        """(wall seconds, CPU seconds of the process and its threads, stdout) of
+        ``python <argv>``; fails loudly on a non-zero exit."""
+        cpu0 = _children_cpu()
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, *argv], cwd=cwd, env=self.env(), text=True,
                            capture_output=True, timeout=timeout_s, check=False)
         wall = time.perf_counter() - t0
+        cpu = _children_cpu() - cpu0
         if r.returncode:
             raise SystemExit(f"{self.label} ({self.root}): {' '.join(argv[:4])} failed, exit "
                              f"{r.returncode}:\n{r.stderr[-2000:]}")
-        return wall, r.stdout
+        return wall, cpu, r.stdout
 
     def child(self, name: str, args: dict[str, Any], cwd: Path) -> dict[str, Any]:
-        out = self.run([str(HERE), "--child", name, json.dumps(args)], cwd)[1]
+        out = self.run([str(HERE), "--child", name, json.dumps(args)], cwd)[2]
         return json.loads(out.strip().splitlines()[-1])
 
     def commit(self) -> str:
@@ -77,6 +84,13 @@ class Tree:
                                 "--untracked-files=no"], capture_output=True, text=True,
                                check=False).stdout.strip()
         return (r.stdout.strip()[:12] or "?") + (" (uncommitted changes)" if dirty else "")
+
+
+def _children_cpu() -> float:
+    """User + system CPU seconds of this process's finished children (subprocesses run one
+    at a time here, so a difference is one child's)."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 # --- children: run inside one tree ---------------------------------------------------------------
@@ -164,10 +178,11 @@ def child_core(a: dict[str, Any]) -> dict[str, Any]:
     size = int(a["batch"])
     batches = [raw[i:i + size] for i in range(0, len(raw), size)]
     model = SensorModel.diagonal(1.0)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     pipe = Pipeline(PipelineConfig(rate_hz=50.0), model, Prior.default(model), raw.aux_names)
     out = np.concatenate([pipe.step(b).calibrated.a_g for b in batches])
-    return {"seconds": time.perf_counter() - t0, "samples": len(out)}
+    return {"seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+            "samples": len(out)}
 
 
 def child_windowing(a: dict[str, Any]) -> dict[str, Any]:
@@ -175,9 +190,10 @@ def child_windowing(a: dict[str, Any]) -> dict[str, Any]:
     _, PipelineConfig, _, _ = _core_names()
     raw = _load(a["npz"])
     batches = [raw[i:i + 1000] for i in range(0, len(raw), 1000)]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     w = window_means(iter(batches), PipelineConfig(rate_hz=50.0), 1024.0)[0]
-    return {"seconds": time.perf_counter() - t0, "windows": len(w.t_us)}
+    return {"seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+            "windows": len(w.t_us)}
 
 
 CHILDREN: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
@@ -190,28 +206,31 @@ class Timing:
     case: str
     what: str
     seconds: dict[str, list[float]] = field(default_factory=lambda: {"old": [], "new": []})
+    cpu: dict[str, list[float]] = field(default_factory=lambda: {"old": [], "new": []})
 
 
 def time_case(case: str, tree: Tree, inputs: Path, work: Path, batch: int
-              ) -> dict[str, float]:
-    """{what: seconds} of one run of ``case`` with ``tree`` (in a fresh subprocess)."""
-    if case == "core":
-        return {"Pipeline.step, 100 000-sample batches (in-process)":
-                tree.child("core", {"npz": str(inputs / "core.npz"), "batch": batch},
-                           work)["seconds"]}
-    if case == "windowing":
-        return {"window_means (in-process)": tree.child(
-            "windowing", {"npz": str(inputs / "day.npz")}, work)["seconds"]}
+               ) -> dict[str, tuple[float, float | None]]:
+    """{what: (wall s, CPU s or None)} of one run of ``case`` with ``tree``, in a fresh
+    subprocess."""
+    if case in ("core", "windowing"):
+        what = ("Pipeline.step, 100 000-sample batches (in-process)" if case == "core"
+                else "window_means (in-process)")
+        args = ({"npz": str(inputs / "core.npz"), "batch": batch} if case == "core"
+                else {"npz": str(inputs / "day.npz")})
+        got = tree.child(case, args, work)
+        return {what: (got["seconds"], got["cpu"])}
     if case == "replay":
-        wall, _ = tree.run(["-m", "recal", "replay", str(inputs / "replay.mcap"), "--out",
-                            "replay-out.mcap", "--quiet", "--overwrite", "--json",
-                            "replay.json"], work)
+        wall, cpu, _ = tree.run(["-m", "recal", "replay", str(inputs / "replay.mcap"), "--out",
+                                 "replay-out.mcap", "--quiet", "--overwrite", "--json",
+                                 "replay.json"], work)
         own = json.loads((work / "replay.json").read_text())["seconds"]
-        return {"replay() (its --json seconds)": own, "recal replay command (wall)": wall}
+        return {"replay() (its --json seconds)": (own, None),
+                "recal replay command": (wall, cpu)}
     out = ["--out", "hindsight-out.mcap", "--quiet", "--overwrite"] if case == "hindsight" else [
         "--json", "discover.json"]
-    wall, _ = tree.run(["-m", "recal", case, str(inputs / "day.mcap"), *out], work)
-    return {f"recal {case} command (wall)": wall}
+    wall, cpu, _ = tree.run(["-m", "recal", case, str(inputs / "day.mcap"), *out], work)
+    return {f"recal {case} command": (wall, cpu)}
 
 
 def load_avg() -> str:
@@ -225,17 +244,23 @@ def markdown(timings: list[Timing], head: dict[str, str], sizes: dict[str, Any])
              f"{head['load_before']}, after {head['load_after']}",
              f"- inputs: core {sizes['core']}; replay {sizes['replay']}; windowing, hindsight, "
              f"discover {sizes['day']}",
-             f"- {head['repeats']} repeats, old and new taking turns; seconds; ratio new/old "
-             "(above 1: new slower)", "",
+             f"- {head['repeats']} repeats, old and new taking turns; wall seconds, and CPU "
+             "seconds (all threads; a shared machine inflates them much less than wall); "
+             "ratio new/old (above 1: new slower)", "",
              "| case | timed | old median | old min | new median | new min | new/old median "
-             "| new/old min |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+             "| new/old min | CPU old median | CPU new median | CPU new/old |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for t in timings:
         o, n = t.seconds["old"], t.seconds["new"]
         if not o or not n:
             continue
         mo, mn = statistics.median(o), statistics.median(n)
+        co, cn = t.cpu["old"], t.cpu["new"]
+        cpu = (f"{statistics.median(co):.3f} | {statistics.median(cn):.3f} | "
+               f"{statistics.median(cn) / statistics.median(co):.3f}" if co and cn else
+               "- | - | -")
         lines.append(f"| {t.case} | {t.what} | {mo:.3f} | {min(o):.3f} | {mn:.3f} | "
-                     f"{min(n):.3f} | {mn / mo:.3f} | {min(n) / min(o):.3f} |")
+                     f"{min(n):.3f} | {mn / mo:.3f} | {min(n) / min(o):.3f} | {cpu} |")
     return "\n".join(lines)
 
 
@@ -301,9 +326,12 @@ def main(argv: list[str] | None = None) -> int:
                 for tree in (old, new):
                     d = work / tree.label
                     d.mkdir(exist_ok=True)
-                    for what, sec in time_case(case, tree, inputs, d, a.batch).items():
-                        timings.setdefault((case, what), Timing(case, what)).seconds[
-                            tree.label].append(sec)
+                    for what, (sec, cpu) in time_case(case, tree, inputs, d,
+                                                      a.batch).items():
+                        t = timings.setdefault((case, what), Timing(case, what))
+                        t.seconds[tree.label].append(sec)
+                        if cpu is not None:
+                            t.cpu[tree.label].append(cpu)
                     print(f"  repeat {r + 1}/{a.repeats} {case} {tree.label}: "
                           + ", ".join(f"{s[tree.label][-1]:.3f} s" for s in
                                       (t.seconds for (c, _), t in timings.items() if c == case)),
