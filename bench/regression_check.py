@@ -188,6 +188,7 @@ def array_verdict(name: str, a: np.ndarray, b: np.ndarray) -> str:
         return f"{name}: {a.dtype}{a.shape} vs {b.dtype}{b.shape}"
     if a.tobytes() == b.tobytes():
         return "identical"
+    a, b = np.atleast_1d(a), np.atleast_1d(b)
     flat_a, flat_b = a.reshape(len(a), -1), b.reshape(len(b), -1)
     differ = ~((flat_a == flat_b) | (_isnan(flat_a) & _isnan(flat_b)))
     rows = np.flatnonzero(differ.any(axis=1))
@@ -218,7 +219,10 @@ def npz_verdict(a: Path, b: Path) -> str:
 class McapContent:
     library: str
     metadata: dict[str, dict[str, str]]
-    messages: list[tuple[str, int, int, str, str, bytes]]  # topic, log, publish, schema, enc
+    #: topic, log time, publish time, schema name, message encoding, sequence, payload
+    messages: list[tuple[str, int, int, str, str, int, bytes]]
+    #: per topic: message encoding, channel metadata, schema name, encoding and data
+    channels: dict[str, tuple]
 
 
 def read_mcap(path: Path) -> McapContent:
@@ -226,9 +230,14 @@ def read_mcap(path: Path) -> McapContent:
         r = make_reader(f)
         library = r.get_header().library
         meta = {m.name: dict(m.metadata) for m in r.iter_metadata()}
-        msgs = [(c.topic, m.log_time, m.publish_time, s.name if s else "", c.message_encoding,
-                 bytes(m.data)) for s, c, m in r.iter_messages(log_time_order=False)]
-    return McapContent(library, meta, msgs)
+        msgs, channels = [], {}
+        for s, c, m in r.iter_messages(log_time_order=False):
+            msgs.append((c.topic, m.log_time, m.publish_time, s.name if s else "",
+                         c.message_encoding, m.sequence, bytes(m.data)))
+            if c.topic not in channels:
+                channels[c.topic] = (c.message_encoding, sorted(c.metadata.items()),
+                                     *((s.name, s.encoding, bytes(s.data)) if s else ()))
+    return McapContent(library, meta, msgs, channels)
 
 
 def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
@@ -243,6 +252,10 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
         if x != y:
             verdict = f"message {i} ({x[0]} @ {x[1]}): {_message_diff(x, y)}"
             break
+    if verdict == "identical" and ca.channels != cb.channels:
+        topic = next(t for t in {**ca.channels, **cb.channels}
+                     if ca.channels.get(t) != cb.channels.get(t))
+        verdict = f"channel or schema of {topic} differs"
     meta = [f"header library {ca.library!r} vs {cb.library!r}"] if ca.library != cb.library else []
     for name in sorted(set(ca.metadata) | set(cb.metadata)):
         x, y = ca.metadata.get(name, {}), cb.metadata.get(name, {})
@@ -258,11 +271,11 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
 
 
 def _message_diff(x: tuple, y: tuple) -> str:
-    fields = ("topic", "log time", "publish time", "schema", "encoding")
+    fields = ("topic", "log time", "publish time", "schema", "encoding", "sequence")
     for name, u, v in zip(fields, x, y, strict=False):
         if u != v:
             return f"{name} {u!r} vs {v!r}"
-    return payload_diff(x[3], x[5], y[5])
+    return payload_diff(x[3], x[6], y[6])
 
 
 def payload_diff(schema: str, a: bytes, b: bytes) -> str:

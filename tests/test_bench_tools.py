@@ -109,3 +109,22 @@ def test_stdout_timings_are_masked_and_the_rest_compared() -> None:
     assert rc.text_verdict(rc.mask_stdout(old), rc.mask_stdout(new)) == "identical"
     assert rc.text_verdict(rc.mask_stdout(old), rc.mask_stdout(new.replace("45000", "45001"))
                            ).startswith("line 1:")
+
+
+def test_mcap_changed_schema_is_a_difference(tmp_path: Path) -> None:
+    a = _mcap(tmp_path / "a.mcap", [b'{"x": 1}'])
+    b = tmp_path / "b.mcap"
+    with open(b, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="test")
+        schema = w.register_schema("s", "jsonschema", b'{"type": "object"}')
+        channel = w.register_channel("/a/calibration", "json", schema)
+        w.add_message(channel, log_time=1000, data=b'{"x": 1}', publish_time=1000)
+        w.add_metadata("recal", {"version": "1"})
+        w.finish()
+    assert rc.mcap_verdict(a, b)[0] == "channel or schema of /a/calibration differs"
+
+
+def test_scalar_arrays_compare() -> None:
+    assert rc.array_verdict("k", np.float64(1.0), np.float64(1.0)) == "identical"
+    assert rc.array_verdict("k", np.array(1.0), np.array(2.0)).startswith("k: 1 of 1 rows")
