@@ -551,7 +551,10 @@ def _shift(event: Any, lo: int) -> Any:
 
 
 def child_core(a: dict[str, Any]) -> None:
-    """Pipeline.step over the arrays in batches, outputs written for the parent to compare."""
+    """Pipeline.step over the arrays in batches, outputs written for the parent to compare:
+    the calibrated columns, per batch its updates (index, time, report), watch events and the
+    state (model and summary) after a batch with an update, and the final state_dict. An
+    update event's own copy of the model and estimate is plumbing, not output: left out."""
     n = _core_names()
     z = np.load(a["npz"])
     raw = n["RawBatch"](z["t_us"], z["v"], z["aux"], tuple(str(s) for s in z["aux_names"]))
@@ -574,9 +577,7 @@ def child_core(a: dict[str, Any]) -> None:
             events.append({
                 "batch": i,
                 "updates": [{"index": offset + u.index, "t_us": u.t_us, "bootstrap": u.bootstrap,
-                             "report": _jsonable(u.report),
-                             "estimate": _jsonable(u.estimate), "model": _jsonable(u.model)}
-                            for u in ups],
+                             "report": _jsonable(u.report)} for u in ups],
                 "watch": [{"index": offset + w.index, "t_us": w.t_us, "kind": w.kind,
                            "detail": _jsonable(w.detail)} for w in watch],
                 "state": None if state is None else {"model": _jsonable(state[0]),
