@@ -588,8 +588,9 @@ def child_core(a: dict[str, Any]) -> None:
     np.savez(out / "arrays.npz", **{k: np.concatenate(v) for k, v in cols.items()})
     (out / "events.json").write_text(json.dumps(events))
     (out / "state_dict.json").write_text(json.dumps(pipe.state_dict()))
-    print(f"{len(raw)} samples, {len(events)} batches with events, "
-          f"{'step_many' if a['group'] > 1 and hasattr(pipe, 'step_many') else 'step'}, "
+    how = ("step" if a["group"] == 1 else "step_many" if hasattr(pipe, "step_many")
+           else "step(marks=)")
+    print(f"{len(raw)} samples, {len(events)} batches with events, {how}, "
           f"{seconds:.1f} s")
 
 

@@ -132,12 +132,12 @@ def child_make_inputs(a: dict[str, Any]) -> dict[str, Any]:
         rt.write_recording(out / "replay.mcap", rraw, 100)
         replay_from = "bench/replay_throughput.py write_recording"
     else:
-        from recal.io import recording as rec
-        with rec.RecordingWriter(out / "replay.mcap", overwrite=True) as w:
+        writer = _find("RecordingWriter", "recal.io.recording_writer", "recal.io.recording")
+        with writer(out / "replay.mcap", overwrite=True) as w:
             for i in range(0, len(rraw), 100):
                 b = rraw[i:i + 100]
                 w.write_raw("s1", b, 1_700_000_000_000_000_000 + int(b.t_us[0]) * 1000)
-        replay_from = "recal.io.recording.RecordingWriter"
+        replay_from = f"{writer.__module__}.RecordingWriter"
     wraw = _read_raw(out / "day.mcap")
     np.savez(out / "day.npz", t_us=wraw.t_us, v=wraw.v, aux=wraw.aux,
              aux_names=np.array(wraw.aux_names, dtype=str))
@@ -145,13 +145,22 @@ def child_make_inputs(a: dict[str, Any]) -> dict[str, Any]:
             "replay_from": replay_from, "day_samples": len(wraw)}
 
 
+def _find(name: str, *modules: str) -> Any:
+    """``name`` from the first of ``modules`` that has it (io/ may be split differently)."""
+    import importlib
+    for m in modules:
+        try:
+            return getattr(importlib.import_module(m), name)
+        except (ImportError, AttributeError):
+            continue
+    raise ImportError(f"{name} in none of {modules}")
+
+
 def _read_raw(path: Path) -> Any:
     """Every raw sample of a one-sensor recording, with the tree's reader wherever it is."""
-    try:
-        from recal.io.recording_reader import iter_raw  # type: ignore[import-not-found]
-    except ImportError:
-        from recal.io.recording import iter_raw
     from recal.samples import RawBatch
+    iter_raw = _find("iter_raw", "recal.io.recording_reader", "recal.io.reader",
+                     "recal.io.recording")
     return RawBatch.concat([b for _, b, _ in iter_raw(path)])
 
 
