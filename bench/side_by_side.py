@@ -94,10 +94,9 @@ def _children_cpu() -> float:
 
 
 # --- children: run inside one tree ---------------------------------------------------------------
-def _bench_module(name: str) -> Any:
-    """A module of the tree's bench/ (this script's own tree), or None if it will not import
-    with the tree's recal (a name it uses moved)."""
-    sys.path.insert(0, str(HERE.parent))
+def _bench_module(bench: str, name: str) -> Any:
+    """A module of the new tree's bench/, or None if it will not import with its recal."""
+    sys.path.insert(0, bench)
     try:
         return __import__(name)
     except ImportError:
@@ -111,11 +110,11 @@ def child_make_inputs(a: dict[str, Any]) -> dict[str, Any]:
     recording, and the 24 h recording's raw samples as arrays for the windowing."""
     from recal import sim
     out = Path(a["dir"])
-    ct = _bench_module("compare_tools")
+    ct = _bench_module(a["bench"], "compare_tools")
     if ct is not None:  # its speed case exactly: "plain", in g
         res = ct.simulate_case(ct.CASES[0], float(a["core_hours"]))
         counts, case_from = ct.COUNTS_PER_G, "bench/compare_tools.py simulate_case('plain')"
-    else:
+    else:  # the same settings by hand
         from dataclasses import replace
         spec = sim.SensorSpec.random(np.random.default_rng(1), offset_mg=50.0, gain_pct=3.0)
         spec = replace(spec, counts_per_g=1024.0)
@@ -125,7 +124,7 @@ def child_make_inputs(a: dict[str, Any]) -> dict[str, Any]:
     raw = res.raw
     np.savez(out / "core.npz", t_us=raw.t_us, v=raw.v / counts, aux=raw.aux,
              aux_names=np.array(raw.aux_names, dtype=str))
-    rt = _bench_module("replay_throughput")
+    rt = _bench_module(a["bench"], "replay_throughput")
     spec = sim.SensorSpec.random(np.random.default_rng(3), offset_mg=40.0, gain_pct=3.0)
     rraw = sim.simulate(float(a["replay_hours"]), 100.0, 3, spec).raw
     if rt is not None:
@@ -320,7 +319,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"inputs into {inputs} ...", flush=True)
         new.run(["-m", "recal", "simulate", "--out", str(inputs / "day.mcap"), "--hours",
                  str(a.day_hours), "--rate", "50", "--seed", "2"], work)
-        made = new.child("make_inputs", {"dir": str(inputs), "core_hours": a.core_hours,
+        made = new.child("make_inputs", {"dir": str(inputs), "bench": str(new.root / "bench"),
+                                         "core_hours": a.core_hours,
                                          "replay_hours": a.replay_hours}, work)
         sizes = {"core": f"{made['core_samples']:,} samples ({a.core_hours:g} h at 50 Hz, "
                          f"{made['core_from']})",
