@@ -15,6 +15,15 @@ and payload bytes (the file's bytes may differ only in its metadata records, whi
 JSON key by key (timings "seconds" and "samples_per_s" left out; when not identical the largest
 relative difference is shown); CSV and stdout byte for byte; arrays bit for bit (else the
 largest absolute difference). Exit status 0 only if every case is identical.
+
+Cases (group names for --only): recordings: `recal replay` of recordings/wearer-10min.mcap and
+wearer-temp-30min.mcap; sim: `recal simulate` (--sim-hours at 50 Hz) per sensor of --sensors,
+each tree's file compared, then both replay the new tree's; core: `Pipeline.step` over a
+--core-hours simulation in batches of --batch, and --group batches per call (`step_many`, or
+the old `step(marks=)`); discover: `recal discover --json --write-model` and `recal hindsight`
+(MCAP, JSON, CSV) of wearer-temp-30min.mcap; static: `recal static` of a phone table of the
+measured data (unknown and known orientations); real: the measured Xsens and GENEActiv arrays
+as CSV through `recal import`, then `recal discover` of the import.
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ from mcap.reader import make_reader
 HERE = Path(__file__).resolve()
 NEW_DEFAULT = HERE.parents[1]
 OLD_DEFAULT = Path("/work/wt/base")
-SHARED_DATA = Path("/work/wt/shared/data")
+SHARED_DATA = NEW_DEFAULT.parent / "shared" / "data"  # the measured data, beside the checkout
 #: JSON keys that are wall-clock timings, not outputs
 TIMING_KEYS = frozenset({"seconds", "samples_per_s"})
 #: simulate arguments per sensor case: the default (ADC counts), floats, an unsigned analog part
@@ -611,6 +620,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--recordings", type=Path, default=NEW_DEFAULT / "recordings",
                     help="where wearer-10min.mcap and wearer-temp-30min.mcap are (default: "
                     "this checkout's recordings/)")
+    ap.add_argument("--data", type=Path, default=SHARED_DATA,
+                    help="the measured data (static_positions/, real/; default %(default)s)")
     ap.add_argument("--sim-hours", type=float, default=6.0,
                     help="hours of each simulated recording (default 6)")
     ap.add_argument("--core-hours", type=float, default=6.0,
@@ -648,9 +659,9 @@ def main(argv: list[str] | None = None) -> int:
     groups.append(("discover", "discover/hindsight", lambda: case_discover_hindsight(
         ctx, recordings / "wearer-temp-30min.mcap")))
     groups.append(("static", "static phone1", lambda: case_static(
-        ctx, SHARED_DATA / "static_positions" / "phone1.csv")))
+        ctx, a.data / "static_positions" / "phone1.csv")))
     for npz in ("xsens_imutk_multipos.npz", "geneactiv_wristpy_cooling.npz"):
-        groups.append(("real", f"real {npz}", lambda p=SHARED_DATA / "real" / npz:
+        groups.append(("real", f"real {npz}", lambda p=a.data / "real" / npz:
                        case_real(ctx, p)))
     work = Path(tempfile.mkdtemp(prefix="recal-regress-")) if a.keep is None else a.keep
     work.mkdir(parents=True, exist_ok=True)
@@ -669,7 +680,7 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             try:
                 got = run()
-            except CommandFailed as e:
+            except (CommandFailed, OSError) as e:  # OSError: an input file not there
                 got = [Row(label, "command", f"FAILED: {e}")]
             rows += got
             bad = sum(not r.ok for r in got)
