@@ -1,0 +1,130 @@
+"""bench/regression_check.py's comparisons must be able to fail: a changed payload byte, a last
+bit of a float, a -0.0 for a 0.0 are differences; metadata naming a version is not."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.writer import Writer
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the class is made
+    spec.loader.exec_module(module)
+    return module
+
+
+rc = _load("regression_check")
+
+
+def _mcap(path: Path, payloads: list[bytes], metadata: dict[str, str] | None = None) -> Path:
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="test")
+        schema = w.register_schema("s", "jsonschema", b"{}")
+        channel = w.register_channel("/a/calibration", "json", schema)
+        for i, p in enumerate(payloads):
+            w.add_message(channel, log_time=1000 + i, data=p, publish_time=1000 + i)
+        w.add_metadata("recal", metadata or {"version": "1"})
+        w.finish()
+    return path
+
+
+def test_mcap_identical_files_are_identical(tmp_path: Path) -> None:
+    msgs = [json.dumps({"x": 0.1 * i}).encode() for i in range(5)]
+    a, b = _mcap(tmp_path / "a.mcap", msgs), _mcap(tmp_path / "b.mcap", msgs)
+    assert rc.mcap_verdict(a, b) == ("identical", "file bytes identical")
+
+
+def test_mcap_one_changed_payload_is_found_with_its_message(tmp_path: Path) -> None:
+    msgs = [json.dumps({"x": 0.1 * i}).encode() for i in range(5)]
+    changed = list(msgs)
+    changed[3] = json.dumps({"x": np.nextafter(0.1 * 3, 1.0)}).encode()  # one float's last bit
+    verdict, note = rc.mcap_verdict(_mcap(tmp_path / "a.mcap", msgs),
+                                    _mcap(tmp_path / "b.mcap", changed))
+    assert verdict.startswith("message 3 (/a/calibration @ 1003)")
+    assert "/x" in verdict and "max rel diff" in verdict
+    assert note.startswith("file bytes differ")
+
+
+def test_mcap_missing_message_is_a_difference(tmp_path: Path) -> None:
+    msgs = [b'{"x": 1}', b'{"x": 2}']
+    verdict, _ = rc.mcap_verdict(_mcap(tmp_path / "a.mcap", msgs),
+                                 _mcap(tmp_path / "b.mcap", msgs[:1]))
+    assert verdict == "2 vs 1 messages"
+
+
+def test_mcap_version_metadata_is_named_but_not_a_difference(tmp_path: Path) -> None:
+    msgs = [b'{"x": 1}']
+    a = _mcap(tmp_path / "a.mcap", msgs, {"version": "0.9"})
+    b = _mcap(tmp_path / "b.mcap", msgs, {"version": "1.0"})
+    verdict, note = rc.mcap_verdict(a, b)
+    assert verdict == "identical"
+    assert "metadata recal.version '0.9' vs '1.0'" in note
+    c = _mcap(tmp_path / "c.mcap", msgs, {"version": "0.9", "replay_of": "x.mcap"})
+    assert rc.mcap_verdict(a, c)[0].startswith("metadata differs")
+
+
+def test_json_floats_compare_bit_for_bit_and_timings_are_left_out() -> None:
+    a = {"seconds": 1.0, "p": {"o": [1.0, 2.0]}, "n": 3}
+    assert rc.json_verdict(a, {**a, "seconds": 2.0}) == "identical"
+    b = {**a, "p": {"o": [1.0, float(np.nextafter(2.0, 3.0))]}}
+    verdict = rc.json_verdict(a, b)
+    assert verdict.startswith("1 differences, first /p/o[1]") and "max rel diff 2.22e-16" in verdict
+    assert rc.json_verdict(a, {**a, "n": 3.0}) != "identical"  # an int became a float
+    assert rc.json_verdict({"a": 1, "b": 2}, {"b": 2, "a": 1}) == ("1 differences, first /: "
+                                                                   "key order differs")
+
+
+@pytest.mark.parametrize(("x", "y", "same"), [
+    (np.array([0.0, 1.0]), np.array([-0.0, 1.0]), False),
+    (np.array([np.nan, 1.0]), np.array([np.nan, 1.0]), True),
+    (np.array([1, 2], np.int64), np.array([1, 2], np.int32), False),
+    (np.zeros((4, 3)), np.zeros((4, 3)), True),
+])
+def test_arrays_compare_bytes(x: np.ndarray, y: np.ndarray, same: bool) -> None:
+    assert (rc.array_verdict("a", x, y) == "identical") is same
+
+
+def test_array_difference_says_where_and_how_much() -> None:
+    a = np.zeros((10, 3))
+    b = a.copy()
+    b[7, 1] = 2e-3
+    assert rc.array_verdict("a_g", a, b) == ("a_g: 1 of 10 rows differ, first at row 7; max abs "
+                                             "diff 0.002")
+
+
+def test_stdout_timings_are_masked_and_the_rest_compared() -> None:
+    old = "replayed 45000 samples of 1 sensor(s) in 0.12 s (0.38 M samples/s) into y.mcap"
+    new = "replayed 45000 samples of 1 sensor(s) in 0.31 s (0.14 M samples/s) into y.mcap"
+    assert rc.text_verdict(rc.mask_stdout(old), rc.mask_stdout(new)) == "identical"
+    assert rc.text_verdict(rc.mask_stdout(old), rc.mask_stdout(new.replace("45000", "45001"))
+                           ).startswith("line 1:")
+
+
+def test_mcap_changed_schema_is_a_difference(tmp_path: Path) -> None:
+    a = _mcap(tmp_path / "a.mcap", [b'{"x": 1}'])
+    b = tmp_path / "b.mcap"
+    with open(b, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="test")
+        schema = w.register_schema("s", "jsonschema", b'{"type": "object"}')
+        channel = w.register_channel("/a/calibration", "json", schema)
+        w.add_message(channel, log_time=1000, data=b'{"x": 1}', publish_time=1000)
+        w.add_metadata("recal", {"version": "1"})
+        w.finish()
+    assert rc.mcap_verdict(a, b)[0] == "channel or schema of /a/calibration differs"
+
+
+def test_scalar_arrays_compare() -> None:
+    assert rc.array_verdict("k", np.float64(1.0), np.float64(1.0)) == "identical"
+    assert rc.array_verdict("k", np.array(1.0), np.array(2.0)).startswith("k: 1 of 1 rows")
