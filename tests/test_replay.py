@@ -173,3 +173,25 @@ def test_replay_of_a_truncated_file_needs_repair(tmp_path: Path) -> None:
     repair(tmp_path / "cut.mcap", tmp_path / "fixed.mcap")
     out = replay(tmp_path / "fixed.mcap", tmp_path / "y.mcap", progress=False)
     assert 0 < out["samples"] < len(s.raw)
+
+
+def test_replaying_a_recording_twice_writes_the_same_bytes(tmp_path: Path) -> None:
+    """A file-to-file command's chunks end by size alone, not by the wall clock: the same
+    input gives the same file on a fast or a slow (or busy) machine."""
+    from mcap.reader import make_reader
+
+    res = sim(90, seed=12)
+    src = tmp_path / "in.mcap"
+    with RecordingWriter(src) as w:
+        for lo in range(0, len(res.raw), 100):
+            part = res.raw[lo:lo + 100]
+            w.write_raw("s", part, int(part.t_us[0]) * 1000)
+    outs = [tmp_path / "out0.mcap", tmp_path / "out1.mcap"]
+    for out in outs:
+        replay(src, out)
+    assert outs[0].read_bytes() == outs[1].read_bytes()
+    with outs[0].open("rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) >= 3  # enough to show where chunks end
+    # every chunk but the last was closed by its size (1 MiB), none early by a clock
+    assert all(c.uncompressed_size >= 1024 * 1024 for c in chunks[:-1])

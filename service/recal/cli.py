@@ -70,7 +70,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     from recal import sim
     from recal.importer import write_raw_messages
     from recal.io import csv_table
-    from recal.io.recording_writer import RecordingWriter
+    from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 
     rng = np.random.default_rng(a.seed)
     sensor = sim.SensorSpec.random(rng, offset_mg=a.offset_mg, gain_pct=a.gain_pct,
@@ -100,7 +100,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     if out.suffix.lower() == ".csv":
         csv_table.write_raw_csv(out, res.raw)
     else:
-        with RecordingWriter(out, overwrite=True) as w:
+        with RecordingWriter(out, overwrite=True, flush_interval_s=FILE_TO_FILE_FLUSH_S) as w:
             write_raw_messages(w, a.sensor_id, res.raw)
     truth = out.with_suffix(".truth.npz")
     sim.save_truth(truth, res)

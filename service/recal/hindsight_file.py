@@ -172,12 +172,13 @@ def _write_csv(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, ou
 def _write_mcap(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, out: str | Path,
                 overwrite: bool, progress: Callable[[int], None] | None) -> int:
     from recal.io import recording as rec
-    from recal.io.recording_writer import RecordingWriter
+    from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 
     corrected = _Corrected(fit, cfg)
     samples, last_ns = 0, 0
     writer = RecordingWriter(out, chunk_size=1024 * 1024, background_flush=False,
-                             fsync=False, overwrite=overwrite, background_compression=True,
+                             flush_interval_s=FILE_TO_FILE_FLUSH_S, fsync=False,
+                             overwrite=overwrite, background_compression=True,
                              metadata={"hindsight_of": Path(src.name).name})
     try:
         if src.logged is not None:

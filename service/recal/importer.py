@@ -17,7 +17,7 @@ import numpy as np
 from recal.core import timebase as tb
 from recal.errors import UsageError
 from recal.io import csv_table
-from recal.io.recording_writer import RecordingWriter
+from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 from recal.samples import RawBatch
 
 __all__ = ["ImportClock", "import_csv", "write_raw_messages"]
@@ -63,8 +63,8 @@ def import_csv(source: str, out: str, *, units: str | None, rate_hz: float | Non
             batch = clock.step(batch)  # the file's times as they are checked, then this
             if writer is None:
                 table_units, aux_names = table.units, batch.aux_names
-                writer = RecordingWriter(out, overwrite=True,
-                                                   metadata={"units": table.units})
+                writer = RecordingWriter(out, overwrite=True, metadata={"units": table.units},
+                                         flush_interval_s=FILE_TO_FILE_FLUSH_S)
             write_raw_messages(writer, sensor_id, batch)
             samples += len(batch)
     except BaseException:

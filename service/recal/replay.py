@@ -41,7 +41,7 @@ from recal.core.pipeline import Pipeline
 from recal.core.timebase import TimebaseState
 from recal.export import status_line
 from recal.io import recording as rec
-from recal.io.recording_writer import RecordingWriter
+from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 from recal.node import CalibrationNode, NodeSettings, model_name, node_settings
 from recal.samples import RawBatch
 from recal.sinks import RecordingSink
@@ -159,10 +159,12 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     t0 = time.perf_counter()
     runs: dict[str, _SensorRun] = {}
     # Big chunks, compressed on a thread beside the calibration: a replay can be redone, so
-    # it needs no crash-sized chunks or fsyncs.
+    # it needs no crash-sized chunks or fsyncs; chunks end by size alone, never by the wall
+    # clock, so the same input gives the same bytes.
     writer = RecordingWriter(out_mcap, chunk_size=1024 * 1024, background_flush=False,
-                                 fsync=False, overwrite=overwrite, background_compression=True,
-                                 metadata={"replay_of": str(Path(in_mcap).name)})
+                             flush_interval_s=FILE_TO_FILE_FLUSH_S, fsync=False,
+                             overwrite=overwrite, background_compression=True,
+                             metadata={"replay_of": str(Path(in_mcap).name)})
     sink = RecordingSink(writer)
     bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
                disable=not progress, leave=False)

@@ -48,7 +48,7 @@ from recal.io.recording import (
 )
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["RecordingWriter", "WriteHealth"]
+__all__ = ["FILE_TO_FILE_FLUSH_S", "RecordingWriter", "WriteHealth"]
 
 _TOPIC = re.compile(r"/[A-Za-z0-9][A-Za-z0-9_.\-]*/[A-Za-z0-9_.\-]+")
 _SUFFIX_SCHEMAS: dict[str, SchemaSpec] = {
@@ -111,6 +111,12 @@ class WriteHealth:
     dropped_samples: int
     fsync_errors: int
     unfinished: tuple[Path, ...]
+
+
+#: flush_interval_s of a command that converts one file into another (replay, hindsight,
+#: simulate, import): chunks end by size alone, not by the wall clock, so the same input
+#: gives the same bytes on any machine; such a file is made again rather than recovered.
+FILE_TO_FILE_FLUSH_S = float("inf")
 
 
 class RecordingWriter:
@@ -199,7 +205,7 @@ class RecordingWriter:
         self._open_part()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        if background_flush:
+        if background_flush and self._flush_interval_s != float("inf"):  # (never due)
             self._thread = threading.Thread(target=self._flush_loop, name="recal-mcap-flush",
                                             daemon=True)
             self._thread.start()
