@@ -26,10 +26,10 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 
 from __future__ import annotations
 
-import bisect
 import copy
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from itertools import pairwise
 
 import numpy as np
@@ -56,10 +56,11 @@ from recal.core.status import (
     sigma_form,
 )
 from recal.core.triaxial import norm3
+from recal.core.windower import WindowConfig, WindowerState, WindowSums, cut
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent", "WindowSums",
-           "check_channels", "from_state_dict", "gain_reference", "missing_channels", "run_starts",
+__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent",
+           "check_channels", "from_state_dict", "gain_reference", "missing_channels",
            "state_dict", "usable"]
 
 
@@ -119,18 +120,23 @@ class PipelineConfig:
         if self.max_update_interval_s < 0:
             raise ValueError("max_update_interval_s must be >= 0 (0: every try updates)")
 
+    @cached_property
+    def windows(self) -> WindowConfig:
+        """The window rules (`core.windower`)."""
+        return WindowConfig(self.rate_hz, self.window_s, self.guard_s, self.min_fill)
+
     @property
     def min_samples(self) -> float:
         """A window with fewer samples than this (min_fill of its nominal count) is dropped."""
-        return self.min_fill * self.window_s * self.rate_hz
+        return self.windows.min_samples
 
     @property
     def window_us(self) -> int:
-        return round(self.window_s * 1e6)
+        return self.windows.window_us
 
     def commit_us(self, run_start_us: int | np.ndarray, k: int | np.ndarray) -> int | np.ndarray:
         """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
-        return run_start_us + (k + 1) * self.window_us + round(self.guard_s * 1e6)
+        return self.windows.commit_us(run_start_us, k)
 
     def detector(self, s0: float, zero_raw: np.ndarray | Sequence[float] | None = None
                  ) -> det.DetectorConfig:
@@ -204,43 +210,6 @@ class _Marks:
     states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
 
 
-@dataclass(frozen=True, eq=False, slots=True)
-class _Acc:
-    """Running sums of one window (k-th window of a run that started at run_start_us)."""
-
-    run_start_us: int
-    k: int
-    n: int
-    sum_v: np.ndarray
-    sum_v2: np.ndarray
-    sum_aux: np.ndarray
-    sum_t: float
-
-    @classmethod
-    def of(cls, run_start_us: int, k: int, v: np.ndarray, aux: np.ndarray,
-           t_us: np.ndarray) -> _Acc:
-        return cls(run_start_us, k, len(v), v.sum(0), (v * v).sum(0), aux.sum(0),
-                   float((t_us - run_start_us).sum()))
-
-    def merge(self, other: _Acc) -> _Acc:
-        return _Acc(self.run_start_us, self.k, self.n + other.n, self.sum_v + other.sum_v,
-                    self.sum_v2 + other.sum_v2, self.sum_aux + other.sum_aux,
-                    self.sum_t + other.sum_t)
-
-    def to_dict(self) -> dict:
-        return {"run_start_us": self.run_start_us, "k": self.k, "n": self.n,
-                "sum_v": self.sum_v.tolist(), "sum_v2": self.sum_v2.tolist(),
-                "sum_aux": self.sum_aux.tolist(), "sum_t": self.sum_t}
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> _Acc | None:
-        if d is None:
-            return None
-        return cls(int(d["run_start_us"]), int(d["k"]), int(d["n"]),
-                   np.asarray(d["sum_v"], float), np.asarray(d["sum_v2"], float),
-                   np.asarray(d["sum_aux"], float), float(d["sum_t"]))
-
-
 @dataclass(frozen=True, eq=False)
 class _Event:
     """An update inside a batch, with the model and parameters in force from `index` on."""
@@ -263,97 +232,6 @@ class _Segment:
     cov: np.ndarray
     form: np.ndarray | None
     status: Status
-
-
-@dataclass(frozen=True, eq=False)
-class WindowSums:
-    """The running sums of many windows, one row each (what an `_Acc` holds for one): a long
-    run's windows are summed, scheduled and committed as arrays, not one object each."""
-
-    run_start_us: np.ndarray
-    k: np.ndarray
-    n: np.ndarray
-    sum_v: np.ndarray
-    sum_v2: np.ndarray
-    sum_aux: np.ndarray
-    sum_t: np.ndarray
-
-    @classmethod
-    def of_run(cls, run_start_us: int | np.ndarray, k: np.ndarray, starts: list[int] | np.ndarray,
-               v: np.ndarray, aux: np.ndarray, t_us: np.ndarray) -> WindowSums:
-        """Every window of one run (run_start_us: its start) or of several (an array: each
-        sample's run start); starts: each window's first sample. One reduction per quantity."""
-        idx = np.asarray(starts, np.intp)
-        rs = np.broadcast_to(np.asarray(run_start_us, np.int64), t_us.shape)
-        saux = (np.add.reduceat(aux, idx, axis=0) if aux.shape[1]
-                else np.zeros((len(idx), 0)))
-        return cls(rs[idx], k[idx], np.diff(np.append(idx, len(v))),
-                   np.add.reduceat(v, idx, axis=0), np.add.reduceat(v * v, idx, axis=0), saux,
-                   np.add.reduceat(t_us - rs, idx).astype(np.float64))  # exact
-
-    @classmethod
-    def of_accs(cls, accs: list[_Acc], n_aux: int) -> WindowSums:
-        return cls(np.array([a.run_start_us for a in accs], np.int64),
-                   np.array([a.k for a in accs], np.int64),
-                   np.array([a.n for a in accs], np.int64),
-                   np.array([a.sum_v for a in accs]).reshape(-1, 3),
-                   np.array([a.sum_v2 for a in accs]).reshape(-1, 3),
-                   np.array([a.sum_aux for a in accs]).reshape(len(accs), n_aux),
-                   np.array([a.sum_t for a in accs], np.float64))
-
-    @classmethod
-    def gather(cls, parts: list[_Acc | WindowSums], n_aux: int) -> WindowSums:
-        """One table of windows given one by one (`_Acc`) and in blocks, in that order."""
-        blocks: list[WindowSums] = []
-        for part in parts:
-            if isinstance(part, WindowSums):
-                blocks.append(part)
-            elif blocks and isinstance(blocks[-1], list):
-                blocks[-1].append(part)
-            else:
-                blocks.append([part])
-        return cls.concat([b if isinstance(b, WindowSums) else cls.of_accs(b, n_aux)
-                           for b in blocks])
-
-    @classmethod
-    def concat(cls, tables: list[WindowSums]) -> WindowSums:
-        if len(tables) == 1:
-            return tables[0]
-        return cls(*(np.concatenate([getattr(t, f.name) for t in tables])
-                     for f in fields(cls)))
-
-    @classmethod
-    def empty(cls, n_aux: int) -> WindowSums:
-        return cls.of_accs([], n_aux)
-
-    def join(self, first: np.ndarray) -> WindowSums:
-        """Rows first[j]..first[j+1] summed into one each (pieces of one window, in order)."""
-        return WindowSums(self.run_start_us[first], self.k[first],
-                          np.add.reduceat(self.n, first), np.add.reduceat(self.sum_v, first, 0),
-                          np.add.reduceat(self.sum_v2, first, 0),
-                          (np.add.reduceat(self.sum_aux, first, 0) if self.sum_aux.shape[1]
-                           else self.sum_aux[first]), np.add.reduceat(self.sum_t, first))
-
-    def __len__(self) -> int:
-        return len(self.n)
-
-    def acc(self, j: int) -> _Acc:
-        return _Acc(int(self.run_start_us[j]), int(self.k[j]), int(self.n[j]), self.sum_v[j],
-                    self.sum_v2[j], self.sum_aux[j], float(self.sum_t[j]))
-
-    def take(self, rows: np.ndarray) -> WindowSums:
-        return WindowSums(*(getattr(self, f.name)[rows] for f in fields(self)))
-
-    def means(self) -> tuple[Windows, np.ndarray]:
-        """Window means (and the run each belongs to), all at once."""
-        n = self.n
-        nf = n[:, None]
-        v = self.sum_v / nf
-        s2 = np.maximum(self.sum_v2 / nf - v * v, 0.0)
-        # the mean per-axis variance, unbiased
-        var = (s2[:, 0] + s2[:, 1] + s2[:, 2]) / 3 * n / np.maximum(n - 1, 1)
-        t_mid = self.run_start_us + np.rint(self.sum_t / n).astype(np.int64)
-        return Windows(v, self.sum_aux / nf, t_mid, n, var), self.run_start_us
 
 
 @dataclass(eq=False)
@@ -444,10 +322,7 @@ class Pipeline:
         self.det_state: det.DetectorState | None = None
         if prior is not None:
             self._start_detector(model.s0, _zero_of(model, prior.mean))
-        self.open: _Acc | None = None  # window being filled
-        self.pending: tuple[_Acc, int] | None = None  # finished window, commit time (us)
-        self.last_t_us: int | None = None
-        self.last_gate = False
+        self.windower = WindowerState()  # the open and pending windows (`core.windower`)
         self.counts = {"samples": 0, "quasi_static": 0, "windows": 0, "windows_rejected": 0,
                        "updates": 0, "updates_rejected": 0}
         self.last_report: UpdateReport | None = None
@@ -565,8 +440,6 @@ class Pipeline:
         self._segs = []
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
-        self.last_t_us = int(batch.t_us[-1])
-        self.last_gate = bool(gate[-1])
         return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
                           tuple(e.update for e in events), committed,
                           done.states if done is not None else {}, tuple(self._watch_events))
@@ -637,118 +510,14 @@ class Pipeline:
         }
 
     # --- windows -----------------------------------------------------------------------------
-    def _runs(self, t_us: np.ndarray, gate: np.ndarray) -> tuple[list[tuple[int, int]], bool]:
-        """[start, end) ranges of gated samples without time gaps, and whether the first range
-        continues the run that was open at the end of the previous batch."""
-        start = run_starts(t_us, gate, self.last_t_us, self.last_gate, self.cfg.rate_hz)
-        continues = (bool(gate[0]) and not start[0]
-                     and (self.open is not None or self.pending is not None))
-        start[0] = gate[0]  # a range of this batch all the same
-        stops = np.append(np.flatnonzero(~gate | start), len(gate))
-        s_idx = np.flatnonzero(start)
-        ends = stops[np.searchsorted(stops, s_idx, side="right")]
-        return list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues
-
     def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[_Event], int]:
-        """Cut the gated runs into windows and commit the finished ones (see module doc).
+        """Cut the gated runs into windows (`core.windower`) and commit the finished ones.
 
         Which windows finish and when they commit depends on the gates and times alone, so it
-        is worked out first for the whole batch (`_schedule`); committing them then depends on
-        the parameters, which change only at updates (`_commit_all`)."""
-        due, table = self._schedule(b, gate)
-        return self._commit_all(b, due, table), len(table) if table is not None else 0
-
-    def _schedule(self, b: RawBatch, gate: np.ndarray) -> tuple[list[tuple[int, bool]],
-                                                                 WindowSums | None]:
-        """The batch's window events in sample order: (index, True) for a window that
-        commits at sample index, (index, False) for one too short to keep (`_finish`); and
-        the committing windows' sums, in the same order."""
-        due: list[tuple[int, bool]] = []
-        table: list[_Acc | WindowSums] = []
-        runs, continues = self._runs(b.t_us, gate)
-        for r, (i0, i1) in enumerate(runs):
-            if not (r == 0 and continues):
-                self.open, self.pending = None, None
-            self._schedule_run(b, i0, i1, due, table)
-        if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
-            self.open, self.pending = None, None
-        if not runs:
-            self.open, self.pending = None, None
-        return due, WindowSums.gather(table, len(self.aux_names)) if table else None
-
-    def _schedule_run(self, b: RawBatch, i0: int, i1: int, due: list[tuple[int, bool]],
-                      table: list[_Acc | WindowSums]) -> None:
-        """`_schedule` for the run of gated samples i0..i1 (continuing `self.open` and
-        `self.pending` if they are set): windows of window_s from the run's start."""
-        W = self.cfg.window_us
-        run_start = self.open.run_start_us if self.open is not None else (
-            self.pending[0].run_start_us if self.pending is not None else int(b.t_us[i0]))
-        t = b.t_us[i0:i1]
-        k = (t - run_start) // W
-        cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
-        if cuts:
-            sums = WindowSums.of_run(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
-            first = sums.acc(0)
-        else:  # one window (a live sensor's few samples): plain sums
-            first = _Acc.of(run_start, int(k[0]), b.v[i0:i1], b.aux[i0:i1], t)
-        # windows 1.. of a long run at once when none but the last is short (`_tail`)
-        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= self.cfg.min_samples))
-        starts, ends = [0, *cuts], [*cuts, len(t)]
-        for j in range(1 if fast else len(starts)):
-            g0, g1 = starts[j], ends[j]
-            acc = first if j == 0 else sums.acc(j)
-            if self.open is not None and self.open.k == acc.k:
-                acc = self.open.merge(acc)
-            elif self.open is not None:  # the open window ended where this one begins
-                self._finish(self.open, i0 + g0, due)
-            self.open = acc
-            if self.pending is not None:  # commit once the run is guard_s past the window
-                # t rises within a run: the first sample at or past the commit time
-                at = bisect.bisect_left(t, self.pending[1], g0, g1) - g0
-                if at < g1 - g0:
-                    due.append((i0 + g0 + at, True))
-                    table.append(self.pending[0])
-                    self.pending = None
-            if g1 < len(t):  # a later window follows in this run: this one is complete
-                self._finish(self.open, i0 + g1, due)
-                self.open = None
-        if fast:
-            self._tail(sums, cuts, t, i0, due, table)
-
-    def _tail(self, sums: WindowSums, cuts: list[int], t: np.ndarray, i0: int,
-              due: list[tuple[int, bool]], table: list[_Acc | WindowSums]) -> None:
-        """`_schedule`'s loop over windows 1.. of a run (samples i0.., times t, window j
-        from cuts[j-1]), all at once, when every one but the last is long enough to keep:
-        window j is then pending from the start of window j + 1 and commits at its first
-        sample guard_s past its end, or stays pending if window j + 1 is the run's last and
-        ends before that; the last window stays open."""
-        g0 = np.asarray(cuts)
-        g1 = np.append(g0[1:], len(t))
-        # the window pending in each window 1..: the one before it (the first: as it is)
-        commit = np.empty(len(g0), np.int64)
-        commit[1:] = self.cfg.commit_us(sums.run_start_us[1:-1], sums.k[1:-1])
-        commit[0] = self.pending[1] if self.pending is not None else 0
-        at = np.maximum(np.searchsorted(t, commit), g0)
-        if self.pending is None:
-            at[0] = len(t)  # nothing pending: never found
-        found = at < g1
-        due.extend((i0 + a, True) for a in at[found].tolist())
-        if found[0]:
-            table.append(self.pending[0])
-        rows = np.flatnonzero(found[1:]) + 1
-        if len(rows):
-            table.append(sums.take(rows))
-        last = len(g0) - 1
-        self.pending = None if found[last] else (sums.acc(last), int(commit[last]))
-        self.open = sums.acc(len(sums) - 1)
-
-    def _finish(self, acc: _Acc, idx: int, due: list[tuple[int, bool]]) -> None:
-        """A window is complete (seen at sample idx, the next window's first); keep it
-        pending until the guard time has passed."""
-        if acc.n < self.cfg.min_samples:
-            due.append((idx, False))
-            return
-        self.pending = (acc, self.cfg.commit_us(acc.run_start_us, acc.k))
+        is worked out first for the whole batch; committing them then depends on the
+        parameters, which change only at updates (`_commit_all`)."""
+        c, self.windower = cut(self.cfg.windows, self.windower, b.t_us, b.v, b.aux, gate)
+        return self._commit_all(b, c.due, c.sums), c.committed
 
     def _commit_all(self, b: RawBatch, due: list[tuple[int, bool]],
                     table: WindowSums | None) -> list[_Event]:
@@ -1167,22 +936,6 @@ class Pipeline:
 SETTLED_SD_FRACTION = 0.25
 
 
-def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_gate: bool,
-               rate_hz: float) -> np.ndarray:
-    """Where a run of gated samples starts: a gated sample after one that was not, or after a
-    time step that is no step (<= 0) or a gap (> 3 nominal periods). The batch's first sample
-    continues the previous batch's run if that ended gated (prev_gate) one step before it."""
-    prev_t = int(t_us[0]) - 1 if prev_t_us is None else prev_t_us
-    dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
-    dt[0] = int(t_us[0]) - prev_t
-    np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
-    ok_dt = (dt > 0) & (dt <= 3.0e6 / rate_hz)
-    start = gate.copy()
-    start[1:] &= ~gate[:-1] | ~ok_dt[1:]
-    start[0] &= not (prev_gate and ok_dt[0])
-    return start
-
-
 def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
     """The counts per g that gains are reported against (`Pipeline.gain_reference`): the
     prior's nominal sensitivity (model.s0), or without a prior the mean fitted scale."""
@@ -1246,6 +999,7 @@ def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | N
 def state_dict(pipe: Pipeline) -> dict:
     """Everything needed to resume exactly where `pipe` stopped (JSON-able)."""
     rep = pipe.last_report
+    win = pipe.windower.to_dict()
     return {
         "version": 1,
         "config": pipe.cfg.to_dict(),
@@ -1259,13 +1013,12 @@ def state_dict(pipe: Pipeline) -> dict:
         "t0_us": pipe.t0_us,
         "buffer": pipe.buffer.state_dict(),
         "detector": _state_of_detector(pipe.det_cfg, pipe.det_state),
-        "open": pipe.open.to_dict() if pipe.open is not None else None,
-        "pending": ([pipe.pending[0].to_dict(), pipe.pending[1]]
-                    if pipe.pending is not None else None),
+        "open": win["open"],
+        "pending": win["pending"],
         "fresh": [[np.asarray(f[0]).tolist(), np.asarray(f[1]).tolist(), int(f[2]), int(f[3]),
                    float(f[4])] for f in pipe.fresh],
-        "last_t_us": pipe.last_t_us,
-        "last_gate": pipe.last_gate,
+        "last_t_us": win["last_t_us"],
+        "last_gate": win["last_gate"],
         "counts": dict(pipe.counts),
         "last_report": asdict(rep) if rep is not None else None,
         "settled": pipe.settled,
@@ -1299,13 +1052,9 @@ def from_state_dict(d: dict) -> Pipeline:
             int(ds["same_run"]), bool(ds["started"]))
     else:
         pipe.det_cfg = pipe.det_state = None
-    pipe.open = _Acc.from_dict(d["open"])
-    pend = d["pending"]
-    pipe.pending = (_Acc.from_dict(pend[0]), int(pend[1])) if pend is not None else None
+    pipe.windower = WindowerState.from_dict(d)
     pipe.fresh = [(np.asarray(f[0], float), np.asarray(f[1], float), int(f[2]), int(f[3]),
                    float(f[4])) for f in d["fresh"]]
-    pipe.last_t_us = d["last_t_us"]
-    pipe.last_gate = bool(d["last_gate"])
     pipe.counts = dict(d["counts"])
     pipe.settled = bool(d.get("settled", False))
     cov_key = d.get("coverage_at_update")

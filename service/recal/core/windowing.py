@@ -28,13 +28,8 @@ import numpy as np
 from recal.core import detector as det
 from recal.core.buffer import Windows
 from recal.core.model import SensorModel
-from recal.core.pipeline import (
-    PipelineConfig,
-    WindowSums,
-    check_channels,
-    run_starts,
-    usable,
-)
+from recal.core.pipeline import PipelineConfig, check_channels, usable
+from recal.core.windower import WindowSums, run_starts
 from recal.samples import RawBatch, rebatch
 
 __all__ = ["Windowing", "window_means"]

@@ -1,0 +1,362 @@
+"""Cutting gated samples into windows: the one windower of the streaming pipeline and the batch
+windowing (`core.windowing`), so both see the same windows bit for bit for the same batches.
+
+Runs of gated samples without time gaps are cut into windows of window_s from each run's start;
+a window is committed only once its run has gone on guard_s past its end (the detector's
+low-pass reacts ~0.5 s late to the start of a movement) and if it holds min_fill of its nominal
+samples. In the manner of scipy.signal.sosfilt's ``zi``, `cut` takes the state left by the
+previous batch (`WindowerState`: the open window's sums, the pending window and its commit
+time, the last sample's time and gate) and returns the new one: the windows do not depend on
+where the batches end, except in the last bit of a float sum (see docs/design.md).
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from recal.core.buffer import Windows
+
+__all__ = ["Cut", "WindowAcc", "WindowConfig", "WindowSums", "WindowerState", "cut",
+           "run_starts"]
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """The window rules (`PipelineConfig` holds them: rate_hz, window_s, guard_s, min_fill)."""
+
+    rate_hz: float
+    window_s: float
+    guard_s: float
+    min_fill: float
+
+    @property
+    def min_samples(self) -> float:
+        """A window with fewer samples than this (min_fill of its nominal count) is dropped."""
+        return self.min_fill * self.window_s * self.rate_hz
+
+    @property
+    def window_us(self) -> int:
+        return round(self.window_s * 1e6)
+
+    def commit_us(self, run_start_us: int | np.ndarray, k: int | np.ndarray) -> int | np.ndarray:
+        """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
+        return run_start_us + (k + 1) * self.window_us + round(self.guard_s * 1e6)
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class WindowAcc:
+    """Running sums of one window (k-th window of a run that started at run_start_us)."""
+
+    run_start_us: int
+    k: int
+    n: int
+    sum_v: np.ndarray
+    sum_v2: np.ndarray
+    sum_aux: np.ndarray
+    sum_t: float
+
+    @classmethod
+    def of(cls, run_start_us: int, k: int, v: np.ndarray, aux: np.ndarray,
+           t_us: np.ndarray) -> WindowAcc:
+        return cls(run_start_us, k, len(v), v.sum(0), (v * v).sum(0), aux.sum(0),
+                   float((t_us - run_start_us).sum()))
+
+    def merge(self, other: WindowAcc) -> WindowAcc:
+        return WindowAcc(self.run_start_us, self.k, self.n + other.n, self.sum_v + other.sum_v,
+                    self.sum_v2 + other.sum_v2, self.sum_aux + other.sum_aux,
+                    self.sum_t + other.sum_t)
+
+    def to_dict(self) -> dict:
+        return {"run_start_us": self.run_start_us, "k": self.k, "n": self.n,
+                "sum_v": self.sum_v.tolist(), "sum_v2": self.sum_v2.tolist(),
+                "sum_aux": self.sum_aux.tolist(), "sum_t": self.sum_t}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> WindowAcc | None:
+        if d is None:
+            return None
+        return cls(int(d["run_start_us"]), int(d["k"]), int(d["n"]),
+                   np.asarray(d["sum_v"], float), np.asarray(d["sum_v2"], float),
+                   np.asarray(d["sum_aux"], float), float(d["sum_t"]))
+
+
+
+@dataclass(frozen=True, eq=False)
+class WindowSums:
+    """The running sums of many windows, one row each (what an `WindowAcc` holds for one): a long
+    run's windows are summed, scheduled and committed as arrays, not one object each."""
+
+    run_start_us: np.ndarray
+    k: np.ndarray
+    n: np.ndarray
+    sum_v: np.ndarray
+    sum_v2: np.ndarray
+    sum_aux: np.ndarray
+    sum_t: np.ndarray
+
+    @classmethod
+    def of_run(cls, run_start_us: int | np.ndarray, k: np.ndarray, starts: list[int] | np.ndarray,
+               v: np.ndarray, aux: np.ndarray, t_us: np.ndarray) -> WindowSums:
+        """Every window of one run (run_start_us: its start) or of several (an array: each
+        sample's run start); starts: each window's first sample. One reduction per quantity."""
+        idx = np.asarray(starts, np.intp)
+        rs = np.broadcast_to(np.asarray(run_start_us, np.int64), t_us.shape)
+        saux = (np.add.reduceat(aux, idx, axis=0) if aux.shape[1]
+                else np.zeros((len(idx), 0)))
+        return cls(rs[idx], k[idx], np.diff(np.append(idx, len(v))),
+                   np.add.reduceat(v, idx, axis=0), np.add.reduceat(v * v, idx, axis=0), saux,
+                   np.add.reduceat(t_us - rs, idx).astype(np.float64))  # exact
+
+    @classmethod
+    def of_accs(cls, accs: list[WindowAcc], n_aux: int) -> WindowSums:
+        return cls(np.array([a.run_start_us for a in accs], np.int64),
+                   np.array([a.k for a in accs], np.int64),
+                   np.array([a.n for a in accs], np.int64),
+                   np.array([a.sum_v for a in accs]).reshape(-1, 3),
+                   np.array([a.sum_v2 for a in accs]).reshape(-1, 3),
+                   np.array([a.sum_aux for a in accs]).reshape(len(accs), n_aux),
+                   np.array([a.sum_t for a in accs], np.float64))
+
+    @classmethod
+    def gather(cls, parts: list[WindowAcc | WindowSums], n_aux: int) -> WindowSums:
+        """One table of windows given one by one (`WindowAcc`) and in blocks, in that order."""
+        blocks: list[WindowSums] = []
+        for part in parts:
+            if isinstance(part, WindowSums):
+                blocks.append(part)
+            elif blocks and isinstance(blocks[-1], list):
+                blocks[-1].append(part)
+            else:
+                blocks.append([part])
+        return cls.concat([b if isinstance(b, WindowSums) else cls.of_accs(b, n_aux)
+                           for b in blocks])
+
+    @classmethod
+    def concat(cls, tables: list[WindowSums]) -> WindowSums:
+        if len(tables) == 1:
+            return tables[0]
+        return cls(*(np.concatenate([getattr(t, f.name) for t in tables])
+                     for f in fields(cls)))
+
+    @classmethod
+    def empty(cls, n_aux: int) -> WindowSums:
+        return cls.of_accs([], n_aux)
+
+    def join(self, first: np.ndarray) -> WindowSums:
+        """Rows first[j]..first[j+1] summed into one each (pieces of one window, in order)."""
+        return WindowSums(self.run_start_us[first], self.k[first],
+                          np.add.reduceat(self.n, first), np.add.reduceat(self.sum_v, first, 0),
+                          np.add.reduceat(self.sum_v2, first, 0),
+                          (np.add.reduceat(self.sum_aux, first, 0) if self.sum_aux.shape[1]
+                           else self.sum_aux[first]), np.add.reduceat(self.sum_t, first))
+
+    def __len__(self) -> int:
+        return len(self.n)
+
+    def acc(self, j: int) -> WindowAcc:
+        return WindowAcc(int(self.run_start_us[j]), int(self.k[j]), int(self.n[j]), self.sum_v[j],
+                    self.sum_v2[j], self.sum_aux[j], float(self.sum_t[j]))
+
+    def take(self, rows: np.ndarray) -> WindowSums:
+        return WindowSums(*(getattr(self, f.name)[rows] for f in fields(self)))
+
+    def means(self) -> tuple[Windows, np.ndarray]:
+        """Window means (and the run each belongs to), all at once."""
+        n = self.n
+        nf = n[:, None]
+        v = self.sum_v / nf
+        s2 = np.maximum(self.sum_v2 / nf - v * v, 0.0)
+        # the mean per-axis variance, unbiased
+        var = (s2[:, 0] + s2[:, 1] + s2[:, 2]) / 3 * n / np.maximum(n - 1, 1)
+        t_mid = self.run_start_us + np.rint(self.sum_t / n).astype(np.int64)
+        return Windows(v, self.sum_aux / nf, t_mid, n, var), self.run_start_us
+
+
+
+
+@dataclass(frozen=True, eq=False)
+class WindowerState:
+    """What the windower carries from one batch to the next.
+
+    Attributes:
+        open: the window being filled (None: no run open at the last batch's end).
+        pending: a finished window and the device time it commits at (guard_s past its end).
+        last_t_us, last_gate: the last sample's time and gate (a run may continue).
+    """
+
+    open: WindowAcc | None = None
+    pending: tuple[WindowAcc, int] | None = None
+    last_t_us: int | None = None
+    last_gate: bool = False
+
+    def to_dict(self) -> dict:
+        """The checkpoint's keys, in its order."""
+        return {"open": self.open.to_dict() if self.open is not None else None,
+                "pending": ([self.pending[0].to_dict(), self.pending[1]]
+                            if self.pending is not None else None),
+                "last_t_us": self.last_t_us, "last_gate": self.last_gate}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> WindowerState:
+        pend = d["pending"]
+        return cls(WindowAcc.from_dict(d["open"]),
+                   (WindowAcc.from_dict(pend[0]), int(pend[1])) if pend is not None else None,
+                   d["last_t_us"], bool(d["last_gate"]))
+
+
+@dataclass(frozen=True, eq=False)
+class Cut:
+    """One batch's window events in sample order: (index, True) for a window that commits at
+    sample index, (index, False) for one too short to keep; and the committing windows' sums,
+    in the same order (None: none commits)."""
+
+    due: list[tuple[int, bool]]
+    sums: WindowSums | None
+
+    @property
+    def committed(self) -> int:
+        return len(self.sums) if self.sums is not None else 0
+
+
+def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray,
+        aux: np.ndarray, gate: np.ndarray) -> tuple[Cut, WindowerState]:
+    """The batch's windows (samples t_us, v, aux; `gate`: which may enter one), and the state
+    for the next batch. Pure: ``state`` is not changed."""
+    c = _Cutter(cfg, state.open, state.pending, [], [])
+    c.schedule(t_us, v, aux, gate, state.last_t_us, state.last_gate)
+    table = WindowSums.gather(c.table, aux.shape[1]) if c.table else None
+    return Cut(c.due, table), WindowerState(c.open, c.pending, int(t_us[-1]), bool(gate[-1]))
+
+
+@dataclass(eq=False)
+class _Cutter:
+    """`cut`'s working state while it walks the batch's runs."""
+
+    cfg: WindowConfig
+    open: WindowAcc | None
+    pending: tuple[WindowAcc, int] | None
+    due: list[tuple[int, bool]]
+    table: list[WindowAcc | WindowSums]
+
+    def runs(self, t_us: np.ndarray, gate: np.ndarray, last_t_us: int | None, last_gate: bool
+             ) -> tuple[list[tuple[int, int]], bool]:
+        """[start, end) ranges of gated samples without time gaps, and whether the first range
+        continues the run that was open at the end of the previous batch."""
+        start = run_starts(t_us, gate, last_t_us, last_gate, self.cfg.rate_hz)
+        continues = (bool(gate[0]) and not start[0]
+                     and (self.open is not None or self.pending is not None))
+        start[0] = gate[0]  # a range of this batch all the same
+        stops = np.append(np.flatnonzero(~gate | start), len(gate))
+        s_idx = np.flatnonzero(start)
+        ends = stops[np.searchsorted(stops, s_idx, side="right")]
+        return list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues
+
+    def schedule(self, t_us: np.ndarray, v: np.ndarray, aux: np.ndarray, gate: np.ndarray,
+                 last_t_us: int | None, last_gate: bool) -> None:
+        """Every run of the batch in turn (`cut`); a run that ended drops its open window."""
+        runs, continues = self.runs(t_us, gate, last_t_us, last_gate)
+        for r, (i0, i1) in enumerate(runs):
+            if not (r == 0 and continues):
+                self.open, self.pending = None, None
+            self.schedule_run(t_us, v, aux, i0, i1)
+        if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
+            self.open, self.pending = None, None
+        if not runs:
+            self.open, self.pending = None, None
+
+    def schedule_run(self, t_us: np.ndarray, v: np.ndarray, aux: np.ndarray, i0: int,
+                     i1: int) -> None:
+        """`schedule` for the run of gated samples i0..i1 (continuing `self.open` and
+        `self.pending` if they are set): windows of window_s from the run's start."""
+        W = self.cfg.window_us
+        run_start = self.open.run_start_us if self.open is not None else (
+            self.pending[0].run_start_us if self.pending is not None else int(t_us[i0]))
+        t = t_us[i0:i1]
+        k = (t - run_start) // W
+        cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
+        if cuts:
+            sums = WindowSums.of_run(run_start, k, [0, *cuts], v[i0:i1], aux[i0:i1], t)
+            first = sums.acc(0)
+        else:  # one window (a live sensor's few samples): plain sums
+            first = WindowAcc.of(run_start, int(k[0]), v[i0:i1], aux[i0:i1], t)
+        # windows 1.. of a long run at once when none but the last is short (`_tail`)
+        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= self.cfg.min_samples))
+        starts, ends = [0, *cuts], [*cuts, len(t)]
+        due, table = self.due, self.table
+        for j in range(1 if fast else len(starts)):
+            g0, g1 = starts[j], ends[j]
+            acc = first if j == 0 else sums.acc(j)
+            if self.open is not None and self.open.k == acc.k:
+                acc = self.open.merge(acc)
+            elif self.open is not None:  # the open window ended where this one begins
+                self._finish(self.open, i0 + g0)
+            self.open = acc
+            if self.pending is not None:  # commit once the run is guard_s past the window
+                # t rises within a run: the first sample at or past the commit time
+                at = bisect.bisect_left(t, self.pending[1], g0, g1) - g0
+                if at < g1 - g0:
+                    due.append((i0 + g0 + at, True))
+                    table.append(self.pending[0])
+                    self.pending = None
+            if g1 < len(t):  # a later window follows in this run: this one is complete
+                self._finish(self.open, i0 + g1)
+                self.open = None
+        if fast:
+            self._tail(sums, cuts, t, i0)
+
+    def _tail(self, sums: WindowSums, cuts: list[int], t: np.ndarray, i0: int) -> None:
+        """`schedule_run`'s loop over windows 1.. of a run (samples i0.., times t, window j
+        from cuts[j-1]), all at once, when every one but the last is long enough to keep:
+        window j is then pending from the start of window j + 1 and commits at its first
+        sample guard_s past its end, or stays pending if window j + 1 is the run's last and
+        ends before that; the last window stays open."""
+        g0 = np.asarray(cuts)
+        g1 = np.append(g0[1:], len(t))
+        # the window pending in each window 1..: the one before it (the first: as it is)
+        commit = np.empty(len(g0), np.int64)
+        commit[1:] = self.cfg.commit_us(sums.run_start_us[1:-1], sums.k[1:-1])
+        commit[0] = self.pending[1] if self.pending is not None else 0
+        at = np.maximum(np.searchsorted(t, commit), g0)
+        if self.pending is None:
+            at[0] = len(t)  # nothing pending: never found
+        found = at < g1
+        due, table = self.due, self.table
+        due.extend((i0 + a, True) for a in at[found].tolist())
+        if found[0]:
+            table.append(self.pending[0])
+        rows = np.flatnonzero(found[1:]) + 1
+        if len(rows):
+            table.append(sums.take(rows))
+        last = len(g0) - 1
+        self.pending = None if found[last] else (sums.acc(last), int(commit[last]))
+        self.open = sums.acc(len(sums) - 1)
+
+    def _finish(self, acc: WindowAcc, idx: int) -> None:
+        """A window is complete (seen at sample idx, the next window's first); keep it
+        pending until the guard time has passed."""
+        if acc.n < self.cfg.min_samples:
+            self.due.append((idx, False))
+            return
+        self.pending = (acc, self.cfg.commit_us(acc.run_start_us, acc.k))
+
+
+
+def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_gate: bool,
+               rate_hz: float) -> np.ndarray:
+    """Where a run of gated samples starts: a gated sample after one that was not, or after a
+    time step that is no step (<= 0) or a gap (> 3 nominal periods). The batch's first sample
+    continues the previous batch's run if that ended gated (prev_gate) one step before it."""
+    prev_t = int(t_us[0]) - 1 if prev_t_us is None else prev_t_us
+    dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
+    dt[0] = int(t_us[0]) - prev_t
+    np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
+    ok_dt = (dt > 0) & (dt <= 3.0e6 / rate_hz)
+    start = gate.copy()
+    start[1:] &= ~gate[:-1] | ~ok_dt[1:]
+    start[0] &= not (prev_gate and ok_dt[0])
+    return start
+
+
