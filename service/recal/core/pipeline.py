@@ -43,11 +43,17 @@ from recal.core.estimator import (
     EstimatorConfig,
     Prior,
     UpdateReport,
-    consistent_many,
     innovations,
     update,
 )
 from recal.core.model import SensorModel
+from recal.core.refit import (
+    RefitState,
+    WindowChunk,
+    after_update,
+    must_update,
+    next_update,
+)
 from recal.core.status import (
     JUMP_REPEAT_S,
     Status,
@@ -234,55 +240,6 @@ class _Segment:
     status: Status
 
 
-@dataclass(eq=False)
-class _Chunk:
-    """Windows lo..lo+len of a batch's windows (`WindowSums.means`) under the parameters in force:
-    their norm gate, gravity directions and cells, worked out at once. Most end early, at an
-    update that changes the parameters, so `Pipeline._commit_all` takes them in chunks that
-    double (64, 128, ...) while the parameters hold; `rows` hands the buffer, which takes
-    windows one at a time, those it reaches as Python numbers. The innovations of the windows
-    that pass the gate are computed when a consistency test first asks (`Pipeline._scan`)."""
-
-    lo: int
-    w: Windows
-    ok: np.ndarray
-    dirs: np.ndarray
-    runs: np.ndarray
-    cells: np.ndarray
-    z: np.ndarray | None = None
-
-    @classmethod
-    def of(cls, pipe: Pipeline, w: Windows, runs: np.ndarray, lo: int, hi: int) -> _Chunk:
-        s = slice(lo, hi)
-        mine = Windows(w.v[s], w.aux[s], w.t_us[s], w.n[s], w.var[s])
-        a = pipe.model.correct(pipe.params, mine.v, pipe.covariates(mine.t_us, mine.aux))
-        norm = norm3(a)
-        ok = (np.abs(norm - 1.0) <= pipe.cfg.norm_tol_g if pipe.bootstrapped
-              else np.ones(len(a), bool))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dirs = np.where((norm > 0)[:, None], a / norm[:, None], [0.0, 0.0, 1.0])
-        return cls(lo, mine, ok, dirs, runs[s], cell_of(dirs, pipe.cfg.buffer.grid))
-
-    def __len__(self) -> int:
-        return len(self.ok)
-
-    def rows(self, c0: int, c1: int) -> list[tuple]:
-        """(ok, v, aux, t_us, n, var, dir, run, cell) of the batch's windows c0..c1."""
-        s, w = slice(c0 - self.lo, c1 - self.lo), self.w
-        return list(zip(self.ok[s].tolist(), w.v[s].tolist(), w.aux[s].tolist(),
-                        w.t_us[s].tolist(), w.n[s].tolist(), w.var[s].tolist(),
-                        self.dirs[s].tolist(), self.runs[s].tolist(), self.cells[s].tolist(),
-                        strict=True))
-
-    def innovations(self, pipe: Pipeline) -> np.ndarray:
-        """`estimator.innovations` of the chunk's windows that pass the gate, in order."""
-        if self.z is None:
-            w = self.w
-            self.z = innovations(pipe.model, pipe.estimate, w, pipe.covariates(w.t_us, w.aux),
-                                 pipe.cfg.estimator)[self.ok]
-        return self.z
-
-
 class Pipeline:
     """Detector -> windows -> buffer -> estimator -> correction, for one sensor.
 
@@ -326,11 +283,7 @@ class Pipeline:
         self.counts = {"samples": 0, "quasi_static": 0, "windows": 0, "windows_rejected": 0,
                        "updates": 0, "updates_rejected": 0}
         self.last_report: UpdateReport | None = None
-        # what the last update saw, to skip re-fits that would not move it (`_scan`)
-        self.settled = False
-        self.coverage_at_update: int | None = None
-        # fresh windows tested so far, and the sums of their normalized innovations
-        self.tested = (0, 0.0, 0.0)
+        self.refit = RefitState()  # what the last update saw (`core.refit`)
         self._marks: _Marks | None = None  # only during a step with marks
         # data informed the estimate (an accepted update observed a parameter): `status`
         self.informed = False
@@ -523,7 +476,7 @@ class Pipeline:
                     table: WindowSums | None) -> list[_Event]:
         """Commit the scheduled windows in order. Between updates the parameters hold, so the
         norm gate, directions and cells of the windows are worked out a chunk at a time
-        (`_Chunk`), and `_scan` finds the next window after which an update runs from the
+        (`refit.WindowChunk`), and `_scan` finds the next window after which an update runs from the
         chunk's arrays; the windows before it only enter the buffer (`_enter`)."""
         events: list[_Event] = []
         at = [idx for idx, window in due if window]  # commit sample of each window
@@ -535,7 +488,10 @@ class Pipeline:
             while c < len(table):
                 if chunk is None or c >= chunk.lo + len(chunk):
                     size = min(len(table) - c, max(64, 2 * size))
-                    chunk = _Chunk.of(self, w, runs, c, c + size)
+                    chunk = WindowChunk.of(
+                        self.model, self.params, self.covariates,
+                        self.cfg.norm_tol_g if self.bootstrapped else None,
+                        self.cfg.buffer.grid, w, runs, c, c + size)
                 e = self._scan(chunk, c, b.t_us, at)
                 stop = chunk.lo + len(chunk) if e is None else e + 1
                 done, opened = self._enter(chunk, c, stop, due, slot, done)
@@ -562,7 +518,7 @@ class Pipeline:
         self._reject_short(due, done, len(due))
         return events
 
-    def _enter(self, chunk: _Chunk, c0: int, c1: int, due: list[tuple[int, bool]],
+    def _enter(self, chunk: WindowChunk, c0: int, c1: int, due: list[tuple[int, bool]],
                slot: list[int], done: int) -> tuple[int, int | None]:
         """Windows c0..c1 of the batch enter the buffer (or count as rejected by their norm),
         each after the short windows scheduled before it. Returns the due entries handled,
@@ -593,7 +549,7 @@ class Pipeline:
             if not watch and self._segs and self._segs[-1].status is Status.UNCALIBRATED:
                 self._segs.append(self._segment(due[slot[c]][0]))  # now bootstrapping
             if (watch and counts["windows"] % ue == 0
-                    and buf.cells_opened != self.coverage_at_update):
+                    and buf.cells_opened != self.refit.coverage_at_update):
                 return done, c
         return done, None
 
@@ -654,7 +610,7 @@ class Pipeline:
             "reason": reason, "windows": len(recent), "refitted": kept,
             "resets": self.watch.triggers,
             "params_before": self.model.params_dict(before.p) if before is not None else None}))
-        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        self.fresh, self.refit = [], self.refit.restarted()
         if len(recent) >= self.cfg.estimator.min_windows and 2 * kept < len(recent):
             # the prior does not fit most of them either (a sensor far from the datasheet):
             # no estimate, a bootstrap from the data (`_try_bootstrap`), these windows first
@@ -703,7 +659,7 @@ class Pipeline:
         usable_prior = (prior is not None and np.isfinite(prior.mean).all()
                         and np.isfinite(prior.info).all())
         self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
-        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        self.fresh, self.refit = [], self.refit.restarted()
         self.informed, self.watch = False, Watch()
         if usable_prior:
             assert prior is not None
@@ -727,73 +683,29 @@ class Pipeline:
             self.counts["windows_rejected"] += max(stop - done, 0)
         return max(done, stop)
 
-    def _scan(self, chunk: _Chunk, c0: int, t_us: np.ndarray, at: list[int]) -> int | None:
-        """The first window from c0 in the chunk after which an update runs. None: none in it.
-
-        Before the bootstrap, every window that passes the norm gate (`_try_bootstrap`
-        decides). After it, every update_every-th one, but only if a re-fit can tell
-        anything new: most of a day's windows repeat what the buffer already says, and a
-        re-fit is the core's main cost. It runs when the estimate has not settled (the last
-        update moved it), max_update_interval_s of device time passed since the last accepted
-        update, the windows since then disagree with the estimate (a knock, a drift:
-        `consistent`; each test on the way is recorded in `self.tested`, as the windows come),
-        or the buffer covers a new cell or half-axis (`_enter` sees that, as the buffer
-        places each window)."""
-        i0 = c0 - chunk.lo
-        ok = chunk.ok[i0:]
+    def _scan(self, chunk: WindowChunk, c0: int, t_us: np.ndarray, at: list[int]) -> int | None:
+        """The first window from c0 in the chunk after which an update runs (`core.refit`).
+        None: none in it. Before the bootstrap: every window that passes the norm gate."""
         if not self.bootstrapped:
-            hits = np.flatnonzero(ok)
+            hits = np.flatnonzero(chunk.ok[c0 - chunk.lo:])
             return int(hits[0]) + c0 if len(hits) else None
-        ue = self.cfg.update_every
-        cum = np.cumsum(ok)  # windows of the chunk from c0 that pass, up to each
-        checks = np.flatnonzero(ok & ((self.counts["windows"] + cum) % ue == 0))
-        if not len(checks):
-            return None
-        if self._must_update():
-            return int(checks[0]) + c0
-        n_before = int(np.count_nonzero(chunk.ok[:i0]))  # the chunk's windows already entered
-        in_fresh = len(self.fresh) - n_before  # fresh windows from before the chunk
-        late = (t_us[np.asarray(at[c0:c0 + len(ok)])[checks]] - self.estimate.t_us
-                >= self.cfg.max_update_interval_s * 1e6)
-        first_late = int(np.argmax(late)) if late.any() else len(checks)  # no test there
-        upto = n_before + cum[checks]  # the chunk's windows that passed, up to each check
-        first = self._test_until(chunk, in_fresh, upto, stop=first_late)
-        return int(checks[first]) + c0 if first < len(checks) else None
+        est, cfg = self.estimate, self.cfg
+        assert est is not None
 
-    def _must_update(self) -> bool:
-        """An update runs at the next try, whatever the windows say (`_scan`)."""
-        est = self.estimate
-        return (self.cfg.max_update_interval_s <= 0 or est is None or est.t_us is None
-                or not self.settled)
+        def late(checks: np.ndarray) -> np.ndarray:
+            return (t_us[np.asarray(at[c0:c0 + len(chunk) - (c0 - chunk.lo)])[checks]]
+                    - est.t_us >= cfg.max_update_interval_s * 1e6)
 
-    def _test_until(self, chunk: _Chunk, in_fresh: int, upto: np.ndarray, stop: int) -> int:
-        """The consistency tests (`consistent`: a re-fit would not move the estimate) at the
-        first `stop` checks, check j testing the fresh windows through the chunk's upto[j]-th
-        window that passed the gate (in_fresh came before the chunk): the first that fails
-        (or stop). The tests up to it are recorded in `self.tested`, as if run one by one:
-        each check's sums are added to the running ones in order."""
-        if stop == 0:
-            return 0
-        m, s2, s1 = self.tested
-        before = max(in_fresh - m, 0)  # untested windows from before the chunk
-        tested = max(m - in_fresh, 0)  # the chunk's windows tested already
-        z = []
-        if before:  # tested with the chunk's own
-            w = self._fresh_windows(m, in_fresh)
-            z.append(innovations(self.model, self.estimate, w, self.covariates(w.t_us, w.aux),
-                                 self.cfg.estimator))
-        z.append(chunk.innovations(self)[tested:int(upto[stop - 1])])
-        zz = np.concatenate(z)
-        ends = before + upto[:stop] - tested  # each check's last window in zz, plus one
-        starts = np.concatenate(([0], ends[:-1]))
-        # each check's windows summed in order, then the checks one after another
-        ms = m + ends
-        s2s = np.cumsum(np.concatenate(([s2], np.add.reduceat(zz * zz, starts))))[1:]
-        s1s = np.cumsum(np.concatenate(([s1], np.add.reduceat(zz, starts))))[1:]
-        ok = consistent_many(ms, s2s, s1s)
-        j = int(np.argmin(ok)) if not ok.all() else stop - 1
-        self.tested = (int(ms[j]), float(s2s[j]), float(s1s[j]))
-        return j if not ok[j] else stop
+        def z_fresh(m0: int, m1: int) -> np.ndarray:
+            w = self._fresh_windows(m0, m1)
+            return innovations(self.model, est, w, self.covariates(w.t_us, w.aux), cfg.estimator)
+
+        e, self.refit = next_update(
+            self.refit, chunk, c0, windows=self.counts["windows"], update_every=cfg.update_every,
+            must=must_update(self.refit, est, cfg.max_update_interval_s), n_fresh=len(self.fresh),
+            late=late, z_fresh=z_fresh,
+            z_chunk=lambda: chunk.innovations(self.model, est, self.covariates, cfg.estimator))
+        return e
 
     # --- estimation --------------------------------------------------------------------------
     def _update(self, idx: int, now_us: int, windows: Windows | None = None) -> UpdateEvent:
@@ -805,13 +717,11 @@ class Pipeline:
         before = self.estimate
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
                                     self.cfg.estimator)
-        self.settled = rep.accepted and _settled(before, self.estimate)
+        self.refit = after_update(before, self.estimate, rep.accepted, self.buffer.cells_opened)
         if rep.accepted:
             self._watch_jump(before, idx, now_us)
         if rep.accepted and any(rep.observable):
             self.informed = True
-        self.coverage_at_update = self.buffer.cells_opened
-        self.tested = (0, 0.0, 0.0)
         self.counts["updates"] += 1
         if not rep.accepted:
             self.counts["updates_rejected"] += 1
@@ -929,13 +839,6 @@ class Pipeline:
         self.det_state = det.init_state(self.det_cfg)
 
 
-#: An update that moved no parameter by more than this fraction of its standard deviation
-#: leaves the estimate settled: later windows that agree with it need no re-fit. At 0.1 a
-#: 24 h wearer re-fitted 694 times, mostly to confirm moves far below the noise; at 0.25, 423
-#: times, with the drift cases of bench/in_use_accuracy.py at 1.26-1.44 mg (1.20-1.40 at 0.1).
-SETTLED_SD_FRACTION = 0.25
-
-
 def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
     """The counts per g that gains are reported against (`Pipeline.gain_reference`): the
     prior's nominal sensitivity (model.s0), or without a prior the mean fitted scale."""
@@ -982,11 +885,6 @@ def usable(gate: np.ndarray, b: RawBatch, model: SensorModel) -> np.ndarray:
     return gate
 
 
-def _settled(before: Estimate, after: Estimate) -> bool:
-    sd = np.sqrt(np.clip(np.diag(after.cov), 1e-300, None))
-    return bool(np.all(np.abs(after.p - before.p) <= SETTLED_SD_FRACTION * sd))
-
-
 def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | None) -> dict | None:
     if cfg is None or st is None:
         return None
@@ -1021,9 +919,7 @@ def state_dict(pipe: Pipeline) -> dict:
         "last_gate": win["last_gate"],
         "counts": dict(pipe.counts),
         "last_report": asdict(rep) if rep is not None else None,
-        "settled": pipe.settled,
-        "coverage_at_update": pipe.coverage_at_update,
-        "tested": list(pipe.tested),
+        **pipe.refit.to_dict(),
         "informed": pipe.informed,
         "watch": pipe.watch.to_dict(),
     }
@@ -1056,11 +952,7 @@ def from_state_dict(d: dict) -> Pipeline:
     pipe.fresh = [(np.asarray(f[0], float), np.asarray(f[1], float), int(f[2]), int(f[3]),
                    float(f[4])) for f in d["fresh"]]
     pipe.counts = dict(d["counts"])
-    pipe.settled = bool(d.get("settled", False))
-    cov_key = d.get("coverage_at_update")
-    pipe.coverage_at_update = int(cov_key) if cov_key is not None else None
-    m, s2, s1 = d.get("tested", (0, 0.0, 0.0))
-    pipe.tested = (int(m), float(s2), float(s1))
+    pipe.refit = RefitState.from_dict(d)
     informed = d.get("informed")  # absent in checkpoints from before statuses
     pipe.informed = (bool(informed) if informed is not None
                      else pipe.estimate is not None and pipe.estimate.t_us is not None)
