@@ -26,11 +26,11 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 
 from __future__ import annotations
 
+import bisect
 import copy
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
-from itertools import pairwise
 
 import numpy as np
 
@@ -63,6 +63,7 @@ from recal.core.status import (
 )
 from recal.core.triaxial import norm3
 from recal.core.windower import WindowConfig, WindowerState, WindowSums, cut
+from recal.errors import ConfigError, InputError, ModelError
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent",
@@ -107,24 +108,24 @@ class PipelineConfig:
 
     def __post_init__(self) -> None:
         if not 0 < self.guard_s < self.window_s:
-            raise ValueError("guard_s must be positive and shorter than window_s")
+            raise ConfigError("guard_s must be positive and shorter than window_s")
         if self.rate_hz <= 0:
-            raise ValueError("rate_hz must be positive")
+            raise ConfigError("rate_hz must be positive")
         positive = {"threshold_g": self.threshold_g, "flat_s": self.flat_s,
                     "norm_tol_g": self.norm_tol_g, "full_scale_g": self.full_scale_g or 1.0}
         bad = [k for k, v in positive.items() if not v > 0]  # inf: no limit (window_means)
         if bad:
-            raise ValueError(f"{', '.join(bad)} must be positive")
+            raise ConfigError(f"{', '.join(bad)} must be positive")
         nyquist = self.rate_hz / 2
         if not (0 < self.hp_hz < nyquist and 0 < self.lp_hz < nyquist):
-            raise ValueError(f"hp_hz and lp_hz must lie between 0 and half the sample rate "
+            raise ConfigError(f"hp_hz and lp_hz must lie between 0 and half the sample rate "
                              f"({nyquist:g} Hz)")
         if not 0 < self.min_fill <= 1:
-            raise ValueError("min_fill must be in (0, 1]")
+            raise ConfigError("min_fill must be in (0, 1]")
         if self.update_every < 1 or self.bootstrap_min_cells < 1:
-            raise ValueError("update_every and bootstrap_min_cells must be at least 1")
+            raise ConfigError("update_every and bootstrap_min_cells must be at least 1")
         if self.max_update_interval_s < 0:
-            raise ValueError("max_update_interval_s must be >= 0 (0: every try updates)")
+            raise ConfigError("max_update_interval_s must be >= 0 (0: every try updates)")
 
     @cached_property
     def windows(self) -> WindowConfig:
@@ -193,27 +194,61 @@ class WatchEvent:
 
 @dataclass(frozen=True, eq=False)
 class StepOutput:
-    """What one step produced. ``states``: for each mark given to `Pipeline.step` whose
-    stretch since the previous mark holds an update, the model and `Pipeline.summary()` as
-    they were after that many samples. ``watch``: the self-watch's events, in order."""
+    """What one batch produced (`Pipeline.step`, `Pipeline.step_many`): its calibrated samples,
+    the updates and the self-watch's events in it (indices into the batch, in order), the
+    windows committed in it; and the state as of the batch's end: the model and estimate in
+    force, and ``state``, the model and `Pipeline.summary()` then when the batch holds an
+    update or a reset (`step_many` only: after `step` the pipeline's own summary is that)."""
 
     calibrated: CalibratedBatch
     updates: tuple[UpdateEvent, ...]
     windows_committed: int
-    states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
     watch: tuple[WatchEvent, ...] = ()
+    model: SensorModel | None = None
+    estimate: Estimate | None = None
+    state: tuple[SensorModel, dict] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class _AtMark:
+    """The state after a mark's samples (`Pipeline.step_many`); summary: only when an update
+    or a reset happened since the previous mark."""
+
+    model: SensorModel
+    estimate: Estimate | None
+    summary: dict | None
 
 
 @dataclass(eq=False)
 class _Marks:
-    """Sample counts into the current batch at which the caller wants the state (see step)."""
+    """Sample counts into the current joined batch at which `step_many` wants the state."""
 
     todo: list[int]
     gate: np.ndarray
     samples0: int
     quasi_static0: int
     dirty: bool = False  # an update happened since the last mark passed
-    states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
+    at: dict[int, _AtMark] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class _Stepped:
+    """One internal step's output over a (possibly joined) batch: `StepOutput`'s, with the
+    sample index of each committed window and the state at each mark."""
+
+    calibrated: CalibratedBatch
+    updates: tuple[UpdateEvent, ...]
+    commits: list[int]
+    watch: tuple[WatchEvent, ...]
+    marks: dict[int, _AtMark]
+
+    def joined(self, tail: _Stepped, at: int) -> _Stepped:
+        """This step's output for the first `at` samples, then `tail`'s for the rest."""
+        return _Stepped(CalibratedBatch.concat([self.calibrated, tail.calibrated]),
+                        (*self.updates, *(replace(u, index=u.index + at) for u in tail.updates)),
+                        [*self.commits, *(c + at for c in tail.commits)],
+                        (*self.watch, *(replace(w, index=w.index + at) for w in tail.watch)),
+                        {**self.marks, **{m + at: v for m, v in tail.marks.items()}})
 
 
 @dataclass(frozen=True, eq=False)
@@ -328,24 +363,50 @@ class Pipeline:
             return Status.SUSPECT
         return Status.CALIBRATED if self.informed else Status.HELD
 
-    def step(self, batch: RawBatch, marks: Sequence[int] = ()) -> StepOutput:
-        """Process one batch of raw samples (any size, in time order).
+    def step(self, batch: RawBatch) -> StepOutput:
+        """Process one batch of raw samples (any size, in time order)."""
+        s = self._stepped(batch, [])
+        return StepOutput(s.calibrated, s.updates, len(s.commits), s.watch, self.model,
+                          self.estimate)
 
-        ``marks``: increasing sample counts into the batch (1..len), e.g. where the caller
-        joined smaller batches into this one. For each mark whose stretch since the previous
-        mark holds an update, ``StepOutput.states[mark]`` is the model and `summary()` as they
-        were after that many samples: what stepping the smaller batches one at a time would
-        have shown after each (replay joins a recording's messages and still writes one
-        calibration state per message, exactly as the live node did).
-        """
+    def step_many(self, batches: Sequence[RawBatch]) -> list[StepOutput]:
+        """`step` for consecutive batches: one output per batch, exactly what stepping each in
+        turn gives, with the per-call costs paid once (one step over the batches joined; the
+        pipeline is batch-size invariant). Each output's ``state`` is the model and summary
+        as of its batch's end when the batch holds an update (replay joins a recording's
+        messages and still writes one calibration state per message, as the live node did)."""
+        full = [b for b in batches if len(b)]
+        if len(full) < 2:
+            return [self.step(b) for b in batches]
+        ends = np.cumsum([len(b) for b in full]).tolist()
+        model, estimate = self.model, self.estimate  # as of before the first batch
+        s = self._stepped(RawBatch.concat(full), ends)
+        outs: list[StepOutput] = []
+        lo, ups, watch, commits = 0, list(s.updates), list(s.watch), s.commits
+        c = 0
+        for b in batches:
+            if not len(b):
+                outs.append(StepOutput(CalibratedBatch.empty(), (), 0, (), model, estimate))
+                continue
+            hi = lo + len(b)
+            mine = [replace(u, index=u.index - lo) for u in _take_before(ups, hi)]
+            seen = [replace(w, index=w.index - lo) for w in _take_before(watch, hi)]
+            c1 = bisect.bisect_left(commits, hi, c)
+            mark = s.marks[hi]
+            model, estimate = mark.model, mark.estimate
+            state = (mark.model, mark.summary) if mark.summary is not None else None
+            outs.append(StepOutput(s.calibrated[lo:hi], tuple(mine), c1 - c, tuple(seen),
+                                   model, estimate, state))
+            lo, c = hi, c1
+        return outs
+
+    def _stepped(self, batch: RawBatch, marks: list[int]) -> _Stepped:
+        """`step` with the state recorded after each mark's samples (`step_many`)."""
         if batch.aux_names != self.aux_names:
-            raise ValueError(f"batch channels {batch.aux_names} differ from {self.aux_names}")
+            raise InputError(f"batch channels {batch.aux_names} differ from {self.aux_names}")
         n = len(batch)
         if n == 0:
-            return StepOutput(CalibratedBatch.empty(), (), 0)
-        marks = [int(m) for m in marks]
-        if any(not 0 < m <= n for m in marks) or any(b <= a for a, b in pairwise(marks)):
-            raise ValueError(f"marks must increase within 1..{n}")
+            return _Stepped(CalibratedBatch.empty(), (), [], (), {})
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
         if self.det_state is None:  # bootstrap: the first sample's norm stands in for 1 g
@@ -370,10 +431,10 @@ class Pipeline:
         head = self._step(batch[:at + 1], [m for m in marks if m <= at + 1])
         self._restart_at = None
         self._start_detector(self.model.s0, _zero_of(self.model, self.params))
-        tail = self.step(batch[at + 1:], [m - at - 1 for m in marks if m > at + 1])
-        return _joined(head, tail, at + 1)
+        tail = self._stepped(batch[at + 1:], [m - at - 1 for m in marks if m > at + 1])
+        return head.joined(tail, at + 1)
 
-    def _step(self, batch: RawBatch, marks: list[int]) -> StepOutput:
+    def _step(self, batch: RawBatch, marks: list[int]) -> _Stepped:
         """`step` with the detector as it is (see there)."""
         n = len(batch)
         self._watch_events = []
@@ -385,7 +446,7 @@ class Pipeline:
             self._marks = _Marks(marks, gate, self.counts["samples"],
                                  self.counts["quasi_static"])
         try:
-            events, committed = self._windows(batch, gate)
+            events, commits = self._windows(batch, gate)
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._marks = self._marks, None
@@ -393,9 +454,9 @@ class Pipeline:
         self._segs = []
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
-        return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
-                          tuple(e.update for e in events), committed,
-                          done.states if done is not None else {}, tuple(self._watch_events))
+        return _Stepped(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
+                        tuple(e.update for e in events), commits, tuple(self._watch_events),
+                        done.at if done is not None else {})
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""
@@ -429,13 +490,14 @@ class Pipeline:
             return
         while mk.todo and mk.todo[0] <= idx:
             m = mk.todo.pop(0)
+            s = None
             if mk.dirty:  # an update since the previous mark: the caller publishes this state
                 s = self.summary()
                 s["counts"]["samples"] = mk.samples0 + m  # counted at the end of the step
                 s["counts"]["quasi_static"] = mk.quasi_static0 + int(
                     np.count_nonzero(mk.gate[:m]))
-                mk.states[m] = (self.model, s)
                 mk.dirty = False
+            mk.at[m] = _AtMark(self.model, self.estimate, s)
 
     def summary(self) -> dict:
         """The calibration state: parameters by name, covariance, residual, coverage, ...
@@ -463,17 +525,17 @@ class Pipeline:
         }
 
     # --- windows -----------------------------------------------------------------------------
-    def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[_Event], int]:
+    def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[_Event], list[int]]:
         """Cut the gated runs into windows (`core.windower`) and commit the finished ones.
 
         Which windows finish and when they commit depends on the gates and times alone, so it
         is worked out first for the whole batch; committing them then depends on the
         parameters, which change only at updates (`_commit_all`)."""
         c, self.windower = cut(self.cfg.windows, self.windower, b.t_us, b.v, b.aux, gate)
-        return self._commit_all(b, c.due, c.sums), c.committed
+        return self._commit_all(b, c.due, c.sums)
 
     def _commit_all(self, b: RawBatch, due: list[tuple[int, bool]],
-                    table: WindowSums | None) -> list[_Event]:
+                    table: WindowSums | None) -> tuple[list[_Event], list[int]]:
         """Commit the scheduled windows in order. Between updates the parameters hold, so the
         norm gate, directions and cells of the windows are worked out a chunk at a time
         (`refit.WindowChunk`), and `_scan` finds the next window after which an update runs from the
@@ -516,7 +578,7 @@ class Pipeline:
                         self._marks.dirty = True
                     chunk, size = None, 0  # the parameters changed: a new first chunk
         self._reject_short(due, done, len(due))
-        return events
+        return events, at
 
     def _enter(self, chunk: WindowChunk, c0: int, c1: int, due: list[tuple[int, bool]],
                slot: list[int], done: int) -> tuple[int, int | None]:
@@ -852,13 +914,13 @@ def _zero_of(model: SensorModel, p: np.ndarray) -> np.ndarray | None:
     return np.asarray(p[model.slice(Offset())], np.float64) if model.has("offset") else None
 
 
-def _joined(head: StepOutput, tail: StepOutput, at: int) -> StepOutput:
-    """One step's output from its first `at` samples' and the rest's."""
-    ups = (*head.updates, *(replace(u, index=u.index + at) for u in tail.updates))
-    watch = (*head.watch, *(replace(w, index=w.index + at) for w in tail.watch))
-    return StepOutput(CalibratedBatch.concat([head.calibrated, tail.calibrated]), ups,
-                      head.windows_committed + tail.windows_committed,
-                      {**head.states, **{m + at: v for m, v in tail.states.items()}}, watch)
+def _take_before(events: list, hi: int) -> list:
+    """The leading events (in index order) with index < hi, taken off the list."""
+    k = 0
+    while k < len(events) and events[k].index < hi:
+        k += 1
+    taken, events[:k] = events[:k], []
+    return taken
 
 
 def missing_channels(model: SensorModel, aux_names: Sequence[str]) -> list[str]:
@@ -871,7 +933,7 @@ def check_channels(model: SensorModel, aux_names: tuple[str, ...]) -> None:
     """A model whose covariates the input's channels lack is an error, said before any work."""
     missing = missing_channels(model, aux_names)
     if missing:
-        raise ValueError(f"model needs channels {sorted(missing)} that the input lacks "
+        raise ModelError(f"model needs channels {sorted(missing)} that the input lacks "
                          f"(it has {list(aux_names)})")
 
 
@@ -928,7 +990,7 @@ def state_dict(pipe: Pipeline) -> dict:
 def from_state_dict(d: dict) -> Pipeline:
     """Rebuild a pipeline from `state_dict`; it continues bit for bit."""
     if d.get("version") != 1:
-        raise ValueError(f"unknown checkpoint version {d.get('version')!r}")
+        raise InputError(f"unknown checkpoint version {d.get('version')!r}")
     cfg = PipelineConfig.from_dict(d["config"])
     model = SensorModel.from_dict(d["model"])
     prior = Prior.from_dict(d["prior"]) if d["prior"] is not None else None

@@ -30,6 +30,7 @@ from recal.core.buffer import Windows
 from recal.core.model import SensorModel
 from recal.core.pipeline import PipelineConfig, check_channels, usable
 from recal.core.windower import WindowSums, run_starts
+from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
 __all__ = ["Windowing", "window_means"]
@@ -98,7 +99,7 @@ class Windowing:
             check_channels(self.model, b.aux_names)
             self.aux_names, self.t0_us = b.aux_names, int(b.t_us[0])
         elif b.aux_names != self.aux_names:
-            raise ValueError(f"batch channels {b.aux_names} differ from {self.aux_names}")
+            raise InputError(f"batch channels {b.aux_names} differ from {self.aux_names}")
         self._state, d = det.detect(self._det, self._state, b.v)
         gate = usable(d.gate, b, self.model)
         start = run_starts(b.t_us, gate, self._last_t_us, self._last_gate, self.cfg.rate_hz)
@@ -158,5 +159,5 @@ def window_means(batches: Iterable[RawBatch], cfg: PipelineConfig, s0: float,
     for b in rebatch(batches):  # a recording's small messages, joined: fewer numpy calls
         w.add(b)
     if w.aux_names is None or w.t0_us is None:
-        raise ValueError("a recording needs samples to discover effects on")
+        raise InputError("a recording needs samples to discover effects on")
     return w.kept().means()[0], w.aux_names, w.t0_us
