@@ -443,7 +443,7 @@ class Pipeline:
         gate = usable(d.gate, batch, self.model)
         self._segs = [self._segment(0)]
         if marks:
-            self._marks = _Marks(marks, gate, self.counts["samples"],
+            self._marks = _Marks(list(marks), gate, self.counts["samples"],
                                  self.counts["quasi_static"])
         try:
             events, commits = self._windows(batch, gate)
