@@ -27,8 +27,9 @@ import numpy as np
 
 from recal.core import detector as det
 from recal.core.buffer import Windows
+from recal.core.channels import check_channels, usable
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig, check_channels, usable
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.windower import WindowSums, run_starts
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
