@@ -35,7 +35,7 @@ import numpy as np
 
 from recal.core import detector as det
 from recal.core.bootstrap import initial_params, locate, off_by
-from recal.core.buffer import Coverage, WindowBuffer, Windows, cell_of
+from recal.core.buffer import Coverage, WindowBuffer, Windows
 from recal.core.channels import check_channels, missing_channels, usable
 from recal.core.effects import Covariates, Offset, Scale
 from recal.core.estimator import (
@@ -55,10 +55,10 @@ from recal.core.refit import (
     next_update,
 )
 from recal.core.status import (
-    JUMP_REPEAT_S,
     Status,
     Watch,
     predicted_sigma_mg,
+    refill,
     sigma_form,
 )
 from recal.core.triaxial import norm3
@@ -243,6 +243,11 @@ class Pipeline:
         if self.model.has("offset") and self.centre0.any():
             p[self.model.slice(Offset())] = self.centre0
         return p
+
+    @property
+    def last_t_us(self) -> int | None:
+        """The device time of the last sample stepped (None: none yet)."""
+        return self.windower.last_t_us
 
     @property
     def phase(self) -> str:
@@ -544,12 +549,10 @@ class Pipeline:
         step_us = self.estimate.step_us if self.estimate is not None else None
         if step_us is None or step_us == before.step_us:
             return
-        first = self.watch.jump_us
-        if first is not None and step_us - first <= JUMP_REPEAT_S * 1e6:
+        seen = self.watch.jumped(step_us, now_us)
+        if seen == "reset":
             self._reset_due = "the offsets jumped again"
-            return
-        self.watch.jump_us = step_us
-        if self.watch.alarm(now_us, JUMP_REPEAT_S):
+        elif seen == "suspect":
             self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
                 "reason": "the offsets jumped", "jump_t_us": step_us}))
 
@@ -559,14 +562,7 @@ class Pipeline:
         sensor changed too much. Back to the prior, with a buffer of the recent windows only
         (the older ones are another sensor's, or the old one's), re-fitted at once."""
         reason, self._reset_due = self._reset_due, None
-        since = self.watch.jump_us
-        recent = self.watch.fired(now_us)
-        old = self.buffer.windows()
-        if since is not None:  # the buffer's windows since the first jump, and the watch's
-            keep = old.t_us >= since
-            recent = [(old.v[i], old.aux[i], int(old.t_us[i]), int(old.n[i]), float(old.var[i]))
-                      for i in np.flatnonzero(keep).tolist()] + recent
-            recent = list({int(r[2]): r for r in recent}.values())  # each window once
+        recent = self.watch.to_refit(self.buffer.windows(), now_us)
         before = self.estimate
         assert self.prior is not None
         self.estimate = Estimate.from_prior(self.prior)
@@ -590,27 +586,10 @@ class Pipeline:
         return self._update(idx, now_us)
 
     def _refill(self, recent: list[tuple], gate: bool = True) -> int:
-        """The recent windows that pass the norm gate under the estimate now (all of them
-        without ``gate``), into the buffer (each a slot of its own, oldest first); returns
-        how many."""
-        if not recent:
-            return 0
-        recent = sorted(recent, key=lambda r: r[2])
-        m, k = len(recent), len(self.aux_names)
-        w = Windows(np.array([r[0] for r in recent], float).reshape(m, 3),
-                    np.array([r[1] for r in recent], float).reshape(m, k),
-                    np.array([r[2] for r in recent], np.int64),
-                    np.array([r[3] for r in recent], np.int64),
-                    np.array([r[4] for r in recent], float))
-        a = self.model.correct(self.params, w.v, self.covariates(w.t_us, w.aux))
-        norm = norm3(a)
-        ok = np.abs(norm - 1.0) <= self.cfg.norm_tol_g if gate else np.isfinite(norm)
-        dirs = a / np.where(norm > 0, norm, 1.0)[:, None]
-        cells = cell_of(dirs, self.cfg.buffer.grid)
-        for i in np.flatnonzero(ok).tolist():
-            self.buffer.add(w.v[i].tolist(), w.aux[i].tolist(), int(w.t_us[i]), int(w.n[i]),
-                            float(w.var[i]), dirs[i].tolist(), None, int(cells[i]))
-        return int(ok.sum())
+        """`status.refill` of a new buffer under the estimate now (no norm gate: all)."""
+        return refill(self.buffer, len(self.aux_names), self.model, self.params,
+                      self.covariates, recent, self.cfg.norm_tol_g if gate else None,
+                      self.cfg.buffer.grid)
 
     def _heal_if_not_finite(self, t_us: int) -> None:
         """An estimate that is not finite (a damaged checkpoint) would make every sample NaN
