@@ -37,6 +37,7 @@ from recal.core import detector as det
 from recal.core.bootstrap import initial_params, locate, off_by
 from recal.core.buffer import Coverage, WindowBuffer, Windows
 from recal.core.channels import check_channels, missing_channels, usable
+from recal.core.correction import Segment, calibrate
 from recal.core.effects import Covariates, Offset, Scale
 from recal.core.estimator import (
     Estimate,
@@ -46,6 +47,7 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
+from recal.core.outputs import StepOutput, UpdateEvent, WatchEvent
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.refit import (
     RefitState,
@@ -57,7 +59,6 @@ from recal.core.refit import (
 from recal.core.status import (
     Status,
     Watch,
-    predicted_sigma_mg,
     refill,
     sigma_form,
 )
@@ -69,49 +70,6 @@ from recal.samples import CalibratedBatch, RawBatch
 __all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent",
            "check_channels", "from_state_dict", "gain_reference", "missing_channels",
            "state_dict", "usable"]
-
-
-@dataclass(frozen=True)
-class UpdateEvent:
-    """An estimator update that happened at sample `index` of the batch (device time t_us),
-    with the estimate and model in force after it."""
-
-    index: int
-    t_us: int
-    report: UpdateReport
-    bootstrap: bool = False
-    estimate: Estimate | None = field(default=None, compare=False)
-    model: SensorModel | None = field(default=None, compare=False)
-
-
-@dataclass(frozen=True)
-class WatchEvent:
-    """The self-watch at sample `index` of the batch (device time t_us): ``suspect`` (the
-    still windows contradicted the estimate for a sustained time: the output is suspect and
-    the estimate was reset toward the prior and re-fitted on the recent windows), ``agrees``
-    (the windows agree again: suspect no more) or ``reset`` (the estimate was not finite)."""
-
-    index: int
-    t_us: int
-    kind: str
-    detail: dict = field(default_factory=dict, compare=False)
-
-
-@dataclass(frozen=True, eq=False)
-class StepOutput:
-    """What one batch produced (`Pipeline.step`, `Pipeline.step_many`): its calibrated samples,
-    the updates and the self-watch's events in it (indices into the batch, in order), the
-    windows committed in it; and the state as of the batch's end: the model and estimate in
-    force, and ``state``, the model and `Pipeline.summary()` then when the batch holds an
-    update or a reset (`step_many` only: after `step` the pipeline's own summary is that)."""
-
-    calibrated: CalibratedBatch
-    updates: tuple[UpdateEvent, ...]
-    windows_committed: int
-    watch: tuple[WatchEvent, ...] = ()
-    model: SensorModel | None = None
-    estimate: Estimate | None = None
-    state: tuple[SensorModel, dict] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,20 +124,6 @@ class _Event:
     p: np.ndarray
 
 
-@dataclass(frozen=True, eq=False)
-class _Segment:
-    """From sample `index` of the batch on: the model and parameters in force, the status and
-    how to predict each sample's error (`core.status.sigma_form`, or None: the covariance
-    sample by sample)."""
-
-    index: int
-    model: SensorModel
-    p: np.ndarray
-    cov: np.ndarray
-    form: np.ndarray | None
-    status: Status
-
-
 class Pipeline:
     """Detector -> windows -> buffer -> estimator -> correction, for one sensor.
 
@@ -228,7 +172,7 @@ class Pipeline:
         # data informed the estimate (an accepted update observed a parameter): `status`
         self.informed = False
         self.watch = Watch()
-        self._segs: list[_Segment] = []  # during a step: what is in force from where
+        self._segs: list[Segment] = []  # during a step: what is in force from where
         self._watch_events: list[WatchEvent] = []
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
         self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
@@ -360,7 +304,7 @@ class Pipeline:
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._marks = self._marks, None
-        cal, status, sigma = self._calibrate(batch)
+        cal, status, sigma = calibrate(self._segs, batch, self.covariates)
         self._segs = []
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
@@ -752,7 +696,7 @@ class Pipeline:
                        np.array([f[4] for f in fresh], float))
 
     # --- correction --------------------------------------------------------------------------
-    def _segment(self, idx: int) -> _Segment:
+    def _segment(self, idx: int) -> Segment:
         """What is in force from sample idx on (now): model, parameters, covariance (no
         estimate: the model's default prior spread around the provisional scale), status."""
         est, model = self.estimate, self.model
@@ -762,23 +706,7 @@ class Pipeline:
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
             cache = self._form_cache = (model, est, p, cov, form)
-        return _Segment(idx, model, cache[2], cache[3], cache[4], self.status)
-
-    def _calibrate(self, b: RawBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Correct each sample with the parameters in force when it arrived; its status and
-        predicted error (`core.status.predicted_sigma_mg`) as they were then."""
-        out = np.empty_like(b.v)
-        status = np.empty(len(b), np.uint8)
-        sigma = np.empty(len(b))
-        segs = self._segs
-        cuts = [*[g.index for g in segs], len(b)]
-        for s, e, g in zip(cuts[:-1], cuts[1:], segs, strict=True):
-            if e > s:
-                cov = self.covariates(b.t_us[s:e], b.aux[s:e])
-                out[s:e] = g.model.correct(g.p, b.v[s:e], cov)
-                status[s:e] = g.status
-                sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
-        return out, status, sigma
+        return Segment(idx, model, cache[2], cache[3], cache[4], self.status)
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
         self.det_cfg = self.cfg.detector(s0, zero_raw)
