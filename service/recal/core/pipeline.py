@@ -30,6 +30,7 @@ import bisect
 import copy
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
+from enum import Enum
 
 import numpy as np
 
@@ -67,9 +68,27 @@ from recal.core.windower import WindowerState, WindowSums, cut
 from recal.errors import InputError
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent",
+__all__ = ["Lifecycle", "Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent",
            "check_channels", "from_state_dict", "gain_reference", "missing_channels",
            "state_dict", "usable"]
+
+
+class Lifecycle(Enum):
+    """Where a pipeline is in its life; read from its state (`Pipeline.lifecycle`), never
+    stored, so a checkpoint holds only the parts it is read from."""
+
+    #: no detector yet: no prior and no sample (the first sample's norm sets the scale)
+    AWAITING_SCALE = "awaiting_scale"
+    #: the detector runs, no estimate yet: windows are collected for the first fit
+    BOOTSTRAPPING = "bootstrapping"
+    #: an estimate, re-fitted as windows come; the self-watch has no objection
+    TRACKING = "tracking"
+    #: an estimate the self-watch holds suspect (`core.status.Watch`)
+    SUSPECT = "suspect"
+
+    @property
+    def has_estimate(self) -> bool:
+        return self in (Lifecycle.TRACKING, Lifecycle.SUSPECT)
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,11 +213,19 @@ class Pipeline:
         return self.windower.last_t_us
 
     @property
+    def lifecycle(self) -> Lifecycle:
+        if self.det_state is None:
+            return Lifecycle.AWAITING_SCALE
+        if self.estimate is None:
+            return Lifecycle.BOOTSTRAPPING
+        return Lifecycle.SUSPECT if self.watch.suspect else Lifecycle.TRACKING
+
+    @property
     def phase(self) -> str:
         """"prior": calibrated from a pre-calibration; "bootstrap": from the ellipsoid fit of
         its own still windows; "provisional": no calibration yet (zero-g and scale are
         guesses for the detector and the orientation cells, see the class doc)."""
-        if self.estimate is None:
+        if not self.lifecycle.has_estimate:
             return "provisional"
         return "prior" if self.from_prior else "bootstrap"
 
@@ -211,9 +238,10 @@ class Pipeline:
     @property
     def status(self) -> Status:
         """The status of output calibrated now (`core.status` defines each)."""
-        if self.estimate is None:
+        life = self.lifecycle
+        if not life.has_estimate:
             return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
-        if self.watch.suspect:
+        if life is Lifecycle.SUSPECT:
             return Status.SUSPECT
         return Status.CALIBRATED if self.informed else Status.HELD
 
@@ -263,7 +291,7 @@ class Pipeline:
             return _Stepped(CalibratedBatch.empty(), (), [], (), {})
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
-        if self.det_state is None:  # bootstrap: the first sample's norm stands in for 1 g
+        if self.lifecycle is Lifecycle.AWAITING_SCALE:  # the first sample's norm is 1 g
             norms = np.linalg.norm(batch.v, axis=1)
             good = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
             s0 = float(good[0]) if len(good) else 1.0
@@ -273,7 +301,7 @@ class Pipeline:
         # the batch (`_relocate`): the detector then restarts after that sample, as it would
         # have had the batch come in two, so the state before the batch is kept to redo it
         snap = (copy.deepcopy({k: v for k, v in self.__dict__.items() if k != "_marks"})
-                if self.estimate is None and n > 1 else None)
+                if self.lifecycle is Lifecycle.BOOTSTRAPPING and n > 1 else None)
         out = self._step(batch, marks)
         at, self._restart_at = self._restart_at, None
         if at is None:
