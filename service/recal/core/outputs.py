@@ -1,16 +1,19 @@
 """What a pipeline step gives back for a batch (`StepOutput`), with the estimator updates
-(`UpdateEvent`) and the self-watch's events (`WatchEvent`) in it.
+(`UpdateEvent`) and the self-watch's events (`WatchEvent`) in it; and a step over batches
+joined into one, split back per batch (`JoinedStep`, `Pipeline.step_many`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import bisect
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 
 from recal.core.estimator import Estimate, UpdateReport
 from recal.core.model import SensorModel
-from recal.samples import CalibratedBatch
+from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["StepOutput", "UpdateEvent", "WatchEvent"]
+__all__ = ["JoinedStep", "MarkState", "StepOutput", "UpdateEvent", "WatchEvent"]
 
 
 @dataclass(frozen=True)
@@ -54,3 +57,66 @@ class StepOutput:
     model: SensorModel | None = None
     estimate: Estimate | None = None
     state: tuple[SensorModel, dict] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class MarkState:
+    """The state after a mark's samples (a joined batch's end, `Pipeline.step_many`); summary:
+    only when an update or a reset happened since the previous mark."""
+
+    model: SensorModel
+    estimate: Estimate | None
+    summary: dict | None
+
+
+@dataclass(frozen=True, eq=False)
+class JoinedStep:
+    """One step's output over a (possibly joined) batch: `StepOutput`'s, with the sample index
+    of each committed window and the state at each mark (`Pipeline.step_many` splits it)."""
+
+    calibrated: CalibratedBatch
+    updates: tuple[UpdateEvent, ...]
+    commits: list[int]
+    watch: tuple[WatchEvent, ...]
+    marks: dict[int, MarkState]
+
+    def joined(self, tail: JoinedStep, at: int) -> JoinedStep:
+        """This step's output for the first `at` samples, then `tail`'s for the rest."""
+        return JoinedStep(CalibratedBatch.concat([self.calibrated, tail.calibrated]),
+                          (*self.updates, *(replace(u, index=u.index + at)
+                                            for u in tail.updates)),
+                          [*self.commits, *(c + at for c in tail.commits)],
+                          (*self.watch, *(replace(w, index=w.index + at) for w in tail.watch)),
+                          {**self.marks, **{m + at: v for m, v in tail.marks.items()}})
+
+    def split(self, batches: Sequence[RawBatch], model: SensorModel,
+              estimate: Estimate | None) -> list[StepOutput]:
+        """One output per batch joined (each len(batch) samples, in order; a mark at the end
+        of each that is not empty), indices local to it; model and estimate: in force before
+        the first batch."""
+        outs: list[StepOutput] = []
+        lo, c, ups, watch, commits = 0, 0, list(self.updates), list(self.watch), self.commits
+        for b in batches:
+            if not len(b):
+                outs.append(StepOutput(CalibratedBatch.empty(), (), 0, (), model, estimate))
+                continue
+            hi = lo + len(b)
+            mine = [replace(u, index=u.index - lo) for u in _take_before(ups, hi)]
+            seen = [replace(w, index=w.index - lo) for w in _take_before(watch, hi)]
+            c1 = bisect.bisect_left(commits, hi, c)
+            mark = self.marks[hi]
+            model, estimate = mark.model, mark.estimate
+            state = (mark.model, mark.summary) if mark.summary is not None else None
+            outs.append(StepOutput(self.calibrated[lo:hi], tuple(mine), c1 - c, tuple(seen),
+                                   model, estimate, state))
+            lo, c = hi, c1
+        return outs
+
+
+def _take_before(events: list, hi: int) -> list:
+    """The leading events (in index order) with index < hi, taken off the list."""
+    k = 0
+    while k < len(events) and events[k].index < hi:
+        k += 1
+    taken, events[:k] = events[:k], []
+    return taken

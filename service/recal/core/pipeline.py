@@ -26,7 +26,6 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 
 from __future__ import annotations
 
-import bisect
 import copy
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -48,7 +47,7 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
-from recal.core.outputs import StepOutput, UpdateEvent, WatchEvent
+from recal.core.outputs import JoinedStep, MarkState, StepOutput, UpdateEvent, WatchEvent
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.refit import (
     RefitState,
@@ -91,16 +90,6 @@ class Lifecycle(Enum):
         return self in (Lifecycle.TRACKING, Lifecycle.SUSPECT)
 
 
-@dataclass(frozen=True, eq=False)
-class _AtMark:
-    """The state after a mark's samples (`Pipeline.step_many`); summary: only when an update
-    or a reset happened since the previous mark."""
-
-    model: SensorModel
-    estimate: Estimate | None
-    summary: dict | None
-
-
 @dataclass(eq=False)
 class _Marks:
     """Sample counts into the current joined batch at which `step_many` wants the state."""
@@ -110,27 +99,7 @@ class _Marks:
     samples0: int
     quasi_static0: int
     dirty: bool = False  # an update happened since the last mark passed
-    at: dict[int, _AtMark] = field(default_factory=dict)
-
-
-@dataclass(frozen=True, eq=False)
-class _Stepped:
-    """One internal step's output over a (possibly joined) batch: `StepOutput`'s, with the
-    sample index of each committed window and the state at each mark."""
-
-    calibrated: CalibratedBatch
-    updates: tuple[UpdateEvent, ...]
-    commits: list[int]
-    watch: tuple[WatchEvent, ...]
-    marks: dict[int, _AtMark]
-
-    def joined(self, tail: _Stepped, at: int) -> _Stepped:
-        """This step's output for the first `at` samples, then `tail`'s for the rest."""
-        return _Stepped(CalibratedBatch.concat([self.calibrated, tail.calibrated]),
-                        (*self.updates, *(replace(u, index=u.index + at) for u in tail.updates)),
-                        [*self.commits, *(c + at for c in tail.commits)],
-                        (*self.watch, *(replace(w, index=w.index + at) for w in tail.watch)),
-                        {**self.marks, **{m + at: v for m, v in tail.marks.items()}})
+    at: dict[int, MarkState] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -262,33 +231,15 @@ class Pipeline:
             return [self.step(b) for b in batches]
         ends = np.cumsum([len(b) for b in full]).tolist()
         model, estimate = self.model, self.estimate  # as of before the first batch
-        s = self._stepped(RawBatch.concat(full), ends)
-        outs: list[StepOutput] = []
-        lo, ups, watch, commits = 0, list(s.updates), list(s.watch), s.commits
-        c = 0
-        for b in batches:
-            if not len(b):
-                outs.append(StepOutput(CalibratedBatch.empty(), (), 0, (), model, estimate))
-                continue
-            hi = lo + len(b)
-            mine = [replace(u, index=u.index - lo) for u in _take_before(ups, hi)]
-            seen = [replace(w, index=w.index - lo) for w in _take_before(watch, hi)]
-            c1 = bisect.bisect_left(commits, hi, c)
-            mark = s.marks[hi]
-            model, estimate = mark.model, mark.estimate
-            state = (mark.model, mark.summary) if mark.summary is not None else None
-            outs.append(StepOutput(s.calibrated[lo:hi], tuple(mine), c1 - c, tuple(seen),
-                                   model, estimate, state))
-            lo, c = hi, c1
-        return outs
+        return self._stepped(RawBatch.concat(full), ends).split(batches, model, estimate)
 
-    def _stepped(self, batch: RawBatch, marks: list[int]) -> _Stepped:
+    def _stepped(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
         """`step` with the state recorded after each mark's samples (`step_many`)."""
         if batch.aux_names != self.aux_names:
             raise InputError(f"batch channels {batch.aux_names} differ from {self.aux_names}")
         n = len(batch)
         if n == 0:
-            return _Stepped(CalibratedBatch.empty(), (), [], (), {})
+            return JoinedStep(CalibratedBatch.empty(), (), [], (), {})
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
         if self.lifecycle is Lifecycle.AWAITING_SCALE:  # the first sample's norm is 1 g
@@ -316,7 +267,7 @@ class Pipeline:
         tail = self._stepped(batch[at + 1:], [m - at - 1 for m in marks if m > at + 1])
         return head.joined(tail, at + 1)
 
-    def _step(self, batch: RawBatch, marks: list[int]) -> _Stepped:
+    def _step(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
         """`step` with the detector as it is (see there)."""
         n = len(batch)
         self._watch_events = []
@@ -336,7 +287,7 @@ class Pipeline:
         self._segs = []
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
-        return _Stepped(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
+        return JoinedStep(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
                         tuple(e.update for e in events), commits, tuple(self._watch_events),
                         done.at if done is not None else {})
 
@@ -379,7 +330,7 @@ class Pipeline:
                 s["counts"]["quasi_static"] = mk.quasi_static0 + int(
                     np.count_nonzero(mk.gate[:m]))
                 mk.dirty = False
-            mk.at[m] = _AtMark(self.model, self.estimate, s)
+            mk.at[m] = MarkState(self.model, self.estimate, s)
 
     def summary(self) -> dict:
         """The calibration state: parameters by name, covariance, residual, coverage, ...
@@ -752,15 +703,6 @@ def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
 def _zero_of(model: SensorModel, p: np.ndarray) -> np.ndarray | None:
     """Zero-g (raw) the parameters p give, for the detector (None: the model has no offsets)."""
     return np.asarray(p[model.slice(Offset())], np.float64) if model.has("offset") else None
-
-
-def _take_before(events: list, hi: int) -> list:
-    """The leading events (in index order) with index < hi, taken off the list."""
-    k = 0
-    while k < len(events) and events[k].index < hi:
-        k += 1
-    taken, events[:k] = events[:k], []
-    return taken
 
 
 def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | None) -> dict | None:
