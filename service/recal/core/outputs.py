@@ -6,14 +6,16 @@ joined into one, split back per batch (`JoinedStep`, `Pipeline.step_many`).
 from __future__ import annotations
 
 import bisect
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+
+import numpy as np
 
 from recal.core.estimator import Estimate, UpdateReport
 from recal.core.model import SensorModel
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["JoinedStep", "MarkState", "StepOutput", "UpdateEvent", "WatchEvent"]
+__all__ = ["JoinedStep", "MarkState", "Marks", "StepOutput", "UpdateEvent", "WatchEvent"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,34 @@ class MarkState:
     model: SensorModel
     estimate: Estimate | None
     summary: dict | None
+
+
+@dataclass(eq=False)
+class Marks:
+    """Sample counts into a joined batch (its batches' ends) at which `Pipeline.step_many`
+    wants the state, and the states recorded as the step passes them (`reach`)."""
+
+    todo: list[int]
+    gate: np.ndarray
+    samples0: int
+    quasi_static0: int
+    dirty: bool = False  # an update happened since the last mark passed
+    at: dict[int, MarkState] = field(default_factory=dict)
+
+    def reach(self, idx: int, model: SensorModel, estimate: Estimate | None,
+              summary: Callable[[], dict]) -> None:
+        """Called before anything in the state changes at sample ``idx`` of the batch: the
+        state now is the state after ``m`` samples for every mark m <= idx not yet passed."""
+        while self.todo and self.todo[0] <= idx:
+            m = self.todo.pop(0)
+            s = None
+            if self.dirty:  # an update since the previous mark: the caller publishes this state
+                s = summary()
+                s["counts"]["samples"] = self.samples0 + m  # counted at the end of the step
+                s["counts"]["quasi_static"] = self.quasi_static0 + int(
+                    np.count_nonzero(self.gate[:m]))
+                self.dirty = False
+            self.at[m] = MarkState(model, estimate, s)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,24 +1,13 @@
 """One calibration step: raw batch -> (gates, calibrated batch, updates). The only core entry
-point the shell uses, so the daemon, replay and tests cannot drift apart.
+point the shell uses, so the daemon, replay and tests cannot drift apart (docs/design.md).
 
-Per batch:
-1. detector (Lötters eq. 1-2) gates every sample;
-2. gated samples form windows of `window_s` (time-aligned to the start of each quasi-static run);
-   a window is committed to the buffer only once its run has gone on `guard_s` past it, because
-   the detector's low-pass reacts ~0.5 s late to the start of a movement;
-3. every `update_every` committed windows the estimator updates (Lötters eq. 11a/11b), unless
-   the windows since the last update agree with the estimate (`estimator.consistent`), it has
-   settled, no new orientation cell arrived and less than `max_update_interval_s` of device
-   time passed: on a 24 h wearer that skips ~9 of 10 re-fits, the core's main cost;
-4. samples are calibrated with the parameters in force when they arrived: an update that
-   happens at sample j applies from sample j on; so are their status and predicted error
-   (`core.status`: uncalibrated, bootstrapping, calibrated, held, suspect; sigma from the
-   estimate's covariance);
-5. the self-watch (`core.status.Watch`) marks the output suspect when the estimator fits an
-   offset jump, and resets the estimate when the windows keep contradicting it (a second jump
-   soon after, or windows failing the norm gate for minutes): another sensor under the same
-   id, another sensor's checkpoint. A checkpoint whose estimate is not finite goes back to
-   the prior (or to a bootstrap) at the next step.
+Per batch, each part in its module: the detector (`core.detector`, Lötters eq. 1-2) gates every
+sample; the gated runs are cut into windows (`core.windower`); committed windows enter the
+buffer (`core.buffer`) and, when a re-fit can tell anything new (`core.refit`), the estimator
+updates (`core.estimator`, Lötters eq. 11a/11b); samples are corrected with the parameters in
+force when they arrived (`core.correction`), with their status and predicted error
+(`core.status`); the self-watch (`core.status.Watch`) marks the output suspect or resets the
+estimate when the still windows keep contradicting it. This module only orchestrates them.
 
 Everything is driven by the sample sequence alone (never by batch boundaries or clocks), so
 feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
@@ -28,7 +17,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from enum import Enum
 
 import numpy as np
@@ -47,7 +36,7 @@ from recal.core.estimator import (
     update,
 )
 from recal.core.model import SensorModel
-from recal.core.outputs import JoinedStep, MarkState, StepOutput, UpdateEvent, WatchEvent
+from recal.core.outputs import JoinedStep, Marks, StepOutput, UpdateEvent, WatchEvent
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.refit import (
     RefitState,
@@ -88,28 +77,6 @@ class Lifecycle(Enum):
     @property
     def has_estimate(self) -> bool:
         return self in (Lifecycle.TRACKING, Lifecycle.SUSPECT)
-
-
-@dataclass(eq=False)
-class _Marks:
-    """Sample counts into the current joined batch at which `step_many` wants the state."""
-
-    todo: list[int]
-    gate: np.ndarray
-    samples0: int
-    quasi_static0: int
-    dirty: bool = False  # an update happened since the last mark passed
-    at: dict[int, MarkState] = field(default_factory=dict)
-
-
-@dataclass(frozen=True, eq=False)
-class _Event:
-    """An update inside a batch, with the model and parameters in force from `index` on."""
-
-    update: UpdateEvent
-    index: int
-    model: SensorModel
-    p: np.ndarray
 
 
 class Pipeline:
@@ -156,7 +123,7 @@ class Pipeline:
                        "updates": 0, "updates_rejected": 0}
         self.last_report: UpdateReport | None = None
         self.refit = RefitState()  # what the last update saw (`core.refit`)
-        self._marks: _Marks | None = None  # only during a step with marks
+        self._marks: Marks | None = None  # only during a step with marks
         # data informed the estimate (an accepted update observed a parameter): `status`
         self.informed = False
         self.watch = Watch()
@@ -276,7 +243,7 @@ class Pipeline:
         gate = usable(d.gate, batch, self.model)
         self._segs = [self._segment(0)]
         if marks:
-            self._marks = _Marks(list(marks), gate, self.counts["samples"],
+            self._marks = Marks(list(marks), gate, self.counts["samples"],
                                  self.counts["quasi_static"])
         try:
             events, commits = self._windows(batch, gate)
@@ -288,7 +255,7 @@ class Pipeline:
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
         return JoinedStep(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
-                        tuple(e.update for e in events), commits, tuple(self._watch_events),
+                        tuple(events), commits, tuple(self._watch_events),
                         done.at if done is not None else {})
 
     def state_dict(self) -> dict:
@@ -318,19 +285,8 @@ class Pipeline:
     def _reach(self, idx: int) -> None:
         """Called before anything in the state changes at sample ``idx`` of the batch: the
         state now is the state after ``m`` samples for every mark m <= idx not yet passed."""
-        mk = self._marks
-        if mk is None:
-            return
-        while mk.todo and mk.todo[0] <= idx:
-            m = mk.todo.pop(0)
-            s = None
-            if mk.dirty:  # an update since the previous mark: the caller publishes this state
-                s = self.summary()
-                s["counts"]["samples"] = mk.samples0 + m  # counted at the end of the step
-                s["counts"]["quasi_static"] = mk.quasi_static0 + int(
-                    np.count_nonzero(mk.gate[:m]))
-                mk.dirty = False
-            mk.at[m] = MarkState(self.model, self.estimate, s)
+        if self._marks is not None:
+            self._marks.reach(idx, self.model, self.estimate, self.summary)
 
     def summary(self) -> dict:
         """The calibration state: parameters by name, covariance, residual, coverage, ...
@@ -358,7 +314,7 @@ class Pipeline:
         }
 
     # --- windows -----------------------------------------------------------------------------
-    def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[_Event], list[int]]:
+    def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[UpdateEvent], list[int]]:
         """Cut the gated runs into windows (`core.windower`) and commit the finished ones.
 
         Which windows finish and when they commit depends on the gates and times alone, so it
@@ -368,12 +324,12 @@ class Pipeline:
         return self._commit_all(b, c.due, c.sums)
 
     def _commit_all(self, b: RawBatch, due: list[tuple[int, bool]],
-                    table: WindowSums | None) -> tuple[list[_Event], list[int]]:
+                    table: WindowSums | None) -> tuple[list[UpdateEvent], list[int]]:
         """Commit the scheduled windows in order. Between updates the parameters hold, so the
         norm gate, directions and cells of the windows are worked out a chunk at a time
         (`refit.WindowChunk`), and `_scan` finds the next window after which an update runs from the
         chunk's arrays; the windows before it only enter the buffer (`_enter`)."""
-        events: list[_Event] = []
+        events: list[UpdateEvent] = []
         at = [idx for idx, window in due if window]  # commit sample of each window
         slot = [k for k, (_, window) in enumerate(due) if window]  # its place in due
         done = 0  # due entries handled
@@ -403,8 +359,7 @@ class Pipeline:
                 reset = self._reset_due is not None  # fired, or the update found a jump again
                 if reset:
                     evs.append(self._reset(idx, now))
-                events += [_Event(ev, idx, self.model, self.params.copy())
-                           for ev in evs if ev is not None]
+                events += [ev for ev in evs if ev is not None]
                 if reset or evs[-1] is not None:
                     self._segs.append(self._segment(idx))
                     if self._marks is not None:
