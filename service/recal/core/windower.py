@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -65,9 +66,9 @@ class WindowAcc:
                    float((t_us - run_start_us).sum()))
 
     def merge(self, other: WindowAcc) -> WindowAcc:
-        return WindowAcc(self.run_start_us, self.k, self.n + other.n, self.sum_v + other.sum_v,
-                    self.sum_v2 + other.sum_v2, self.sum_aux + other.sum_aux,
-                    self.sum_t + other.sum_t)
+        return WindowAcc(self.run_start_us, self.k, self.n + other.n,
+                         self.sum_v + other.sum_v, self.sum_v2 + other.sum_v2,
+                         self.sum_aux + other.sum_aux, self.sum_t + other.sum_t)
 
     def to_dict(self) -> dict:
         return {"run_start_us": self.run_start_us, "k": self.k, "n": self.n,
@@ -207,28 +208,156 @@ class WindowerState:
                    d["last_t_us"], bool(d["last_gate"]))
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False)
 class Cut:
-    """One batch's window events in sample order: (index, True) for a window that commits at
-    sample index, (index, False) for one too short to keep; and the committing windows' sums,
-    in the same order (None: none commits)."""
+    """One batch's window events in sample order (`due`): (index, True) for a window that
+    commits at sample index, (index, False) for one too short to keep; and the committing
+    windows' sums, in the same order (None: none commits)."""
 
-    due: list[tuple[int, bool]]
     sums: WindowSums | None
+    #: the events as a list, or as (sample index, commits) arrays not yet in order
+    events: list[tuple[int, bool]] | tuple[np.ndarray, np.ndarray]
+
+    @cached_property
+    def due(self) -> list[tuple[int, bool]]:
+        if isinstance(self.events, list):
+            return self.events
+        idx, commits = self.events  # a short window before a commit at the same sample
+        order = np.lexsort((commits, idx))
+        return list(zip(idx[order].tolist(), commits[order].tolist(), strict=True))
 
     @property
     def committed(self) -> int:
         return len(self.sums) if self.sums is not None else 0
 
 
+#: From this many runs in a batch on, `cut` works on all of them at once (`_cut_all`); fewer
+#: (a live sensor's batches) go run by run (`_Cutter`), with fewer numpy calls. Both give the
+#: same windows bit for bit (tests/test_windower.py).
+RUNS_AT_ONCE = 4
+
+
 def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray,
-        aux: np.ndarray, gate: np.ndarray) -> tuple[Cut, WindowerState]:
+        aux: np.ndarray, gate: np.ndarray, runs_at_once: int = RUNS_AT_ONCE
+        ) -> tuple[Cut, WindowerState]:
     """The batch's windows (samples t_us, v, aux; `gate`: which may enter one), and the state
     for the next batch. Pure: ``state`` is not changed."""
+    start = run_starts(t_us, gate, state.last_t_us, state.last_gate, cfg.rate_hz)
+    continues = (bool(gate[0]) and not start[0]
+                 and (state.open is not None or state.pending is not None))
+    start[0] = gate[0]  # a range of this batch all the same
+    s_idx = np.flatnonzero(start)
+    new_last = (int(t_us[-1]), bool(gate[-1]))
+    if len(s_idx) and len(s_idx) >= runs_at_once:
+        due, table, open_, pending = _cut_all(cfg, state, t_us, v, aux, gate, start, s_idx,
+                                              continues)
+        return Cut(table, due), WindowerState(open_, pending, *new_last)
+    stops = np.append(np.flatnonzero(~gate | start), len(gate))
+    ends = stops[np.searchsorted(stops, s_idx, side="right")]
     c = _Cutter(cfg, state.open, state.pending, [], [])
-    c.schedule(t_us, v, aux, gate, state.last_t_us, state.last_gate)
+    c.schedule(t_us, v, aux, len(gate),
+               list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues)
     table = WindowSums.gather(c.table, aux.shape[1]) if c.table else None
-    return Cut(c.due, table), WindowerState(c.open, c.pending, int(t_us[-1]), bool(gate[-1]))
+    return Cut(table, c.due), WindowerState(c.open, c.pending, *new_last)
+
+
+def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarray,
+             aux: np.ndarray, gate: np.ndarray, start: np.ndarray, s_idx: np.ndarray,
+             continues: bool) -> tuple[tuple[np.ndarray, np.ndarray], WindowSums | None,
+                                       WindowAcc | None, tuple[WindowAcc, int] | None]:
+    """`cut` for every run of the batch at once: what `_Cutter` does run by run, with the same
+    sums (a run's pieces by `np.add.reduceat`, a run of one piece by `ndarray.sum`, a window
+    continued from the last batch added to its earlier part). Returns the due events, the
+    committing windows' sums, and the open and pending window left at the batch's end."""
+    n, R, W = len(t), len(s_idx), cfg.window_us
+    carried_open = state.open if continues else None
+    carried_pending = state.pending if continues else None
+    rs_run = t[s_idx].astype(np.int64)
+    if continues:
+        rs_run[0] = (carried_open.run_start_us if carried_open is not None
+                     else carried_pending[0].run_start_us)  # type: ignore[index]
+    local = np.cumsum(start)  # each gated sample's run, plus one
+    rs = np.concatenate(([0], rs_run))[local]
+    dt = t - rs
+    k = dt // W
+    # pieces: a run's windows within the batch; reduceat bounds also after each run's end
+    # (those pieces, of samples outside any run, are dropped)
+    bounds = start.copy()
+    bounds[1:] |= (k[1:] != k[:-1]) & gate[1:] | gate[:-1] & ~gate[1:]
+    bounds[0] = True
+    bidx = np.flatnonzero(bounds)
+    real = gate[bidx]
+    p0, p1 = bidx[real], np.append(bidx[1:], n)[real]
+    prun, pk, pn = local[p0] - 1, k[p0], p1 - p0
+    sv = np.add.reduceat(v, bidx, axis=0)[real]
+    sv2 = np.add.reduceat(v * v, bidx, axis=0)[real]
+    saux = (np.add.reduceat(aux, bidx, axis=0)[real] if aux.shape[1]
+            else np.zeros((len(p0), 0)))
+    st = np.add.reduceat(dt, bidx)[real].astype(np.float64)  # exact
+    counts = np.bincount(prun, minlength=R)
+    first = np.searchsorted(prun, np.arange(R))  # each run's first piece
+    for j in first[counts == 1].tolist():  # a run's only window in the batch: plain sums
+        a, b = int(p0[j]), int(p1[j])
+        sv[j], sv2[j], saux[j] = v[a:b].sum(0), (v[a:b] * v[a:b]).sum(0), aux[a:b].sum(0)
+    carried: list[WindowAcc] = []  # windows from the last batch that finish at sample 0
+    if carried_open is not None and carried_open.k == pk[0]:  # the batch continues it
+        o = carried_open
+        sv[0], sv2[0], saux[0] = o.sum_v + sv[0], o.sum_v2 + sv2[0], o.sum_aux + saux[0]
+        st[0], pn[0] = o.sum_t + st[0], o.n + pn[0]
+    elif carried_open is not None:
+        carried.append(carried_open)
+    last = first + counts - 1  # each run's last piece
+    ends = p1[last]  # each run's end
+    finishes = np.ones(len(p0), bool)
+    finishes[last] = False  # a run's last piece ends with it or stays open
+    table = WindowSums.concat([
+        WindowSums.of_accs([*([carried_pending[0]] if carried_pending else []), *carried],
+                           aux.shape[1]),
+        WindowSums(rs_run[prun], pk, pn.astype(np.int64), sv, sv2, saux, st)])
+    m0 = len(table) - len(p0)  # rows before the pieces
+    # every finished window in order (the carried pending first, finished at sample 0)
+    rows = np.concatenate([np.arange(m0), m0 + np.flatnonzero(finishes)])
+    run = np.concatenate([np.zeros(m0, np.int64), prun[finishes]])
+    fin = np.concatenate([np.zeros(m0, np.int64), p1[finishes]])
+    long = table.n[rows] >= cfg.min_samples
+    commit = np.asarray(cfg.commit_us(table.run_start_us[rows], table.k[rows]), np.int64)
+    if carried_pending is not None:
+        long[0], commit[0] = True, carried_pending[1]
+    # a long window is pending until it commits or the next long one of its run finishes
+    lr, lf = run[long], fin[long]
+    same = np.append(lr[1:] == lr[:-1], False)
+    bound = np.where(same, np.append(lf[1:], 0), ends[lr])
+    at = np.maximum(_first_at_or_past(t, gate, s_idx, ends, local - 1, lr, commit[long]), lf)
+    found = at < bound
+    due_idx = np.concatenate([fin[~long], at[found]])
+    due_commit = np.concatenate([np.zeros(int((~long).sum()), bool), np.ones(int(found.sum()),
+                                                                              bool)])
+    due = (due_idx, due_commit)
+    committed = rows[long][found]
+    out = table.take(committed) if len(committed) else None
+    if ends[-1] < n:  # the last run ended inside the batch: nothing open or pending
+        return due, out, None, None
+    open_ = table.acc(m0 + int(last[-1]))
+    pending = None
+    if len(lr) and lr[-1] == R - 1 and not found[-1]:
+        j = int(rows[long][-1])
+        pending = (table.acc(j), int(commit[long][-1]))
+    return due, out, open_, pending
+
+
+def _first_at_or_past(t: np.ndarray, gate: np.ndarray, s_idx: np.ndarray, ends: np.ndarray,
+                      local: np.ndarray, run: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+    """For each (run, t_us): the first sample of that run at or past t_us, or a sample past
+    the run if none (t rises within a run, and usually through the whole batch: then t itself
+    is the sorted key; else one is made of every run's times, each past the one before)."""
+    if (t[1:] > t[:-1]).all():
+        return np.searchsorted(t, t_us)
+    span = t[ends - 1] - t[s_idx]
+    base = np.concatenate(([0], np.cumsum(span + 1)[:-1]))
+    g = np.flatnonzero(gate)
+    key = base[local[g]] + (t[g] - t[s_idx][local[g]])
+    target = base[run] + np.clip(t_us - t[s_idx][run], 0, span[run] + 1)
+    return np.append(g, len(t))[np.searchsorted(key, target)]
 
 
 @dataclass(eq=False)
@@ -241,28 +370,14 @@ class _Cutter:
     due: list[tuple[int, bool]]
     table: list[WindowAcc | WindowSums]
 
-    def runs(self, t_us: np.ndarray, gate: np.ndarray, last_t_us: int | None, last_gate: bool
-             ) -> tuple[list[tuple[int, int]], bool]:
-        """[start, end) ranges of gated samples without time gaps, and whether the first range
-        continues the run that was open at the end of the previous batch."""
-        start = run_starts(t_us, gate, last_t_us, last_gate, self.cfg.rate_hz)
-        continues = (bool(gate[0]) and not start[0]
-                     and (self.open is not None or self.pending is not None))
-        start[0] = gate[0]  # a range of this batch all the same
-        stops = np.append(np.flatnonzero(~gate | start), len(gate))
-        s_idx = np.flatnonzero(start)
-        ends = stops[np.searchsorted(stops, s_idx, side="right")]
-        return list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues
-
-    def schedule(self, t_us: np.ndarray, v: np.ndarray, aux: np.ndarray, gate: np.ndarray,
-                 last_t_us: int | None, last_gate: bool) -> None:
+    def schedule(self, t_us: np.ndarray, v: np.ndarray, aux: np.ndarray, n: int,
+                 runs: list[tuple[int, int]], continues: bool) -> None:
         """Every run of the batch in turn (`cut`); a run that ended drops its open window."""
-        runs, continues = self.runs(t_us, gate, last_t_us, last_gate)
         for r, (i0, i1) in enumerate(runs):
             if not (r == 0 and continues):
                 self.open, self.pending = None, None
             self.schedule_run(t_us, v, aux, i0, i1)
-        if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
+        if runs and runs[-1][1] < n:  # the last run ended inside this batch
             self.open, self.pending = None, None
         if not runs:
             self.open, self.pending = None, None
