@@ -44,6 +44,7 @@ from recal.core.refit import (
     after_update,
     must_update,
     next_update,
+    tries,
 )
 from recal.core.status import (
     Status,
@@ -76,7 +77,19 @@ class Lifecycle(Enum):
 
     @property
     def has_estimate(self) -> bool:
-        return self in (Lifecycle.TRACKING, Lifecycle.SUSPECT)
+        return self in _ESTIMATED
+
+
+# the members as module names: the pipeline asks at every step, and a class attribute of an
+# Enum is a descriptor call in Python 3.11
+_AWAITING_SCALE, _BOOTSTRAPPING, _TRACKING, _SUSPECT = (
+    Lifecycle.AWAITING_SCALE, Lifecycle.BOOTSTRAPPING, Lifecycle.TRACKING, Lifecycle.SUSPECT)
+_ESTIMATED = frozenset((_TRACKING, _SUSPECT))
+
+
+#: The pipeline's attributes that are never changed in place (replaced when they change): a
+#: step's snapshot (`Pipeline._stepped`) keeps them as they are instead of copying them.
+_SHARED = frozenset(("cfg", "windower", "refit"))
 
 
 class Pipeline:
@@ -151,17 +164,17 @@ class Pipeline:
     @property
     def lifecycle(self) -> Lifecycle:
         if self.det_state is None:
-            return Lifecycle.AWAITING_SCALE
+            return _AWAITING_SCALE
         if self.estimate is None:
-            return Lifecycle.BOOTSTRAPPING
-        return Lifecycle.SUSPECT if self.watch.suspect else Lifecycle.TRACKING
+            return _BOOTSTRAPPING
+        return _SUSPECT if self.watch.suspect else _TRACKING
 
     @property
     def phase(self) -> str:
         """"prior": calibrated from a pre-calibration; "bootstrap": from the ellipsoid fit of
         its own still windows; "provisional": no calibration yet (zero-g and scale are
         guesses for the detector and the orientation cells, see the class doc)."""
-        if not self.lifecycle.has_estimate:
+        if self.lifecycle not in _ESTIMATED:
             return "provisional"
         return "prior" if self.from_prior else "bootstrap"
 
@@ -175,9 +188,9 @@ class Pipeline:
     def status(self) -> Status:
         """The status of output calibrated now (`core.status` defines each)."""
         life = self.lifecycle
-        if not life.has_estimate:
+        if life not in _ESTIMATED:
             return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
-        if life is Lifecycle.SUSPECT:
+        if life is _SUSPECT:
             return Status.SUSPECT
         return Status.CALIBRATED if self.informed else Status.HELD
 
@@ -209,7 +222,7 @@ class Pipeline:
             return JoinedStep(CalibratedBatch.empty(), (), [], (), {})
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
-        if self.lifecycle is Lifecycle.AWAITING_SCALE:  # the first sample's norm is 1 g
+        if self.lifecycle is _AWAITING_SCALE:  # the first sample's norm is 1 g
             norms = np.linalg.norm(batch.v, axis=1)
             good = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
             s0 = float(good[0]) if len(good) else 1.0
@@ -218,8 +231,8 @@ class Pipeline:
         # until an estimate exists, zero-g and scale may be found wrong at a window inside
         # the batch (`_relocate`): the detector then restarts after that sample, as it would
         # have had the batch come in two, so the state before the batch is kept to redo it
-        snap = (copy.deepcopy({k: v for k, v in self.__dict__.items() if k != "_marks"})
-                if self.lifecycle is Lifecycle.BOOTSTRAPPING and n > 1 else None)
+        snap = ({k: v if k in _SHARED else copy.deepcopy(v) for k, v in self.__dict__.items()
+                 if k != "_marks"} if self.lifecycle is _BOOTSTRAPPING and n > 1 else None)
         out = self._step(batch, marks)
         at, self._restart_at = self._restart_at, None
         if at is None:
@@ -515,6 +528,11 @@ class Pipeline:
             return int(hits[0]) + c0 if len(hits) else None
         est, cfg = self.estimate, self.cfg
         assert est is not None
+        checks, cum = tries(chunk, c0, self.counts["windows"], cfg.update_every)
+        if not len(checks):
+            return None
+        if must_update(self.refit, est, cfg.max_update_interval_s):
+            return int(checks[0]) + c0
 
         def late(checks: np.ndarray) -> np.ndarray:
             return (t_us[np.asarray(at[c0:c0 + len(chunk) - (c0 - chunk.lo)])[checks]]
@@ -525,9 +543,8 @@ class Pipeline:
             return innovations(self.model, est, w, self.covariates(w.t_us, w.aux), cfg.estimator)
 
         e, self.refit = next_update(
-            self.refit, chunk, c0, windows=self.counts["windows"], update_every=cfg.update_every,
-            must=must_update(self.refit, est, cfg.max_update_interval_s), n_fresh=len(self.fresh),
-            late=late, z_fresh=z_fresh,
+            self.refit, chunk, c0, checks, cum, n_fresh=len(self.fresh), late=late,
+            z_fresh=z_fresh,
             z_chunk=lambda: chunk.innovations(self.model, est, self.covariates, cfg.estimator))
         return e
 

@@ -23,9 +23,16 @@ from recal.core.estimator import Estimate, EstimatorConfig, consistent_many, inn
 from recal.core.model import SensorModel
 from recal.core.triaxial import norm3
 
-__all__ = ["SETTLED_SD_FRACTION", "RefitState", "WindowChunk", "after_update", "must_update",
-           "next_update",
-           "settled"]
+__all__ = [
+    "SETTLED_SD_FRACTION",
+    "RefitState",
+    "WindowChunk",
+    "after_update",
+    "must_update",
+    "next_update",
+    "settled",
+    "tries",
+]
 
 #: An update that moved no parameter by more than this fraction of its standard deviation
 #: leaves the estimate settled: later windows that agree with it need no re-fit (the value
@@ -140,28 +147,30 @@ class WindowChunk:
         return self.z
 
 
-def next_update(state: RefitState, chunk: WindowChunk, c0: int, *, windows: int,
-                update_every: int, must: bool, n_fresh: int,
-                late: Callable[[np.ndarray], np.ndarray],
+def tries(chunk: WindowChunk, c0: int, windows: int, update_every: int
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """The tries among the chunk's windows from c0 (positions from c0): every update_every-th
+    committed window that passes the norm gate (windows: committed so far); and how many of
+    them from c0 pass, up to each."""
+    ok = chunk.ok[c0 - chunk.lo:]
+    cum = np.cumsum(ok)
+    return np.flatnonzero(ok & ((windows + cum) % update_every == 0)), cum
+
+
+def next_update(state: RefitState, chunk: WindowChunk, c0: int, checks: np.ndarray,
+                cum: np.ndarray, *, n_fresh: int, late: Callable[[np.ndarray], np.ndarray],
                 z_fresh: Callable[[int, int], np.ndarray],
                 z_chunk: Callable[[], np.ndarray]) -> tuple[int | None, RefitState]:
-    """After the bootstrap: the first window from c0 in the chunk after which an update runs
-    (None: none in it), and the state with the consistency tests run on the way.
+    """After the bootstrap, when no update must run (`must_update`): the first try (`tries`:
+    checks, cum) after which an update runs, as a window of the batch (None: none in the
+    chunk), and the state with the consistency tests run on the way.
 
-    windows: committed windows so far; must: `must_update`; n_fresh: windows committed since
-    the last update (those of the chunk before c0 included); late(j): whether the tries at
-    the chunk's windows c0 + j come max_update_interval_s after the last accepted update;
-    z_fresh(m0, m1): the innovations of fresh windows m0..m1; z_chunk(): the chunk's
-    (`WindowChunk.innovations`). A new cell is the caller's reason (the buffer places each
-    window)."""
+    n_fresh: windows committed since the last update (those of the chunk before c0
+    included); late(checks): whether those tries come max_update_interval_s after the last
+    accepted update; z_fresh(m0, m1): the innovations of fresh windows m0..m1; z_chunk(): the
+    chunk's (`WindowChunk.innovations`). A new cell is the caller's reason (the buffer places
+    each window)."""
     i0 = c0 - chunk.lo
-    ok = chunk.ok[i0:]
-    cum = np.cumsum(ok)  # windows of the chunk from c0 that pass, up to each
-    checks = np.flatnonzero(ok & ((windows + cum) % update_every == 0))
-    if not len(checks):
-        return None, state
-    if must:
-        return int(checks[0]) + c0, state
     n_before = int(np.count_nonzero(chunk.ok[:i0]))  # the chunk's windows already entered
     in_fresh = n_fresh - n_before  # fresh windows from before the chunk
     is_late = late(checks)
@@ -197,5 +206,6 @@ def _test_until(state: RefitState, in_fresh: int, upto: np.ndarray, stop: int,
     s1s = np.cumsum(np.concatenate(([s1], np.add.reduceat(zz, starts))))[1:]
     ok = consistent_many(ms, s2s, s1s)
     j = int(np.argmin(ok)) if not ok.all() else stop - 1
-    state = replace(state, tested=(int(ms[j]), float(s2s[j]), float(s1s[j])))
+    state = RefitState(state.settled, state.coverage_at_update,
+                       (int(ms[j]), float(s2s[j]), float(s1s[j])))
     return (j if not ok[j] else stop), state

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, fields
-from functools import cached_property
 
 import numpy as np
 
@@ -218,8 +217,9 @@ class Cut:
     #: the events as a list, or as (sample index, commits) arrays not yet in order
     events: list[tuple[int, bool]] | tuple[np.ndarray, np.ndarray]
 
-    @cached_property
+    @property
     def due(self) -> list[tuple[int, bool]]:
+        """The events as a list, in order (worked out at each call: ask once)."""
         if isinstance(self.events, list):
             return self.events
         idx, commits = self.events  # a short window before a commit at the same sample
