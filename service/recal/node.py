@@ -505,10 +505,8 @@ class CalibrationNode:
                 for batch, log_ns in items:
                     self.process(batch, log_ns)
                 return
-            ends = np.cumsum([len(b) for b, _ in items]).tolist()
             joined = self._device_time(RawBatch.concat([b for b, _ in items]), items[0][1])
-            starts = [0, *ends[:-1]]
-            outs = pipe.step_many([joined[lo:hi] for lo, hi in zip(starts, ends, strict=True)])
+            outs = pipe.step_joined(joined, [len(b) for b, _ in items])
             self._last_names = pipe.aux_names
             for (_, log_ns), out in zip(items, outs, strict=True):
                 self._emit(out, log_ns)

@@ -13,7 +13,7 @@ import numpy as np
 
 from recal.core.estimator import Estimate, UpdateReport
 from recal.core.model import SensorModel
-from recal.samples import CalibratedBatch, RawBatch
+from recal.samples import CalibratedBatch
 
 __all__ = ["JoinedStep", "MarkState", "Marks", "StepOutput", "UpdateEvent", "WatchEvent"]
 
@@ -119,18 +119,18 @@ class JoinedStep:
                           (*self.watch, *(replace(w, index=w.index + at) for w in tail.watch)),
                           {**self.marks, **{m + at: v for m, v in tail.marks.items()}})
 
-    def split(self, batches: Sequence[RawBatch], model: SensorModel,
+    def split(self, lengths: Sequence[int], model: SensorModel,
               estimate: Estimate | None) -> list[StepOutput]:
-        """One output per batch joined (each len(batch) samples, in order; a mark at the end
-        of each that is not empty), indices local to it; model and estimate: in force before
-        the first batch."""
+        """One output per batch joined (of these lengths, in order; a mark at the end of each
+        that is not empty), indices local to it; model and estimate: in force before the
+        first batch."""
         outs: list[StepOutput] = []
         lo, c, ups, watch, commits = 0, 0, list(self.updates), list(self.watch), self.commits
-        for b in batches:
-            if not len(b):
+        for n in lengths:
+            if not n:
                 outs.append(StepOutput(CalibratedBatch.empty(), (), 0, (), model, estimate))
                 continue
-            hi = lo + len(b)
+            hi = lo + n
             mine = [replace(u, index=u.index - lo) for u in _take_before(ups, hi)]
             seen = [replace(w, index=w.index - lo) for w in _take_before(watch, hi)]
             c1 = bisect.bisect_left(commits, hi, c)

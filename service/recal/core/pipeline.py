@@ -209,9 +209,16 @@ class Pipeline:
         full = [b for b in batches if len(b)]
         if len(full) < 2:
             return [self.step(b) for b in batches]
-        ends = np.cumsum([len(b) for b in full]).tolist()
+        return self.step_joined(RawBatch.concat(full), [len(b) for b in batches])
+
+    def step_joined(self, joined: RawBatch, lengths: Sequence[int]) -> list[StepOutput]:
+        """`step_many` for batches the caller has joined already: ``joined`` holds them one
+        after another, ``lengths`` says how many samples each has (0: an empty batch)."""
+        if sum(lengths) != len(joined):
+            raise InputError(f"batch lengths {sum(lengths)} != {len(joined)} samples joined")
+        ends = np.cumsum([n for n in lengths if n]).tolist()
         model, estimate = self.model, self.estimate  # as of before the first batch
-        return self._stepped(RawBatch.concat(full), ends).split(batches, model, estimate)
+        return self._stepped(joined, ends).split(lengths, model, estimate)
 
     def _stepped(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
         """`step` with the state recorded after each mark's samples (`step_many`)."""

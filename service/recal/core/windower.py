@@ -234,7 +234,7 @@ class Cut:
 #: From this many runs in a batch on, `cut` works on all of them at once (`_cut_all`); fewer
 #: (a live sensor's batches) go run by run (`_Cutter`), with fewer numpy calls. Both give the
 #: same windows bit for bit (tests/test_windower.py).
-RUNS_AT_ONCE = 4
+RUNS_AT_ONCE = 2
 
 
 def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray,
