@@ -74,9 +74,9 @@ NOT_FINITE_SIGMA_MG = float("inf")
 #: 1. The estimator fits an offset jump (`estimator._jump`: the newest windows each beyond 7
 #:    sigma, Lötters eq. 14 over C_mu + B C_e B^T) and another within JUMP_REPEAT_S: a knock
 #:    is one jump, after which the windows agree; a sensor whose gains differ too jumps again
-#:    at a new posture (within 1-25 minutes on the simulated wearers of bench/status_watch.py).
-#:    The status stays suspect that long after a first jump: until then the estimate may be a
-#:    compromise between two sensors that fits the norms of the postures seen since.
+#:    at a new posture (how soon: docs/performance.md, bench/status_watch.py). The status
+#:    stays suspect that long after a first jump: until then the estimate may be a compromise
+#:    between two sensors that fits the norms of the postures seen since.
 JUMP_REPEAT_S = 1800.0
 #: 2. The windows fail the norm gate (calibrated norm further than norm_tol_g from 1 g, or not
 #:    finite), so they never reach the estimator: for SUSPECT_AFTER_S of device time, at least
