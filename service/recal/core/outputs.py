@@ -99,7 +99,7 @@ class Marks:
             self.at[m] = MarkState(model, estimate, s)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False, slots=True)
 class JoinedStep:
     """One step's output over a (possibly joined) batch: `StepOutput`'s, with the sample index
     of each committed window and the state at each mark (`Pipeline.step_many` splits it)."""

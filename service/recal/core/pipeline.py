@@ -229,17 +229,19 @@ class Pipeline:
             return JoinedStep(CalibratedBatch.empty(), (), [], (), {})
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
-        if self.lifecycle is _AWAITING_SCALE:  # the first sample's norm is 1 g
+        life = self.lifecycle
+        if life is _AWAITING_SCALE:  # the first sample's norm is 1 g
             norms = np.linalg.norm(batch.v, axis=1)
             good = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
             s0 = float(good[0]) if len(good) else 1.0
             self.model = SensorModel(self.model.effects, s0, self.model.spreads)
             self._start_detector(s0)
+            life = self.lifecycle  # bootstrapping now
         # until an estimate exists, zero-g and scale may be found wrong at a window inside
         # the batch (`_relocate`): the detector then restarts after that sample, as it would
         # have had the batch come in two, so the state before the batch is kept to redo it
         snap = ({k: v if k in _SHARED else copy.deepcopy(v) for k, v in self.__dict__.items()
-                 if k != "_marks"} if self.lifecycle is _BOOTSTRAPPING and n > 1 else None)
+                 if k != "_marks"} if life is _BOOTSTRAPPING and n > 1 else None)
         out = self._step(batch, marks)
         at, self._restart_at = self._restart_at, None
         if at is None:

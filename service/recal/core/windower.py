@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
 
@@ -177,9 +178,9 @@ class WindowSums:
 
 
 
-@dataclass(frozen=True, eq=False)
-class WindowerState:
-    """What the windower carries from one batch to the next.
+class WindowerState(NamedTuple):
+    """What the windower carries from one batch to the next (immutable: `cut` returns a new
+    one; a tuple, the cheapest such record to make at every step).
 
     Attributes:
         open: the window being filled (None: no run open at the last batch's end).
@@ -242,7 +243,7 @@ def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray
         ) -> tuple[Cut, WindowerState]:
     """The batch's windows (samples t_us, v, aux; `gate`: which may enter one), and the state
     for the next batch. Pure: ``state`` is not changed."""
-    start = run_starts(t_us, gate, state.last_t_us, state.last_gate, cfg.rate_hz)
+    start, forward = _run_starts(t_us, gate, state.last_t_us, state.last_gate, cfg.rate_hz)
     continues = (bool(gate[0]) and not start[0]
                  and (state.open is not None or state.pending is not None))
     start[0] = gate[0]  # a range of this batch all the same
@@ -250,7 +251,7 @@ def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray
     new_last = (int(t_us[-1]), bool(gate[-1]))
     if len(s_idx) and len(s_idx) >= runs_at_once:
         due, table, open_, pending = _cut_all(cfg, state, t_us, v, aux, gate, start, s_idx,
-                                              continues)
+                                              continues, bool(forward[1:].all()))
         return Cut(table, due), WindowerState(open_, pending, *new_last)
     stops = np.append(np.flatnonzero(~gate | start), len(gate))
     ends = stops[np.searchsorted(stops, s_idx, side="right")]
@@ -263,12 +264,14 @@ def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray
 
 def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarray,
              aux: np.ndarray, gate: np.ndarray, start: np.ndarray, s_idx: np.ndarray,
-             continues: bool) -> tuple[tuple[np.ndarray, np.ndarray], WindowSums | None,
-                                       WindowAcc | None, tuple[WindowAcc, int] | None]:
+             continues: bool, rising: bool
+             ) -> tuple[tuple[np.ndarray, np.ndarray], WindowSums | None, WindowAcc | None,
+                        tuple[WindowAcc, int] | None]:
     """`cut` for every run of the batch at once: what `_Cutter` does run by run, with the same
     sums (a run's pieces by `np.add.reduceat`, a run of one piece by `ndarray.sum`, a window
     continued from the last batch added to its earlier part). Returns the due events, the
-    committing windows' sums, and the open and pending window left at the batch's end."""
+    committing windows' sums, and the open and pending window left at the batch's end.
+    rising: t rises through the whole batch."""
     n, R, W = len(t), len(s_idx), cfg.window_us
     carried_open = state.open if continues else None
     carried_pending = state.pending if continues else None
@@ -310,10 +313,10 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
     ends = p1[last]  # each run's end
     finishes = np.ones(len(p0), bool)
     finishes[last] = False  # a run's last piece ends with it or stays open
-    table = WindowSums.concat([
-        WindowSums.of_accs([*([carried_pending[0]] if carried_pending else []), *carried],
-                           aux.shape[1]),
-        WindowSums(rs_run[prun], pk, pn.astype(np.int64), sv, sv2, saux, st)])
+    table = WindowSums(rs_run[prun], pk, pn.astype(np.int64), sv, sv2, saux, st)
+    if carried_pending is not None or carried:
+        table = WindowSums.concat([WindowSums.of_accs(
+            [*([carried_pending[0]] if carried_pending else []), *carried], aux.shape[1]), table])
     m0 = len(table) - len(p0)  # rows before the pieces
     # every finished window in order (the carried pending first, finished at sample 0)
     rows = np.concatenate([np.arange(m0), m0 + np.flatnonzero(finishes)])
@@ -327,7 +330,8 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
     lr, lf = run[long], fin[long]
     same = np.append(lr[1:] == lr[:-1], False)
     bound = np.where(same, np.append(lf[1:], 0), ends[lr])
-    at = np.maximum(_first_at_or_past(t, gate, s_idx, ends, local - 1, lr, commit[long]), lf)
+    at = np.maximum(_first_at_or_past(t, gate, s_idx, ends, local - 1, lr, commit[long],
+                                      rising), lf)
     found = at < bound
     due_idx = np.concatenate([fin[~long], at[found]])
     due_commit = np.concatenate([np.zeros(int((~long).sum()), bool), np.ones(int(found.sum()),
@@ -346,11 +350,12 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
 
 
 def _first_at_or_past(t: np.ndarray, gate: np.ndarray, s_idx: np.ndarray, ends: np.ndarray,
-                      local: np.ndarray, run: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+                      local: np.ndarray, run: np.ndarray, t_us: np.ndarray,
+                      rising: bool) -> np.ndarray:
     """For each (run, t_us): the first sample of that run at or past t_us, or a sample past
     the run if none (t rises within a run, and usually through the whole batch: then t itself
     is the sorted key; else one is made of every run's times, each past the one before)."""
-    if (t[1:] > t[:-1]).all():
+    if rising:
         return np.searchsorted(t, t_us)
     span = t[ends - 1] - t[s_idx]
     base = np.concatenate(([0], np.cumsum(span + 1)[:-1]))
@@ -464,14 +469,21 @@ def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_g
     """Where a run of gated samples starts: a gated sample after one that was not, or after a
     time step that is no step (<= 0) or a gap (> 3 nominal periods). The batch's first sample
     continues the previous batch's run if that ended gated (prev_gate) one step before it."""
+    return _run_starts(t_us, gate, prev_t_us, prev_gate, rate_hz)[0]
+
+
+def _run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_gate: bool,
+                rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """`run_starts`, and where time stepped forward (t_us[i] > the time before it)."""
     prev_t = int(t_us[0]) - 1 if prev_t_us is None else prev_t_us
     dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
     dt[0] = int(t_us[0]) - prev_t
     np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
-    ok_dt = (dt > 0) & (dt <= 3.0e6 / rate_hz)
+    forward = dt > 0
+    ok_dt = forward & (dt <= 3.0e6 / rate_hz)
     start = gate.copy()
     start[1:] &= ~gate[:-1] | ~ok_dt[1:]
     start[0] &= not (prev_gate and ok_dt[0])
-    return start
+    return start, forward
 
 
