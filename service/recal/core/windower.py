@@ -293,15 +293,19 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
     p0, p1 = bidx[real], np.append(bidx[1:], n)[real]
     prun, pk, pn = local[p0] - 1, k[p0], p1 - p0
     sv = np.add.reduceat(v, bidx, axis=0)[real]
-    sv2 = np.add.reduceat(v * v, bidx, axis=0)[real]
+    vv = v * v
+    sv2 = np.add.reduceat(vv, bidx, axis=0)[real]
     saux = (np.add.reduceat(aux, bidx, axis=0)[real] if aux.shape[1]
             else np.zeros((len(p0), 0)))
     st = np.add.reduceat(dt, bidx)[real].astype(np.float64)  # exact
     counts = np.bincount(prun, minlength=R)
     first = np.searchsorted(prun, np.arange(R))  # each run's first piece
-    for j in first[counts == 1].tolist():  # a run's only window in the batch: plain sums
-        a, b = int(p0[j]), int(p1[j])
-        sv[j], sv2[j], saux[j] = v[a:b].sum(0), (v[a:b] * v[a:b]).sum(0), aux[a:b].sum(0)
+    single = first[counts == 1]  # a run's only window in the batch: plain sums (ndarray.sum)
+    add, with_aux = np.add.reduce, aux.shape[1] > 0
+    for j, a, b in zip(single.tolist(), p0[single].tolist(), p1[single].tolist(), strict=True):
+        sv[j], sv2[j] = add(v[a:b], 0), add(vv[a:b], 0)
+        if with_aux:
+            saux[j] = add(aux[a:b], 0)
     carried: list[WindowAcc] = []  # windows from the last batch that finish at sample 0
     if carried_open is not None and carried_open.k == pk[0]:  # the batch continues it
         o = carried_open
