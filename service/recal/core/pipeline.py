@@ -42,6 +42,7 @@ from recal.core.refit import (
     RefitState,
     WindowChunk,
     after_update,
+    fresh_windows,
     must_update,
     next_update,
     tries,
@@ -548,7 +549,7 @@ class Pipeline:
                     - est.t_us >= cfg.max_update_interval_s * 1e6)
 
         def z_fresh(m0: int, m1: int) -> np.ndarray:
-            w = self._fresh_windows(m0, m1)
+            w = fresh_windows(self.fresh[m0:m1], len(self.aux_names))
             return innovations(self.model, est, w, self.covariates(w.t_us, w.aux), cfg.estimator)
 
         e, self.refit = next_update(
@@ -645,15 +646,6 @@ class Pipeline:
         cov = self.covariates(self.buffer.t_us[m], self.buffer.aux[m])
         a = self.model.correct(self.params, self.buffer.v[m], cov)
         self.buffer.redirect(a / norm3(a)[:, None])
-
-    def _fresh_windows(self, first: int = 0, stop: int | None = None) -> Windows:
-        fresh = self.fresh[first:stop]
-        m, k = len(fresh), len(self.aux_names)
-        return Windows(np.array([f[0] for f in fresh]).reshape(m, 3),
-                       np.array([f[1] for f in fresh]).reshape(m, k),
-                       np.array([f[2] for f in fresh], np.int64),
-                       np.array([f[3] for f in fresh], np.int64),
-                       np.array([f[4] for f in fresh], float))
 
     # --- correction --------------------------------------------------------------------------
     def _segment(self, idx: int) -> Segment:

@@ -23,16 +23,8 @@ from recal.core.estimator import Estimate, EstimatorConfig, consistent_many, inn
 from recal.core.model import SensorModel
 from recal.core.triaxial import norm3
 
-__all__ = [
-    "SETTLED_SD_FRACTION",
-    "RefitState",
-    "WindowChunk",
-    "after_update",
-    "must_update",
-    "next_update",
-    "settled",
-    "tries",
-]
+__all__ = ["SETTLED_SD_FRACTION", "RefitState", "WindowChunk", "after_update", "fresh_windows",
+           "must_update", "next_update", "settled", "tries"]
 
 #: An update that moved no parameter by more than this fraction of its standard deviation
 #: leaves the estimate settled: later windows that agree with it need no re-fit (the value
@@ -86,6 +78,17 @@ def after_update(before: Estimate, after: Estimate, accepted: bool,
                  cells_opened: int) -> RefitState:
     """The state after an update (accepted or not) with the buffer at ``cells_opened``."""
     return RefitState(accepted and settled(before, after), cells_opened)
+
+
+def fresh_windows(rows: list[tuple], n_aux: int) -> Windows:
+    """Committed windows kept as (v, aux, t_us, n, var) rows (the pipeline's since the last
+    update, which the consistency tests read), as arrays."""
+    m = len(rows)
+    return Windows(np.array([f[0] for f in rows]).reshape(m, 3),
+                   np.array([f[1] for f in rows]).reshape(m, n_aux),
+                   np.array([f[2] for f in rows], np.int64),
+                   np.array([f[3] for f in rows], np.int64),
+                   np.array([f[4] for f in rows], float))
 
 
 def must_update(state: RefitState, estimate: Estimate | None,
