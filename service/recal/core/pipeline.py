@@ -78,14 +78,13 @@ class Lifecycle(Enum):
 
     @property
     def has_estimate(self) -> bool:
-        return self in _ESTIMATED
+        return self is _TRACKING or self is _SUSPECT
 
 
 # the members as module names: the pipeline asks at every step, and a class attribute of an
 # Enum is a descriptor call in Python 3.11
 _AWAITING_SCALE, _BOOTSTRAPPING, _TRACKING, _SUSPECT = (
     Lifecycle.AWAITING_SCALE, Lifecycle.BOOTSTRAPPING, Lifecycle.TRACKING, Lifecycle.SUSPECT)
-_ESTIMATED = frozenset((_TRACKING, _SUSPECT))
 
 
 #: The pipeline's attributes that are never changed in place (replaced when they change): a
@@ -175,7 +174,8 @@ class Pipeline:
         """"prior": calibrated from a pre-calibration; "bootstrap": from the ellipsoid fit of
         its own still windows; "provisional": no calibration yet (zero-g and scale are
         guesses for the detector and the orientation cells, see the class doc)."""
-        if self.lifecycle not in _ESTIMATED:
+        life = self.lifecycle
+        if life is _AWAITING_SCALE or life is _BOOTSTRAPPING:
             return "provisional"
         return "prior" if self.from_prior else "bootstrap"
 
@@ -189,7 +189,7 @@ class Pipeline:
     def status(self) -> Status:
         """The status of output calibrated now (`core.status` defines each)."""
         life = self.lifecycle
-        if life not in _ESTIMATED:
+        if life is _AWAITING_SCALE or life is _BOOTSTRAPPING:
             return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
         if life is _SUSPECT:
             return Status.SUSPECT

@@ -113,6 +113,13 @@ class WindowSums:
 
     @classmethod
     def of_accs(cls, accs: list[WindowAcc], n_aux: int) -> WindowSums:
+        if len(accs) == 1:  # a live sensor's usual batch: its rows as views of the sums
+            a = accs[0]
+            return cls(np.array([a.run_start_us], np.int64), np.array([a.k], np.int64),
+                       np.array([a.n], np.int64), np.asarray(a.sum_v, np.float64).reshape(1, 3),
+                       np.asarray(a.sum_v2, np.float64).reshape(1, 3),
+                       np.asarray(a.sum_aux, np.float64).reshape(1, n_aux),
+                       np.array([a.sum_t], np.float64))
         return cls(np.array([a.run_start_us for a in accs], np.int64),
                    np.array([a.k for a in accs], np.int64),
                    np.array([a.n for a in accs], np.int64),
