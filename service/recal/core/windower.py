@@ -13,6 +13,7 @@ where the batches end, except in the last bit of a float sum (see docs/design.md
 from __future__ import annotations
 
 import bisect
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import NamedTuple
 
@@ -222,15 +223,16 @@ class Cut:
     windows' sums, in the same order (None: none commits)."""
 
     sums: WindowSums | None
-    #: the events as a list, or as (sample index, commits) arrays not yet in order
-    events: list[tuple[int, bool]] | tuple[np.ndarray, np.ndarray]
+    #: the events as a list, or what gives them as (sample index, commits) arrays not yet in
+    #: order (the batch windowing never asks)
+    events: list[tuple[int, bool]] | Callable[[], tuple[np.ndarray, np.ndarray]]
 
     @property
     def due(self) -> list[tuple[int, bool]]:
         """The events as a list, in order (worked out at each call: ask once)."""
         if isinstance(self.events, list):
             return self.events
-        idx, commits = self.events  # a short window before a commit at the same sample
+        idx, commits = self.events()  # a short window before a commit at the same sample
         order = np.lexsort((commits, idx))
         return list(zip(idx[order].tolist(), commits[order].tolist(), strict=True))
 
@@ -272,13 +274,13 @@ def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray
 def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarray,
              aux: np.ndarray, gate: np.ndarray, start: np.ndarray, s_idx: np.ndarray,
              continues: bool, rising: bool
-             ) -> tuple[tuple[np.ndarray, np.ndarray], WindowSums | None, WindowAcc | None,
-                        tuple[WindowAcc, int] | None]:
+             ) -> tuple[Callable[[], tuple[np.ndarray, np.ndarray]], WindowSums | None,
+                        WindowAcc | None, tuple[WindowAcc, int] | None]:
     """`cut` for every run of the batch at once: what `_Cutter` does run by run, with the same
     sums (a run's pieces by `np.add.reduceat`, a run of one piece by `ndarray.sum`, a window
-    continued from the last batch added to its earlier part). Returns the due events, the
-    committing windows' sums, and the open and pending window left at the batch's end.
-    rising: t rises through the whole batch."""
+    continued from the last batch added to its earlier part). Returns what gives the due
+    events, the committing windows' sums, and the open and pending window left at the batch's
+    end. rising: t rises through the whole batch."""
     n, R, W = len(t), len(s_idx), cfg.window_us
     carried_open = state.open if continues else None
     carried_pending = state.pending if continues else None
@@ -341,13 +343,18 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
     lr, lf = run[long], fin[long]
     same = np.append(lr[1:] == lr[:-1], False)
     bound = np.where(same, np.append(lf[1:], 0), ends[lr])
-    at = np.maximum(_first_at_or_past(t, gate, s_idx, ends, local - 1, lr, commit[long],
-                                      rising), lf)
-    found = at < bound
-    due_idx = np.concatenate([fin[~long], at[found]])
-    due_commit = np.concatenate([np.zeros(int((~long).sum()), bool), np.ones(int(found.sum()),
-                                                                              bool)])
-    due = (due_idx, due_commit)
+    lc = commit[long]
+    # t rises within a run: it commits in [lf, bound) if the last sample before bound is late
+    found = (bound > lf) & (t[bound - 1] >= lc)
+
+    def due() -> tuple[np.ndarray, np.ndarray]:
+        """The short windows' ends and the commits' samples, for `Cut.due`."""
+        at = np.maximum(_first_at_or_past(t, gate, s_idx, ends, local - 1, lr[found],
+                                          lc[found], rising), lf[found])
+        short = fin[~long]
+        return (np.concatenate([short, at]),
+                np.concatenate([np.zeros(len(short), bool), np.ones(len(at), bool)]))
+
     committed = rows[long][found]
     out = table.take(committed) if len(committed) else None
     if ends[-1] < n:  # the last run ended inside the batch: nothing open or pending
@@ -356,7 +363,7 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
     pending = None
     if len(lr) and lr[-1] == R - 1 and not found[-1]:
         j = int(rows[long][-1])
-        pending = (table.acc(j), int(commit[long][-1]))
+        pending = (table.acc(j), int(lc[-1]))
     return due, out, open_, pending
 
 
