@@ -647,6 +647,10 @@ class Pipeline:
         a = self.model.correct(self.params, self.buffer.v[m], cov)
         self.buffer.redirect(a / norm3(a)[:, None])
 
+    def _fresh_windows(self) -> Windows:
+        """The windows committed since the last update, as arrays (`refit.fresh_windows`)."""
+        return fresh_windows(self.fresh, len(self.aux_names))
+
     # --- correction --------------------------------------------------------------------------
     def _segment(self, idx: int) -> Segment:
         """What is in force from sample idx on (now): model, parameters, covariance (no
