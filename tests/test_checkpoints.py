@@ -13,6 +13,7 @@ disk; a poisoned folder is reported on the console and the previous generation r
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -50,6 +51,7 @@ from recal.config import (
     default_state_dir,
     load_config,
 )
+from recal.core.pipeline import Pipeline
 from recal.demo import free_port
 from recal.gateway import NOTE_PREFIX, READY_PREFIX, run_gateway
 from recal.io import recording as rec
@@ -58,7 +60,7 @@ from recal.io.pty_device import PtyDevice
 from recal.node import CalibrationNode, NodeSettings, make_node, node_settings
 from recal.runtime import ERROR_PREFIX
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sim import SensorSpec, SimResult, error_1s_mg, simulate
+from recal.sim import SensorSpec, SimResult, error_1s_mg, sensor_type, simulate
 from test_gateway import get_json, peer, sim_raw, stream
 
 SID = "s1"
@@ -663,3 +665,29 @@ def test_a_node_leaves_alone_a_sensor_another_process_holds(tmp_path: Path) -> N
     said = [x for x in nt.lines if "not calibrating" in x]
     assert len(said) == 1 and f"process {os.getpid()}" in said[0], nt.lines
     assert not checkpoint_path(ck, "wrist").exists() and checkpoint_path(ck, "hip").is_file()
+
+
+#: Pipelines mid-run (an open and a pending window, fresh windows tested, or mid-bootstrap on
+#: float readings), checkpointed by the code before the pipeline was split into parts, with
+#: digests of what they gave when they went on stepping (tests/data; regenerated only if the
+#: checkpoint format changes, which it must not).
+MID_RUN_V1 = Path(__file__).resolve().parent / "data" / "checkpoint_mid_run_v1.json"
+
+
+@pytest.mark.parametrize("case", ["prior_counts", "bootstrap_ms2"])
+def test_checkpoint_from_the_old_code_restores_and_continues_bit_for_bit(case: str) -> None:
+    fx = json.loads(MID_RUN_V1.read_text())[case]
+    pipe = Pipeline.from_state_dict(fx["state"])
+    # the same JSON back: same keys, same order, same values
+    again = json.dumps(pipe.state_dict())
+    assert hashlib.sha256(again.encode()).hexdigest() == fx["state_json_sha256"]
+    spec = sensor_type(fx["sensor_type"], np.random.default_rng(3))
+    raw = simulate(fx["minutes"] / 60, 50.0, 5, spec).raw
+    h = hashlib.sha256()
+    for i in range(fx["stop"], len(raw), 100):
+        c = pipe.step(raw[i:i + 100]).calibrated
+        for a in (c.t_us, c.a_g, c.quasi_static, c.detector_g, c.status, c.sigma_mg):
+            h.update(np.ascontiguousarray(a).tobytes())
+    assert h.hexdigest() == fx["continued_sha256"]
+    end = json.dumps(pipe.state_dict()).encode()
+    assert hashlib.sha256(end).hexdigest() == fx["end_state_sha256"]

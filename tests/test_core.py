@@ -17,9 +17,11 @@ from recal.core.buffer import BufferConfig, WindowBuffer
 from recal.core.effects import TIME, Covariates, Gain, Nonlinearity, Offset, Ratiometric
 from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Lifecycle, Pipeline, PipelineConfig, check_channels
 from recal.core.static import fit_known_orientations, fit_unknown_orientations
+from recal.core.status import Status
 from recal.core.triaxial import all3, any3, norm3
+from recal.errors import ModelError, RecalError
 from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -392,3 +394,33 @@ def test_batches_of_1_10_1000_give_the_same_output_and_checkpoints_resume_exactl
     p = Pipeline.from_state_dict(json.loads(json.dumps(p.state_dict())))
     outs.append(p.step(r.raw[7777:]).calibrated.a_g)
     assert np.max(np.abs(np.concatenate(outs) - ref)) <= 1e-9
+
+
+def test_lifecycle_follows_the_state_and_keeps_the_summary_strings() -> None:
+    """Awaiting a scale (no prior, no sample), bootstrapping, tracking; with a prior, tracking
+    from the start; suspect while the self-watch objects. The summary's phase and status
+    strings are those they always were."""
+    r = simulate(0.5, 50.0, 3)
+    model = SensorModel.diagonal(1024.0)
+    p = Pipeline(PipelineConfig(rate_hz=50.0), model, None, r.raw.aux_names)
+    assert p.lifecycle is Lifecycle.AWAITING_SCALE and p.status is Status.UNCALIBRATED
+    p.step(r.raw[:100])
+    assert p.lifecycle is Lifecycle.BOOTSTRAPPING and p.summary()["phase"] == "provisional"
+    for i in range(100, len(r.raw), 500):
+        p.step(r.raw[i:i + 500])
+    assert p.lifecycle is Lifecycle.TRACKING
+    assert (p.summary()["phase"], p.summary()["status"]) == ("bootstrap", "calibrated")
+    q = Pipeline(PipelineConfig(rate_hz=50.0), model, Prior.default(model), r.raw.aux_names)
+    assert q.lifecycle is Lifecycle.TRACKING
+    assert (q.summary()["phase"], q.summary()["status"]) == ("prior", "held")
+    q.watch.suspect = True
+    assert q.lifecycle is Lifecycle.SUSPECT and q.summary()["status"] == "suspect"
+
+
+def test_a_model_reading_a_channel_the_input_lacks_is_a_model_error() -> None:
+    model = SensorModel.diagonal(1024.0).with_effect(Ratiometric("vdd", 3.3), 0.5)
+    with pytest.raises(ModelError, match="vdd") as e:
+        check_channels(model, ("temp",))
+    assert isinstance(e.value, RecalError) and isinstance(e.value, ValueError)
+    with pytest.raises(ModelError):
+        Pipeline(PipelineConfig(), model, None, ())

@@ -1,7 +1,7 @@
 """Replay joins a recording's messages into bigger pipeline steps; the output must not change.
 
-The pipeline is batch-size invariant, and `Pipeline.step(marks=...)` reports the state as of
-each joined message's end, so `CalibrationNode.process_many` (and replay, which uses it) must
+The pipeline is batch-size invariant, and `Pipeline.step_many` reports the state as of each
+joined message's end, so `CalibrationNode.process_many` (and replay, which uses it) must
 give, message for message, exactly what `process` gives one message at a time: the same
 calibrated and body batches, plot samples, events and calibration states, with the same times.
 """
@@ -107,7 +107,7 @@ def test_process_many_gives_what_process_gives_message_by_message(prior: bool, l
     assert json.dumps(a.checkpoint()["pipeline"]) == json.dumps(b.checkpoint()["pipeline"])
 
 
-def test_step_marks_report_the_state_after_each_message() -> None:
+def test_step_many_reports_the_state_after_each_message() -> None:
     raw = _raw(15.0, 3)
     model = SensorModel.diagonal(1024.0)
     rng = np.random.default_rng(3)
@@ -121,13 +121,43 @@ def test_step_marks_report_the_state_after_each_message() -> None:
     joined = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, None, ())
     got = {}
     for lo in range(0, len(msgs), 7):  # 7 messages per step
-        base = ends[lo - 1] if lo else 0
-        out = joined.step(RawBatch.concat(msgs[lo:lo + 7]),
-                          marks=[e - base for e in ends[lo:lo + 7]])
-        got |= {base + m: encode_json(s) for m, (_, s) in out.states.items()}
+        outs = joined.step_many(msgs[lo:lo + 7])
+        assert len(outs) == len(msgs[lo:lo + 7])
+        got |= {end: encode_json(out.state[1])
+                for out, end in zip(outs, ends[lo:lo + 7], strict=True) if out.state is not None}
     assert len(expected) >= 10 and got == expected
-    with pytest.raises(ValueError):
-        joined.step(raw[:10], marks=[5, 5])
+
+
+def test_step_many_gives_each_batch_what_stepping_it_alone_gives() -> None:
+    """Per batch: the calibrated slice, updates and watch events (batch-local indices), the
+    windows committed in it, and the model and estimate in force at its end; an empty batch
+    gives an empty output with the state as it was."""
+    raw = _raw(15.0, 5)
+    model = SensorModel.diagonal(1024.0)
+    msgs = [m for m, _ in _messages(raw, np.random.default_rng(6), 400)]
+    msgs.insert(3, raw[:0])
+    seq = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, None, ())
+    many = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, None, ())
+    n_updates = n_windows = 0
+    for lo in range(0, len(msgs), 9):
+        outs = many.step_many(msgs[lo:lo + 9])
+        assert len(outs) == len(msgs[lo:lo + 9])
+        for m, got in zip(msgs[lo:lo + 9], outs, strict=True):
+            want = seq.step(m)
+            assert Recorder._batch(got.calibrated) == Recorder._batch(want.calibrated)
+            np.testing.assert_array_equal(got.calibrated.status, want.calibrated.status)
+            np.testing.assert_array_equal(got.calibrated.sigma_mg, want.calibrated.sigma_mg)
+            assert got.updates == want.updates and got.watch == want.watch
+            assert got.windows_committed == want.windows_committed
+            assert got.model is seq.model or got.model.to_dict() == seq.model.to_dict()
+            assert (got.estimate is None) == (seq.estimate is None)
+            if got.estimate is not None:
+                np.testing.assert_array_equal(got.estimate.p, seq.estimate.p)
+            assert (got.state is not None) == bool(want.updates)
+            n_updates += len(got.updates)
+            n_windows += got.windows_committed
+    assert n_updates >= 10 and n_windows >= 100
+    assert json.dumps(many.state_dict()) == json.dumps(seq.state_dict())
 
 
 def test_replay_joined_equals_replay_one_message_at_a_time(tmp_path: Path,

@@ -235,8 +235,8 @@ def test_unsigned_start_is_the_same_for_any_batching_and_after_a_checkpoint() ->
 
 
 def test_unsigned_start_reports_each_message_state_when_messages_are_joined() -> None:
-    """`step(marks=...)` across the re-centring (which redoes part of the batch): the states
-    at the marks are those stepping each message alone shows, and so is the output."""
+    """`step_many` across the re-centring (which redoes part of the batch): the states at the
+    batches' ends are those stepping each message alone shows, and so is the output."""
     s = _sim("adxl335-adc12", seed=3, minutes=12.0)
     rng = np.random.default_rng(5)
     cuts = np.cumsum(rng.integers(1, 700, size=len(s.raw)))
@@ -251,12 +251,11 @@ def test_unsigned_start_reports_each_message_state_when_messages_are_joined() ->
             expected[end] = json.dumps(seq.summary(), sort_keys=True, default=str)
     joined, got, a_joined = new(), {}, []
     for lo in range(0, len(msgs), 7):  # 7 messages per step
-        base = cuts[lo]
-        out = joined.step(RawBatch.concat(msgs[lo:lo + 7]),
-                          marks=[e - base for e in cuts[lo + 1:lo + 8]])
-        a_joined.append(out.calibrated.a_g)
-        got |= {base + m: json.dumps(st, sort_keys=True, default=str)
-                for m, (_, st) in out.states.items()}
+        outs = joined.step_many(msgs[lo:lo + 7])
+        a_joined += [out.calibrated.a_g for out in outs]
+        got |= {end: json.dumps(out.state[1], sort_keys=True, default=str)
+                for out, end in zip(outs, cuts[lo + 1:lo + 8], strict=True)
+                if out.state is not None}
     np.testing.assert_array_equal(np.concatenate(a_seq), np.concatenate(a_joined))
     assert len(expected) >= 10 and got == expected
     assert seq.phase == joined.phase == "bootstrap"

@@ -157,9 +157,6 @@ class CalibrationNode(AlignmentRequests):
         self._calibrated_once = False
         self.last_t_us: int | None = None
         self.last_state: dict[str, Any] | None = None
-        # (model, estimate, summary) of the batch being reported while process_many reports
-        # joined batches one by one; None: the pipeline as it is
-        self._view: tuple[SensorModel, Any, dict[str, Any] | None] | None = None
         self._next_discovery_us: int | None = None
         self._discovery: _Rediscovery | None = None  # a run in its thread
         self._offsets_known: tuple[Any, Any, bool] | None = None  # model, estimate, answer
@@ -229,33 +226,11 @@ class CalibrationNode(AlignmentRequests):
                 for batch, log_ns in items:
                     self.process(batch, log_ns)
                 return
-            ends = np.cumsum([len(b) for b, _ in items]).tolist()
-            model, estimate = pipe.model, pipe.estimate  # as of before the step
             joined = self._device_time(RawBatch.concat([b for b, _ in items]), items[0][1])
-            out = pipe.step(joined, marks=ends)
+            outs = pipe.step_joined(joined, [len(b) for b, _ in items])
             self._last_names = pipe.aux_names
-            todo = list(out.updates)
-            watch = list(out.watch)
-            lo = 0
-            try:
-                for (_, log_ns), hi in zip(items, ends, strict=True):
-                    mine = []
-                    while todo and todo[0].index < hi:  # this batch's updates, its indices
-                        u = todo.pop(0)
-                        mine.append(replace(u, index=u.index - lo))
-                    if mine:
-                        model, estimate = mine[-1].model or model, mine[-1].estimate
-                    state = out.states.get(hi)  # (model, summary) after this batch
-                    self._view = (model, estimate, state[1] if state else None)
-                    seen = []
-                    while watch and watch[0].index < hi:
-                        w = watch.pop(0)
-                        seen.append(replace(w, index=w.index - lo))
-                    cal = out.calibrated[lo:hi]
-                    self._emit(StepOutput(cal, tuple(mine), 0, watch=tuple(seen)), log_ns)
-                    lo = hi
-            finally:
-                self._view = None
+            for (_, log_ns), out in zip(items, outs, strict=True):
+                self._emit(out, log_ns)
 
     def flush(self, log_time_ns: int) -> None:
         """End of stream: calibrate samples still held for rate measurement."""
@@ -430,7 +405,9 @@ class CalibrationNode(AlignmentRequests):
         return out
 
     def _emit(self, out: StepOutput, log_ns: int) -> None:
-        """Everything a step's output produces: calibrated, plot, events, state, body."""
+        """Everything a step's output produces: calibrated, plot, events, state, body; the
+        state as of the batch's end is the output's (`StepOutput.model`, ``estimate``,
+        ``state``), not the pipeline's, which may be some batches further (`process_many`)."""
         cal = self._guard(out.calibrated, log_ns)
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
@@ -441,7 +418,7 @@ class CalibrationNode(AlignmentRequests):
         self._report_status(cal, log_ns)
         self._report_updates(out, log_ns)
         self._maybe_rediscover(log_ns)
-        self._track_alignment(cal, log_ns)
+        self._track_alignment(cal, log_ns, out)
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
                                  "body")
@@ -536,13 +513,6 @@ class CalibrationNode(AlignmentRequests):
             if self.on_note is not None:
                 self.on_note(f"{new.label}{why}")
 
-    def _as_of(self) -> tuple[SensorModel, Any]:
-        """Model and estimate as of the batch being reported (see ``_view``)."""
-        if self._view is not None:
-            return self._view[0], self._view[1]
-        assert self.pipeline is not None
-        return self.pipeline.model, self.pipeline.estimate
-
     def _fit_layout(self, batch: RawBatch, log_ns: int) -> RawBatch | None:
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
         assert self.pipeline is not None
@@ -607,7 +577,8 @@ class CalibrationNode(AlignmentRequests):
     def _report_updates(self, out: StepOutput, log_ns: int) -> None:
         if not out.updates:
             return
-        model = self._as_of()[0]
+        assert self.pipeline is not None
+        model = out.model if out.model is not None else self.pipeline.model
         names = model.names
         for u in out.updates:
             if u.report.accepted:
@@ -618,15 +589,16 @@ class CalibrationNode(AlignmentRequests):
                 self._event("bootstrap", u.t_us, log_ns, {
                     "accepted": u.report.accepted, "s0": model.s0})
         last = out.updates[-1]
-        self._publish_state(last.t_us, "bootstrap" if last.bootstrap else "update", log_ns)
+        self._publish_state(last.t_us, "bootstrap" if last.bootstrap else "update", log_ns,
+                            out.state)
 
-    def _track_alignment(self, cal: CalibratedBatch, log_ns: int) -> None:
+    def _track_alignment(self, cal: CalibratedBatch, log_ns: int, out: StepOutput) -> None:
         cfg = self.settings.alignment
         if self._tracker is None or not (cfg.enabled or self._align_requested):
             return
         if self._align_requested or self.alignment is None:
             armed = (self._align_requested or not cfg.require_update
-                     or (self.accepted_updates > 0 and self._tilt_offsets_known()))
+                     or (self.accepted_updates > 0 and self._tilt_offsets_known(out)))
         else:
             armed = cfg.enabled  # aligned: every later still period is checked for a slip
         for hit in self._tracker.feed(cal.t_us, cal.a_g, cal.quasi_static, armed):
@@ -670,11 +642,13 @@ class CalibrationNode(AlignmentRequests):
             self._event("tilt_cleared", change.t_us, log_ns, {**detail, "detail": (
                 f"the mounting is back within {ali.limit_deg:g} deg of the reference")})
 
-    def _tilt_offsets_known(self) -> bool:
-        """Whether the x/y offsets' posterior sd is below ``max_offset_sd_mg`` (tilt error)."""
+    def _tilt_offsets_known(self, out: StepOutput) -> bool:
+        """Whether the x/y offsets' posterior sd is below ``max_offset_sd_mg`` (tilt error), as
+        of the end of the batch ``out`` is of."""
         if self.pipeline is None:
             return True
-        model, estimate = self._as_of()
+        model = out.model if out.model is not None else self.pipeline.model
+        estimate = out.estimate if out.model is not None else self.pipeline.estimate
         if estimate is None or not model.has("offset"):
             return True  # nothing to wait for
         # asked every batch until a reference is found; it changes only with the estimate
@@ -704,12 +678,14 @@ class CalibrationNode(AlignmentRequests):
 
     # -- state and events ---------------------------------------------------------------------
 
-    def _state(self, t_us: int | None, reason: str) -> dict[str, Any]:
-        """The calibration state message: pipeline.summary() plus identity and alignment."""
+    def _state(self, t_us: int | None, reason: str,
+               state: tuple[SensorModel, dict[str, Any]] | None = None) -> dict[str, Any]:
+        """The calibration state message: the summary plus identity and alignment. ``state``:
+        the model and summary to report (`StepOutput.state`); None: the pipeline's now."""
         assert self.pipeline is not None
-        view = self._view
-        s = view[2] if view is not None and view[2] is not None else self.pipeline.summary()
-        model = self._as_of()[0]
+        model, s = state if state is not None else (self.pipeline.model,
+                                                     self.pipeline.summary())
+        s = dict(s)
         spec = s.pop("model")
         rep = s.get("last_update") or {}
         rms = s.get("residual_rms_mg")
@@ -721,8 +697,9 @@ class CalibrationNode(AlignmentRequests):
                 "update_count": int(s["counts"]["updates"]),
                 "alignment": self.alignment.to_dict() if self.alignment else None}
 
-    def _publish_state(self, t_us: int, reason: str, log_ns: int) -> None:
-        self.last_state = self._state(t_us, reason)
+    def _publish_state(self, t_us: int, reason: str, log_ns: int,
+                       state: tuple[SensorModel, dict[str, Any]] | None = None) -> None:
+        self.last_state = self._state(t_us, reason, state)
         self.sink.json(self.sensor_id, "calibration", self.last_state, log_ns)
 
     def _event(self, kind: str, t_us: int | None, log_ns: int, detail: Any) -> None:

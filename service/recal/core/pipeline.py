@@ -1,24 +1,13 @@
 """One calibration step: raw batch -> (gates, calibrated batch, updates). The only core entry
-point the shell uses, so the daemon, replay and tests cannot drift apart.
+point the shell uses, so the daemon, replay and tests cannot drift apart (docs/design.md).
 
-Per batch:
-1. detector (Lötters eq. 1-2) gates every sample;
-2. gated samples form windows of `window_s` (time-aligned to the start of each quasi-static run);
-   a window is committed to the buffer only once its run has gone on `guard_s` past it, because
-   the detector's low-pass reacts ~0.5 s late to the start of a movement;
-3. every `update_every` committed windows the estimator updates (Lötters eq. 11a/11b), unless
-   the windows since the last update agree with the estimate (`estimator.consistent`), it has
-   settled, no new orientation cell arrived and less than `max_update_interval_s` of device
-   time passed: on a 24 h wearer that skips ~9 of 10 re-fits, the core's main cost;
-4. samples are calibrated with the parameters in force when they arrived: an update that
-   happens at sample j applies from sample j on; so are their status and predicted error
-   (`core.status`: uncalibrated, bootstrapping, calibrated, held, suspect; sigma from the
-   estimate's covariance);
-5. the self-watch (`core.status.Watch`) marks the output suspect when the estimator fits an
-   offset jump, and resets the estimate when the windows keep contradicting it (a second jump
-   soon after, or windows failing the norm gate for minutes): another sensor under the same
-   id, another sensor's checkpoint. A checkpoint whose estimate is not finite goes back to
-   the prior (or to a bootstrap) at the next step.
+Per batch, each part in its module: the detector (`core.detector`, Lötters eq. 1-2) gates every
+sample; the gated runs are cut into windows (`core.windower`); committed windows enter the
+buffer (`core.buffer`) and, when a re-fit can tell anything new (`core.refit`), the estimator
+updates (`core.estimator`, Lötters eq. 11a/11b); samples are corrected with the parameters in
+force when they arrived (`core.correction`), with their status and predicted error
+(`core.status`); the self-watch (`core.status.Watch`) marks the output suspect or resets the
+estimate when the still windows keep contradicting it. This module only orchestrates them.
 
 Everything is driven by the sample sequence alone (never by batch boundaries or clocks), so
 feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
@@ -26,383 +15,81 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 
 from __future__ import annotations
 
-import bisect
 import copy
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, fields, replace
-from itertools import pairwise
+from dataclasses import asdict, replace
+from enum import Enum
 
 import numpy as np
 
 from recal.core import detector as det
 from recal.core.bootstrap import initial_params, locate, off_by
-from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows, cell_of
-from recal.core.effects import TIME, Covariates, Offset, Scale
+from recal.core.buffer import Coverage, WindowBuffer, Windows
+from recal.core.channels import check_channels, missing_channels, usable
+from recal.core.correction import Segment, calibrate
+from recal.core.effects import Covariates, Offset, Scale
 from recal.core.estimator import (
     Estimate,
-    EstimatorConfig,
     Prior,
     UpdateReport,
-    consistent_many,
     innovations,
     update,
 )
 from recal.core.model import SensorModel
+from recal.core.outputs import JoinedStep, Marks, StepOutput, UpdateEvent, WatchEvent
+from recal.core.pipeline_config import PipelineConfig
+from recal.core.refit import (
+    RefitState,
+    WindowChunk,
+    after_update,
+    fresh_windows,
+    must_update,
+    next_update,
+    tries,
+)
 from recal.core.status import (
-    JUMP_REPEAT_S,
     Status,
     Watch,
-    predicted_sigma_mg,
+    refill,
     sigma_form,
 )
 from recal.core.triaxial import norm3
+from recal.core.windower import WindowerState, WindowSums, cut
+from recal.errors import InputError
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent", "WindowSums",
-           "check_channels", "from_state_dict", "gain_reference", "missing_channels", "run_starts",
+__all__ = ["Lifecycle", "Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent",
+           "check_channels", "from_state_dict", "gain_reference", "missing_channels",
            "state_dict", "usable"]
 
 
-@dataclass(frozen=True)
-class PipelineConfig:
-    """Settings of the whole in-use calibration.
+class Lifecycle(Enum):
+    """Where a pipeline is in its life; read from its state (`Pipeline.lifecycle`), never
+    stored, so a checkpoint holds only the parts it is read from."""
 
-    Attributes:
-        rate_hz: nominal sample rate (filters, gap detection).
-        threshold_g, flat_s, hp_hz, lp_hz: detector settings (see `detector.DetectorConfig`).
-        full_scale_g: the sensor's range; samples at 98 % of it count as clipped. None = off.
-        window_s: length of a window mean. guard_s: how long a run must go on past a window.
-        min_fill: fraction of a window's nominal samples it must hold.
-        norm_tol_g: a window whose calibrated norm is further than this from 1 g is rejected.
-        update_every: committed windows between estimator updates (tried: see next).
-        max_update_interval_s: device time after which an update runs even when the windows
-            since the last one agree with the estimate (`estimator.consistent`); until then a
-            try is skipped when they agree, the estimate has settled and no new orientation
-            cell or half-axis arrived. 0: every try updates (re-fit every update_every).
-        bootstrap_min_cells: orientation cells needed before a sensor without prior is fitted.
-    """
-
-    rate_hz: float = 50.0
-    threshold_g: float = det.DEFAULT_THRESHOLD_G
-    flat_s: float = 1.0
-    hp_hz: float = 0.5
-    lp_hz: float = 0.5
-    full_scale_g: float | None = None
-    window_s: float = 2.0
-    guard_s: float = 1.0
-    min_fill: float = 0.8
-    norm_tol_g: float = 0.1
-    update_every: int = 5
-    max_update_interval_s: float = 300.0
-    bootstrap_min_cells: int = 8
-    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
-    buffer: BufferConfig = field(default_factory=BufferConfig)
-
-    def __post_init__(self) -> None:
-        if not 0 < self.guard_s < self.window_s:
-            raise ValueError("guard_s must be positive and shorter than window_s")
-        if self.rate_hz <= 0:
-            raise ValueError("rate_hz must be positive")
-        positive = {"threshold_g": self.threshold_g, "flat_s": self.flat_s,
-                    "norm_tol_g": self.norm_tol_g, "full_scale_g": self.full_scale_g or 1.0}
-        bad = [k for k, v in positive.items() if not v > 0]  # inf: no limit (window_means)
-        if bad:
-            raise ValueError(f"{', '.join(bad)} must be positive")
-        nyquist = self.rate_hz / 2
-        if not (0 < self.hp_hz < nyquist and 0 < self.lp_hz < nyquist):
-            raise ValueError(f"hp_hz and lp_hz must lie between 0 and half the sample rate "
-                             f"({nyquist:g} Hz)")
-        if not 0 < self.min_fill <= 1:
-            raise ValueError("min_fill must be in (0, 1]")
-        if self.update_every < 1 or self.bootstrap_min_cells < 1:
-            raise ValueError("update_every and bootstrap_min_cells must be at least 1")
-        if self.max_update_interval_s < 0:
-            raise ValueError("max_update_interval_s must be >= 0 (0: every try updates)")
+    #: no detector yet: no prior and no sample (the first sample's norm sets the scale)
+    AWAITING_SCALE = "awaiting_scale"
+    #: the detector runs, no estimate yet: windows are collected for the first fit
+    BOOTSTRAPPING = "bootstrapping"
+    #: an estimate, re-fitted as windows come; the self-watch has no objection
+    TRACKING = "tracking"
+    #: an estimate the self-watch holds suspect (`core.status.Watch`)
+    SUSPECT = "suspect"
 
     @property
-    def min_samples(self) -> float:
-        """A window with fewer samples than this (min_fill of its nominal count) is dropped."""
-        return self.min_fill * self.window_s * self.rate_hz
-
-    @property
-    def window_us(self) -> int:
-        return round(self.window_s * 1e6)
-
-    def commit_us(self, run_start_us: int | np.ndarray, k: int | np.ndarray) -> int | np.ndarray:
-        """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
-        return run_start_us + (k + 1) * self.window_us + round(self.guard_s * 1e6)
-
-    def detector(self, s0: float, zero_raw: np.ndarray | Sequence[float] | None = None
-                 ) -> det.DetectorConfig:
-        """The detector's settings for a sensor of s0 raw units per g reading zero_raw at
-        0 g (None: zero)."""
-        clip = None if self.full_scale_g is None else 0.98 * self.full_scale_g * s0
-        zero = (0.0, 0.0, 0.0) if zero_raw is None else tuple(float(x) for x in zero_raw)
-        return det.DetectorConfig(rate_hz=self.rate_hz, threshold_g=self.threshold_g,
-                                  hp_hz=self.hp_hz, lp_hz=self.lp_hz, s0=s0, clip_raw=clip,
-                                  flat_s=self.flat_s, zero_raw=zero)  # type: ignore[arg-type]
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> PipelineConfig:
-        d = dict(d)
-        est = EstimatorConfig(**d.pop("estimator", {}))
-        buf = BufferConfig(**d.pop("buffer", {}))
-        return cls(**d, estimator=est, buffer=buf)
+    def has_estimate(self) -> bool:
+        return self is _TRACKING or self is _SUSPECT
 
 
-@dataclass(frozen=True)
-class UpdateEvent:
-    """An estimator update that happened at sample `index` of the batch (device time t_us),
-    with the estimate and model in force after it."""
-
-    index: int
-    t_us: int
-    report: UpdateReport
-    bootstrap: bool = False
-    estimate: Estimate | None = field(default=None, compare=False)
-    model: SensorModel | None = field(default=None, compare=False)
+# the members as module names: the pipeline asks at every step, and a class attribute of an
+# Enum is a descriptor call in Python 3.11
+_AWAITING_SCALE, _BOOTSTRAPPING, _TRACKING, _SUSPECT = (
+    Lifecycle.AWAITING_SCALE, Lifecycle.BOOTSTRAPPING, Lifecycle.TRACKING, Lifecycle.SUSPECT)
 
 
-@dataclass(frozen=True)
-class WatchEvent:
-    """The self-watch at sample `index` of the batch (device time t_us): ``suspect`` (the
-    still windows contradicted the estimate for a sustained time: the output is suspect and
-    the estimate was reset toward the prior and re-fitted on the recent windows), ``agrees``
-    (the windows agree again: suspect no more) or ``reset`` (the estimate was not finite)."""
-
-    index: int
-    t_us: int
-    kind: str
-    detail: dict = field(default_factory=dict, compare=False)
-
-
-@dataclass(frozen=True, eq=False)
-class StepOutput:
-    """What one step produced. ``states``: for each mark given to `Pipeline.step` whose
-    stretch since the previous mark holds an update, the model and `Pipeline.summary()` as
-    they were after that many samples. ``watch``: the self-watch's events, in order."""
-
-    calibrated: CalibratedBatch
-    updates: tuple[UpdateEvent, ...]
-    windows_committed: int
-    states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
-    watch: tuple[WatchEvent, ...] = ()
-
-
-@dataclass(eq=False)
-class _Marks:
-    """Sample counts into the current batch at which the caller wants the state (see step)."""
-
-    todo: list[int]
-    gate: np.ndarray
-    samples0: int
-    quasi_static0: int
-    dirty: bool = False  # an update happened since the last mark passed
-    states: dict[int, tuple[SensorModel, dict]] = field(default_factory=dict)
-
-
-@dataclass(frozen=True, eq=False, slots=True)
-class _Acc:
-    """Running sums of one window (k-th window of a run that started at run_start_us)."""
-
-    run_start_us: int
-    k: int
-    n: int
-    sum_v: np.ndarray
-    sum_v2: np.ndarray
-    sum_aux: np.ndarray
-    sum_t: float
-
-    @classmethod
-    def of(cls, run_start_us: int, k: int, v: np.ndarray, aux: np.ndarray,
-           t_us: np.ndarray) -> _Acc:
-        return cls(run_start_us, k, len(v), v.sum(0), (v * v).sum(0), aux.sum(0),
-                   float((t_us - run_start_us).sum()))
-
-    def merge(self, other: _Acc) -> _Acc:
-        return _Acc(self.run_start_us, self.k, self.n + other.n, self.sum_v + other.sum_v,
-                    self.sum_v2 + other.sum_v2, self.sum_aux + other.sum_aux,
-                    self.sum_t + other.sum_t)
-
-    def to_dict(self) -> dict:
-        return {"run_start_us": self.run_start_us, "k": self.k, "n": self.n,
-                "sum_v": self.sum_v.tolist(), "sum_v2": self.sum_v2.tolist(),
-                "sum_aux": self.sum_aux.tolist(), "sum_t": self.sum_t}
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> _Acc | None:
-        if d is None:
-            return None
-        return cls(int(d["run_start_us"]), int(d["k"]), int(d["n"]),
-                   np.asarray(d["sum_v"], float), np.asarray(d["sum_v2"], float),
-                   np.asarray(d["sum_aux"], float), float(d["sum_t"]))
-
-
-@dataclass(frozen=True, eq=False)
-class _Event:
-    """An update inside a batch, with the model and parameters in force from `index` on."""
-
-    update: UpdateEvent
-    index: int
-    model: SensorModel
-    p: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class _Segment:
-    """From sample `index` of the batch on: the model and parameters in force, the status and
-    how to predict each sample's error (`core.status.sigma_form`, or None: the covariance
-    sample by sample)."""
-
-    index: int
-    model: SensorModel
-    p: np.ndarray
-    cov: np.ndarray
-    form: np.ndarray | None
-    status: Status
-
-
-@dataclass(frozen=True, eq=False)
-class WindowSums:
-    """The running sums of many windows, one row each (what an `_Acc` holds for one): a long
-    run's windows are summed, scheduled and committed as arrays, not one object each."""
-
-    run_start_us: np.ndarray
-    k: np.ndarray
-    n: np.ndarray
-    sum_v: np.ndarray
-    sum_v2: np.ndarray
-    sum_aux: np.ndarray
-    sum_t: np.ndarray
-
-    @classmethod
-    def of_run(cls, run_start_us: int | np.ndarray, k: np.ndarray, starts: list[int] | np.ndarray,
-               v: np.ndarray, aux: np.ndarray, t_us: np.ndarray) -> WindowSums:
-        """Every window of one run (run_start_us: its start) or of several (an array: each
-        sample's run start); starts: each window's first sample. One reduction per quantity."""
-        idx = np.asarray(starts, np.intp)
-        rs = np.broadcast_to(np.asarray(run_start_us, np.int64), t_us.shape)
-        saux = (np.add.reduceat(aux, idx, axis=0) if aux.shape[1]
-                else np.zeros((len(idx), 0)))
-        return cls(rs[idx], k[idx], np.diff(np.append(idx, len(v))),
-                   np.add.reduceat(v, idx, axis=0), np.add.reduceat(v * v, idx, axis=0), saux,
-                   np.add.reduceat(t_us - rs, idx).astype(np.float64))  # exact
-
-    @classmethod
-    def of_accs(cls, accs: list[_Acc], n_aux: int) -> WindowSums:
-        return cls(np.array([a.run_start_us for a in accs], np.int64),
-                   np.array([a.k for a in accs], np.int64),
-                   np.array([a.n for a in accs], np.int64),
-                   np.array([a.sum_v for a in accs]).reshape(-1, 3),
-                   np.array([a.sum_v2 for a in accs]).reshape(-1, 3),
-                   np.array([a.sum_aux for a in accs]).reshape(len(accs), n_aux),
-                   np.array([a.sum_t for a in accs], np.float64))
-
-    @classmethod
-    def gather(cls, parts: list[_Acc | WindowSums], n_aux: int) -> WindowSums:
-        """One table of windows given one by one (`_Acc`) and in blocks, in that order."""
-        blocks: list[WindowSums] = []
-        for part in parts:
-            if isinstance(part, WindowSums):
-                blocks.append(part)
-            elif blocks and isinstance(blocks[-1], list):
-                blocks[-1].append(part)
-            else:
-                blocks.append([part])
-        return cls.concat([b if isinstance(b, WindowSums) else cls.of_accs(b, n_aux)
-                           for b in blocks])
-
-    @classmethod
-    def concat(cls, tables: list[WindowSums]) -> WindowSums:
-        if len(tables) == 1:
-            return tables[0]
-        return cls(*(np.concatenate([getattr(t, f.name) for t in tables])
-                     for f in fields(cls)))
-
-    @classmethod
-    def empty(cls, n_aux: int) -> WindowSums:
-        return cls.of_accs([], n_aux)
-
-    def join(self, first: np.ndarray) -> WindowSums:
-        """Rows first[j]..first[j+1] summed into one each (pieces of one window, in order)."""
-        return WindowSums(self.run_start_us[first], self.k[first],
-                          np.add.reduceat(self.n, first), np.add.reduceat(self.sum_v, first, 0),
-                          np.add.reduceat(self.sum_v2, first, 0),
-                          (np.add.reduceat(self.sum_aux, first, 0) if self.sum_aux.shape[1]
-                           else self.sum_aux[first]), np.add.reduceat(self.sum_t, first))
-
-    def __len__(self) -> int:
-        return len(self.n)
-
-    def acc(self, j: int) -> _Acc:
-        return _Acc(int(self.run_start_us[j]), int(self.k[j]), int(self.n[j]), self.sum_v[j],
-                    self.sum_v2[j], self.sum_aux[j], float(self.sum_t[j]))
-
-    def take(self, rows: np.ndarray) -> WindowSums:
-        return WindowSums(*(getattr(self, f.name)[rows] for f in fields(self)))
-
-    def means(self) -> tuple[Windows, np.ndarray]:
-        """Window means (and the run each belongs to), all at once."""
-        n = self.n
-        nf = n[:, None]
-        v = self.sum_v / nf
-        s2 = np.maximum(self.sum_v2 / nf - v * v, 0.0)
-        # the mean per-axis variance, unbiased
-        var = (s2[:, 0] + s2[:, 1] + s2[:, 2]) / 3 * n / np.maximum(n - 1, 1)
-        t_mid = self.run_start_us + np.rint(self.sum_t / n).astype(np.int64)
-        return Windows(v, self.sum_aux / nf, t_mid, n, var), self.run_start_us
-
-
-@dataclass(eq=False)
-class _Chunk:
-    """Windows lo..lo+len of a batch's windows (`WindowSums.means`) under the parameters in force:
-    their norm gate, gravity directions and cells, worked out at once. Most end early, at an
-    update that changes the parameters, so `Pipeline._commit_all` takes them in chunks that
-    double (64, 128, ...) while the parameters hold; `rows` hands the buffer, which takes
-    windows one at a time, those it reaches as Python numbers. The innovations of the windows
-    that pass the gate are computed when a consistency test first asks (`Pipeline._scan`)."""
-
-    lo: int
-    w: Windows
-    ok: np.ndarray
-    dirs: np.ndarray
-    runs: np.ndarray
-    cells: np.ndarray
-    z: np.ndarray | None = None
-
-    @classmethod
-    def of(cls, pipe: Pipeline, w: Windows, runs: np.ndarray, lo: int, hi: int) -> _Chunk:
-        s = slice(lo, hi)
-        mine = Windows(w.v[s], w.aux[s], w.t_us[s], w.n[s], w.var[s])
-        a = pipe.model.correct(pipe.params, mine.v, pipe.covariates(mine.t_us, mine.aux))
-        norm = norm3(a)
-        ok = (np.abs(norm - 1.0) <= pipe.cfg.norm_tol_g if pipe.bootstrapped
-              else np.ones(len(a), bool))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dirs = np.where((norm > 0)[:, None], a / norm[:, None], [0.0, 0.0, 1.0])
-        return cls(lo, mine, ok, dirs, runs[s], cell_of(dirs, pipe.cfg.buffer.grid))
-
-    def __len__(self) -> int:
-        return len(self.ok)
-
-    def rows(self, c0: int, c1: int) -> list[tuple]:
-        """(ok, v, aux, t_us, n, var, dir, run, cell) of the batch's windows c0..c1."""
-        s, w = slice(c0 - self.lo, c1 - self.lo), self.w
-        return list(zip(self.ok[s].tolist(), w.v[s].tolist(), w.aux[s].tolist(),
-                        w.t_us[s].tolist(), w.n[s].tolist(), w.var[s].tolist(),
-                        self.dirs[s].tolist(), self.runs[s].tolist(), self.cells[s].tolist(),
-                        strict=True))
-
-    def innovations(self, pipe: Pipeline) -> np.ndarray:
-        """`estimator.innovations` of the chunk's windows that pass the gate, in order."""
-        if self.z is None:
-            w = self.w
-            self.z = innovations(pipe.model, pipe.estimate, w, pipe.covariates(w.t_us, w.aux),
-                                 pipe.cfg.estimator)[self.ok]
-        return self.z
+#: The pipeline's attributes that are never changed in place (replaced when they change): a
+#: step's snapshot (`Pipeline._stepped`) keeps them as they are instead of copying them.
+_SHARED = frozenset(("cfg", "windower", "refit"))
 
 
 class Pipeline:
@@ -444,23 +131,16 @@ class Pipeline:
         self.det_state: det.DetectorState | None = None
         if prior is not None:
             self._start_detector(model.s0, _zero_of(model, prior.mean))
-        self.open: _Acc | None = None  # window being filled
-        self.pending: tuple[_Acc, int] | None = None  # finished window, commit time (us)
-        self.last_t_us: int | None = None
-        self.last_gate = False
+        self.windower = WindowerState()  # the open and pending windows (`core.windower`)
         self.counts = {"samples": 0, "quasi_static": 0, "windows": 0, "windows_rejected": 0,
                        "updates": 0, "updates_rejected": 0}
         self.last_report: UpdateReport | None = None
-        # what the last update saw, to skip re-fits that would not move it (`_scan`)
-        self.settled = False
-        self.coverage_at_update: int | None = None
-        # fresh windows tested so far, and the sums of their normalized innovations
-        self.tested = (0, 0.0, 0.0)
-        self._marks: _Marks | None = None  # only during a step with marks
+        self.refit = RefitState()  # what the last update saw (`core.refit`)
+        self._marks: Marks | None = None  # only during a step with marks
         # data informed the estimate (an accepted update observed a parameter): `status`
         self.informed = False
         self.watch = Watch()
-        self._segs: list[_Segment] = []  # during a step: what is in force from where
+        self._segs: list[Segment] = []  # during a step: what is in force from where
         self._watch_events: list[WatchEvent] = []
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
         self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
@@ -477,11 +157,25 @@ class Pipeline:
         return p
 
     @property
+    def last_t_us(self) -> int | None:
+        """The device time of the last sample stepped (None: none yet)."""
+        return self.windower.last_t_us
+
+    @property
+    def lifecycle(self) -> Lifecycle:
+        if self.det_state is None:
+            return _AWAITING_SCALE
+        if self.estimate is None:
+            return _BOOTSTRAPPING
+        return _SUSPECT if self.watch.suspect else _TRACKING
+
+    @property
     def phase(self) -> str:
         """"prior": calibrated from a pre-calibration; "bootstrap": from the ellipsoid fit of
         its own still windows; "provisional": no calibration yet (zero-g and scale are
         guesses for the detector and the orientation cells, see the class doc)."""
-        if self.estimate is None:
+        life = self.lifecycle
+        if life is _AWAITING_SCALE or life is _BOOTSTRAPPING:
             return "provisional"
         return "prior" if self.from_prior else "bootstrap"
 
@@ -494,43 +188,61 @@ class Pipeline:
     @property
     def status(self) -> Status:
         """The status of output calibrated now (`core.status` defines each)."""
-        if self.estimate is None:
+        life = self.lifecycle
+        if life is _AWAITING_SCALE or life is _BOOTSTRAPPING:
             return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
-        if self.watch.suspect:
+        if life is _SUSPECT:
             return Status.SUSPECT
         return Status.CALIBRATED if self.informed else Status.HELD
 
-    def step(self, batch: RawBatch, marks: Sequence[int] = ()) -> StepOutput:
-        """Process one batch of raw samples (any size, in time order).
+    def step(self, batch: RawBatch) -> StepOutput:
+        """Process one batch of raw samples (any size, in time order)."""
+        s = self._stepped(batch, [])
+        return StepOutput(s.calibrated, s.updates, len(s.commits), s.watch, self.model,
+                          self.estimate)
 
-        ``marks``: increasing sample counts into the batch (1..len), e.g. where the caller
-        joined smaller batches into this one. For each mark whose stretch since the previous
-        mark holds an update, ``StepOutput.states[mark]`` is the model and `summary()` as they
-        were after that many samples: what stepping the smaller batches one at a time would
-        have shown after each (replay joins a recording's messages and still writes one
-        calibration state per message, exactly as the live node did).
-        """
+    def step_many(self, batches: Sequence[RawBatch]) -> list[StepOutput]:
+        """`step` for consecutive batches: one output per batch, exactly what stepping each in
+        turn gives, with the per-call costs paid once (one step over the batches joined; the
+        pipeline is batch-size invariant). Each output's ``state`` is the model and summary
+        as of its batch's end when the batch holds an update (replay joins a recording's
+        messages and still writes one calibration state per message, as the live node did)."""
+        full = [b for b in batches if len(b)]
+        if len(full) < 2:
+            return [self.step(b) for b in batches]
+        return self.step_joined(RawBatch.concat(full), [len(b) for b in batches])
+
+    def step_joined(self, joined: RawBatch, lengths: Sequence[int]) -> list[StepOutput]:
+        """`step_many` for batches the caller has joined already: ``joined`` holds them one
+        after another, ``lengths`` says how many samples each has (0: an empty batch)."""
+        if sum(lengths) != len(joined):
+            raise InputError(f"batch lengths {sum(lengths)} != {len(joined)} samples joined")
+        ends = np.cumsum([n for n in lengths if n]).tolist()
+        model, estimate = self.model, self.estimate  # as of before the first batch
+        return self._stepped(joined, ends).split(lengths, model, estimate)
+
+    def _stepped(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
+        """`step` with the state recorded after each mark's samples (`step_many`)."""
         if batch.aux_names != self.aux_names:
-            raise ValueError(f"batch channels {batch.aux_names} differ from {self.aux_names}")
+            raise InputError(f"batch channels {batch.aux_names} differ from {self.aux_names}")
         n = len(batch)
         if n == 0:
-            return StepOutput(CalibratedBatch.empty(), (), 0)
-        marks = [int(m) for m in marks]
-        if any(not 0 < m <= n for m in marks) or any(b <= a for a, b in pairwise(marks)):
-            raise ValueError(f"marks must increase within 1..{n}")
+            return JoinedStep(CalibratedBatch.empty(), (), [], (), {})
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
-        if self.det_state is None:  # bootstrap: the first sample's norm stands in for 1 g
+        life = self.lifecycle
+        if life is _AWAITING_SCALE:  # the first sample's norm is 1 g
             norms = np.linalg.norm(batch.v, axis=1)
             good = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
             s0 = float(good[0]) if len(good) else 1.0
             self.model = SensorModel(self.model.effects, s0, self.model.spreads)
             self._start_detector(s0)
+            life = self.lifecycle  # bootstrapping now
         # until an estimate exists, zero-g and scale may be found wrong at a window inside
         # the batch (`_relocate`): the detector then restarts after that sample, as it would
         # have had the batch come in two, so the state before the batch is kept to redo it
-        snap = (copy.deepcopy({k: v for k, v in self.__dict__.items() if k != "_marks"})
-                if self.estimate is None and n > 1 else None)
+        snap = ({k: v if k in _SHARED else copy.deepcopy(v) for k, v in self.__dict__.items()
+                 if k != "_marks"} if life is _BOOTSTRAPPING and n > 1 else None)
         out = self._step(batch, marks)
         at, self._restart_at = self._restart_at, None
         if at is None:
@@ -542,10 +254,10 @@ class Pipeline:
         head = self._step(batch[:at + 1], [m for m in marks if m <= at + 1])
         self._restart_at = None
         self._start_detector(self.model.s0, _zero_of(self.model, self.params))
-        tail = self.step(batch[at + 1:], [m - at - 1 for m in marks if m > at + 1])
-        return _joined(head, tail, at + 1)
+        tail = self._stepped(batch[at + 1:], [m - at - 1 for m in marks if m > at + 1])
+        return head.joined(tail, at + 1)
 
-    def _step(self, batch: RawBatch, marks: list[int]) -> StepOutput:
+    def _step(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
         """`step` with the detector as it is (see there)."""
         n = len(batch)
         self._watch_events = []
@@ -554,22 +266,20 @@ class Pipeline:
         gate = usable(d.gate, batch, self.model)
         self._segs = [self._segment(0)]
         if marks:
-            self._marks = _Marks(marks, gate, self.counts["samples"],
+            self._marks = Marks(list(marks), gate, self.counts["samples"],
                                  self.counts["quasi_static"])
         try:
-            events, committed = self._windows(batch, gate)
+            events, commits = self._windows(batch, gate)
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._marks = self._marks, None
-        cal, status, sigma = self._calibrate(batch)
+        cal, status, sigma = calibrate(self._segs, batch, self.covariates)
         self._segs = []
         self.counts["samples"] += n
         self.counts["quasi_static"] += int(gate.sum())
-        self.last_t_us = int(batch.t_us[-1])
-        self.last_gate = bool(gate[-1])
-        return StepOutput(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
-                          tuple(e.update for e in events), committed,
-                          done.states if done is not None else {}, tuple(self._watch_events))
+        return JoinedStep(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
+                        tuple(events), commits, tuple(self._watch_events),
+                        done.at if done is not None else {})
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""
@@ -598,18 +308,8 @@ class Pipeline:
     def _reach(self, idx: int) -> None:
         """Called before anything in the state changes at sample ``idx`` of the batch: the
         state now is the state after ``m`` samples for every mark m <= idx not yet passed."""
-        mk = self._marks
-        if mk is None:
-            return
-        while mk.todo and mk.todo[0] <= idx:
-            m = mk.todo.pop(0)
-            if mk.dirty:  # an update since the previous mark: the caller publishes this state
-                s = self.summary()
-                s["counts"]["samples"] = mk.samples0 + m  # counted at the end of the step
-                s["counts"]["quasi_static"] = mk.quasi_static0 + int(
-                    np.count_nonzero(mk.gate[:m]))
-                mk.states[m] = (self.model, s)
-                mk.dirty = False
+        if self._marks is not None:
+            self._marks.reach(idx, self.model, self.estimate, self.summary)
 
     def summary(self) -> dict:
         """The calibration state: parameters by name, covariance, residual, coverage, ...
@@ -637,126 +337,22 @@ class Pipeline:
         }
 
     # --- windows -----------------------------------------------------------------------------
-    def _runs(self, t_us: np.ndarray, gate: np.ndarray) -> tuple[list[tuple[int, int]], bool]:
-        """[start, end) ranges of gated samples without time gaps, and whether the first range
-        continues the run that was open at the end of the previous batch."""
-        start = run_starts(t_us, gate, self.last_t_us, self.last_gate, self.cfg.rate_hz)
-        continues = (bool(gate[0]) and not start[0]
-                     and (self.open is not None or self.pending is not None))
-        start[0] = gate[0]  # a range of this batch all the same
-        stops = np.append(np.flatnonzero(~gate | start), len(gate))
-        s_idx = np.flatnonzero(start)
-        ends = stops[np.searchsorted(stops, s_idx, side="right")]
-        return list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues
-
-    def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[_Event], int]:
-        """Cut the gated runs into windows and commit the finished ones (see module doc).
+    def _windows(self, b: RawBatch, gate: np.ndarray) -> tuple[list[UpdateEvent], list[int]]:
+        """Cut the gated runs into windows (`core.windower`) and commit the finished ones.
 
         Which windows finish and when they commit depends on the gates and times alone, so it
-        is worked out first for the whole batch (`_schedule`); committing them then depends on
-        the parameters, which change only at updates (`_commit_all`)."""
-        due, table = self._schedule(b, gate)
-        return self._commit_all(b, due, table), len(table) if table is not None else 0
-
-    def _schedule(self, b: RawBatch, gate: np.ndarray) -> tuple[list[tuple[int, bool]],
-                                                                 WindowSums | None]:
-        """The batch's window events in sample order: (index, True) for a window that
-        commits at sample index, (index, False) for one too short to keep (`_finish`); and
-        the committing windows' sums, in the same order."""
-        due: list[tuple[int, bool]] = []
-        table: list[_Acc | WindowSums] = []
-        runs, continues = self._runs(b.t_us, gate)
-        for r, (i0, i1) in enumerate(runs):
-            if not (r == 0 and continues):
-                self.open, self.pending = None, None
-            self._schedule_run(b, i0, i1, due, table)
-        if runs and runs[-1][1] < len(gate):  # the last run ended inside this batch
-            self.open, self.pending = None, None
-        if not runs:
-            self.open, self.pending = None, None
-        return due, WindowSums.gather(table, len(self.aux_names)) if table else None
-
-    def _schedule_run(self, b: RawBatch, i0: int, i1: int, due: list[tuple[int, bool]],
-                      table: list[_Acc | WindowSums]) -> None:
-        """`_schedule` for the run of gated samples i0..i1 (continuing `self.open` and
-        `self.pending` if they are set): windows of window_s from the run's start."""
-        W = self.cfg.window_us
-        run_start = self.open.run_start_us if self.open is not None else (
-            self.pending[0].run_start_us if self.pending is not None else int(b.t_us[i0]))
-        t = b.t_us[i0:i1]
-        k = (t - run_start) // W
-        cuts = (np.flatnonzero(k[1:] != k[:-1]) + 1).tolist()  # window boundaries
-        if cuts:
-            sums = WindowSums.of_run(run_start, k, [0, *cuts], b.v[i0:i1], b.aux[i0:i1], t)
-            first = sums.acc(0)
-        else:  # one window (a live sensor's few samples): plain sums
-            first = _Acc.of(run_start, int(k[0]), b.v[i0:i1], b.aux[i0:i1], t)
-        # windows 1.. of a long run at once when none but the last is short (`_tail`)
-        fast = len(cuts) > 1 and bool(np.all(sums.n[1:-1] >= self.cfg.min_samples))
-        starts, ends = [0, *cuts], [*cuts, len(t)]
-        for j in range(1 if fast else len(starts)):
-            g0, g1 = starts[j], ends[j]
-            acc = first if j == 0 else sums.acc(j)
-            if self.open is not None and self.open.k == acc.k:
-                acc = self.open.merge(acc)
-            elif self.open is not None:  # the open window ended where this one begins
-                self._finish(self.open, i0 + g0, due)
-            self.open = acc
-            if self.pending is not None:  # commit once the run is guard_s past the window
-                # t rises within a run: the first sample at or past the commit time
-                at = bisect.bisect_left(t, self.pending[1], g0, g1) - g0
-                if at < g1 - g0:
-                    due.append((i0 + g0 + at, True))
-                    table.append(self.pending[0])
-                    self.pending = None
-            if g1 < len(t):  # a later window follows in this run: this one is complete
-                self._finish(self.open, i0 + g1, due)
-                self.open = None
-        if fast:
-            self._tail(sums, cuts, t, i0, due, table)
-
-    def _tail(self, sums: WindowSums, cuts: list[int], t: np.ndarray, i0: int,
-              due: list[tuple[int, bool]], table: list[_Acc | WindowSums]) -> None:
-        """`_schedule`'s loop over windows 1.. of a run (samples i0.., times t, window j
-        from cuts[j-1]), all at once, when every one but the last is long enough to keep:
-        window j is then pending from the start of window j + 1 and commits at its first
-        sample guard_s past its end, or stays pending if window j + 1 is the run's last and
-        ends before that; the last window stays open."""
-        g0 = np.asarray(cuts)
-        g1 = np.append(g0[1:], len(t))
-        # the window pending in each window 1..: the one before it (the first: as it is)
-        commit = np.empty(len(g0), np.int64)
-        commit[1:] = self.cfg.commit_us(sums.run_start_us[1:-1], sums.k[1:-1])
-        commit[0] = self.pending[1] if self.pending is not None else 0
-        at = np.maximum(np.searchsorted(t, commit), g0)
-        if self.pending is None:
-            at[0] = len(t)  # nothing pending: never found
-        found = at < g1
-        due.extend((i0 + a, True) for a in at[found].tolist())
-        if found[0]:
-            table.append(self.pending[0])
-        rows = np.flatnonzero(found[1:]) + 1
-        if len(rows):
-            table.append(sums.take(rows))
-        last = len(g0) - 1
-        self.pending = None if found[last] else (sums.acc(last), int(commit[last]))
-        self.open = sums.acc(len(sums) - 1)
-
-    def _finish(self, acc: _Acc, idx: int, due: list[tuple[int, bool]]) -> None:
-        """A window is complete (seen at sample idx, the next window's first); keep it
-        pending until the guard time has passed."""
-        if acc.n < self.cfg.min_samples:
-            due.append((idx, False))
-            return
-        self.pending = (acc, self.cfg.commit_us(acc.run_start_us, acc.k))
+        is worked out first for the whole batch; committing them then depends on the
+        parameters, which change only at updates (`_commit_all`)."""
+        c, self.windower = cut(self.cfg.windows, self.windower, b.t_us, b.v, b.aux, gate)
+        return self._commit_all(b, c.due, c.sums)
 
     def _commit_all(self, b: RawBatch, due: list[tuple[int, bool]],
-                    table: WindowSums | None) -> list[_Event]:
+                    table: WindowSums | None) -> tuple[list[UpdateEvent], list[int]]:
         """Commit the scheduled windows in order. Between updates the parameters hold, so the
         norm gate, directions and cells of the windows are worked out a chunk at a time
-        (`_Chunk`), and `_scan` finds the next window after which an update runs from the
+        (`refit.WindowChunk`), and `_scan` finds the next window after which an update runs from the
         chunk's arrays; the windows before it only enter the buffer (`_enter`)."""
-        events: list[_Event] = []
+        events: list[UpdateEvent] = []
         at = [idx for idx, window in due if window]  # commit sample of each window
         slot = [k for k, (_, window) in enumerate(due) if window]  # its place in due
         done = 0  # due entries handled
@@ -766,7 +362,10 @@ class Pipeline:
             while c < len(table):
                 if chunk is None or c >= chunk.lo + len(chunk):
                     size = min(len(table) - c, max(64, 2 * size))
-                    chunk = _Chunk.of(self, w, runs, c, c + size)
+                    chunk = WindowChunk.of(
+                        self.model, self.params, self.covariates,
+                        self.cfg.norm_tol_g if self.bootstrapped else None,
+                        self.cfg.buffer.grid, w, runs, c, c + size)
                 e = self._scan(chunk, c, b.t_us, at)
                 stop = chunk.lo + len(chunk) if e is None else e + 1
                 done, opened = self._enter(chunk, c, stop, due, slot, done)
@@ -783,17 +382,16 @@ class Pipeline:
                 reset = self._reset_due is not None  # fired, or the update found a jump again
                 if reset:
                     evs.append(self._reset(idx, now))
-                events += [_Event(ev, idx, self.model, self.params.copy())
-                           for ev in evs if ev is not None]
+                events += [ev for ev in evs if ev is not None]
                 if reset or evs[-1] is not None:
                     self._segs.append(self._segment(idx))
                     if self._marks is not None:
                         self._marks.dirty = True
                     chunk, size = None, 0  # the parameters changed: a new first chunk
         self._reject_short(due, done, len(due))
-        return events
+        return events, at
 
-    def _enter(self, chunk: _Chunk, c0: int, c1: int, due: list[tuple[int, bool]],
+    def _enter(self, chunk: WindowChunk, c0: int, c1: int, due: list[tuple[int, bool]],
                slot: list[int], done: int) -> tuple[int, int | None]:
         """Windows c0..c1 of the batch enter the buffer (or count as rejected by their norm),
         each after the short windows scheduled before it. Returns the due entries handled,
@@ -824,7 +422,7 @@ class Pipeline:
             if not watch and self._segs and self._segs[-1].status is Status.UNCALIBRATED:
                 self._segs.append(self._segment(due[slot[c]][0]))  # now bootstrapping
             if (watch and counts["windows"] % ue == 0
-                    and buf.cells_opened != self.coverage_at_update):
+                    and buf.cells_opened != self.refit.coverage_at_update):
                 return done, c
         return done, None
 
@@ -852,12 +450,10 @@ class Pipeline:
         step_us = self.estimate.step_us if self.estimate is not None else None
         if step_us is None or step_us == before.step_us:
             return
-        first = self.watch.jump_us
-        if first is not None and step_us - first <= JUMP_REPEAT_S * 1e6:
+        seen = self.watch.jumped(step_us, now_us)
+        if seen == "reset":
             self._reset_due = "the offsets jumped again"
-            return
-        self.watch.jump_us = step_us
-        if self.watch.alarm(now_us, JUMP_REPEAT_S):
+        elif seen == "suspect":
             self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
                 "reason": "the offsets jumped", "jump_t_us": step_us}))
 
@@ -867,14 +463,7 @@ class Pipeline:
         sensor changed too much. Back to the prior, with a buffer of the recent windows only
         (the older ones are another sensor's, or the old one's), re-fitted at once."""
         reason, self._reset_due = self._reset_due, None
-        since = self.watch.jump_us
-        recent = self.watch.fired(now_us)
-        old = self.buffer.windows()
-        if since is not None:  # the buffer's windows since the first jump, and the watch's
-            keep = old.t_us >= since
-            recent = [(old.v[i], old.aux[i], int(old.t_us[i]), int(old.n[i]), float(old.var[i]))
-                      for i in np.flatnonzero(keep).tolist()] + recent
-            recent = list({int(r[2]): r for r in recent}.values())  # each window once
+        recent = self.watch.to_refit(self.buffer.windows(), now_us)
         before = self.estimate
         assert self.prior is not None
         self.estimate = Estimate.from_prior(self.prior)
@@ -885,7 +474,7 @@ class Pipeline:
             "reason": reason, "windows": len(recent), "refitted": kept,
             "resets": self.watch.triggers,
             "params_before": self.model.params_dict(before.p) if before is not None else None}))
-        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        self.fresh, self.refit = [], self.refit.restarted()
         if len(recent) >= self.cfg.estimator.min_windows and 2 * kept < len(recent):
             # the prior does not fit most of them either (a sensor far from the datasheet):
             # no estimate, a bootstrap from the data (`_try_bootstrap`), these windows first
@@ -898,27 +487,10 @@ class Pipeline:
         return self._update(idx, now_us)
 
     def _refill(self, recent: list[tuple], gate: bool = True) -> int:
-        """The recent windows that pass the norm gate under the estimate now (all of them
-        without ``gate``), into the buffer (each a slot of its own, oldest first); returns
-        how many."""
-        if not recent:
-            return 0
-        recent = sorted(recent, key=lambda r: r[2])
-        m, k = len(recent), len(self.aux_names)
-        w = Windows(np.array([r[0] for r in recent], float).reshape(m, 3),
-                    np.array([r[1] for r in recent], float).reshape(m, k),
-                    np.array([r[2] for r in recent], np.int64),
-                    np.array([r[3] for r in recent], np.int64),
-                    np.array([r[4] for r in recent], float))
-        a = self.model.correct(self.params, w.v, self.covariates(w.t_us, w.aux))
-        norm = norm3(a)
-        ok = np.abs(norm - 1.0) <= self.cfg.norm_tol_g if gate else np.isfinite(norm)
-        dirs = a / np.where(norm > 0, norm, 1.0)[:, None]
-        cells = cell_of(dirs, self.cfg.buffer.grid)
-        for i in np.flatnonzero(ok).tolist():
-            self.buffer.add(w.v[i].tolist(), w.aux[i].tolist(), int(w.t_us[i]), int(w.n[i]),
-                            float(w.var[i]), dirs[i].tolist(), None, int(cells[i]))
-        return int(ok.sum())
+        """`status.refill` of a new buffer under the estimate now (no norm gate: all)."""
+        return refill(self.buffer, len(self.aux_names), self.model, self.params,
+                      self.covariates, recent, self.cfg.norm_tol_g if gate else None,
+                      self.cfg.buffer.grid)
 
     def _heal_if_not_finite(self, t_us: int) -> None:
         """An estimate that is not finite (a damaged checkpoint) would make every sample NaN
@@ -934,7 +506,7 @@ class Pipeline:
         usable_prior = (prior is not None and np.isfinite(prior.mean).all()
                         and np.isfinite(prior.info).all())
         self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
-        self.fresh, self.settled, self.tested = [], False, (0, 0.0, 0.0)
+        self.fresh, self.refit = [], self.refit.restarted()
         self.informed, self.watch = False, Watch()
         if usable_prior:
             assert prior is not None
@@ -958,73 +530,33 @@ class Pipeline:
             self.counts["windows_rejected"] += max(stop - done, 0)
         return max(done, stop)
 
-    def _scan(self, chunk: _Chunk, c0: int, t_us: np.ndarray, at: list[int]) -> int | None:
-        """The first window from c0 in the chunk after which an update runs. None: none in it.
-
-        Before the bootstrap, every window that passes the norm gate (`_try_bootstrap`
-        decides). After it, every update_every-th one, but only if a re-fit can tell
-        anything new: most of a day's windows repeat what the buffer already says, and a
-        re-fit is the core's main cost. It runs when the estimate has not settled (the last
-        update moved it), max_update_interval_s of device time passed since the last accepted
-        update, the windows since then disagree with the estimate (a knock, a drift:
-        `consistent`; each test on the way is recorded in `self.tested`, as the windows come),
-        or the buffer covers a new cell or half-axis (`_enter` sees that, as the buffer
-        places each window)."""
-        i0 = c0 - chunk.lo
-        ok = chunk.ok[i0:]
+    def _scan(self, chunk: WindowChunk, c0: int, t_us: np.ndarray, at: list[int]) -> int | None:
+        """The first window from c0 in the chunk after which an update runs (`core.refit`).
+        None: none in it. Before the bootstrap: every window that passes the norm gate."""
         if not self.bootstrapped:
-            hits = np.flatnonzero(ok)
+            hits = np.flatnonzero(chunk.ok[c0 - chunk.lo:])
             return int(hits[0]) + c0 if len(hits) else None
-        ue = self.cfg.update_every
-        cum = np.cumsum(ok)  # windows of the chunk from c0 that pass, up to each
-        checks = np.flatnonzero(ok & ((self.counts["windows"] + cum) % ue == 0))
+        est, cfg = self.estimate, self.cfg
+        assert est is not None
+        checks, cum = tries(chunk, c0, self.counts["windows"], cfg.update_every)
         if not len(checks):
             return None
-        if self._must_update():
+        if must_update(self.refit, est, cfg.max_update_interval_s):
             return int(checks[0]) + c0
-        n_before = int(np.count_nonzero(chunk.ok[:i0]))  # the chunk's windows already entered
-        in_fresh = len(self.fresh) - n_before  # fresh windows from before the chunk
-        late = (t_us[np.asarray(at[c0:c0 + len(ok)])[checks]] - self.estimate.t_us
-                >= self.cfg.max_update_interval_s * 1e6)
-        first_late = int(np.argmax(late)) if late.any() else len(checks)  # no test there
-        upto = n_before + cum[checks]  # the chunk's windows that passed, up to each check
-        first = self._test_until(chunk, in_fresh, upto, stop=first_late)
-        return int(checks[first]) + c0 if first < len(checks) else None
 
-    def _must_update(self) -> bool:
-        """An update runs at the next try, whatever the windows say (`_scan`)."""
-        est = self.estimate
-        return (self.cfg.max_update_interval_s <= 0 or est is None or est.t_us is None
-                or not self.settled)
+        def late(checks: np.ndarray) -> np.ndarray:
+            return (t_us[np.asarray(at[c0:c0 + len(chunk) - (c0 - chunk.lo)])[checks]]
+                    - est.t_us >= cfg.max_update_interval_s * 1e6)
 
-    def _test_until(self, chunk: _Chunk, in_fresh: int, upto: np.ndarray, stop: int) -> int:
-        """The consistency tests (`consistent`: a re-fit would not move the estimate) at the
-        first `stop` checks, check j testing the fresh windows through the chunk's upto[j]-th
-        window that passed the gate (in_fresh came before the chunk): the first that fails
-        (or stop). The tests up to it are recorded in `self.tested`, as if run one by one:
-        each check's sums are added to the running ones in order."""
-        if stop == 0:
-            return 0
-        m, s2, s1 = self.tested
-        before = max(in_fresh - m, 0)  # untested windows from before the chunk
-        tested = max(m - in_fresh, 0)  # the chunk's windows tested already
-        z = []
-        if before:  # tested with the chunk's own
-            w = self._fresh_windows(m, in_fresh)
-            z.append(innovations(self.model, self.estimate, w, self.covariates(w.t_us, w.aux),
-                                 self.cfg.estimator))
-        z.append(chunk.innovations(self)[tested:int(upto[stop - 1])])
-        zz = np.concatenate(z)
-        ends = before + upto[:stop] - tested  # each check's last window in zz, plus one
-        starts = np.concatenate(([0], ends[:-1]))
-        # each check's windows summed in order, then the checks one after another
-        ms = m + ends
-        s2s = np.cumsum(np.concatenate(([s2], np.add.reduceat(zz * zz, starts))))[1:]
-        s1s = np.cumsum(np.concatenate(([s1], np.add.reduceat(zz, starts))))[1:]
-        ok = consistent_many(ms, s2s, s1s)
-        j = int(np.argmin(ok)) if not ok.all() else stop - 1
-        self.tested = (int(ms[j]), float(s2s[j]), float(s1s[j]))
-        return j if not ok[j] else stop
+        def z_fresh(m0: int, m1: int) -> np.ndarray:
+            w = fresh_windows(self.fresh[m0:m1], len(self.aux_names))
+            return innovations(self.model, est, w, self.covariates(w.t_us, w.aux), cfg.estimator)
+
+        e, self.refit = next_update(
+            self.refit, chunk, c0, checks, cum, n_fresh=len(self.fresh), late=late,
+            z_fresh=z_fresh,
+            z_chunk=lambda: chunk.innovations(self.model, est, self.covariates, cfg.estimator))
+        return e
 
     # --- estimation --------------------------------------------------------------------------
     def _update(self, idx: int, now_us: int, windows: Windows | None = None) -> UpdateEvent:
@@ -1036,13 +568,11 @@ class Pipeline:
         before = self.estimate
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
                                     self.cfg.estimator)
-        self.settled = rep.accepted and _settled(before, self.estimate)
+        self.refit = after_update(before, self.estimate, rep.accepted, self.buffer.cells_opened)
         if rep.accepted:
             self._watch_jump(before, idx, now_us)
         if rep.accepted and any(rep.observable):
             self.informed = True
-        self.coverage_at_update = self.buffer.cells_opened
-        self.tested = (0, 0.0, 0.0)
         self.counts["updates"] += 1
         if not rep.accepted:
             self.counts["updates_rejected"] += 1
@@ -1117,17 +647,12 @@ class Pipeline:
         a = self.model.correct(self.params, self.buffer.v[m], cov)
         self.buffer.redirect(a / norm3(a)[:, None])
 
-    def _fresh_windows(self, first: int = 0, stop: int | None = None) -> Windows:
-        fresh = self.fresh[first:stop]
-        m, k = len(fresh), len(self.aux_names)
-        return Windows(np.array([f[0] for f in fresh]).reshape(m, 3),
-                       np.array([f[1] for f in fresh]).reshape(m, k),
-                       np.array([f[2] for f in fresh], np.int64),
-                       np.array([f[3] for f in fresh], np.int64),
-                       np.array([f[4] for f in fresh], float))
+    def _fresh_windows(self) -> Windows:
+        """The windows committed since the last update, as arrays (`refit.fresh_windows`)."""
+        return fresh_windows(self.fresh, len(self.aux_names))
 
     # --- correction --------------------------------------------------------------------------
-    def _segment(self, idx: int) -> _Segment:
+    def _segment(self, idx: int) -> Segment:
         """What is in force from sample idx on (now): model, parameters, covariance (no
         estimate: the model's default prior spread around the provisional scale), status."""
         est, model = self.estimate, self.model
@@ -1137,50 +662,11 @@ class Pipeline:
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
             cache = self._form_cache = (model, est, p, cov, form)
-        return _Segment(idx, model, cache[2], cache[3], cache[4], self.status)
-
-    def _calibrate(self, b: RawBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Correct each sample with the parameters in force when it arrived; its status and
-        predicted error (`core.status.predicted_sigma_mg`) as they were then."""
-        out = np.empty_like(b.v)
-        status = np.empty(len(b), np.uint8)
-        sigma = np.empty(len(b))
-        segs = self._segs
-        cuts = [*[g.index for g in segs], len(b)]
-        for s, e, g in zip(cuts[:-1], cuts[1:], segs, strict=True):
-            if e > s:
-                cov = self.covariates(b.t_us[s:e], b.aux[s:e])
-                out[s:e] = g.model.correct(g.p, b.v[s:e], cov)
-                status[s:e] = g.status
-                sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
-        return out, status, sigma
+        return Segment(idx, model, cache[2], cache[3], cache[4], self.status)
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
         self.det_cfg = self.cfg.detector(s0, zero_raw)
         self.det_state = det.init_state(self.det_cfg)
-
-
-#: An update that moved no parameter by more than this fraction of its standard deviation
-#: leaves the estimate settled: later windows that agree with it need no re-fit. At 0.1 a
-#: 24 h wearer re-fitted 694 times, mostly to confirm moves far below the noise; at 0.25, 423
-#: times, with the drift cases of bench/in_use_accuracy.py at 1.26-1.44 mg (1.20-1.40 at 0.1).
-SETTLED_SD_FRACTION = 0.25
-
-
-def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_gate: bool,
-               rate_hz: float) -> np.ndarray:
-    """Where a run of gated samples starts: a gated sample after one that was not, or after a
-    time step that is no step (<= 0) or a gap (> 3 nominal periods). The batch's first sample
-    continues the previous batch's run if that ended gated (prev_gate) one step before it."""
-    prev_t = int(t_us[0]) - 1 if prev_t_us is None else prev_t_us
-    dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
-    dt[0] = int(t_us[0]) - prev_t
-    np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
-    ok_dt = (dt > 0) & (dt <= 3.0e6 / rate_hz)
-    start = gate.copy()
-    start[1:] &= ~gate[:-1] | ~ok_dt[1:]
-    start[0] &= not (prev_gate and ok_dt[0])
-    return start
 
 
 def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
@@ -1196,44 +682,6 @@ def _zero_of(model: SensorModel, p: np.ndarray) -> np.ndarray | None:
     return np.asarray(p[model.slice(Offset())], np.float64) if model.has("offset") else None
 
 
-def _joined(head: StepOutput, tail: StepOutput, at: int) -> StepOutput:
-    """One step's output from its first `at` samples' and the rest's."""
-    ups = (*head.updates, *(replace(u, index=u.index + at) for u in tail.updates))
-    watch = (*head.watch, *(replace(w, index=w.index + at) for w in tail.watch))
-    return StepOutput(CalibratedBatch.concat([head.calibrated, tail.calibrated]), ups,
-                      head.windows_committed + tail.windows_committed,
-                      {**head.states, **{m + at: v for m, v in tail.states.items()}}, watch)
-
-
-def missing_channels(model: SensorModel, aux_names: Sequence[str]) -> list[str]:
-    """The channels the model reads (its covariates, time aside) that ``aux_names`` lack, in
-    the model's order."""
-    return [c for c in model.covariates if c != TIME and c not in aux_names]
-
-
-def check_channels(model: SensorModel, aux_names: tuple[str, ...]) -> None:
-    """A model whose covariates the input's channels lack is an error, said before any work."""
-    missing = missing_channels(model, aux_names)
-    if missing:
-        raise ValueError(f"model needs channels {sorted(missing)} that the input lacks "
-                         f"(it has {list(aux_names)})")
-
-
-def usable(gate: np.ndarray, b: RawBatch, model: SensorModel) -> np.ndarray:
-    """The detector's gate where the channels the model uses are finite too: only such samples
-    may enter a window (an imported row may lack a value; a NaN must never reach the estimator
-    or a checkpoint). The gate already excludes readings that are not finite."""
-    cols = [b.aux_names.index(c) for c in model.covariates if c != TIME]
-    if cols:
-        return gate & np.isfinite(b.aux[:, cols]).all(axis=1)
-    return gate
-
-
-def _settled(before: Estimate, after: Estimate) -> bool:
-    sd = np.sqrt(np.clip(np.diag(after.cov), 1e-300, None))
-    return bool(np.all(np.abs(after.p - before.p) <= SETTLED_SD_FRACTION * sd))
-
-
 def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | None) -> dict | None:
     if cfg is None or st is None:
         return None
@@ -1246,6 +694,7 @@ def _state_of_detector(cfg: det.DetectorConfig | None, st: det.DetectorState | N
 def state_dict(pipe: Pipeline) -> dict:
     """Everything needed to resume exactly where `pipe` stopped (JSON-able)."""
     rep = pipe.last_report
+    win = pipe.windower.to_dict()
     return {
         "version": 1,
         "config": pipe.cfg.to_dict(),
@@ -1259,18 +708,15 @@ def state_dict(pipe: Pipeline) -> dict:
         "t0_us": pipe.t0_us,
         "buffer": pipe.buffer.state_dict(),
         "detector": _state_of_detector(pipe.det_cfg, pipe.det_state),
-        "open": pipe.open.to_dict() if pipe.open is not None else None,
-        "pending": ([pipe.pending[0].to_dict(), pipe.pending[1]]
-                    if pipe.pending is not None else None),
+        "open": win["open"],
+        "pending": win["pending"],
         "fresh": [[np.asarray(f[0]).tolist(), np.asarray(f[1]).tolist(), int(f[2]), int(f[3]),
                    float(f[4])] for f in pipe.fresh],
-        "last_t_us": pipe.last_t_us,
-        "last_gate": pipe.last_gate,
+        "last_t_us": win["last_t_us"],
+        "last_gate": win["last_gate"],
         "counts": dict(pipe.counts),
         "last_report": asdict(rep) if rep is not None else None,
-        "settled": pipe.settled,
-        "coverage_at_update": pipe.coverage_at_update,
-        "tested": list(pipe.tested),
+        **pipe.refit.to_dict(),
         "informed": pipe.informed,
         "watch": pipe.watch.to_dict(),
     }
@@ -1279,7 +725,7 @@ def state_dict(pipe: Pipeline) -> dict:
 def from_state_dict(d: dict) -> Pipeline:
     """Rebuild a pipeline from `state_dict`; it continues bit for bit."""
     if d.get("version") != 1:
-        raise ValueError(f"unknown checkpoint version {d.get('version')!r}")
+        raise InputError(f"unknown checkpoint version {d.get('version')!r}")
     cfg = PipelineConfig.from_dict(d["config"])
     model = SensorModel.from_dict(d["model"])
     prior = Prior.from_dict(d["prior"]) if d["prior"] is not None else None
@@ -1299,19 +745,11 @@ def from_state_dict(d: dict) -> Pipeline:
             int(ds["same_run"]), bool(ds["started"]))
     else:
         pipe.det_cfg = pipe.det_state = None
-    pipe.open = _Acc.from_dict(d["open"])
-    pend = d["pending"]
-    pipe.pending = (_Acc.from_dict(pend[0]), int(pend[1])) if pend is not None else None
+    pipe.windower = WindowerState.from_dict(d)
     pipe.fresh = [(np.asarray(f[0], float), np.asarray(f[1], float), int(f[2]), int(f[3]),
                    float(f[4])) for f in d["fresh"]]
-    pipe.last_t_us = d["last_t_us"]
-    pipe.last_gate = bool(d["last_gate"])
     pipe.counts = dict(d["counts"])
-    pipe.settled = bool(d.get("settled", False))
-    cov_key = d.get("coverage_at_update")
-    pipe.coverage_at_update = int(cov_key) if cov_key is not None else None
-    m, s2, s1 = d.get("tested", (0, 0.0, 0.0))
-    pipe.tested = (int(m), float(s2), float(s1))
+    pipe.refit = RefitState.from_dict(d)
     informed = d.get("informed")  # absent in checkpoints from before statuses
     pipe.informed = (bool(informed) if informed is not None
                      else pipe.estimate is not None and pipe.estimate.t_us is not None)

@@ -34,19 +34,21 @@ sigma^2 = trace(J C_e J^T). The sensor's own noise on the sample is not in it.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
 import numpy as np
 
+from recal.core.buffer import WindowBuffer, Windows, cell_of
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
+from recal.core.triaxial import norm3
 
 __all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG",
            "SUSPECT_AFTER_S", "Status", "Watch",
-           "correction_jacobian", "predicted_sigma_mg", "sigma_form"]
+           "correction_jacobian", "predicted_sigma_mg", "refill", "sigma_form"]
 
 
 class Status(IntEnum):
@@ -72,9 +74,9 @@ NOT_FINITE_SIGMA_MG = float("inf")
 #: 1. The estimator fits an offset jump (`estimator._jump`: the newest windows each beyond 7
 #:    sigma, Lötters eq. 14 over C_mu + B C_e B^T) and another within JUMP_REPEAT_S: a knock
 #:    is one jump, after which the windows agree; a sensor whose gains differ too jumps again
-#:    at a new posture (within 1-25 minutes on the simulated wearers of bench/status_watch.py).
-#:    The status stays suspect that long after a first jump: until then the estimate may be a
-#:    compromise between two sensors that fits the norms of the postures seen since.
+#:    at a new posture (how soon: docs/performance.md, bench/status_watch.py). The status
+#:    stays suspect that long after a first jump: until then the estimate may be a compromise
+#:    between two sensors that fits the norms of the postures seen since.
 JUMP_REPEAT_S = 1800.0
 #: 2. The windows fail the norm gate (calibrated norm further than norm_tol_g from 1 g, or not
 #:    finite), so they never reach the estimator: for SUSPECT_AFTER_S of device time, at least
@@ -242,6 +244,31 @@ class Watch:
         self.jump_us = None
         return recent
 
+    def jumped(self, step_us: int, now_us: int) -> str | None:
+        """The estimator fitted a new offset jump at step_us (an accepted update at now_us):
+        "reset" if it is a second one within JUMP_REPEAT_S of the first (another sensor under
+        this id, another sensor's checkpoint: its gains differ too, so it jumps again at a new
+        posture), "suspect" if the status becomes suspect now (held JUMP_REPEAT_S at least),
+        else None (already suspect)."""
+        first = self.jump_us
+        if first is not None and step_us - first <= JUMP_REPEAT_S * 1e6:
+            return "reset"
+        self.jump_us = step_us
+        return "suspect" if self.alarm(now_us, JUMP_REPEAT_S) else None
+
+    def to_refit(self, buffered: Windows, now_us: int) -> list[tuple]:
+        """A reset at now_us (`fired`): the windows to re-fit, each once: the contradiction's,
+        and after a jump the buffer's (``buffered``) since the first jump."""
+        since = self.jump_us
+        recent = self.fired(now_us)
+        if since is not None:
+            keep = buffered.t_us >= since
+            recent = [(buffered.v[i], buffered.aux[i], int(buffered.t_us[i]),
+                       int(buffered.n[i]), float(buffered.var[i]))
+                      for i in np.flatnonzero(keep).tolist()] + recent
+            recent = list({int(r[2]): r for r in recent}.values())  # each window once
+        return recent
+
     def to_dict(self) -> dict:
         return {"onset_us": self.onset_us, "jump_us": self.jump_us, "alarm_us": self.alarm_us,
                 "n_all": self.n_all, "n_bad": self.n_bad, "good_run": self.good_run,
@@ -264,3 +291,29 @@ class Watch:
 
 def _window(w: Sequence) -> tuple:
     return (list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]), float(w[4]))
+
+
+def refill(buffer: WindowBuffer, n_aux: int, model: SensorModel, p: np.ndarray,
+           covariates: Callable[[np.ndarray, np.ndarray], Covariates], recent: list[tuple],
+           norm_tol_g: float | None, grid: int) -> int:
+    """After a reset: the recent windows whose calibrated norm (parameters p) is within
+    norm_tol_g of 1 g (None: all finite ones) into the buffer, each a slot of its own, oldest
+    first; returns how many."""
+    if not recent:
+        return 0
+    recent = sorted(recent, key=lambda r: r[2])
+    m, k = len(recent), n_aux
+    w = Windows(np.array([r[0] for r in recent], float).reshape(m, 3),
+                np.array([r[1] for r in recent], float).reshape(m, k),
+                np.array([r[2] for r in recent], np.int64),
+                np.array([r[3] for r in recent], np.int64),
+                np.array([r[4] for r in recent], float))
+    a = model.correct(p, w.v, covariates(w.t_us, w.aux))
+    norm = norm3(a)
+    ok = np.abs(norm - 1.0) <= norm_tol_g if norm_tol_g is not None else np.isfinite(norm)
+    dirs = a / np.where(norm > 0, norm, 1.0)[:, None]
+    cells = cell_of(dirs, grid)
+    for i in np.flatnonzero(ok).tolist():
+        buffer.add(w.v[i].tolist(), w.aux[i].tolist(), int(w.t_us[i]), int(w.n[i]),
+                   float(w.var[i]), dirs[i].tolist(), None, int(cells[i]))
+    return int(ok.sum())

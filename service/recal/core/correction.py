@@ -1,0 +1,50 @@
+"""Correcting a batch's samples with the parameters in force when each arrived: an update at
+sample j applies from sample j on; so do the status and the predicted error it brings.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from recal.core.effects import Covariates
+from recal.core.model import SensorModel
+from recal.core.status import Status, predicted_sigma_mg
+from recal.samples import RawBatch
+
+__all__ = ["Segment", "calibrate"]
+
+
+@dataclass(frozen=True, eq=False)
+class Segment:
+    """From sample `index` of the batch on: the model and parameters in force, the status and
+    how to predict each sample's error (`core.status.sigma_form`, or None: the covariance
+    sample by sample)."""
+
+    index: int
+    model: SensorModel
+    p: np.ndarray
+    cov: np.ndarray
+    form: np.ndarray | None
+    status: Status
+
+
+def calibrate(segs: list[Segment], b: RawBatch,
+              covariates: Callable[[np.ndarray, np.ndarray], Covariates]
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each sample corrected with the segment in force when it arrived (segs: in index order,
+    the first at 0); its status and predicted error (`status.predicted_sigma_mg`) as they
+    were then."""
+    out = np.empty_like(b.v)
+    status = np.empty(len(b), np.uint8)
+    sigma = np.empty(len(b))
+    cuts = [*[g.index for g in segs], len(b)]
+    for s, e, g in zip(cuts[:-1], cuts[1:], segs, strict=True):
+        if e > s:
+            cov = covariates(b.t_us[s:e], b.aux[s:e])
+            out[s:e] = g.model.correct(g.p, b.v[s:e], cov)
+            status[s:e] = g.status
+            sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
+    return out, status, sigma

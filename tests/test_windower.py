@@ -1,0 +1,75 @@
+"""The windower (`core.windower`): its two ways of cutting a batch (all runs at once, run by
+run) give the same windows bit for bit, whatever the batches, gates and time steps."""
+
+from __future__ import annotations
+
+import json
+from itertools import pairwise
+
+import numpy as np
+import pytest
+
+from recal.core.windower import WindowConfig, WindowerState, WindowSums, cut
+
+CFG = WindowConfig(rate_hz=50.0, window_s=2.0, guard_s=1.0, min_fill=0.8)
+
+
+def _stream(seed: int, n: int, n_aux: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                    np.ndarray]:
+    """Times with jitter, gaps and steps back; float readings; gates in runs of all lengths."""
+    rng = np.random.default_rng(seed)
+    dt = np.full(n, 20_000, np.int64) + rng.integers(-3000, 3000, n)
+    odd = rng.random(n)
+    dt[odd < 0.002] = 200_000  # a gap
+    dt[(odd > 0.002) & (odd < 0.003)] = -50_000  # a step back
+    sparse = np.repeat(rng.random(n // 500 + 1) < 0.3, 500)[:n]
+    dt[sparse & (odd > 0.5)] = 55_000  # stretches of samples far apart: short windows
+    t = 1_000_000 + np.cumsum(dt)
+    v = rng.normal(0.0, 0.3, (n, 3)) + np.array([0.1, -0.2, 0.97])
+    aux = rng.normal(25.0, 1.0, (n, n_aux))
+    lengths = rng.choice([1, 5, 30, 80, 101, 150, 400, 2000], size=n)
+    gate = np.zeros(n, bool)
+    i, on = 0, bool(rng.integers(2))
+    while i < n:
+        gate[i:i + lengths[i]] = on
+        i, on = i + int(lengths[i]), not on
+    return t, v, aux, gate
+
+
+def _sums(w: WindowSums | None) -> list:
+    return [] if w is None else [np.asarray(getattr(w, f)).tobytes() for f in
+                                 ("run_start_us", "k", "n", "sum_v", "sum_v2", "sum_aux",
+                                  "sum_t")]
+
+
+@pytest.mark.parametrize("seed, n_aux, largest", [(1, 0, 3000), (2, 2, 300), (3, 1, 20000),
+                                                  (4, 0, 60)])
+def test_all_runs_at_once_and_run_by_run_cut_the_same_windows(seed: int, n_aux: int,
+                                                              largest: int) -> None:
+    t, v, aux, gate = _stream(seed, 60_000, n_aux)
+    rng = np.random.default_rng(seed + 10)
+    ends = np.cumsum(rng.integers(1, largest, size=len(t)))
+    ends = [0, *ends[ends < len(t)].tolist(), len(t)]
+    a = b = WindowerState()
+    n_windows = n_due = 0
+    for lo, hi in pairwise(ends):
+        s = slice(lo, hi)
+        ca, a = cut(CFG, a, t[s], v[s], aux[s], gate[s], runs_at_once=1)
+        cb, b = cut(CFG, b, t[s], v[s], aux[s], gate[s], runs_at_once=10**9)
+        assert ca.due == cb.due
+        assert _sums(ca.sums) == _sums(cb.sums)
+        assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
+        n_windows += ca.committed
+        n_due += len(ca.due)
+    assert n_windows > 100 and n_due > n_windows  # windows committed, and short ones
+
+
+def test_the_state_restores_from_its_dict() -> None:
+    t, v, aux, gate = _stream(5, 5000, 1)
+    _, st = cut(CFG, WindowerState(), t[:2345], v[:2345], aux[:2345], gate[:2345])
+    back = WindowerState.from_dict(json.loads(json.dumps(st.to_dict())))
+    assert json.dumps(back.to_dict()) == json.dumps(st.to_dict())
+    c1, s1 = cut(CFG, st, t[2345:], v[2345:], aux[2345:], gate[2345:])
+    c2, s2 = cut(CFG, back, t[2345:], v[2345:], aux[2345:], gate[2345:])
+    assert c1.due == c2.due and _sums(c1.sums) == _sums(c2.sums)
+    assert json.dumps(s1.to_dict()) == json.dumps(s2.to_dict())
