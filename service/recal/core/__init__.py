@@ -1,33 +1,40 @@
 """The numerical core of recal: pure numpy/scipy, no I/O, no clocks; state in, state out.
 
-`pipeline` is the streaming core: per batch of samples it runs, in data-flow order
-(docs/design.md, "The core, module by module", has the why of each):
+`pipeline` is the streaming core: `Pipeline.step` (or `step_many`) takes a batch of raw samples
+and, in data-flow order (docs/design.md, "The core, module by module", has the why of each):
 
-- `detector`: quasi-static detection, a band-passed norm against a threshold (the gate),
-  whose still runs the pipeline cuts into windows;
+- `detector`: quasi-static detection, a band-passed norm against a threshold (Lötters eq. 1-2),
+  and `channels`: which samples may enter a window (the model's channels finite);
+- `windower`: cuts the gated runs into windows, its state passed in and returned (the one
+  windower of the pipeline and of the batch `windowing`);
 - `buffer`: the bounded set of window means the estimator fits, spread over orientations;
+- `refit`: whether the new windows call for a re-fit (most repeat what the buffer says);
 - `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
 - `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...),
   with `triaxial` for the per-axis arithmetic on (N, 3) readings;
-- `status`: what the pipeline says about its own calibration (OK, SUSPECT, ...).
+- `correction`, `status`: each sample corrected with the parameters in force when it arrived,
+  with its status and predicted error; the self-watch that doubts the estimate;
+- `outputs`: what a step gives back (`StepOutput`), per batch also for joined batches;
+- `pipeline_config`: the settings of all of it.
 
 Beside it:
 
-- `windowing`: a whole recording's window means at once, by the pipeline's rules;
+- `windowing`: a whole recording's window means at once, by the pipeline's windower;
 - `discovery` (with `discovery_data`, `model_fit`, `residuals`): which effects a recording
   needs, chosen by held-out error;
 - `hindsight`: one fit on a whole recording, every sample corrected with it;
 - `static`: lab calibration from a table of still positions;
 - `bootstrap`: zero-g, scale and starting values (sphere, ellipsoid fits) from no prior;
 - `alignment`: the sensor's mounting relative to the body, and the slip alarm (the node's);
-- `timebase`: device time stamps to the service's microseconds (wraps, units, reboots; the
-  node's, before the pipeline).
+- `timebase`, `rate`: device time stamps to the service's microseconds (wraps, units,
+  reboots) and a stream's rate from them (the node's, before the pipeline).
 
 The names below are the core's public API; each lives in the module named above.
 """
 
 from recal.core.alignment import Alignment
 from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
+from recal.core.channels import missing_channels
 from recal.core.detector import DetectorConfig, DetectorOutput, DetectorState, detect, init_state
 from recal.core.discovery import (
     DiscoveryConfig,
@@ -57,18 +64,14 @@ from recal.core.effects import (
 from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
 from recal.core.hindsight import HindsightFit
 from recal.core.model import AffineCorrection, SensorModel
-from recal.core.pipeline import (
-    Pipeline,
-    PipelineConfig,
-    StepOutput,
-    UpdateEvent,
-    WatchEvent,
-    gain_reference,
-    missing_channels,
-)
+from recal.core.outputs import StepOutput, UpdateEvent, WatchEvent
+from recal.core.pipeline import Lifecycle, Pipeline, gain_reference
+from recal.core.pipeline_config import PipelineConfig
+from recal.core.rate import infer_rate_hz
 from recal.core.static import StaticFit, fit_known_orientations, fit_unknown_orientations
 from recal.core.status import Status
 from recal.core.timebase import TimebaseConfig, TimebaseState
+from recal.core.windower import WindowerState, WindowSums, cut
 from recal.core.windowing import Windowing, window_means
 
 __all__ = [
@@ -91,6 +94,7 @@ __all__ = [
     "EstimatorConfig",
     "Gain",
     "HindsightFit",
+    "Lifecycle",
     "Nonlinearity",
     "Offset",
     "Pipeline",
@@ -108,8 +112,11 @@ __all__ = [
     "UpdateReport",
     "WatchEvent",
     "WindowBuffer",
+    "WindowSums",
+    "WindowerState",
     "Windowing",
     "Windows",
+    "cut",
     "data_from_batch",
     "data_from_batches",
     "data_from_table",
@@ -119,6 +126,7 @@ __all__ = [
     "fit_known_orientations",
     "fit_unknown_orientations",
     "gain_reference",
+    "infer_rate_hz",
     "init_state",
     "make_effect",
     "missing_channels",
