@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from recal.core import discovery
 from recal.core.pipeline import Pipeline
 
 __all__ = ["Rediscovery"]
@@ -37,6 +36,10 @@ class Rediscovery:
     @classmethod
     def start(cls, sensor_id: str, windows: Any, pipe: Pipeline, started_us: int,
               due_us: int, blocks: int) -> Rediscovery:
+        # imported here, not at the top: discovery is off by default, and every daemon and
+        # replay would otherwise load its four modules at start (~15 ms)
+        from recal.core import discovery
+
         run = cls(started_us, due_us, pipe.model.names)
         args = (windows, pipe.aux_names, pipe.t0_us or 0, pipe.model, pipe.params.copy(),
                 discovery.DiscoveryConfig(blocks=blocks))

@@ -32,47 +32,130 @@ Beside it:
 The names below are the core's public API; each lives in the module named above.
 """
 
-from recal.core.alignment import Alignment
-from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
-from recal.core.channels import missing_channels
-from recal.core.detector import DetectorConfig, DetectorOutput, DetectorState, detect, init_state
-from recal.core.discovery import (
-    DiscoveryConfig,
-    DiscoveryResult,
-    discover,
-    discover_pipeline,
-)
-from recal.core.discovery_data import (
-    DiscoveryData,
-    data_from_batch,
-    data_from_batches,
-    data_from_table,
-)
-from recal.core.effects import (
-    EFFECT_KINDS,
-    TIME,
-    Covariates,
-    CrossAxis,
-    Effect,
-    Gain,
-    Nonlinearity,
-    Offset,
-    Ratiometric,
-    Scale,
-    make_effect,
-)
-from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
-from recal.core.hindsight import HindsightFit
-from recal.core.model import AffineCorrection, SensorModel
-from recal.core.outputs import StepOutput, UpdateEvent, WatchEvent
-from recal.core.pipeline import Lifecycle, Pipeline, gain_reference
-from recal.core.pipeline_config import PipelineConfig
-from recal.core.rate import infer_rate_hz
-from recal.core.static import StaticFit, fit_known_orientations, fit_unknown_orientations
-from recal.core.status import Status
-from recal.core.timebase import TimebaseConfig, TimebaseState
-from recal.core.windower import WindowerState, WindowSums, cut
-from recal.core.windowing import Windowing, window_means
+from importlib import import_module
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its module on use
+    from recal.core.alignment import Alignment
+    from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
+    from recal.core.channels import missing_channels
+    from recal.core.detector import (
+        DetectorConfig,
+        DetectorOutput,
+        DetectorState,
+        detect,
+        init_state,
+    )
+    from recal.core.discovery import (
+        DiscoveryConfig,
+        DiscoveryResult,
+        discover,
+        discover_pipeline,
+    )
+    from recal.core.discovery_data import (
+        DiscoveryData,
+        data_from_batch,
+        data_from_batches,
+        data_from_table,
+    )
+    from recal.core.effects import (
+        EFFECT_KINDS,
+        TIME,
+        Covariates,
+        CrossAxis,
+        Effect,
+        Gain,
+        Nonlinearity,
+        Offset,
+        Ratiometric,
+        Scale,
+        make_effect,
+    )
+    from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
+    from recal.core.hindsight import HindsightFit
+    from recal.core.model import AffineCorrection, SensorModel
+    from recal.core.outputs import StepOutput, UpdateEvent, WatchEvent
+    from recal.core.pipeline import Lifecycle, Pipeline, gain_reference
+    from recal.core.pipeline_config import PipelineConfig
+    from recal.core.rate import infer_rate_hz
+    from recal.core.static import StaticFit, fit_known_orientations, fit_unknown_orientations
+    from recal.core.status import Status
+    from recal.core.timebase import TimebaseConfig, TimebaseState
+    from recal.core.windower import WindowerState, WindowSums, cut
+    from recal.core.windowing import Windowing, window_means
+
+#: Each public name and the core module it lives in. Loaded on first use (PEP 562), so a
+#: command imports only the core modules it runs (replay needs neither discovery nor static).
+_HOMES = {
+    "AffineCorrection": "model",
+    "Alignment": "alignment",
+    "BufferConfig": "buffer",
+    "Covariates": "effects",
+    "Coverage": "buffer",
+    "CrossAxis": "effects",
+    "DetectorConfig": "detector",
+    "DetectorOutput": "detector",
+    "DetectorState": "detector",
+    "DiscoveryConfig": "discovery",
+    "DiscoveryData": "discovery_data",
+    "DiscoveryResult": "discovery",
+    "EFFECT_KINDS": "effects",
+    "Effect": "effects",
+    "Estimate": "estimator",
+    "EstimatorConfig": "estimator",
+    "Gain": "effects",
+    "HindsightFit": "hindsight",
+    "Lifecycle": "pipeline",
+    "Nonlinearity": "effects",
+    "Offset": "effects",
+    "Pipeline": "pipeline",
+    "PipelineConfig": "pipeline_config",
+    "Prior": "estimator",
+    "Ratiometric": "effects",
+    "Scale": "effects",
+    "SensorModel": "model",
+    "StaticFit": "static",
+    "Status": "status",
+    "StepOutput": "outputs",
+    "TIME": "effects",
+    "TimebaseConfig": "timebase",
+    "TimebaseState": "timebase",
+    "UpdateEvent": "outputs",
+    "UpdateReport": "estimator",
+    "WatchEvent": "outputs",
+    "WindowBuffer": "buffer",
+    "WindowSums": "windower",
+    "WindowerState": "windower",
+    "Windowing": "windowing",
+    "Windows": "buffer",
+    "cut": "windower",
+    "data_from_batch": "discovery_data",
+    "data_from_batches": "discovery_data",
+    "data_from_table": "discovery_data",
+    "detect": "detector",
+    "discover": "discovery",
+    "discover_pipeline": "discovery",
+    "fit_known_orientations": "static",
+    "fit_unknown_orientations": "static",
+    "gain_reference": "pipeline",
+    "infer_rate_hz": "rate",
+    "init_state": "detector",
+    "make_effect": "effects",
+    "missing_channels": "channels",
+    "window_means": "windowing",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name not in _HOMES:
+        raise AttributeError(f"module 'recal.core' has no attribute {name!r}")
+    value = getattr(import_module(f"recal.core.{_HOMES[name]}"), name)
+    globals()[name] = value  # once loaded, a plain attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_HOMES})
 
 __all__ = [
     "EFFECT_KINDS",
