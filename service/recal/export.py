@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from recal.core.status import Status
+from recal.core.status import Status, status_line
 from recal.errors import UsageError
 from recal.io import csv_table, recording
 
-__all__ = ["StatusCounts", "export_csv", "status_line"]
+__all__ = ["StatusCounts", "export_csv"]
 
 
 def export_csv(source: str, csv_out: str, sensor_id: str | None, topic: str
@@ -67,16 +67,3 @@ class StatusCounts:
 
     def line(self) -> str:
         return status_line(self.to_dict())
-
-
-def status_line(d: dict) -> str:
-    """How many samples went out with a status other than calibrated, said for a person."""
-    by = d.get("samples_by_status") or {}
-    others = ", ".join(f"{k} {v}" for k, v in by.items() if k not in ("calibrated",
-                                                                        "not_recorded"))
-    text = (f"{by.get('calibrated', 0)} samples out calibrated, {d['samples_uncalibrated']} "
-            "with another status" + (f" ({others})" if others else ""))
-    if d.get("samples_status_not_recorded"):
-        text += (f"; {d['samples_status_not_recorded']} without a status (recorded before "
-                 "statuses existed)")
-    return text

@@ -38,8 +38,8 @@ from recal.config import (
 )
 from recal.core.alignment import Alignment
 from recal.core.pipeline import Pipeline
+from recal.core.status import status_line
 from recal.core.timebase import TimebaseState
-from recal.export import status_line
 from recal.io import recording as rec
 from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 from recal.node import CalibrationNode, NodeSettings, model_name, node_settings

@@ -48,7 +48,7 @@ from recal.core.triaxial import norm3
 
 __all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG",
            "SUSPECT_AFTER_S", "Status", "Watch",
-           "correction_jacobian", "predicted_sigma_mg", "refill", "sigma_form"]
+           "correction_jacobian", "predicted_sigma_mg", "refill", "sigma_form", "status_line"]
 
 
 class Status(IntEnum):
@@ -317,3 +317,16 @@ def refill(buffer: WindowBuffer, n_aux: int, model: SensorModel, p: np.ndarray,
         buffer.add(w.v[i].tolist(), w.aux[i].tolist(), int(w.t_us[i]), int(w.n[i]),
                    float(w.var[i]), dirs[i].tolist(), None, int(cells[i]))
     return int(ok.sum())
+
+
+def status_line(d: dict) -> str:
+    """How many samples went out with a status other than calibrated, said for a person."""
+    by = d.get("samples_by_status") or {}
+    others = ", ".join(f"{k} {v}" for k, v in by.items() if k not in ("calibrated",
+                                                                        "not_recorded"))
+    text = (f"{by.get('calibrated', 0)} samples out calibrated, {d['samples_uncalibrated']} "
+            "with another status" + (f" ({others})" if others else ""))
+    if d.get("samples_status_not_recorded"):
+        text += (f"; {d['samples_status_not_recorded']} without a status (recorded before "
+                 "statuses existed)")
+    return text
