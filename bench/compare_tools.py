@@ -64,7 +64,8 @@ from recal.core.detector import detect
 from recal.core.effects import Ratiometric
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, SimResult, WearerSpec, error_1s_mg, inverse_model, simulate
 

@@ -48,7 +48,8 @@ from recal.core import detector as det
 from recal.core.effects import Covariates
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.static import fit_unknown_orientations
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, error_1s_mg, simulate

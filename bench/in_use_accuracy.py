@@ -23,7 +23,8 @@ import numpy as np
 
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.sim import SensorSpec, SimResult, WearerSpec, error_1s_mg, simulate
 
 CASES = {  # group: (seeds, cross-axis deg, full model, upright only, drift g/h, target mg)

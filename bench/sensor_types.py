@@ -26,7 +26,8 @@ from recal import sim
 from recal.core import discovery, discovery_data, hindsight
 from recal.core.effects import Covariates, Scale
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.samples import RawBatch
 
 RATE = 50.0

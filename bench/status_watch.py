@@ -21,7 +21,8 @@ import numpy as np
 from recal import sim
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status
 from recal.samples import CalibratedBatch, RawBatch
 

@@ -14,10 +14,12 @@ import pytest
 from recal.core import detector as det
 from recal.core.bootstrap import fit_ellipsoid
 from recal.core.buffer import BufferConfig, WindowBuffer
+from recal.core.channels import check_channels
 from recal.core.effects import TIME, Covariates, Gain, Nonlinearity, Offset, Ratiometric
 from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Lifecycle, Pipeline, PipelineConfig, check_channels
+from recal.core.pipeline import Lifecycle, Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.static import fit_known_orientations, fit_unknown_orientations
 from recal.core.status import Status
 from recal.core.triaxial import all3, any3, norm3

@@ -13,7 +13,9 @@ from recal.core import hindsight
 from recal.core.effects import Covariates, Gain, Nonlinearity, Offset, Ratiometric
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
+from recal.core.refit import fresh_windows
 from recal.core.triaxial import per_axis
 from recal.core.windowing import Windowing, window_means
 from recal.samples import RawBatch, batch_groups, rebatch
@@ -34,7 +36,7 @@ def _live_windows(batches: list[RawBatch], cfg: PipelineConfig, s0: float):
     pipe = Pipeline(collect, model, Prior.default(model), batches[0].aux_names)
     for b in batches:
         pipe.step(b)
-    return pipe._fresh_windows()
+    return fresh_windows(pipe.fresh, len(pipe.aux_names))
 
 
 def _awkward_recording() -> RawBatch:

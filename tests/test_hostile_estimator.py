@@ -20,7 +20,8 @@ import pytest
 from recal.core.effects import Offset
 from recal.core.estimator import Prior, UpdateReport
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.samples import RawBatch
 from recal.sim import SensorSpec, SimResult, WearerSpec, forward_model, simulate, with_sensor
 

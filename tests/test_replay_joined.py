@@ -19,7 +19,8 @@ import pytest
 from recal import replay as replay_mod
 from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.io import recording as rec
 from recal.io.messages import encode_json
 from recal.io.recording_writer import RecordingWriter

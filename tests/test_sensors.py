@@ -21,7 +21,8 @@ from recal.core import static
 from recal.core.bootstrap import locate
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig, from_state_dict
+from recal.core.pipeline import Pipeline, from_state_dict
+from recal.core.pipeline_config import PipelineConfig
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
 from recal.samples import RawBatch

@@ -20,7 +20,8 @@ from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_
 from recal.core.effects import Covariates
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, PipelineConfig
+from recal.core.pipeline import Pipeline
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status, correction_jacobian, predicted_sigma_mg, sigma_form
 from recal.io import messages
 from recal.io import recording as rec

@@ -50,9 +50,10 @@ from typing import Any
 import numpy as np
 
 from recal.core.buffer import BufferConfig
+from recal.core.channels import missing_channels
 from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig, missing_channels
+from recal.core.pipeline_config import PipelineConfig
 from recal.errors import ConfigError
 
 __all__ = [

@@ -25,10 +25,12 @@ import numpy as np
 
 from recal.core import detector as det
 from recal.core import hindsight
+from recal.core.channels import usable
 from recal.core.discovery_data import rate_and_scale
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
-from recal.core.pipeline import PipelineConfig, gain_reference, usable
+from recal.core.pipeline import gain_reference
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status, predicted_sigma_mg, sigma_form
 from recal.errors import RecordingError
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch

@@ -43,9 +43,11 @@ from recal.config import (
 )
 from recal.core import alignment as al
 from recal.core import timebase as tb
+from recal.core.channels import missing_channels
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
-from recal.core.pipeline import Pipeline, StepOutput, missing_channels
+from recal.core.outputs import StepOutput
+from recal.core.pipeline import Pipeline
 from recal.core.rate import infer_rate_hz
 from recal.core.status import NOT_FINITE_SIGMA_MG, Status
 from recal.rediscovery import Rediscovery as _Rediscovery

@@ -18,7 +18,7 @@ import numpy as np
 from recal.core.bootstrap import off_by, zero_and_scale
 from recal.core.buffer import Windows
 from recal.core.effects import Covariates
-from recal.core.pipeline import PipelineConfig
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.windowing import window_means
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch

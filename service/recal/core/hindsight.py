@@ -35,7 +35,7 @@ from recal.core.discovery_data import data_from_windows
 from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
-from recal.core.pipeline import PipelineConfig
+from recal.core.pipeline_config import PipelineConfig
 from recal.core.windowing import Windowing
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch

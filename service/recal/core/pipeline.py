@@ -25,7 +25,7 @@ import numpy as np
 from recal.core import detector as det
 from recal.core.bootstrap import initial_params, locate, off_by
 from recal.core.buffer import Coverage, WindowBuffer, Windows
-from recal.core.channels import check_channels, missing_channels, usable
+from recal.core.channels import check_channels, usable
 from recal.core.correction import Segment, calibrate
 from recal.core.effects import Covariates, Offset, Scale
 from recal.core.estimator import (
@@ -58,9 +58,7 @@ from recal.core.windower import WindowerState, WindowSums, cut
 from recal.errors import InputError
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Lifecycle", "Pipeline", "PipelineConfig", "StepOutput", "UpdateEvent", "WatchEvent",
-           "check_channels", "from_state_dict", "gain_reference", "missing_channels",
-           "state_dict", "usable"]
+__all__ = ["Lifecycle", "Pipeline", "from_state_dict", "gain_reference", "state_dict"]
 
 
 class Lifecycle(Enum):
@@ -75,10 +73,6 @@ class Lifecycle(Enum):
     TRACKING = "tracking"
     #: an estimate the self-watch holds suspect (`core.status.Watch`)
     SUSPECT = "suspect"
-
-    @property
-    def has_estimate(self) -> bool:
-        return self is _TRACKING or self is _SUSPECT
 
 
 # the members as module names: the pipeline asks at every step, and a class attribute of an
@@ -646,10 +640,6 @@ class Pipeline:
         cov = self.covariates(self.buffer.t_us[m], self.buffer.aux[m])
         a = self.model.correct(self.params, self.buffer.v[m], cov)
         self.buffer.redirect(a / norm3(a)[:, None])
-
-    def _fresh_windows(self) -> Windows:
-        """The windows committed since the last update, as arrays (`refit.fresh_windows`)."""
-        return fresh_windows(self.fresh, len(self.aux_names))
 
     # --- correction --------------------------------------------------------------------------
     def _segment(self, idx: int) -> Segment:
