@@ -20,15 +20,13 @@ __all__ = ["JoinedStep", "MarkState", "Marks", "StepOutput", "UpdateEvent", "Wat
 
 @dataclass(frozen=True)
 class UpdateEvent:
-    """An estimator update that happened at sample `index` of the batch (device time t_us),
-    with the estimate and model in force after it."""
+    """An estimator update that happened at sample `index` of the batch (device time t_us);
+    what is in force after it: `StepOutput.model` and `estimate`, as of the batch's end."""
 
     index: int
     t_us: int
     report: UpdateReport
     bootstrap: bool = False
-    estimate: Estimate | None = field(default=None, compare=False)
-    model: SensorModel | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)

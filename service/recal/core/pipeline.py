@@ -573,7 +573,7 @@ class Pipeline:
         else:
             self._redirect()
         self.last_report = rep
-        return UpdateEvent(idx, now_us, rep, estimate=self.estimate, model=self.model)
+        return UpdateEvent(idx, now_us, rep)
 
     def _try_bootstrap(self, idx: int, now_us: int) -> UpdateEvent | None:
         self._relocate(idx)

@@ -80,19 +80,6 @@ class PipelineConfig:
         """The window rules (`core.windower`)."""
         return WindowConfig(self.rate_hz, self.window_s, self.guard_s, self.min_fill)
 
-    @property
-    def min_samples(self) -> float:
-        """A window with fewer samples than this (min_fill of its nominal count) is dropped."""
-        return self.windows.min_samples
-
-    @property
-    def window_us(self) -> int:
-        return self.windows.window_us
-
-    def commit_us(self, run_start_us: int | np.ndarray, k: int | np.ndarray) -> int | np.ndarray:
-        """When window k of a run commits: guard_s after its end (ints or arrays alike)."""
-        return self.windows.commit_us(run_start_us, k)
-
     def detector(self, s0: float, zero_raw: np.ndarray | Sequence[float] | None = None
                  ) -> det.DetectorConfig:
         """The detector's settings for a sensor of s0 raw units per g reading zero_raw at

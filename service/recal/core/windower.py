@@ -21,8 +21,7 @@ import numpy as np
 
 from recal.core.buffer import Windows
 
-__all__ = ["Cut", "WindowAcc", "WindowConfig", "WindowSums", "WindowerState", "cut",
-           "run_starts"]
+__all__ = ["Cut", "WindowAcc", "WindowConfig", "WindowSums", "WindowerState", "cut"]
 
 
 @dataclass(frozen=True)
@@ -482,17 +481,12 @@ class _Cutter:
 
 
 
-def run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_gate: bool,
-               rate_hz: float) -> np.ndarray:
-    """Where a run of gated samples starts: a gated sample after one that was not, or after a
-    time step that is no step (<= 0) or a gap (> 3 nominal periods). The batch's first sample
-    continues the previous batch's run if that ended gated (prev_gate) one step before it."""
-    return _run_starts(t_us, gate, prev_t_us, prev_gate, rate_hz)[0]
-
-
 def _run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_gate: bool,
                 rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """`run_starts`, and where time stepped forward (t_us[i] > the time before it)."""
+    """Where a run of gated samples starts: a gated sample after one that was not, or after a
+    time step that is no step (<= 0) or a gap (> 3 nominal periods); the batch's first sample
+    continues the previous batch's run if that ended gated (prev_gate) one step before it.
+    And where time stepped forward (t_us[i] > the time before it)."""
     prev_t = int(t_us[0]) - 1 if prev_t_us is None else prev_t_us
     dt = np.empty(len(t_us), np.int64)  # np.diff(t_us, prepend=prev_t), without np.r_
     dt[0] = int(t_us[0]) - prev_t
