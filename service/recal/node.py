@@ -213,9 +213,9 @@ class CalibrationNode(AlignmentRequests):
         as of that batch's end); only the per-call costs are paid once, since the pipeline
         is batch-size invariant (replay joins a recording's small messages this way; bit for
         bit on integer readings such as ADC counts, else to the last bit of a window sum that
-        a message end cuts, `core.windowing`). Falls
-        back to `process` one by one when the batches cannot share a step: pipeline not
-        started, another channel layout, periodic rediscovery on.
+        a message end cuts, `core.windower`). Falls back to `process` one by one when the
+        batches cannot share a step: pipeline not started, another channel layout, periodic
+        rediscovery on.
         """
         items = [(b, t) for b, t in items if len(b)]
         with self._lock:
@@ -490,7 +490,7 @@ class CalibrationNode(AlignmentRequests):
         return CalibratedBatch(cal.t_us, a, cal.quasi_static, cal.detector_g, status, sigma)
 
     def _report_watch(self, out: StepOutput, log_ns: int) -> None:
-        """The pipeline's self-watch events (`core.pipeline.WatchEvent`) as events."""
+        """The pipeline's self-watch events (`core.outputs.WatchEvent`) as events."""
         for w in out.watch:
             kind = "estimate_reset" if w.kind == "reset" else w.kind
             self._event(kind, w.t_us, log_ns, w.detail)
