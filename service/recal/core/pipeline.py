@@ -23,7 +23,7 @@ from enum import Enum
 import numpy as np
 
 from recal.core import detector as det
-from recal.core.bootstrap import initial_params, locate, off_by
+from recal.core.bootstrap import fit_poses, locate, off_by, reach, still_poses
 from recal.core.buffer import Coverage, WindowBuffer, Windows
 from recal.core.channels import check_channels, usable
 from recal.core.correction import Segment, calibrate
@@ -409,7 +409,12 @@ class Pipeline:
             if not ok:
                 counts["windows_rejected"] += 1
                 continue
+            opened = buf.cells_opened
             add(v, aux, t_mid, n, var, direction, run, cell)
+            if watch and buf.cells_opened != opened and self._axis_newly_covered():
+                fresh.append((v, aux, t_mid, n, var))
+                counts["windows"] += 1
+                return done, c  # a gain the last update could not see now can be: update
             if watch:  # before the bootstrap nothing tests them (and they would pile up)
                 fresh.append((v, aux, t_mid, n, var))
             counts["windows"] += 1
@@ -419,6 +424,18 @@ class Pipeline:
                     and buf.cells_opened != self.refit.coverage_at_update):
                 return done, c
         return done, None
+
+    def _axis_newly_covered(self) -> bool:
+        """An axis the buffer now sees from both sides whose scale the last update could not
+        observe (a sphere fitted to five half-axes, then the sixth): worth an update at once,
+        whatever the window count (a six-pose stream ends right after its last pose)."""
+        rep = self.last_report
+        if rep is None or not self.model.has("scale") or not rep.observable:
+            return False
+        sl = self.model.slice(Scale())
+        seen = rep.observable[sl.start:sl.stop]
+        covered = self.buffer.coverage().axes_covered
+        return any(c and not o for c, o in zip(covered, seen, strict=True))
 
     # --- self-watch --------------------------------------------------------------------------
     def _watch_window(self, bad: bool, window: tuple, idx: int) -> bool:
@@ -577,6 +594,8 @@ class Pipeline:
 
     def _try_bootstrap(self, idx: int, now_us: int) -> UpdateEvent | None:
         self._relocate(idx)
+        slots = self.buffer.slots()  # windows that turned are no poses (`still_poses`)
+        self.buffer.drop(slots[~still_poses(self.buffer.windows().var, self.model.s0)])
         cov = self.buffer.coverage()
         # five of the six half-axes: lying face down (-z for a hip sensor) may never happen
         half_axes = sum(cov.seen_pos) + sum(cov.seen_neg)
@@ -588,14 +607,20 @@ class Pipeline:
             loc = locate(self.buffer.windows().v, self.cfg.buffer.grid)
             if loc is None or not loc.covers(cells=self.cfg.bootstrap_min_cells):
                 return None
-        w = self.buffer.windows()
-        fit = initial_params(self.model, w.v, sphere=not cov.full)
+        w, slots = self.buffer.windows(), self.buffer.slots()
+        fit = fit_poses(self.model, w.v, self.covariates(w.t_us, w.aux), not cov.full,
+                        self.cfg.norm_tol_g)
         if fit is None:
             return None
-        model, p = fit
+        model, p, used = fit
+        a = model.correct(p, w.v[used], self.covariates(w.t_us[used], w.aux[used]))
+        half, cells = reach(a, self.cfg.buffer.grid)
+        if half < (5 if not cov.full else 6) or cells < self.cfg.bootstrap_min_cells:
+            return None  # the windows that agree with the fit do not cover enough
         if not np.all((p[model.slice(Scale())] > 0.5 * self.model.s0)
                       & (p[model.slice(Scale())] < 2.0 * self.model.s0)):
             return None  # an ellipsoid far from the first sample's norm is not this sensor
+        self.buffer.drop(slots[~used])  # off the fit: not still poses, never to be fitted
         # keep the detector's scale: its filters already run in the first sample's units
         # (`_relocate` restarted it if those were materially wrong)
         self.model = model
