@@ -101,3 +101,23 @@ def test_replay_summary_names_rejected_updates_not_coverage() -> None:
     assert "orientations" not in lines
     lines = "\n".join(replay_lines(_summary(0, "")))
     assert "orientations" in lines
+
+
+def test_six_clean_poses_of_an_unsigned_analog_part_without_prior() -> None:
+    """An analog part on a 12-bit ADC (zero-g ~2048 counts, 372 counts/g): zero-g and the scale
+    come from the six still means too (`bootstrap.locate`), then the fit."""
+    rng = np.random.default_rng(0)
+    parts = [np.tile(d, (int(5 * RATE_HZ), 1)) for d in SIX]
+    a = np.concatenate(parts)
+    spec = SensorSpec(counts_per_g=372.0, zero_g_counts=2048.0, adc_bits=12, full_scale_g=None,
+                      offset_g=(0.02, -0.015, 0.01), gain=(0.02, -0.01, 0.015), noise_g=0.004)
+    v = forward_model(a, spec, rng=rng)
+    t = np.arange(len(v), dtype=np.int64) * round(1e6 / RATE_HZ)
+    pipe = _run(RawBatch(t, v, np.zeros((len(v), 0))))
+    assert pipe.bootstrapped and pipe.status is Status.CALIBRATED
+    p = pipe.model.params_dict(pipe.params)
+    o = np.array([p["o_x"], p["o_y"], p["o_z"]])
+    s = np.array([p["s_x"], p["s_y"], p["s_z"]])
+    o_true = 2048.0 + 372.0 * np.array(spec.offset_g)
+    assert np.all(np.abs(o - o_true) < 1.5), o  # counts of 2.7 mg
+    assert np.all(np.abs(s / (372.0 * (1 + np.array(spec.gain))) - 1) < 4e-3), s

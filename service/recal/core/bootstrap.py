@@ -28,8 +28,8 @@ from recal.core.buffer import cell_of
 from recal.core.effects import Covariates, CrossAxis, Offset, Scale
 from recal.core.model import SensorModel
 
-__all__ = ["Located", "fit_ellipsoid", "fit_poses", "fit_sphere", "initial_params", "locate",
-           "off_by", "reach", "still_poses", "zero_and_scale"]
+__all__ = ["LOCATE_MIN_WINDOWS", "Located", "fit_ellipsoid", "fit_poses", "fit_sphere",
+           "initial_params", "locate", "off_by", "reach", "still_poses", "zero_and_scale"]
 
 #: Window means further than this from the sphere (relative: 50 mg) are not still poses.
 LOCATE_OUTLIER_G = 0.05
@@ -38,6 +38,9 @@ LOCATE_OUTLIER_G = 0.05
 #: degrees of freedom), while a whole recording of a ratiometric part whose zero-g follows a
 #: sagging supply is still a usable first guess at ~0.1.
 LOCATE_MAX_RESIDUAL_G = 0.2
+#: Fewest window means `locate` fits a sphere to: four unknowns, and two to judge it by (a lab's
+#: six positions).
+LOCATE_MIN_WINDOWS = 6
 #: Passes of `locate`'s fit, each dropping the windows the one before put off the sphere.
 LOCATE_PASSES = 6
 #: Half-axes the centred directions must reach beyond COVERAGE_LEVEL_G for a fit to stand
@@ -90,7 +93,7 @@ def locate(v: np.ndarray, grid: int = 6) -> Located | None:
     keep = np.ones(len(v), bool)
     fit = None
     for _ in range(LOCATE_PASSES):
-        if keep.sum() < 10:
+        if keep.sum() < LOCATE_MIN_WINDOWS:
             return None
         fit = fit_sphere(v[keep])
         if fit is None:
@@ -103,7 +106,7 @@ def locate(v: np.ndarray, grid: int = 6) -> Located | None:
         if np.array_equal(new, keep):
             break
         keep = new
-    if fit is None or keep.sum() < 10:
+    if fit is None or keep.sum() < LOCATE_MIN_WINDOWS:
         return None
     residual = float(np.sqrt(np.mean(dev[keep] ** 2)))
     if residual > LOCATE_MAX_RESIDUAL_G:  # no sphere: one pose's noise around a tiny one

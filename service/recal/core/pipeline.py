@@ -23,7 +23,14 @@ from enum import Enum
 import numpy as np
 
 from recal.core import detector as det
-from recal.core.bootstrap import fit_poses, locate, off_by, reach, still_poses
+from recal.core.bootstrap import (
+    LOCATE_MIN_WINDOWS,
+    fit_poses,
+    locate,
+    off_by,
+    reach,
+    still_poses,
+)
 from recal.core.buffer import Coverage, WindowBuffer, Windows
 from recal.core.channels import check_channels, usable
 from recal.core.correction import Segment, calibrate
@@ -80,6 +87,10 @@ class Lifecycle(Enum):
 _AWAITING_SCALE, _BOOTSTRAPPING, _TRACKING, _SUSPECT = (
     Lifecycle.AWAITING_SCALE, Lifecycle.BOOTSTRAPPING, Lifecycle.TRACKING, Lifecycle.SUSPECT)
 
+
+#: Up to this many windows in the buffer before a bootstrap, its sphere fits run at every
+#: window, not every update_every (`Pipeline._sphere_due`).
+FEW_WINDOWS = 20
 
 #: The pipeline's attributes that are never changed in place (replaced when they change): a
 #: step's snapshot (`Pipeline._stepped`) keeps them as they are instead of copying them.
@@ -602,7 +613,7 @@ class Pipeline:
         if half_axes < 5 or cov.cells_filled < self.cfg.bootstrap_min_cells:
             return None
         if self.centre0.any():  # zero-g was found, roughly: coverage around the best centre
-            if self.counts["windows"] % self.cfg.update_every:
+            if not self._sphere_due():
                 return None
             loc = locate(self.buffer.windows().v, self.cfg.buffer.grid)
             if loc is None or not loc.covers(cells=self.cfg.bootstrap_min_cells):
@@ -634,6 +645,13 @@ class Pipeline:
         ev = self._update(idx, now_us, self.buffer.windows())  # the fit's own data
         return replace(ev, bootstrap=True)
 
+    def _sphere_due(self) -> bool:
+        """Whether a sphere fit of the buffer runs at this window: at every one while the
+        buffer holds few (a lab's six positions may give no more), then every update_every
+        windows (a wearer who never turns costs little)."""
+        return (len(self.buffer) <= FEW_WINDOWS
+                or self.counts["windows"] % self.cfg.update_every == 0)
+
     def _relocate(self, idx: int) -> None:
         """Before a bootstrap: if the still windows pin down zero-g and scale, roughly
         (`bootstrap.locate`: half-axes and cells of their centred directions), and the ones
@@ -642,19 +660,23 @@ class Pipeline:
         the wrong one gated leave the buffer. Later windows bin by their centred directions,
         and the bootstrap waits until those cover the orientations around the centre found
         then (`_try_bootstrap`)."""
-        if len(self.buffer) < 10 or self.counts["windows"] % self.cfg.update_every:
-            return  # a sphere fit per update_every windows: a wearer who never turns costs little
-        slots = self.buffer.slots()
-        loc = locate(self.buffer.v[slots], self.cfg.buffer.grid)
-        if (loc is None or not loc.covers(cells=max(4, self.cfg.bootstrap_min_cells // 2))
+        if len(self.buffer) < LOCATE_MIN_WINDOWS or not self._sphere_due():
+            return
+        w = self.buffer.windows()
+        loc = locate(w.v, self.cfg.buffer.grid)
+        if (loc is None or len(loc.inliers) != len(w)
+                or not loc.covers(cells=max(4, self.cfg.bootstrap_min_cells // 2))
                 or not off_by(loc.centre, loc.scale, self.centre0, self.model.s0)):
             return
         self.centre0 = np.asarray(loc.centre, np.float64).copy()
         self.model = SensorModel(self.model.effects, loc.scale, self.model.spreads)
         # a detector that wrong (10x too loose on an unsigned part, blind along its offset)
-        # let movement through, and a few such windows bend a fit of few poses by tenths of
-        # a g: the bootstrap waits for windows the restarted detector gates
-        self.buffer.drop(slots)
+        # let movement through: only the windows on the sphere that did not turn stay, binned
+        # anew around the centre found (the bootstrap's fit drops those off it, `fit_poses`)
+        keep = np.flatnonzero(loc.inliers & still_poses(w.var, loc.scale))
+        self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+        self._refill([(w.v[i], w.aux[i], int(w.t_us[i]), int(w.n[i]), float(w.var[i]))
+                      for i in keep.tolist()], gate=False)
         self._restart_at = idx
 
     def _redirect(self) -> None:
