@@ -656,10 +656,10 @@ class Pipeline:
         """Before a bootstrap: if the still windows pin down zero-g and scale, roughly
         (`bootstrap.locate`: half-axes and cells of their centred directions), and the ones
         in use are materially wrong (`bootstrap.off_by`), use the found ones from the next
-        sample on: the detector restarts centred at the found scale (`step`), and the windows
-        the wrong one gated leave the buffer. Later windows bin by their centred directions,
-        and the bootstrap waits until those cover the orientations around the centre found
-        then (`_try_bootstrap`)."""
+        sample on: the detector restarts centred at the found scale (`step`), and of the
+        windows the wrong one gated only those on the sphere that did not turn stay, binned by
+        their centred directions as later windows are; the bootstrap waits until those cover
+        the orientations around the centre found (`_try_bootstrap`)."""
         if len(self.buffer) < LOCATE_MIN_WINDOWS or not self._sphere_due():
             return
         w = self.buffer.windows()
