@@ -34,6 +34,7 @@ import numpy as np
 from recal.core import discovery as dc
 from recal.core.discovery_data import DiscoveryData, data_from_batches
 from recal.core.effects import TIME
+from recal.core.hindsight import SUSPECT_EXCESS_G
 from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.residuals import (
@@ -180,6 +181,19 @@ def misfit_line(mis: Misfit | None, found: str) -> str | None:
             f"{found}")
 
 
+def _misfit_next(result: dc.DiscoveryResult) -> str:
+    """What to do about a residual the final model leaves (`misfit_line`)."""
+    best = max(result.last_round, key=lambda c: c.gain) if result.last_round else None
+    closest = (f"; the closest, {best.label}, took {100 * best.gain:.1f} % off the held-out "
+               f"error but not reliably (SE {100 * best.se:.1f} %): a longer recording, with "
+               f"more postures, may show it" if best is not None and best.gain > 0 else "")
+    further = "further " if result.steps else ""
+    return (f"no {further}candidate passed the held-out test (an effect recal does not model, "
+            f"or movement in the still windows){closest}. `recal hindsight` with this model "
+            f"widens sigma by it and marks samples suspect where it exceeds "
+            f"{1e3 * SUSPECT_EXCESS_G:g} mg")
+
+
 def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[str, Any]:
     """The JSON report (keys in the module docstring)."""
     cfg, data = result.config, result.data
@@ -271,10 +285,7 @@ def format_table(result: dc.DiscoveryResult) -> str:
     held = result.held_at_start()
     if held:
         rows.append(f"held at their start, the poses cannot determine them: {', '.join(held)}")
-    line = misfit_line(result.misfit(),
-                       "no candidate describes it (an effect recal does not model, or data "
-                       "with movement in its still windows): output calibrated with this "
-                       "model carries it in its sigma, and is marked suspect where it is large")
+    line = misfit_line(result.misfit(), _misfit_next(result))
     if line:
         rows.append(line)
     for e in result.selected:
