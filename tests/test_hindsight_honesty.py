@@ -143,3 +143,17 @@ def test_discover_says_when_even_the_best_model_leaves_a_residual() -> None:
     mis = res.misfit()
     assert mis is not None and mis.well_above_noise
     assert "beyond the sensor noise" in format_table(res)
+
+
+def test_the_honesty_metric_counts_calibrated_1s_windows_against_sigma_eff() -> None:
+    """Four 1 s windows at 10 Hz, noise n = 1e3 * 0.001 * sqrt(3 / 10) = 0.548 mg: errors 1,
+    5, 30 mg with sigma 1 mg (sigma_eff 1.14 mg), and one window (500 mg off) not calibrated."""
+    # errors along gravity, in four directions: no rotation (the metric's alignment) helps
+    truth = np.repeat(np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0]]), 10, 0)
+    cal = truth * (1 + np.repeat([0.001, 0.005, 0.030, 0.5], 10))[:, None]
+    status = np.full(40, Status.CALIBRATED)
+    status[35] = Status.SUSPECT
+    m = hc.honesty(cal, truth, np.full(40, 1.0), status, 10.0, 0.001)
+    assert m["windows"] == 4 and m["calibrated"] == 3
+    assert m["beyond_3"] == 2 / 3 and m["beyond_10"] == 1 / 3
+    assert abs(m["error_rms_mg"] - np.sqrt((1 + 25 + 900) / 3)) < 1e-6
