@@ -581,6 +581,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from recal.console import install_logging
+
+    install_logging()  # warnings as bare stderr lines, each kind rate-limited (recal.console)
     return _dispatch(args.func, args)
 
 

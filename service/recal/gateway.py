@@ -59,6 +59,7 @@ from recal.runtime import (
     ERROR_PREFIX,
     RecordingWatch,
     console,
+    flush_console,
     install_stop_signals,
     open_bus,
     open_recording,
@@ -790,6 +791,7 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
         gw.run(stop)
     finally:
         logged = gw.stop()
+    flush_console(emit)
     emit(f"{STOPPED_PREFIX} samples={logged}")
     if gw.fatal is not None:
         fail(f"{ERROR_PREFIX} {gw.fatal}")
