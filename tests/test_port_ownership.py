@@ -89,3 +89,74 @@ def test_two_daemons_started_at_once_on_one_port_leave_exactly_one(tmp_path: Pat
             finally:
                 for r in runs:
                     r.kill()
+
+
+# --------------------------------------------------------------------------- the default id
+
+
+class _Listed:
+    """What pyserial's list_ports gives for a port (device path and USB serial number)."""
+
+    def __init__(self, device: str, serial_number: str | None, vid: int | None = 0x2341,
+                 pid: int | None = 0x8057) -> None:
+        self.device, self.serial_number, self.vid, self.pid = device, serial_number, vid, pid
+
+
+def test_default_id_is_the_by_id_name_else_the_usb_serial_else_the_port_path(
+        tmp_path: Path) -> None:
+    from recal.config import default_sensor_id
+    from recal.io.recording import sensor_topic
+
+    dev = tmp_path / "dev"
+    dev.mkdir()
+    for name in ("ttyACM0", "ttyACM1", "ttyUSB0"):
+        (dev / name).write_text("")
+    by_id = tmp_path / "by-id"
+    by_id.mkdir()
+    (by_id / "usb-Arduino_LLC_Nano 33 IoT_4F3A9C2E-if00").symlink_to("../dev/ttyACM0")
+    (by_id / "usb-FTDI_FT232R_A50285BI-if00-port0").symlink_to(dev / "ttyUSB0")
+    listed = [_Listed(str(dev / "ttyACM1"), "95735353032351A0E0A1"),
+              _Listed(str(dev / "ttyACM0"), "SHOULD-NOT-WIN")]
+    # the by-id name of the device the port is (through a symlink of the user's too)
+    (tmp_path / "wrist").symlink_to(dev / "ttyACM0")
+    ids = {p: default_sensor_id(p, by_id_dir=by_id, listed=listed)
+           for p in (str(dev / "ttyACM0"), str(tmp_path / "wrist"), str(dev / "ttyUSB0"),
+                     str(dev / "ttyACM1"))}
+    assert ids[str(dev / "ttyACM0")] == "usb-Arduino_LLC_Nano_33_IoT_4F3A9C2E-if00"
+    assert ids[str(tmp_path / "wrist")] == ids[str(dev / "ttyACM0")]
+    assert ids[str(dev / "ttyUSB0")] == "usb-FTDI_FT232R_A50285BI-if00-port0"
+    # no by-id link: the USB serial number from list_ports
+    assert ids[str(dev / "ttyACM1")] == "usb-2341-8057-95735353032351A0E0A1"
+    # neither: the port's path; no by-id folder at all is no error
+    assert default_sensor_id("/dev/ttyS0", by_id_dir=tmp_path / "absent", listed=[]) == "ttyS0"
+    assert default_sensor_id("/tmp/a b/tty0", by_id_dir=by_id, listed=[]) == "tmp-a_b-tty0"
+    assert default_sensor_id("loop://", by_id_dir=by_id, listed=[]) == "loop"
+    for sid in ids.values():
+        sensor_topic(sid, "raw")  # a valid id
+
+
+def test_two_ptys_without_ids_get_distinct_ids_from_their_paths(tmp_path: Path) -> None:
+    """`recal run --port A --port B` with no config: each sensor its own id, its own
+    checkpoint."""
+    links = [str(tmp_path / "a" / "tty0"), str(tmp_path / "b" / "tty0")]
+    for link in links:
+        Path(link).parent.mkdir()
+    with PtyDevice(links[0]), PtyDevice(links[1]):
+        lines: list[str] = []
+        stop = threading.Event()
+        from recal.gateway import run_gateway
+
+        ready: list[object] = []
+        cfg = _config(tmp_path, "c")
+
+        def on_ready(gw: object) -> None:
+            ready.append(gw)
+            stop.set()
+
+        status = run_gateway(cfg, ports=links, mcap_out=tmp_path / "c.mcap", stop_event=stop,
+                             out=lines.append, on_ready=on_ready)
+        assert status == 0, lines
+    ids = sorted(ready[0].ports)  # type: ignore[attr-defined]
+    assert len(ids) == 2 and ids[0] != ids[1], ids
+    assert all(sid.endswith("-tty0") and "sensor0" not in sid for sid in ids), ids
+    assert {p.sensor.port for p in ready[0].ports.values()} == set(links)  # type: ignore

@@ -47,7 +47,13 @@ from typing import Any
 
 from recal.align_requests import align_handler
 from recal.checkpoints import Checkpoints, SensorLockedError
-from recal.config import SensorConfig, ServiceConfig, check_model_channels, load_config
+from recal.config import (
+    SensorConfig,
+    ServiceConfig,
+    check_model_channels,
+    default_sensor_id,
+    load_config,
+)
 from recal.errors import ConfigError, RecalError
 from recal.io import messages
 from recal.io.recording import sensor_topic
@@ -570,8 +576,8 @@ def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
                 base = cfg.sensor(sid) or SensorConfig(id=sid)
             elif i < len(cfg.sensors):
                 base = cfg.sensors[i]
-            else:
-                base = SensorConfig(id=f"sensor{i}")
+            else:  # the device's own name: two devices never share a calibration
+                base = SensorConfig(id=default_sensor_id(port))
             chosen.append(replace(base, port=port))
         return _distinct(chosen)
     chosen = [s for s in cfg.sensors if not sensor_ids or s.id in sensor_ids]
@@ -594,15 +600,15 @@ def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
             sensor_topic(s.id, "raw")
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-        if s.id in seen_ids:
-            raise ConfigError(f"sensor id {s.id!r} is given twice")
-        seen_ids.add(s.id)
-        assert s.port is not None
+        assert s.port is not None  # the port first: a device given twice gets one id twice
         device = s.port if "://" in s.port else os.path.realpath(s.port)
         if device in seen_ports:
             raise ConfigError(f"port {s.port} is given to two sensors "
                               f"({seen_ports[device]!r} and {s.id!r})")
         seen_ports[device] = s.id
+        if s.id in seen_ids:
+            raise ConfigError(f"sensor id {s.id!r} is given twice")
+        seen_ids.add(s.id)
     for s in sensors:
         assert s.port is not None
         problem = port_problem(s.port)
