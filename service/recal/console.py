@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import logging
 import re
+import sys
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 __all__ = ["BURST", "INTERVAL_S", "LineLimiter", "RateLimitFilter", "template"]
 
@@ -130,6 +132,19 @@ class RateLimitFilter(logging.Filter):
         return ok
 
 
+class _Stderr(logging.StreamHandler):  # type: ignore[type-arg]
+    """To whatever ``sys.stderr`` is when a record comes (as Python's own last-resort handler:
+    a stream bound at install time would outlive a redirection)."""
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: Any) -> None:
+        pass
+
+
 def install_logging(level: int = logging.WARNING) -> logging.Handler:
     """Warnings and errors of every recal logger to stderr as bare lines (as Python prints
     them with no logging set up), rate-limited; returns the handler (installed once)."""
@@ -137,7 +152,7 @@ def install_logging(level: int = logging.WARNING) -> logging.Handler:
     for h in root.handlers:
         if getattr(h, "recal_console", False):
             return h
-    handler = logging.StreamHandler()
+    handler = _Stderr()
     handler.setLevel(level)
     handler.addFilter(RateLimitFilter())
     handler.recal_console = True  # type: ignore[attr-defined]
