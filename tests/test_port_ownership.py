@@ -160,3 +160,50 @@ def test_two_ptys_without_ids_get_distinct_ids_from_their_paths(tmp_path: Path) 
     assert len(ids) == 2 and ids[0] != ids[1], ids
     assert all(sid.endswith("-tty0") and "sensor0" not in sid for sid in ids), ids
     assert {p.sensor.port for p in ready[0].ports.values()} == set(links)  # type: ignore
+
+
+def test_a_port_another_process_takes_after_an_unplug_stops_the_daemon(tmp_path: Path) -> None:
+    """The device path comes to name a tty someone else holds (flock, as another recal would):
+    the daemon stops with one line naming the holder instead of waiting to take it over."""
+    import fcntl
+
+    from recal.gateway import run_gateway
+
+    link = tmp_path / "tty0"
+    first = os.openpty()
+    other = os.openpty()
+    holder = -1
+    try:
+        link.symlink_to(os.ttyname(first[1]))
+        lines: list[str] = []
+        opened = threading.Event()
+        result: list[int] = []
+
+        def out(line: str) -> None:
+            lines.append(line)
+            if "port opened" in line:
+                opened.set()
+
+        stop = threading.Event()
+        runner = threading.Thread(target=lambda: result.append(run_gateway(
+            _config(tmp_path, "a"), ports=[str(link)], sensor_ids=["a"],
+            mcap_out=tmp_path / "a.mcap", stop_event=stop, out=out)), daemon=True)
+        runner.start()
+        try:
+            assert opened.wait(20), lines
+            holder = os.open(os.ttyname(other[1]), os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+            fcntl.flock(holder, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            swap = tmp_path / "tty0.new"
+            swap.symlink_to(os.ttyname(other[1]))
+            os.replace(swap, link)  # the path now names another device, held by "us"
+            runner.join(30)
+        finally:
+            stop.set()
+            runner.join(30)
+        assert result == [2], lines
+        assert lines[-1] == f"recal: error: port {link} is in use by process {os.getpid()}", \
+            lines
+    finally:
+        for fd in (*first, *other, holder):
+            if fd >= 0:
+                os.close(fd)
