@@ -1,5 +1,9 @@
-"""Who owns a serial port: two `python -m recal run` processes started at the same instant on
-one real pseudo-terminal; exactly one keeps it, the other exits at once with one line."""
+"""Who owns a serial port, and what a port's sensor is called.
+
+Two `python -m recal run` processes started at the same instant on one real pseudo-terminal:
+exactly one keeps it, the other exits at once with one line (8 tries). A port that comes to
+name a tty another process holds stops the daemon. A port without a configured id is named
+after its device (by-id link, USB serial number, else its path): two ptys, two ids."""
 
 from __future__ import annotations
 
