@@ -92,4 +92,8 @@ def test_the_logging_filter_limits_by_logger_and_template() -> None:
     assert out[2].startswith("recal: 48 similar lines left out in 6 s, the last: node s1 "
                              "failed on batch 49"), out
     assert out[3] == "node s1 failed on batch 99" and len(out) == 4
-    assert install_logging() is install_logging()  # once per process
+    handler = install_logging()
+    try:
+        assert install_logging() is handler  # once per process
+    finally:
+        logging.getLogger().removeHandler(handler)
