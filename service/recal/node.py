@@ -43,7 +43,7 @@ from recal.config import (
 )
 from recal.core import alignment as al
 from recal.core import timebase as tb
-from recal.core.channels import missing_channels
+from recal.core.channels import missing_channels, unnamed_for
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.outputs import StepOutput
@@ -519,6 +519,18 @@ class CalibrationNode(AlignmentRequests):
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
         assert self.pipeline is not None
         names = self.pipeline.aux_names
+        if unnamed_for(batch.aux_names, names):
+            # a device that prints its header only at boot, heard after a restart: the same
+            # count of channels, unnamed, are the ones the state was built with (else each
+            # would be missing and its windows NaN)
+            if batch.aux_names != self._last_names:
+                self._event("layout_mapped", int(batch.t_us[0]), log_ns, {
+                    "got": list(batch.aux_names), "mapped_to": list(names)})
+                if self.on_note is not None:
+                    self.on_note(f"channels {', '.join(batch.aux_names)} (no header heard) "
+                                 f"taken as {', '.join(names)}, as before the restart")
+            self._last_names = batch.aux_names
+            return RawBatch(batch.t_us, batch.v, batch.aux, names)
         fitted = conform_channels(batch, names, self.pipeline.model.covariates)
         if batch.aux_names != self._last_names and batch.aux_names != names:
             self._event("layout_changed", int(batch.t_us[0]), log_ns, {
