@@ -162,13 +162,15 @@ def test_a_crafted_stream_cannot_move_time_or_adopt_an_estimate_the_node_could_n
         assert keeper.saves == 1 and keeper.failed_saves == 0, (scale, lines)
         kinds = sink.kinds()
         assert "time_jump_refused" in kinds, kinds
-        assert any("17" in n or "implausible" in n for n in notes), notes
+        assert any("device time jumped +6205 days" in n for n in notes), notes
         # 30 000 samples at 50 Hz later: 600 s of output time, not 17 years
         assert node.last_t_us - end_us < 700 * 10**6
-        params = node.pipeline.params
-        lo, hi = node.pipeline.model.bounds()
-        assert np.all(np.abs(params[:3] - good[:3]) < 0.2 * 1024), (scale, params)
+        # refused, not adopted: whatever estimate the node holds is this sensor's (it may be
+        # re-fitting, with none, while the fake windows contradict it)
+        assert node.estimates_refused >= 1 and "estimate_refused" in kinds, (scale, kinds)
+        est = node.pipeline.estimate
+        assert est is None or np.all(np.abs(est.p[:3] - good[:3]) < 0.2 * 1024), (scale, est)
         assert abs(node.pipeline.model.s0 - 1024.0) < 0.5 * 1024, node.pipeline.model.s0
-        assert "estimate_refused" in kinds or np.allclose(params, good), kinds
+        assert any(n.startswith("calibration refused") for n in notes), notes
         restored = make_node(_configured(), MemorySink(), folder)
         assert restored.start == "checkpoint", scale

@@ -68,6 +68,7 @@ __all__ = [
     "SensorLock",
     "SensorLockedError",
     "checkpoint_path",
+    "estimate_problem",
     "finite_document",
     "json_depth",
     "load_checkpoint",
@@ -350,6 +351,17 @@ def param_bounds(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | N
         lo[sl] += centre
         hi[sl] += centre
     return lo, hi
+
+
+def estimate_problem(pipe: Pipeline,
+                     reference: tuple[SensorModel, Prior | None] | None = None) -> str | None:
+    """Why the pipeline's model, estimate or prior would make its checkpoint refused at the
+    next start (`restore_pipeline` with the same ``reference``), or None: the check a node runs
+    on what it is about to adopt, so that it never holds a state it could not save."""
+    try:
+        return _estimate_problem(pipe, reference)
+    except Exception as exc:  # a field of the wrong type
+        return f"unreadable state: {type(exc).__name__}: {exc}"
 
 
 def _estimate_problem(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | None
@@ -710,12 +722,12 @@ class Checkpoints:
                 if doc is None:
                     continue
                 doc, where, dropped = finite_document(doc)
-                self._note_dropped(sid, where, dropped)
                 self._check_before_save(doc)
                 save_checkpoint(checkpoint_path(self.directory, sid), doc)
             except (OSError, ValueError) as exc:
                 self._failed(sid, exc)
                 continue
+            self._note_dropped(sid, where, dropped)  # said of a save made, not one refused
             self._saved_updates[sid] = updates
             self._saved_at[sid] = self._clock()
             self.saves += 1

@@ -16,6 +16,7 @@ No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import threading
@@ -31,6 +32,7 @@ from recal.align_requests import AlignmentRequests
 from recal.checkpoints import (
     CHECKPOINT_FORMAT,
     Checkpoints,
+    estimate_problem,
     restore_pipeline,
 )
 from recal.config import (
@@ -82,6 +84,12 @@ def model_name(model: SensorModel) -> str:
     if kinds == (("offset", None), ("scale", None), ("cross_axis", None)):
         return "full"
     return "+".join(e.label for e in model.effects)
+
+
+def _decade_reached(total: int, latest: int) -> bool:
+    """Whether ``total`` reached 1, 10, 100, ... with its ``latest`` additions."""
+    before = total - latest
+    return before <= 0 or len(str(total)) > len(str(before))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,6 +175,11 @@ class CalibrationNode(AlignmentRequests):
         self._refused_unreported = 0  # ... since the last align_refused event
         self.timebase = timebase
         self._anomalies_said_us = -ANOMALY_EVENT_US  # device time of the last time_anomalies
+        # the last state whose model, estimate and prior passed the restore checks
+        # (`_vet`), and which (by identity) were checked last
+        self._good: Pipeline | None = None
+        self._vetted: tuple[Any, Any, Any] | None = None
+        self.estimates_refused = 0
         #: why this sensor cannot be calibrated at all (a channel the model needs is missing
         #: from the stream), reported once as an event; None while it can
         self.failed: str | None = None
@@ -424,6 +437,40 @@ class CalibrationNode(AlignmentRequests):
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
                                  "body")
+        self._vet(self.last_t_us, log_ns)
+
+    def _vet(self, t_us: int, log_ns: int) -> None:
+        """Whatever the pipeline took on (a bootstrap, a reset, a new zero-g and scale, a
+        rediscovered model) must pass the checks its checkpoint meets at the next start
+        (`recal.checkpoints.estimate_problem`, bounds around the configured zero-g): a node
+        never holds a state it could not save, and a stream no sensor of this configuration
+        sends (a crafted one) cannot move it there. Refused: back to the last state that
+        passed (else the configured start), an event ``estimate_refused`` and a line. Runs
+        when the model, estimate or prior changed (by identity), not per batch."""
+        pipe = self.pipeline
+        assert pipe is not None
+        now = (pipe.model, pipe.estimate, pipe.prior)
+        if self._vetted is not None and all(a is b for a, b in zip(now, self._vetted,
+                                                                   strict=True)):
+            return
+        s = self.settings
+        why = estimate_problem(pipe, (s.model, s.prior))
+        if why is None:
+            self._vetted, self._good = now, copy.deepcopy(pipe)
+            return
+        back = (copy.deepcopy(self._good) if self._good is not None
+                else Pipeline(pipe.cfg, s.model, s.prior, pipe.aux_names))
+        self.pipeline = back
+        self._vetted = (back.model, back.estimate, back.prior)
+        self.estimates_refused += 1
+        to = "the last good state" if self._good is not None else "the configured start"
+        if _decade_reached(self.estimates_refused, 1):
+            self._event("estimate_refused", t_us, log_ns, {
+                "reason": why, "back_to": to, "refused": self.estimates_refused})
+            if self.on_note is not None:
+                self.on_note(f"calibration refused ({why}): no sensor of this configuration "
+                             f"gives it; back to {to} ({self.estimates_refused} refused in all)")
+        self._publish_state(t_us, "estimate_refused", log_ns)
 
     def _device_time(self, batch: RawBatch, log_ns: int) -> RawBatch:
         """The batch on the time base (recal.core.timebase), its events reported."""
@@ -448,8 +495,11 @@ class CalibrationNode(AlignmentRequests):
             if t_us < self._anomalies_said_us + ANOMALY_EVENT_US:
                 return
             self._anomalies_said_us = t_us
-        self._event(ev["kind"], t_us, log_ns, ev["detail"])
         d = ev["detail"]
+        if ev["kind"] == "time_jump_refused" and not _decade_reached(d["refused"],
+                                                                      d["in_batch"]):
+            return  # a clock that jumps on every batch: said at 1, 10, 100, ... in all
+        self._event(ev["kind"], t_us, log_ns, d)
         note = None
         if ev["kind"] == "time_units":
             note = (f"device time is in {d['unit']}, not microseconds (as microseconds it "
@@ -462,6 +512,11 @@ class CalibrationNode(AlignmentRequests):
         elif ev["kind"] == "time_reboot":
             note = (f"device time restarted ({d['device_before']} -> {d['device_after']} "
                     f"{d['unit']}): the device rebooted; output time continues")
+        elif ev["kind"] == "time_jump_refused":
+            note = (f"device time jumped {d['jump_s'] / 86_400:+.4g} days ({d['device_before']}"
+                    f" -> {d['device_after']} {d['unit']}), beyond the {d['limit_s'] / 86_400:g}"
+                    f" day a clock plausibly does: not taken as time, output time continues "
+                    f"({d['refused']} such jump{'s' if d['refused'] > 1 else ''} in all)")
         if note is not None and self.on_note is not None:
             self.on_note(note)
 
