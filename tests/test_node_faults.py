@@ -174,3 +174,55 @@ def test_a_crafted_stream_cannot_move_time_or_adopt_an_estimate_the_node_could_n
         assert any(n.startswith("calibration refused") for n in notes), notes
         restored = make_node(_configured(), MemorySink(), folder)
         assert restored.start == "checkpoint", scale
+
+
+def _read_csv(path: Path) -> tuple[list[str], np.ndarray]:
+    with open(path) as f:
+        header = f.readline().strip().split(",")
+    return header, np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+
+
+def test_raw_and_calibrated_exports_join_on_the_device_time_across_a_reboot(
+        tmp_path: Path) -> None:
+    """A millis() device (milliseconds under the raw message's t_us) reboots mid-stream. The
+    replayed recording's calibrated samples carry the device's own stamps (t_dev: MCAP and the
+    wire); `recal export --topic raw` names its time column by its unit (t_ms), the calibrated
+    export has device_t_ms, and every calibrated row joins its raw row on it exactly, although
+    the calibrated t_us (the time base, never going back) left the device time at the reboot."""
+    from recal import cli
+    from recal.io import recording
+    from recal.io.recording_writer import RecordingWriter
+
+    rate = 50.0
+    res = sim.simulate(12 / 60, rate, 8, sim.SensorSpec())
+    n = len(res.raw)
+    half = n // 2
+    k = np.arange(n, dtype=np.int64)
+    t_ms = np.where(k < half, 7_200_000 + 20 * k, 3_000 + 20 * (k - half))  # reboot at half
+    raw = RawBatch(t_ms, res.raw.v, res.raw.aux, res.raw.aux_names)
+    rec, out = tmp_path / "raw.mcap", tmp_path / "cal.mcap"
+    with RecordingWriter(rec, overwrite=True) as writer:
+        for i in range(0, n, 500):
+            writer.write_raw(SID, raw[i:i + 500], 10**18 + i * 10**6)
+    assert cli.main(["replay", str(rec), "--out", str(out), "--quiet"]) == 0
+    cal = recording.read_all_calibrated(out, SID)
+    assert cal.t_dev is not None
+    np.testing.assert_array_equal(cal.t_dev, t_ms)
+    assert np.all(np.diff(cal.t_us) > 0)  # the time base continues past the reboot
+
+    raw_csv, cal_csv = tmp_path / "raw.csv", tmp_path / "cal.csv"
+    assert cli.main(["export", str(out), "--topic", "raw", "--csv", str(raw_csv)]) == 0
+    assert cli.main(["export", str(out), "--csv", str(cal_csv)]) == 0
+    raw_head, raw_rows = _read_csv(raw_csv)
+    cal_head, cal_rows = _read_csv(cal_csv)
+    assert raw_head[0] == "t_ms" and "device_t_ms" in cal_head, (raw_head, cal_head)
+    assert cal_head[0] == "t_us"
+    dev = cal_rows[:, cal_head.index("device_t_ms")].astype(np.int64)
+    raw_t = raw_rows[:, 0].astype(np.int64)
+    assert len(np.unique(raw_t)) == n
+    row_of = {int(t): i for i, t in enumerate(raw_t)}
+    joined = np.array([row_of[int(t)] for t in dev])
+    np.testing.assert_array_equal(joined, np.arange(n))  # every calibrated row, its raw row
+    np.testing.assert_array_equal(raw_rows[joined, 1:4], res.raw.v)
+    after = cal_rows[half:, 0].astype(np.int64)
+    assert np.all(np.abs(after - dev[half:] * 1000) > 60 * 10**6)  # t_us could not join

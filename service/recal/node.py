@@ -241,11 +241,14 @@ class CalibrationNode(AlignmentRequests):
                 for batch, log_ns in items:
                     self.process(batch, log_ns)
                 return
-            joined = self._device_time(RawBatch.concat([b for b, _ in items]), items[0][1])
-            outs = pipe.step_joined(joined, [len(b) for b, _ in items])
+            device = RawBatch.concat([b for b, _ in items])
+            joined = self._device_time(device, items[0][1])
+            lengths = [len(b) for b, _ in items]
+            outs = pipe.step_joined(joined, lengths)
             self._last_names = pipe.aux_names
-            for (_, log_ns), out in zip(items, outs, strict=True):
-                self._emit(out, log_ns)
+            devs = np.split(device.t_us, np.cumsum(lengths)[:-1])
+            for (_, log_ns), out, dev in zip(items, outs, devs, strict=True):
+                self._emit(out, log_ns, dev)
 
     def flush(self, log_time_ns: int) -> None:
         """End of stream: calibrate samples still held for rate measurement."""
@@ -416,14 +419,16 @@ class CalibrationNode(AlignmentRequests):
         if fitted is None:
             return None
         out = pipe.step(self._device_time(fitted, log_ns))
-        self._emit(out, log_ns)
+        self._emit(out, log_ns, fitted.t_us)
         return out
 
-    def _emit(self, out: StepOutput, log_ns: int) -> None:
+    def _emit(self, out: StepOutput, log_ns: int, t_dev: np.ndarray) -> None:
         """Everything a step's output produces: calibrated, plot, events, state, body; the
         state as of the batch's end is the output's (`StepOutput.model`, ``estimate``,
-        ``state``), not the pipeline's, which may be some batches further (`process_many`)."""
-        cal = self._guard(out.calibrated, log_ns)
+        ``state``), not the pipeline's, which may be some batches further (`process_many`).
+        ``t_dev``: the batch's device time stamps as they came, kept on every calibrated
+        sample (`CalibratedBatch.t_dev`) beside the time base's ``t_us``."""
+        cal = self._guard(replace(out.calibrated, t_dev=t_dev), log_ns)
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
         self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
@@ -542,7 +547,8 @@ class CalibrationNode(AlignmentRequests):
             self._event("not_finite", int(cal.t_us[np.argmax(bad)]), log_ns, {
                 "samples": n, "published_as": "zeros, status uncalibrated, sigma_mg inf",
                 "total": self.samples_not_finite})
-        return CalibratedBatch(cal.t_us, a, cal.quasi_static, cal.detector_g, status, sigma)
+        return CalibratedBatch(cal.t_us, a, cal.quasi_static, cal.detector_g, status, sigma,
+                               cal.t_dev)
 
     def _report_watch(self, out: StepOutput, log_ns: int) -> None:
         """The pipeline's self-watch events (`core.outputs.WatchEvent`) as events."""
@@ -743,7 +749,7 @@ class CalibrationNode(AlignmentRequests):
     def _body(cal: CalibratedBatch, ali: al.Alignment) -> CalibratedBatch:
         # a rotation keeps each sample's status and the length of its error (sigma_mg)
         return CalibratedBatch(cal.t_us, al.to_body(ali.rotation, cal.a_g), cal.quasi_static,
-                               cal.detector_g, cal.status, cal.sigma_mg)
+                               cal.detector_g, cal.status, cal.sigma_mg, cal.t_dev)
 
     # -- state and events ---------------------------------------------------------------------
 
