@@ -274,6 +274,7 @@ class CalibrationNode(AlignmentRequests):
                              "samples_by_status": self.samples_by_status(),
                              "samples_not_finite": self.samples_not_finite,
                              "accepted_updates": self.accepted_updates,
+                             "estimates_refused": self.estimates_refused,
                              "still_s": self._tracker.duration_s if self._tracker else 0.0,
                              "align_requested": self._align_requested,
                              "align_refused": self.align_refused}
