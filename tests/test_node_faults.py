@@ -134,7 +134,7 @@ def _crafted(after_us: int, n: int, scale: float, seed: int = 1) -> RawBatch:
     t = after_us + 17 * 365 * 86_400 * 10**6 + np.arange(n, dtype=np.int64) * 20_000
     dirs = np.repeat(rng.normal(size=(n // 500 + 1, 3)), 500, axis=0)[:n]
     dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-    v = 5120.0 + dirs * scale + rng.normal(0.0, 0.5 * scale / 1024, (n, 3))
+    v = 5120.0 + dirs * scale + rng.normal(0.0, 0.5, (n, 3))
     return RawBatch(t, v, np.zeros((n, 0)), ())
 
 

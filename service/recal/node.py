@@ -466,6 +466,7 @@ class CalibrationNode(AlignmentRequests):
             return
         back = (copy.deepcopy(self._good) if self._good is not None
                 else Pipeline(pipe.cfg, s.model, s.prior, pipe.aux_names))
+        back.counts = dict(pipe.counts)  # totals of what happened, refused or not
         self.pipeline = back
         self._vetted = (back.model, back.estimate, back.prior)
         self.estimates_refused += 1
