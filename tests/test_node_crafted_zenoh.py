@@ -87,3 +87,8 @@ def test_a_crafted_stream_on_a_configured_id_leaves_the_node_able_to_save(
     kinds = [obj["kind"] for _, obj, _ in rec.iter_json(tmp_path / "node.mcap",
                                                         f"/{SID}/events")]
     assert "time_jump_refused" in kinds and "estimate_refused" in kinds, kinds
+    # every calibrated sample keeps the stamp its raw message had, the refused jump included
+    cal = rec.read_all_calibrated(tmp_path / "node.mcap", SID)
+    assert cal.t_dev is not None
+    np.testing.assert_array_equal(cal.t_dev, np.concatenate([real.t_us, fake.t_us]))
+    assert np.all(np.diff(cal.t_us) > 0) and cal.t_us[-1] - real.t_us[-1] < 3600 * 10**6
