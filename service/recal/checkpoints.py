@@ -77,6 +77,8 @@ __all__ = [
     "SensorLockedError",
     "StateFileRefused",
     "checkpoint_path",
+    "estimate_problem",
+    "finite_document",
     "json_depth",
     "load_checkpoint",
     "lock_path",
@@ -346,6 +348,48 @@ def _bounded_int(text: str) -> int:
     return x
 
 
+def finite_document(doc: dict[str, Any]) -> tuple[dict[str, Any], list[str], int]:
+    """``doc`` as strict JSON can hold it: (the document, where values were not finite, how
+    many). A NaN or infinity (a window mean of a channel the stream lacked) is saved as null,
+    which the state restores as NaN, so one such value never costs the whole save; whether
+    the state may be trusted is still checked (`restore_pipeline`). The usual document is
+    returned as it is after one strict encode; only a failing one is walked (arrays of numbers
+    checked in numpy)."""
+    try:
+        json.dumps(doc, allow_nan=False)
+    except ValueError:
+        pass
+    else:
+        return doc, [], 0
+    where: list[str] = []
+    counted = [0]
+
+    def clean(obj: Any, path: str) -> Any:
+        if isinstance(obj, float):
+            if np.isfinite(obj):
+                return obj
+            counted[0] += 1
+            where.append(path)
+            return None
+        if isinstance(obj, dict):
+            return {k: clean(v, f"{path}.{k}" if path else str(k)) for k, v in obj.items()}
+        if isinstance(obj, (list, tuple)):
+            try:
+                arr = np.asarray(obj, np.float64)
+            except (TypeError, ValueError):  # mixed content: item by item
+                return [clean(v, f"{path}[{i}]") for i, v in enumerate(obj)]
+            bad = ~np.isfinite(arr)
+            if not bad.any():
+                return obj
+            counted[0] += int(bad.sum())
+            where.append(path)
+            return np.where(bad, None, arr.astype(object)).tolist()
+        return obj
+
+    out = clean(doc, "")
+    return out, where, counted[0]
+
+
 # ---------------------------------------------------------------------------------------------
 # The state inside
 # ---------------------------------------------------------------------------------------------
@@ -408,6 +452,17 @@ def param_bounds(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | N
         lo[sl] += centre
         hi[sl] += centre
     return lo, hi
+
+
+def estimate_problem(pipe: Pipeline,
+                     reference: tuple[SensorModel, Prior | None] | None = None) -> str | None:
+    """Why the pipeline's model, estimate or prior would make its checkpoint refused at the
+    next start (`restore_pipeline` with the same ``reference``), or None: the check a node runs
+    on what it is about to adopt, so that it never holds a state it could not save."""
+    try:
+        return _estimate_problem(pipe, reference)
+    except Exception as exc:  # a field of the wrong type
+        return f"unreadable state: {type(exc).__name__}: {exc}"
 
 
 def _estimate_problem(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | None
@@ -647,6 +702,7 @@ class Checkpoints:
         self._saved_updates: dict[str, int] = {}
         self._saved_at: dict[str, float] = {}
         self._failures: dict[str, _Failures] = {}
+        self._dropping: set[str] = set()  # sensors whose saves drop values (said once)
         self._fail_noted_s = float("-inf")
         self.saves = 0
         self.failed_saves = 0
@@ -801,11 +857,13 @@ class Checkpoints:
                 doc = node.checkpoint()
                 if doc is None:
                     continue
+                doc, where, dropped = finite_document(doc)
                 self._check_before_save(doc)
                 save_checkpoint(checkpoint_path(self.directory, sid), doc)
             except (OSError, ValueError) as exc:
                 self._failed(sid, exc)
                 continue
+            self._note_dropped(sid, where, dropped)  # said of a save made, not one refused
             self._saved_updates[sid] = updates
             self._saved_at[sid] = self._clock()
             self.saves += 1
@@ -817,6 +875,22 @@ class Checkpoints:
         """The load checks (bar the probe): a state that would be refused at the next start is
         not written over the last good one (ValueError)."""
         restore_pipeline(doc.get("pipeline"), probe=False)
+
+    def _note_dropped(self, sid: str, where: list[str], count: int) -> None:
+        """An event and a line when a sensor's saves start holding values strict JSON cannot
+        (saved as null), not on every save; said again only after a clean save."""
+        if not count:
+            self._dropping.discard(sid)
+            return
+        if sid in self._dropping:
+            return
+        self._dropping.add(sid)
+        shown = where[:8]
+        if self._event is not None:
+            self._event(sid, "checkpoint_values_dropped", {
+                "values": count, "where": shown, "saved_as": None})
+        self.out(f"{self.prefix} {sid}: {count} value{'s' if count > 1 else ''} in the "
+                 f"checkpoint not finite ({', '.join(shown)}): saved as null, the rest as is")
 
     def _failed(self, sid: str, exc: Exception) -> None:
         self.failed_saves += 1
