@@ -651,7 +651,7 @@ def test_a_node_leaves_alone_a_sensor_another_process_holds(tmp_path: Path) -> N
             assert publish_raw(gw, "hip", still_raw(60))
             assert wait_for(lambda: (status_of(gw, "hip") or {}).get("node", {}).get(
                 "samples") == 60, 10)
-            assert wait_for(lambda: any("not calibrating wrist" in x for x in nt.lines), 5)
+            assert wait_for(lambda: any("not calibrating wrist" in x for x in nt.lines), 30)
             assert publish_raw(gw, "wrist", still_raw(60, t0_us=2_000_000))
             assert status_of(gw, "wrist") is None  # no node, no queryable
         finally:
