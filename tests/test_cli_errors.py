@@ -171,7 +171,7 @@ CASES = [
     ("router bad endpoint", ["router", "--listen", "tcp/999.1.1.1:1"], 2,
      "cannot start the router"),
     ("router missing config", ["router", "--config", "nowhere.json5"], 2,
-     "cannot start the router"),
+     "nowhere.json5: no such file"),
 ]
 
 

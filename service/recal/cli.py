@@ -309,13 +309,19 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 def _cmd_router(a: argparse.Namespace) -> int:
     import zenoh
 
+    from recal.config import read_config_text
     from recal.io.router import run_router
 
+    if a.config is not None:  # missing, a directory, binary: said here, naming the file
+        read_config_text(Path(a.config), "Zenoh JSON5 config")
     try:
         return run_router(listen_endpoints=a.listen or None, config_file=a.config)
     except zenoh.ZError as e:  # bad endpoint or config file, port in use
-        # Zenoh appends the Rust source location: not for the user
-        raise UsageError(f"cannot start the router: {str(e).split(' at /')[0]}") from None
+        # Zenoh appends the Rust source location (not for the user) and may draw the place of
+        # a syntax error over several lines: one line
+        said = " ".join(str(e).split(" at /")[0].split())
+        with_config = f" (config {a.config})" if a.config is not None else ""
+        raise UsageError(f"cannot start the router{with_config}: {said}") from None
 
 
 # --- parser ----------------------------------------------------------------------------------
