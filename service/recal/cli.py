@@ -1,7 +1,7 @@
 """`recal`: the command line. Thin: every command parses arguments and calls one function.
 
-Every argument parser of recal is here (also those of ``python -m recal.gateway`` and
-``python -m recal.node``); nothing imports this module. An error the user can act on
+Every argument parser of recal is here (the daemon is ``recal run``, a calibration node on its
+own ``recal node``); nothing imports this module. An error the user can act on
 (`recal.errors.RecalError`, or an OSError: a file or port the system refused) ends in one line
 on stderr and exit status 2; anything else is a bug and shows its traceback. The commands
 import the modules that do their work when they run: ``recal --help`` stays fast.
@@ -223,7 +223,7 @@ def _cmd_repair(a: argparse.Namespace) -> int:
 
 
 def _add_run_arguments(p: argparse.ArgumentParser) -> None:
-    """The daemon's options: `recal run` and `python -m recal.gateway` take the same ones."""
+    """The daemon's options (`recal run`)."""
     p.add_argument("--port", action="append", default=[], help="serial port (repeatable)")
     p.add_argument("--sensor-id", action="append", default=[], help="id per --port")
     p.add_argument("--config", help="service config (TOML), e.g. configs/gateway.toml")
@@ -273,7 +273,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
 
 def _add_node_arguments(ap: argparse.ArgumentParser, config_help: str, mcap_help: str,
                         model_help: str) -> None:
-    """`recal node`'s options (also `python -m recal.node`'s)."""
+    """`recal node`'s options."""
     ap.add_argument("--config", help=config_help)
     _add_serving_arguments(ap)
     ap.add_argument("--mcap", help=mcap_help)
@@ -281,8 +281,7 @@ def _add_node_arguments(ap: argparse.ArgumentParser, config_help: str, mcap_help
 
 
 def _add_serving_arguments(ap: argparse.ArgumentParser) -> None:
-    """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node`` and
-    ``python -m recal.node``)."""
+    """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node``)."""
     ap.add_argument("--sensor-id", action="append", default=[],
                     help="serve this sensor (repeatable; default: the config's [[sensors]])")
     ap.add_argument("--accept-any", action="store_const", const=True, default=None,
