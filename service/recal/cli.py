@@ -392,9 +392,9 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                  "--write-model saves the extended model for run/replay --model.",
                  ("recal discover recordings/wearer-temp-30min.mcap --json report.json",
                   "recal discover table.csv --write-model model.json")),
-    "import": ("A CSV time series (t_us or t_s, x, y, z or x_<unit>, y_<unit>, z_<unit>, any "
-               "auxiliary columns by name) to an MCAP raw topic that replay and discover read. "
-               "Bad rows are counted and skipped.",
+    "import": ("A CSV time series (a time column t_us, t_ms or t_s, or none with --rate; x, y, "
+               "z or x_<unit>, y_<unit>, z_<unit>; any auxiliary columns by name) to an MCAP raw "
+               "topic that replay and discover read. Bad rows are counted and skipped.",
                ("recal import log.csv --out log.mcap --units g",
                 "recal import log.csv --out log.mcap --rate 100")),
     "export": ("The calibrated (default) or raw samples of one sensor of a recording (default: "
@@ -548,7 +548,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     s.set_defaults(func=_cmd_hindsight)
 
-    s = _add_command(sub, "import", "CSV (t_us or t_s, x, y, z, aux...) -> MCAP raw topic")
+    s = _add_command(sub, "import", "CSV (t_us, t_ms or t_s, x, y, z, aux...) -> MCAP raw topic")
     s.add_argument("input", help="CSV file")
     s.add_argument("--out", required=True, help="MCAP file to write")
     s.add_argument("--units", choices=("counts", "g", "ms2"),

@@ -1,0 +1,82 @@
+"""What a newcomer meets first: messages that name what to type, help that lists what is
+accepted, inputs of the wrong kind recognised as such, headline figures that mean what they
+seem to. Real files through ``recal.cli.main`` and the real parsers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recal.cli import main
+from recal.io.ascii_lines import AsciiLineParser
+from recal.io.csv_table import TIME_COLUMNS
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    rc = main(argv)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+# --------------------------------------------------------------------------- import
+
+
+def test_import_without_a_time_column_names_the_flag(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "xyz.csv"
+    src.write_text("x,y,z\n" + "0,0,1024\n" * 20)
+    rc, _out, err = _run(["import", str(src), "--out", str(tmp_path / "o.mcap")], capsys)
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "--rate" in err and "rate_hz" not in err, err
+    for name in TIME_COLUMNS:  # and what would have done instead
+        assert name in err, err
+    rc, out, _ = _run(["import", str(src), "--out", str(tmp_path / "o.mcap"), "--rate", "50"],
+                      capsys)
+    assert rc == 0 and (tmp_path / "o.mcap").is_file(), out
+
+
+def test_import_help_lists_every_time_column_accepted(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as done:
+        main(["import", "--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    for name in TIME_COLUMNS:
+        assert name in text, (name, text)
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    summary = capsys.readouterr().out
+    line = next(x for x in summary.splitlines() if x.strip().startswith("import"))
+    assert all(name in line for name in TIME_COLUMNS), line
+
+
+@pytest.mark.parametrize("unit, scale", [("t_ms", 1e3), ("t_s", 1e6), ("t_us", 1.0)])
+def test_import_reads_each_time_column_it_lists(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], unit: str, scale: float) -> None:
+    from recal.io import recording as rec
+
+    src = tmp_path / "in.csv"
+    t = np.arange(30) * 20_000 / scale
+    src.write_text(f"{unit},x,y,z\n" + "".join(f"{float(v)!r},0,0,1024\n" for v in t))
+    rc, _out, err = _run(["import", str(src), "--out", str(tmp_path / "o.mcap")], capsys)
+    assert rc == 0, err
+    got = np.concatenate([b.t_us for _, b, _ in rec.iter_raw(tmp_path / "o.mcap")])
+    np.testing.assert_array_equal(got, np.arange(30) * 20_000)
+
+
+# --------------------------------------------------------------------------- ascii lines
+
+
+def test_a_banner_line_is_counted_as_text_not_as_missing_columns() -> None:
+    """A device's ``booting...`` line is not a sample that lacks columns (the daemon's hint
+    for those, "x,y,z without a time column need the rate", does not apply to it)."""
+    parser = AsciiLineParser()
+    out = parser.feed(b"booting...\nready, sensor ok\n1000,1,2,3\n2000,1,2,3\n")
+    assert len(out) == 2
+    assert parser.errors.wrong_columns == 0, parser.errors.nonzero()
+    assert parser.errors.non_numeric == 2, parser.errors.nonzero()
+    # a line of numbers that lacks columns still is one
+    parser.feed(b"3000,1,2\n")
+    assert parser.errors.wrong_columns == 1
