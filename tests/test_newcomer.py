@@ -80,3 +80,32 @@ def test_a_banner_line_is_counted_as_text_not_as_missing_columns() -> None:
     # a line of numbers that lacks columns still is one
     parser.feed(b"3000,1,2\n")
     assert parser.errors.wrong_columns == 1
+
+
+# --------------------------------------------------------------------------- replay's input
+
+
+def test_replay_of_a_csv_says_to_import_it(tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "some.csv"
+    src.write_text("t_us,x,y,z\n" + "".join(f"{i * 20_000},0,0,1024\n" for i in range(50)))
+    rc, _out, err = _run(["replay", str(src), "--out", str(tmp_path / "r.mcap")], capsys)
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "recal import" in err and "repair" not in err, err
+    assert not (tmp_path / "r.mcap").exists()
+    binary = tmp_path / "photo.jpg"  # neither text nor MCAP: no hint that does not fit
+    binary.write_bytes(b"\xff\xd8\xff\xe0" + bytes(range(256)))
+    rc, _out, err = _run(["export", str(binary), "--csv", str(tmp_path / "o.csv")], capsys)
+    assert rc == 2 and "not an MCAP" in err and "repair" not in err and "import" not in err, err
+
+
+def test_an_unfinished_mcap_keeps_the_repair_hint(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    whole = tmp_path / "whole.mcap"
+    rc, _out, err = _run(["simulate", "--out", str(whole), "--hours", "0.01"], capsys)
+    assert rc == 0, err
+    cut = tmp_path / "cut.mcap"
+    data = whole.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])  # a writer killed half-way
+    rc, _out, err = _run(["replay", str(cut), "--out", str(tmp_path / "r.mcap")], capsys)
+    assert rc == 2 and f"recal repair {cut}" in err and "recal import" not in err, err
