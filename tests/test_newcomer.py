@@ -109,3 +109,23 @@ def test_an_unfinished_mcap_keeps_the_repair_hint(tmp_path: Path,
     cut.write_bytes(data[:len(data) // 2])  # a writer killed half-way
     rc, _out, err = _run(["replay", str(cut), "--out", str(tmp_path / "r.mcap")], capsys)
     assert rc == 2 and f"recal repair {cut}" in err and "recal import" not in err, err
+
+
+# --------------------------------------------------------------------------- demo
+
+
+def test_the_demo_headline_is_the_settled_error_not_the_warm_up_mean() -> None:
+    """The figure right after "calibrated" is the settled one; the whole-run mean, warm-up
+    included, comes last and says so."""
+    from recal.demo import _print_summary
+
+    lines: list[str] = []
+    errors = {"offset_true_mg": [1.0] * 3, "offset_est_mg": [1.0] * 3, "offset_err_mg": [0.0] * 3,
+              "gain_true_pct": [0.0] * 3, "gain_est_pct": [0.0] * 3, "gain_err_pct": [0.0] * 3,
+              "uncalibrated_err_rms_mg": 61.0, "accel_err_rms_mg_all": 24.8,
+              "accel_err_rms_mg_second_half": 7.0, "noise_floor_rms_mg": 6.9}
+    _print_summary({"errors": errors, "started_from": "prior"}, lines.append)
+    line = next(x for x in lines if "a_true" in x)
+    after = line.split("calibrated", 1)[1]
+    assert after.index("7.0 mg") < after.index("24.8 mg"), line
+    assert "warm-up" in line[line.index("24.8") - 40:], line
