@@ -129,3 +129,45 @@ def test_the_demo_headline_is_the_settled_error_not_the_warm_up_mean() -> None:
     after = line.split("calibrated", 1)[1]
     assert after.index("7.0 mg") < after.index("24.8 mg"), line
     assert "warm-up" in line[line.index("24.8") - 40:], line
+
+
+# --------------------------------------------------------------------------- export's counts
+
+
+def test_export_counts_uncalibrated_and_bootstrapping_apart() -> None:
+    from recal.core.status import Status
+    from recal.export import StatusCounts
+    from recal.samples import CalibratedBatch
+
+    status = np.array([Status.UNCALIBRATED] * 3 + [Status.BOOTSTRAPPING] * 5
+                      + [Status.CALIBRATED] * 7 + [Status.HELD] * 2, np.uint8)
+    n = len(status)
+    counts = StatusCounts()
+    counts.add(CalibratedBatch(np.arange(n) * 20_000, np.zeros((n, 3)), np.zeros(n, bool),
+                               np.zeros(n), status, np.ones(n)))
+    d = counts.to_dict()
+    assert d["samples_uncalibrated"] == 3
+    assert d["samples_bootstrapping"] == 5
+    assert d["samples_not_calibrated"] == 10
+    assert d["samples_by_status"] == {"uncalibrated": 3, "bootstrapping": 5, "calibrated": 7,
+                                      "held": 2}
+    assert counts.line().startswith("7 samples out calibrated, 10 with another status"), \
+        counts.line()
+
+
+# --------------------------------------------------------------------------- hindsight help
+
+
+def test_hindsight_help_names_the_columns_its_csv_has(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sim = tmp_path / "s.mcap"
+    assert _run(["simulate", "--out", str(sim), "--hours", "0.05"], capsys)[0] == 0
+    out = tmp_path / "h.csv"
+    rc, _out, err = _run(["hindsight", str(sim), "--out", str(out), "--quiet"], capsys)
+    assert rc == 0, err
+    header = out.read_text().splitlines()[0]
+    assert header == "t_us,x_g,y_g,z_g,status,sigma_mg"
+    with pytest.raises(SystemExit):
+        main(["hindsight", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert header in text, text

@@ -381,7 +381,9 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                   "detector and windows and any model (--model from recal discover: "
                   "cross-axis terms, a supply or temperature channel...). Parameters the "
                   "recording's poses cannot determine are held at nominal and named. Writes "
-                  "raw, calibrated and the fit (MCAP) or t_us,x_g,y_g,z_g (CSV).",
+                  "raw, calibrated and the fit (MCAP) or t_us,x_g,y_g,z_g,status,sigma_mg "
+                  "(CSV: the status of each sample, calibrated or held, and its predicted "
+                  "error in mg).",
                   ("recal hindsight recordings/wearer-10min.mcap --out calibrated.mcap",
                    "recal hindsight in.mcap --out out.csv --model model.json --json fit.json")),
     "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
@@ -517,7 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = _add_command(sub, "discover", "find the effects the model lacks: fit, residual, "
                        "candidate effects scored on held-out time blocks, before -> after")
-    s.add_argument("input", help="recording (.mcap), CSV time series (t_us/t_s, x, y, z, "
+    s.add_argument("input", help="recording (.mcap), CSV time series (t_us/t_ms/t_s, x, y, z, "
                    "channels), or a static table (x, y, z, one still row per pose)")
     s.add_argument("--json", help="write the report (effects_selected, heldout_error_mg, "
                    "steps, ...) here")
@@ -535,7 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = _add_command(sub, "hindsight", "calibrate a recording on disk with hindsight: one fit "
                        "on all of it, every sample corrected (as the batch tools do)")
-    s.add_argument("input", help="recording (.mcap) or CSV time series (t_us/t_s, x, y, z, "
+    s.add_argument("input", help="recording (.mcap) or CSV time series (t_us/t_ms/t_s, x, y, z, "
                    "channels)")
     s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or FILE.csv")
     s.add_argument("--model", help="model file (recal discover --write-model); default offsets "
@@ -566,7 +568,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topic", choices=("calibrated", "raw"), default="calibrated",
                    help="which samples (default calibrated)")
     s.add_argument("--sensor-id", help="which sensor (default: the first)")
-    s.add_argument("--json", help="write the counts (rows, samples per status) here")
+    s.add_argument("--json", help="write the counts here: rows, samples_by_status, "
+                   "samples_uncalibrated, samples_bootstrapping, samples_not_calibrated "
+                   "(any status but calibrated)")
     s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_export)
 
