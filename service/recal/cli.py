@@ -132,17 +132,27 @@ def _cmd_export(a: argparse.Namespace) -> int:
 
 
 # --- static ----------------------------------------------------------------------------------
+#: from this many rows on, `recal static` says on stderr that it is fitting (seconds, not
+#: instant: one Gauss-Newton solve over every row, then the minimax rounds)
+STATIC_SAY_ROWS = 50_000
+
+
 def _cmd_static(a: argparse.Namespace) -> int:
     from recal import static_table as st
 
     _report_paths(a.json)
     v = st.read_static_table(a.input)
+    if len(v) >= STATIC_SAY_ROWS:  # a fit of many rows takes a while: say what is going on
+        print(f"recal static: fitting {len(v)} rows ...", file=sys.stderr, flush=True)
     report, lines = st.static_report(v, st.parse_rows(a.fit_rows, len(v)),
                                      known_orientations=a.known_orientations, g=a.g,
                                      full=not a.diagonal, loss=a.loss)
     print("\n".join(lines))
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2))
+    if not report["usable"]:  # said on stderr too: a script reading stdout must not miss it
+        print(f"recal static: warning: {report['warning']}", file=sys.stderr)
+        return 1
     return 0
 
 
