@@ -247,7 +247,7 @@ def test_subscribe_callback_errors_are_counted_not_fatal(peer_pair: tuple[Bus, B
     pub.put(b"fine")
     assert done.wait(5.0)
     assert [m.payload for m in seen] == [b"fine"]
-    assert wait_until(lambda: sub.errors == 1, 2.0)
+    assert wait_until(lambda: sub.errors == 1, 30.0)
 
 
 def test_status_queryable_answers_get(peer_pair: tuple[Bus, Bus]) -> None:
@@ -266,7 +266,7 @@ def test_status_queryable_answers_get(peer_pair: tuple[Bus, Bus]) -> None:
 
     node.queryable(key("s1", "align"), failing)
     # Declarations propagate asynchronously; retry the first get within a bounded time.
-    assert wait_until(lambda: gateway.get(key("s1", "status"), timeout_s=0.5) != [], 5.0)
+    assert wait_until(lambda: gateway.get(key("s1", "status"), timeout_s=0.5) != [], 30.0)
     assert gateway.get(key("s1", "status"), payload=b"please") == [
         ("recal/s1/status", b"state-of-s1")
     ]
@@ -292,7 +292,7 @@ def test_get_keeps_every_reply_on_the_same_key(peer_pair: tuple[Bus, Bus]) -> No
     want = [("recal/s1/status", b"from-gateway"), ("recal/s1/status", b"from-node")]
     for asker in (gateway, node):  # a local and a remote queryable, from both sides
         assert wait_until(lambda a=asker: len(a.get(key("s1", "status"), timeout_s=0.5)) == 2,
-                          5.0)
+                          30.0)
         for _ in range(10):
             assert sorted(asker.get(key("s1", "status"), timeout_s=1.0)) == want
 
@@ -310,7 +310,7 @@ def test_close_is_prompt_with_a_full_blocking_receiver(
         assert pub.wait_for_subscribers(5.0)
         for i in range(20):
             pub.put(bytes([i]))
-        assert wait_until(lambda: len(rx) == 2, 5.0)
+        assert wait_until(lambda: len(rx) == 2, 30.0)
     finally:
         t0 = time.monotonic()
         b.close()
@@ -331,7 +331,7 @@ def test_publish_after_peer_left_is_unmatched_not_an_error(
     pub = a.publisher(key("s1", "raw"))
     assert pub.wait_for_subscribers(5.0)
     b.close()
-    assert wait_until(lambda: not pub.has_subscribers, 5.0)
+    assert wait_until(lambda: not pub.has_subscribers, 30.0)
     assert pub.put(b"into the void")
     assert pub.unmatched == 1 and pub.failed == 0
 
@@ -374,7 +374,7 @@ def test_clients_through_router_survive_router_restart(
     router.kill()  # a crash: no goodbye to the clients
     pub = gateway.publisher(raw)
     pub.put(b"right-after-kill")  # must not raise even before the loss is noticed
-    assert wait_until(lambda: gateway.routers() == [] and not pub.has_subscribers, 5.0)
+    assert wait_until(lambda: gateway.routers() == [] and not pub.has_subscribers, 30.0)
     unmatched_before = pub.unmatched
     for _ in range(100):  # the publisher side keeps going; samples reach nobody
         assert pub.put(b"while-down")
@@ -384,9 +384,9 @@ def test_clients_through_router_survive_router_restart(
     router.start()  # same port
     assert router.zid != first_zid
     assert _deliver(gateway, rx, raw, b"after", 10.0)
-    assert wait_until(lambda: gateway.routers() == [router.zid], 5.0)
+    assert wait_until(lambda: gateway.routers() == [router.zid], 30.0)
     # The queryable was re-declared through the new router as well.
-    assert wait_until(lambda: gateway.get(key("s1", "status"), timeout_s=0.5) != [], 5.0)
+    assert wait_until(lambda: gateway.get(key("s1", "status"), timeout_s=0.5) != [], 30.0)
 
 
 def test_client_cannot_open_while_router_is_down() -> None:
@@ -405,7 +405,7 @@ def test_peers_meet_through_router_with_gossip(
     rx = b.receiver(key_pattern("calibrated"))
     assert _deliver(a, rx, key("s1", "calibrated"), b"hello", 5.0)
     # Gossip made the peers connect directly, so they keep talking without the router.
-    assert wait_until(lambda: b.zid in a.peers(), 5.0)
+    assert wait_until(lambda: b.zid in a.peers(), 30.0)
     router.kill()
     assert _deliver(a, rx, key("s1", "calibrated"), b"still here", 5.0)
 
@@ -416,7 +416,7 @@ def test_peers_do_not_hear_each_other_through_router_without_gossip(
     """Documents a Zenoh 1.10 behaviour: a router does not forward data between peers."""
     a = open_bus(zenoh_config(mode="peer", connect=router.listen_endpoints, gossip_scouting=False))
     b = open_bus(zenoh_config(mode="peer", connect=router.listen_endpoints, gossip_scouting=False))
-    assert wait_until(lambda: a.routers() and b.routers(), 5.0)
+    assert wait_until(lambda: a.routers() and b.routers(), 30.0)
     rx = b.receiver(key_pattern("calibrated"))
     assert not _deliver(a, rx, key("s1", "calibrated"), b"lost", 1.0)
 
@@ -487,7 +487,7 @@ def test_router_child_exits_when_its_parent_dies() -> None:
     result = _run_python(code, timeout_s=20.0)
     pid = int(result.stdout.strip())
     try:
-        assert wait_until(lambda: not _pid_alive(pid), 8.0, interval_s=0.05)
+        assert wait_until(lambda: not _pid_alive(pid), 30.0, interval_s=0.05)
     finally:
         if _pid_alive(pid):
             os.kill(pid, signal.SIGKILL)

@@ -13,7 +13,6 @@ disk; a poisoned folder is reported on the console and the previous generation r
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -652,7 +651,7 @@ def test_a_node_leaves_alone_a_sensor_another_process_holds(tmp_path: Path) -> N
             assert publish_raw(gw, "hip", still_raw(60))
             assert wait_for(lambda: (status_of(gw, "hip") or {}).get("node", {}).get(
                 "samples") == 60, 10)
-            assert wait_for(lambda: any("not calibrating wrist" in x for x in nt.lines), 5)
+            assert wait_for(lambda: any("not calibrating wrist" in x for x in nt.lines), 30)
             assert publish_raw(gw, "wrist", still_raw(60, t0_us=2_000_000))
             assert status_of(gw, "wrist") is None  # no node, no queryable
         finally:
@@ -668,26 +667,73 @@ def test_a_node_leaves_alone_a_sensor_another_process_holds(tmp_path: Path) -> N
 
 
 #: Pipelines mid-run (an open and a pending window, fresh windows tested, or mid-bootstrap on
-#: float readings), checkpointed by the code before the pipeline was split into parts, with
-#: digests of what they gave when they went on stepping (tests/data; regenerated only if the
-#: checkpoint format changes, which it must not).
+#: float readings), checkpointed by the code before the pipeline was split into parts, with what
+#: they gave when they went on stepping: every 20th calibrated sample, the statuses and gates of
+#: all (run-length coded) and the state at the end (tests/data; values, not digests, so the test
+#: holds on any CPU; recorded on a machine where the current code reproduced the old code's output
+#: bit for bit; regenerated only if the checkpoint format changes, which it must not).
 MID_RUN_V1 = Path(__file__).resolve().parent / "data" / "checkpoint_mid_run_v1.json"
 
+#: How far values may differ between CPUs (BLAS and numpy pick SIMD kernels per CPU, so the
+#: last bits differ; the emulated other CPU of .ci/run moves a_g by ~3e-15 g, the estimate by
+#: ~3e-14 relative, the fit's condition number by ~4e-9 relative): tolerances far above that and
+#: far below anything that matters (sensor noise is ~7 mg).
+A_TOL_G = 1e-9
+SIGMA_TOL_MG = 1e-6
+STATE_REL_TOL = 1e-6
+PARAM_REL_TOL = 1e-9
 
+
+def _runs(a: np.ndarray) -> list[list]:
+    """Run-length code of a 1-D array: [[value, count], ...]."""
+    edges = np.flatnonzero(np.diff(a)) + 1
+    starts = np.r_[0, edges]
+    counts = np.diff(np.r_[starts, len(a)])
+    return [[a[i].item(), int(c)] for i, c in zip(starts, counts, strict=True)]
+
+
+def _assert_state_close(got: Any, want: Any, where: str = "state") -> None:
+    """Same keys in the same order, same types, same integers, strings and flags; floats within
+    STATE_REL_TOL (the estimate's parameters within PARAM_REL_TOL); NaN where NaN was."""
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and list(got) == list(want), where
+        for k in want:
+            _assert_state_close(got[k], want[k], f"{where}.{k}")
+    elif isinstance(want, list):
+        assert isinstance(got, list) and len(got) == len(want), where
+        for i, (g, w) in enumerate(zip(got, want, strict=True)):
+            _assert_state_close(g, w, f"{where}[{i}]")
+    elif isinstance(want, float) and not isinstance(got, bool):
+        assert isinstance(got, (int, float)), where
+        rel = PARAM_REL_TOL if where.startswith("state.estimate.p[") else STATE_REL_TOL
+        assert (math.isnan(got) and math.isnan(want)) or math.isclose(
+            got, want, rel_tol=rel, abs_tol=1e-12), f"{where}: {got!r} != {want!r}"
+    else:
+        assert type(got) is type(want) and got == want, f"{where}: {got!r} != {want!r}"
+
+
+@pytest.mark.float_sensitive
 @pytest.mark.parametrize("case", ["prior_counts", "bootstrap_ms2"])
-def test_checkpoint_from_the_old_code_restores_and_continues_bit_for_bit(case: str) -> None:
+def test_checkpoint_from_the_old_code_restores_and_continues(case: str) -> None:
+    """A checkpoint the old code wrote restores to the same state and goes on as the old code
+    went on: times, statuses and gates equal, values within tolerances no CPU difference reaches."""
     fx = json.loads(MID_RUN_V1.read_text())[case]
     pipe = Pipeline.from_state_dict(fx["state"])
-    # the same JSON back: same keys, same order, same values
-    again = json.dumps(pipe.state_dict())
-    assert hashlib.sha256(again.encode()).hexdigest() == fx["state_json_sha256"]
+    # the same JSON back: same keys, same order, same values (parsing and printing, no arithmetic)
+    assert json.dumps(pipe.state_dict()) == json.dumps(fx["state"])
     spec = sensor_type(fx["sensor_type"], np.random.default_rng(3))
     raw = simulate(fx["minutes"] / 60, 50.0, 5, spec).raw
-    h = hashlib.sha256()
-    for i in range(fx["stop"], len(raw), 100):
-        c = pipe.step(raw[i:i + 100]).calibrated
-        for a in (c.t_us, c.a_g, c.quasi_static, c.detector_g, c.status, c.sigma_mg):
-            h.update(np.ascontiguousarray(a).tobytes())
-    assert h.hexdigest() == fx["continued_sha256"]
-    end = json.dumps(pipe.state_dict()).encode()
-    assert hashlib.sha256(end).hexdigest() == fx["end_state_sha256"]
+    parts = [pipe.step(raw[i:i + 100]).calibrated for i in range(fx["stop"], len(raw), 100)]
+    got = {f: np.concatenate([getattr(c, f) for c in parts])
+           for f in ("t_us", "a_g", "quasi_static", "detector_g", "status", "sigma_mg")}
+    want = fx["continued"]
+    every = want["every"]
+    np.testing.assert_array_equal(got["t_us"], raw.t_us[fx["stop"]:])
+    assert _runs(got["status"]) == want["status_runs"]
+    assert _runs(got["quasi_static"]) == want["quasi_static_runs"]
+    np.testing.assert_allclose(got["a_g"][::every], want["a_g"], rtol=0, atol=A_TOL_G)
+    np.testing.assert_allclose(got["detector_g"][::every], want["detector_g"], rtol=0,
+                               atol=A_TOL_G)
+    np.testing.assert_allclose(got["sigma_mg"][::every], np.array(want["sigma_mg"], float),
+                               rtol=0, atol=SIGMA_TOL_MG)
+    _assert_state_close(json.loads(json.dumps(pipe.state_dict())), fx["end_state"])

@@ -138,9 +138,9 @@ CASES = [
     ("repair missing input", ["repair", "nowhere.mcap", "--out", "o.mcap"], 2, "nowhere.mcap"),
     ("static missing input", ["static", "nowhere.csv"], 2, "nowhere.csv"),
     ("replay not an mcap", ["replay", "all_bad.csv", "--out", "o.mcap"], 2,
-     "recover what it holds with: recal repair all_bad.csv --out FIXED.mcap"),
+     "a CSV becomes one with: recal import all_bad.csv --out RECORDING.mcap"),
     ("export not an mcap", ["export", "all_bad.csv", "--csv", "o.csv"], 2,
-     "all_bad.csv is not a finished MCAP file"),
+     "all_bad.csv is not an MCAP recording but text"),
     # a bad CSV
     ("csv not utf-8", ["import", "not_utf8.csv", "--out", "o.mcap"], 2,
      "not_utf8.csv: not UTF-8"),
@@ -171,7 +171,7 @@ CASES = [
     ("router bad endpoint", ["router", "--listen", "tcp/999.1.1.1:1"], 2,
      "cannot start the router"),
     ("router missing config", ["router", "--config", "nowhere.json5"], 2,
-     "cannot start the router"),
+     "nowhere.json5: no such file"),
 ]
 
 

@@ -88,7 +88,7 @@ def test_time_columns_are_converted_to_microseconds(tmp_path: Path, column: str,
 
 def test_without_a_time_column_times_are_synthesized_from_the_rate(tmp_path: Path) -> None:
     path = _write(tmp_path / "no-time.csv", "x,y,z\n1,2,3\n4,5,6\n7,8,9\n")
-    with pytest.raises(InputError, match="rate_hz"):
+    with pytest.raises(InputError, match="--rate"):
         read_csv(path)
     table = read_csv(path, rate_hz=3.0, t0_us=1000)
     assert table.batch.t_us.tolist() == [1000, 334_333, 667_667]

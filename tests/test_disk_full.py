@@ -303,11 +303,11 @@ def test_flush_thread_outlives_the_full_disk_and_writes_when_space_returns(
         filler = fill(small_disk)
         for b in batches(30):
             w.write_raw(SID, b, int(b.t_us[0]) * 1000)
-        assert wait_for(lambda: w.health().failing, 5)
+        assert wait_for(lambda: w.health().failing, 30)
         time.sleep(0.2)  # several refused flushes on the thread
         os.unlink(filler)
         # only the flush thread writes now: the owner makes no call
-        assert wait_for(lambda: w.messages_flushed == w.messages_written == 30, 5), \
+        assert wait_for(lambda: w.messages_flushed == w.messages_written == 30, 30), \
             (w.messages_flushed, w.health())
         assert not w.health().failing
     finally:
@@ -513,12 +513,12 @@ def test_sigterm_while_the_disk_is_full_exits_0_and_leaves_no_temporary_file(
     with PtyDevice(link, "ascii", header=False, write_timeout_s=5.0) as dev:
         gw = start_gateway(config, small_disk / "term.mcap", dev, children)
         sent = send(dev, raw, 0, 2.0)
-        assert wait_for(lambda: (small_disk / "ck" / f"{SID}.json").exists(), 5)
+        assert wait_for(lambda: (small_disk / "ck" / f"{SID}.json").exists(), 30)
         time.sleep(0.3)  # flushed every 0.05 s
         before_fill = sent
         fill(small_disk)
         sent += send(dev, raw, sent, 3.0)
-        assert wait_for(lambda: any(STOPPED.search(ln) for ln in gw.lines), 5), gw.lines
+        assert wait_for(lambda: any(STOPPED.search(ln) for ln in gw.lines), 30), gw.lines
         gw.proc.send_signal(signal.SIGTERM)
         assert gw.proc.wait(60) == 0, gw.lines
     print("\n" + "\n".join(gw.lines))

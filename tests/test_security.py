@@ -10,6 +10,7 @@ is bounded; sessions are closed in ``finally``.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -34,7 +35,7 @@ from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_json, encode_raw
 from recal.io.router import RouterProcess, run_router, security_summary
 from recal.node import CalibrationNode, NodeSettings, node_settings
-from recal.remote_node import REJECT_IDS_KEPT, SensorGate, run_node
+from recal.remote_node import REJECT_IDS_KEPT, REJECT_REPORT_S, SensorGate, run_node
 from recal.samples import RawBatch
 from recal.sinks import EventSink
 
@@ -259,7 +260,7 @@ def test_only_operators_query_align_and_only_the_owner_answers(
 
     gw_a.queryable(key("wrist", "align"), answer)
     gw_a.queryable(key("wrist", "status"), lambda _k, _p: b"gw-a status")
-    assert wait_for(lambda: bool(operator.get(key("wrist", "status"), timeout_s=0.5)), 5)
+    assert wait_for(lambda: bool(operator.get(key("wrist", "status"), timeout_s=0.5)), SETTLE_S)
     for who in (gw_b, node):  # neither a gateway nor a node may ask for a re-alignment
         assert who.get(key("wrist", "align"), timeout_s=0.7) == []
     assert gw_b.get(key("wrist", "status"), timeout_s=0.7) == []
@@ -326,6 +327,17 @@ def plain_router() -> Iterator[str]:
         proc.stop()
 
 
+#: A generous bound for what a node under load does in a moment (the tests poll, so they take
+#: this long only when it fails)
+SETTLE_S = 30.0
+
+
+def _reason_total(lines: list[str], reason: str) -> int:
+    """Messages turned away for ``reason`` over all of the node's "ignored ..." lines."""
+    return sum(int(m) for x in lines for m in re.findall(rf"\b{reason} (\d+)", x)
+               if "ignored" in x)
+
+
 def plain_client(endpoint: str) -> Bus:
     return Bus(zenoh_config("client", [], [endpoint], overrides={"connect/timeout_ms": 3000}))
 
@@ -344,10 +356,11 @@ def test_rogue_gateway_ids_leave_no_trace_in_the_node(plain_router: str,
             assert publish_raw(rogue, "fake999", still_raw(60), payload_sensor="wrist")
             assert publish_raw(rogue, "wrist", still_raw(60), payload_sensor="fake998")
             legit = still_raw(200)
+            started = time.monotonic()
             assert publish_raw(gw, "wrist", legit)
             assert wait_for(lambda: (status_of(gw, "wrist") or {}).get("node", {}).get(
-                "samples") == len(legit), 10)
-            assert wait_for(lambda: any("ignored" in x for x in nt.lines), 5), nt.lines
+                "samples") == len(legit), SETTLE_S)
+            assert wait_for(lambda: any("ignored" in x for x in nt.lines), SETTLE_S), nt.lines
             assert status_of(gw, "fake000") is None  # no queryable for a stranger
         finally:
             assert nt.close() == 0
@@ -368,7 +381,10 @@ def test_rogue_gateway_ids_leave_no_trace_in_the_node(plain_router: str,
         assert len(e["detail"]["sensor_ids"]) <= REJECT_IDS_KEPT
     assert by_reason == {"not_served": 40, "key_mismatch": 2}
     lines = [x for x in nt.lines if "ignored" in x]
-    assert len(lines) == len(ignored) <= 2  # rate-limited, not one per message
+    # rate-limited, not one per message: one report now, then at most one per REJECT_REPORT_S
+    # (and one at the close), however long a loaded machine made this take
+    most = 2 + int((time.monotonic() - started) / REJECT_REPORT_S)
+    assert len(lines) == len(ignored) <= most
 
 
 def test_accept_any_serves_strangers_only_up_to_the_cap(plain_router: str,
@@ -381,11 +397,14 @@ def test_accept_any_serves_strangers_only_up_to_the_cap(plain_router: str,
         assert "accept_any" in lines[0]
         nt = NodeThread(cfg, node_bus, tmp_path / "node.mcap", accept_any=True, max_sensors=3)
         try:
-            for i in range(5):
+            for i in range(5):  # one session: delivered in this order, first come first served
                 assert publish_raw(gw, f"s{i}", still_raw(60))
             assert wait_for(lambda: all((status_of(gw, f"s{i}") or {}).get("node", {}).get(
-                "samples") == 60 for i in range(3)), 10)
-            assert wait_for(lambda: any("over_cap 2" in x for x in nt.lines), 5), nt.lines
+                "samples") == 60 for i in range(3)), SETTLE_S)
+            # the two turned away may land in two rounds, and then in two reports
+            # REJECT_REPORT_S apart: wait for their sum, not for one line saying 2
+            assert wait_for(lambda: _reason_total(nt.lines, "over_cap") == 2,
+                            REJECT_REPORT_S + SETTLE_S), nt.lines
         finally:
             assert nt.close() == 0
     finally:

@@ -343,7 +343,7 @@ def test_the_port_is_held_exclusively_while_open_and_released_at_close(tmp_path:
             assert ev[0].detail["error"] == f"in use by process {os.getpid()}"
             first.close()
             assert not _exclusive(slave)
-            assert wait_for(lambda: "port_opened" in [e.kind for e in second.poll()[1]], 2)
+            assert wait_for(lambda: "port_opened" in [e.kind for e in second.poll()[1]], 30)
             assert _exclusive(slave)
         finally:
             first.close()

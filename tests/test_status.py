@@ -203,7 +203,10 @@ def test_upright_wearer_without_prior_is_not_published_as_calibrated_before_it_i
     assert np.array_equal(table.batch.channel("status"), cal.status)
     assert np.array_equal(table.batch.channel("sigma_mg"), cal.sigma_mg)
     report = json.loads(js.read_text())
-    assert report["samples_uncalibrated"] == n_not and report["rows"] == len(cal)
+    assert report["samples_not_calibrated"] == n_not and report["rows"] == len(cal)
+    assert report["samples_uncalibrated"] == np.count_nonzero(cal.status == Status.UNCALIBRATED)
+    assert report["samples_bootstrapping"] == np.count_nonzero(
+        cal.status == Status.BOOTSTRAPPING)
 
 
 def test_old_recordings_without_statuses_still_read_and_export(tmp_path: Path,

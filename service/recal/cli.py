@@ -1,7 +1,7 @@
 """`recal`: the command line. Thin: every command parses arguments and calls one function.
 
-Every argument parser of recal is here (also those of ``python -m recal.gateway`` and
-``python -m recal.node``); nothing imports this module. An error the user can act on
+Every argument parser of recal is here (the daemon is ``recal run``, a calibration node on its
+own ``recal node``); nothing imports this module. An error the user can act on
 (`recal.errors.RecalError`, or an OSError: a file or port the system refused) ends in one line
 on stderr and exit status 2; anything else is a bug and shows its traceback. The commands
 import the modules that do their work when they run: ``recal --help`` stays fast.
@@ -132,17 +132,27 @@ def _cmd_export(a: argparse.Namespace) -> int:
 
 
 # --- static ----------------------------------------------------------------------------------
+#: from this many rows on, `recal static` says on stderr that it is fitting (seconds, not
+#: instant: one Gauss-Newton solve over every row, then the minimax rounds)
+STATIC_SAY_ROWS = 50_000
+
+
 def _cmd_static(a: argparse.Namespace) -> int:
     from recal import static_table as st
 
     _report_paths(a.json)
     v = st.read_static_table(a.input)
+    if len(v) >= STATIC_SAY_ROWS:  # a fit of many rows takes a while: say what is going on
+        print(f"recal static: fitting {len(v)} rows ...", file=sys.stderr, flush=True)
     report, lines = st.static_report(v, st.parse_rows(a.fit_rows, len(v)),
                                      known_orientations=a.known_orientations, g=a.g,
                                      full=not a.diagonal, loss=a.loss)
     print("\n".join(lines))
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2))
+    if not report["usable"]:  # said on stderr too: a script reading stdout must not miss it
+        print(f"recal static: warning: {report['warning']}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -223,7 +233,7 @@ def _cmd_repair(a: argparse.Namespace) -> int:
 
 
 def _add_run_arguments(p: argparse.ArgumentParser) -> None:
-    """The daemon's options: `recal run` and `python -m recal.gateway` take the same ones."""
+    """The daemon's options (`recal run`)."""
     p.add_argument("--port", action="append", default=[], help="serial port (repeatable)")
     p.add_argument("--sensor-id", action="append", default=[], help="id per --port")
     p.add_argument("--config", help="service config (TOML), e.g. configs/gateway.toml")
@@ -273,7 +283,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
 
 def _add_node_arguments(ap: argparse.ArgumentParser, config_help: str, mcap_help: str,
                         model_help: str) -> None:
-    """`recal node`'s options (also `python -m recal.node`'s)."""
+    """`recal node`'s options."""
     ap.add_argument("--config", help=config_help)
     _add_serving_arguments(ap)
     ap.add_argument("--mcap", help=mcap_help)
@@ -281,8 +291,7 @@ def _add_node_arguments(ap: argparse.ArgumentParser, config_help: str, mcap_help
 
 
 def _add_serving_arguments(ap: argparse.ArgumentParser) -> None:
-    """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node`` and
-    ``python -m recal.node``)."""
+    """``--sensor-id``, ``--accept-any``, ``--max-sensors`` (``recal node``)."""
     ap.add_argument("--sensor-id", action="append", default=[],
                     help="serve this sensor (repeatable; default: the config's [[sensors]])")
     ap.add_argument("--accept-any", action="store_const", const=True, default=None,
@@ -309,13 +318,19 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 def _cmd_router(a: argparse.Namespace) -> int:
     import zenoh
 
+    from recal.config import read_config_text
     from recal.io.router import run_router
 
+    if a.config is not None:  # missing, a directory, binary: said here, naming the file
+        read_config_text(Path(a.config), "Zenoh JSON5 config")
     try:
         return run_router(listen_endpoints=a.listen or None, config_file=a.config)
     except zenoh.ZError as e:  # bad endpoint or config file, port in use
-        # Zenoh appends the Rust source location: not for the user
-        raise UsageError(f"cannot start the router: {str(e).split(' at /')[0]}") from None
+        # Zenoh appends the Rust source location (not for the user) and may draw the place of
+        # a syntax error over several lines: one line
+        said = " ".join(str(e).split(" at /")[0].split())
+        with_config = f" (config {a.config})" if a.config is not None else ""
+        raise UsageError(f"cannot start the router{with_config}: {said}") from None
 
 
 # --- parser ----------------------------------------------------------------------------------
@@ -376,7 +391,9 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                   "detector and windows and any model (--model from recal discover: "
                   "cross-axis terms, a supply or temperature channel...). Parameters the "
                   "recording's poses cannot determine are held at nominal and named. Writes "
-                  "raw, calibrated and the fit (MCAP) or t_us,x_g,y_g,z_g (CSV).",
+                  "raw, calibrated and the fit (MCAP) or t_us,x_g,y_g,z_g,status,sigma_mg "
+                  "(CSV: the status of each sample, calibrated or held, and its predicted "
+                  "error in mg).",
                   ("recal hindsight recordings/wearer-10min.mcap --out calibrated.mcap",
                    "recal hindsight in.mcap --out out.csv --model model.json --json fit.json")),
     "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
@@ -387,9 +404,9 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                  "--write-model saves the extended model for run/replay --model.",
                  ("recal discover recordings/wearer-temp-30min.mcap --json report.json",
                   "recal discover table.csv --write-model model.json")),
-    "import": ("A CSV time series (t_us or t_s, x, y, z or x_<unit>, y_<unit>, z_<unit>, any "
-               "auxiliary columns by name) to an MCAP raw topic that replay and discover read. "
-               "Bad rows are counted and skipped.",
+    "import": ("A CSV time series (a time column t_us, t_ms or t_s, or none with --rate; x, y, "
+               "z or x_<unit>, y_<unit>, z_<unit>; any auxiliary columns by name) to an MCAP raw "
+               "topic that replay and discover read. Bad rows are counted and skipped.",
                ("recal import log.csv --out log.mcap --units g",
                 "recal import log.csv --out log.mcap --rate 100")),
     "export": ("The calibrated (default) or raw samples of one sensor of a recording (default: "
@@ -512,7 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = _add_command(sub, "discover", "find the effects the model lacks: fit, residual, "
                        "candidate effects scored on held-out time blocks, before -> after")
-    s.add_argument("input", help="recording (.mcap), CSV time series (t_us/t_s, x, y, z, "
+    s.add_argument("input", help="recording (.mcap), CSV time series (t_us/t_ms/t_s, x, y, z, "
                    "channels), or a static table (x, y, z, one still row per pose)")
     s.add_argument("--json", help="write the report (effects_selected, heldout_error_mg, "
                    "steps, ...) here")
@@ -530,7 +547,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = _add_command(sub, "hindsight", "calibrate a recording on disk with hindsight: one fit "
                        "on all of it, every sample corrected (as the batch tools do)")
-    s.add_argument("input", help="recording (.mcap) or CSV time series (t_us/t_s, x, y, z, "
+    s.add_argument("input", help="recording (.mcap) or CSV time series (t_us/t_ms/t_s, x, y, z, "
                    "channels)")
     s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or FILE.csv")
     s.add_argument("--model", help="model file (recal discover --write-model); default offsets "
@@ -543,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     s.set_defaults(func=_cmd_hindsight)
 
-    s = _add_command(sub, "import", "CSV (t_us or t_s, x, y, z, aux...) -> MCAP raw topic")
+    s = _add_command(sub, "import", "CSV (t_us, t_ms or t_s, x, y, z, aux...) -> MCAP raw topic")
     s.add_argument("input", help="CSV file")
     s.add_argument("--out", required=True, help="MCAP file to write")
     s.add_argument("--units", choices=("counts", "g", "ms2"),
@@ -561,7 +578,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topic", choices=("calibrated", "raw"), default="calibrated",
                    help="which samples (default calibrated)")
     s.add_argument("--sensor-id", help="which sensor (default: the first)")
-    s.add_argument("--json", help="write the counts (rows, samples per status) here")
+    s.add_argument("--json", help="write the counts here: rows, samples_by_status, "
+                   "samples_uncalibrated, samples_bootstrapping, samples_not_calibrated "
+                   "(any status but calibrated)")
     s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=_cmd_export)
 

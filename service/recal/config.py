@@ -657,16 +657,30 @@ def _discovery(ctx: _Ctx, d: Any) -> RediscoveryConfig:
                              _int(ctx, d, "blocks", 10, 3), adopt)
 
 
-def _read_toml(path: Path) -> dict[str, Any]:
+def read_config_text(path: Path, what: str = "config") -> str:
+    """The text of a config file; ConfigError (one line naming the file) for anything that is
+    not readable UTF-8 text: missing, a directory, no permission, binary or another encoding."""
     try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
+        data = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path.name}: not valid TOML: {exc}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: a directory, not a {what} file") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a {what} file: not UTF-8 text (byte "
+                          f"0x{data[exc.start]:02x} at offset {exc.start})") from None
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    text = read_config_text(path, "TOML config")
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path.name}: not valid TOML: {exc}") from None
 
 
 def load_priors(path: Path) -> dict[str, PriorConfig]:

@@ -86,9 +86,15 @@ class StatusCounts:
         by = {S(i).label if i in S._value2member_map_ else str(i): int(n)
               for i, n in enumerate(self.counts.tolist()) if n}
         recorded = int(self.counts.sum() - self.counts[S.NOT_RECORDED])
+        # each name counts what it says: uncalibrated and bootstrapping apart, and every
+        # status but calibrated (held, suspect too) as not calibrated
         return {"samples_by_status": by,
-                "samples_uncalibrated": recorded - int(self.counts[S.CALIBRATED]),
+                "samples_not_calibrated": recorded - int(self.counts[S.CALIBRATED]),
+                "samples_uncalibrated": int(self.counts[S.UNCALIBRATED]),
+                "samples_bootstrapping": int(self.counts[S.BOOTSTRAPPING]),
                 "samples_status_not_recorded": int(self.counts[S.NOT_RECORDED])}
 
     def line(self) -> str:
-        return status_line(self.to_dict())
+        d = self.to_dict()
+        # status_line's "with another status" figure is what this calls not calibrated
+        return status_line({**d, "samples_uncalibrated": d["samples_not_calibrated"]})

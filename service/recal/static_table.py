@@ -72,7 +72,9 @@ def static_report(v: np.ndarray, fit_rows: np.ndarray, *, known_orientations: bo
     err = fit.rel_norm_error
     rows = [{"row": i + 1, "fitted": bool(fit.fit_rows[i]), "rel_norm_error": float(e)}
             for i, e in enumerate(err)]
+    warning = _undetermined(fit)
     report = {"method": fit.method, "g": fit.g, "params": fit.params, "rows": rows,
+              "usable": warning is None, "warning": warning,
               "worst_rel_norm_error": float(err.max()),
               "worst_rel_norm_error_fitted": float(err[fit.fit_rows].max()),
               "worst_rel_norm_error_held_out": (float(err[~fit.fit_rows].max())
@@ -88,4 +90,20 @@ def static_report(v: np.ndarray, fit_rows: np.ndarray, *, known_orientations: bo
         ang = fit.params["axis_angles_deg"]
         lines.append("angles between sensing axes: "
                      + ", ".join(f"{k} {v:.3f}" for k, v in ang.items()))
+    if warning is not None:
+        lines.append(f"warning: {warning}")
     return report, lines
+
+
+def _undetermined(fit: static.StaticFit) -> str | None:
+    """Why the fit's parameters mean nothing (None: they are determined). A small norm error
+    on such rows only says they were fitted, not that the axes are known."""
+    d = fit.params.get("determination")
+    if d is None or d >= static.MIN_DETERMINATION:
+        return None
+    what = ("the axes' angles, offsets and gains" if "axis_angles_deg" in fit.params
+            else "the offsets and gains")
+    return (f"the fitted rows do not cover enough orientations to determine {what} "
+            f"(determination {d:.1e} < {static.MIN_DETERMINATION:g}): the result is not "
+            f"usable; record still poses spread over the sphere (six faces and tilts "
+            f"between them; the full model's angles need tilted poses, not faces alone)")

@@ -29,7 +29,8 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.errors import InputError, UsageError
 
-__all__ = ["StaticFit", "fit_known_orientations", "fit_unknown_orientations", "nearest_axes"]
+__all__ = ["MIN_DETERMINATION", "StaticFit", "determination", "fit_known_orientations",
+           "fit_unknown_orientations", "nearest_axes"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,24 +52,80 @@ def _no_covariates(n: int) -> Covariates:
     return Covariates(np.zeros(n), np.zeros((n, 0)))
 
 
+#: Rows a minimax round starts with and adds (the worst ones): the optimum is set by a few
+#: rows, and SLSQP's cost grows with the number of constraints (a 361 000-row table, every row
+#: two constraints, took minutes).
+MINIMAX_ROWS = 200
+MINIMAX_ROUNDS = 30
+
+#: Smallest singular value over the largest of the fit's Jacobian (Lötters eq. 13a, columns
+#: in units of each parameter's prior spread, rows normalized) below which the rows do not
+#: determine the parameters: measured 9e-6 on 2 000 rows of one pose, 6e-5 on three faces,
+#: 1e-3 on the six faces for the full model (faces say nothing of cross-axis angles), 0.036 -
+#: 0.091 on the three measured phone tables (../shared/data/static_positions).
+MIN_DETERMINATION = 2e-3
+
+
 def _minimax(model: SensorModel, p: np.ndarray, v: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """Chebyshev fit: minimize t subject to | 1 - |a_i| | <= t (epigraph form, SLSQP).
 
     The figure of merit of a static table is its *worst* row, so the fit minimizes exactly that,
-    started from the least-squares solution."""
+    started from the least-squares solution. Only rows that can be worst are constraints: the
+    MINIMAX_ROWS worst at the start, then, round by round, the worst of any row above the
+    bound found (a cutting plane: the optimum on the rows kept is the optimum on all once no
+    row exceeds it); a table of fewer rows is one problem with every row, as it always was."""
+    cov_all = _no_covariates(len(v))
+
+    def resid_all(z: np.ndarray) -> np.ndarray:
+        return 1.0 - np.linalg.norm(model.correct(p + scale * z[:-1], v, cov_all), axis=1)
+
+    r0 = resid_all(np.zeros(len(p) + 1))
+    t0 = float(np.max(np.abs(r0)))
+    keep = np.sort(np.argsort(-np.abs(r0), kind="stable")[:MINIMAX_ROWS])
+    z = np.r_[np.zeros(len(p)), t0]
+    for _ in range(MINIMAX_ROUNDS):
+        z_new = _minimax_rows(model, p, v[keep], scale, z)
+        if z_new is None:
+            return p
+        z = z_new
+        r = np.abs(resid_all(z))
+        over = np.flatnonzero(r > z[-1] * (1 + 1e-9) + 1e-12)
+        if len(over) == 0:
+            break
+        worst = over[np.argsort(-r[over], kind="stable")[:MINIMAX_ROWS]]
+        keep = np.union1d(keep, worst)
+        z = np.r_[z[:-1], float(r.max())]  # a feasible start for the next round
+    if not float(np.max(np.abs(resid_all(z)))) <= t0:
+        return p
+    return p + scale * z[:-1]
+
+
+def _minimax_rows(model: SensorModel, p: np.ndarray, v: np.ndarray, scale: np.ndarray,
+                  z0: np.ndarray) -> np.ndarray | None:
+    """One SLSQP solve of the epigraph problem on the rows ``v``, from ``z0``; None if it
+    failed or went non-finite."""
     cov = _no_covariates(len(v))
 
     def resid(z: np.ndarray) -> np.ndarray:
         return 1.0 - np.linalg.norm(model.correct(p + scale * z[:-1], v, cov), axis=1)
 
-    t0 = float(np.max(np.abs(resid(np.zeros(len(p) + 1)))))
     res = optimize.minimize(
-        lambda z: z[-1], np.r_[np.zeros(len(p)), t0], method="SLSQP",
+        lambda z: z[-1], z0, method="SLSQP",
         constraints=[{"type": "ineq", "fun": lambda z: z[-1] - resid(z)},
                      {"type": "ineq", "fun": lambda z: z[-1] + resid(z)}],
         options={"maxiter": 500, "ftol": 1e-12})
-    z = res.x if res.success and np.all(np.isfinite(res.x)) and res.x[-1] <= t0 else None
-    return p if z is None else p + scale * z[:-1]
+    ok = res.success and np.all(np.isfinite(res.x)) and res.x[-1] <= z0[-1]
+    return res.x if ok else None
+
+
+def determination(model: SensorModel, p: np.ndarray, v: np.ndarray) -> float:
+    """How well rows ``v`` determine the parameters at ``p``: the smallest singular value of
+    the Jacobian of |a| (Lötters eq. 13a; columns scaled by the parameters' prior spread) over
+    the largest. Near 0: some combination of parameters leaves every row's norm unchanged (one
+    pose, three faces: the axes and their angles are not determined)."""
+    _, B = model.residual_jacobian(p, v, _no_covariates(len(v)))
+    sv = np.linalg.svd(B * model.prior_sd(), compute_uv=False)
+    return float(sv.min() / sv.max()) if sv.max() > 0 else 0.0
 
 
 def fit_unknown_orientations(v: np.ndarray, fit_rows: np.ndarray, g: float | None = None,
@@ -100,12 +157,17 @@ def fit_unknown_orientations(v: np.ndarray, fit_rows: np.ndarray, g: float | Non
                 np.ones(len(sel), np.int64), np.zeros(len(sel)))
     cfg = EstimatorConfig(sigma_floor_g=1e-3, max_iter=100, tol=1e-12)
     p = solve(model, prior, p0, w, _no_covariates(len(sel)), 0, cfg).p
-    if loss == "minimax":
+    determined = determination(model, p, sel)
+    if loss == "minimax" and determined >= MIN_DETERMINATION:
+        # (rows that determine nothing have no worst row worth minimizing: the result is
+        # refused anyway, and SLSQP wanders on the flat directions for long)
         p = _minimax(model, p, sel, model.prior_sd())
+        determined = determination(model, p, sel)
     a = model.correct(p, v, _no_covariates(len(v)))
     ref = gain_reference(model, p, from_prior=False)
     params = {"model": model.to_dict(), "p": model.params_dict(p), "loss": loss,
-              "gain_reference": ref, "described": model.describe(p, ref["counts_per_g"])}
+              "gain_reference": ref, "described": model.describe(p, ref["counts_per_g"]),
+              "determination": determined}
     if full:
         params["axis_angles_deg"] = model.axis_angles_deg(p)
     return StaticFit("unknown_orientations", g, params, a, np.asarray(fit_rows, bool))

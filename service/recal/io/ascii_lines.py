@@ -266,6 +266,9 @@ class AsciiLineParser(DelimitedParser):
 
     def _data_tokens(self, tokens: list[str]) -> tuple[int, list[float]] | str:
         layout = self._layout
+        if not any(_FLOAT_RE.fullmatch(tok) for tok in tokens):
+            # text, not a sample short of columns: a banner ("booting..."), a message
+            return "non_numeric"
         timeless = self._timeless(len(tokens))
         if timeless and self.rate_hz is None:
             return "wrong_columns"  # a header said x,y,z but nothing gives the rate

@@ -50,6 +50,10 @@ __all__ = ["CsvTable", "iter_csv", "read_csv", "write_calibrated_csv", "write_ra
 Units = Literal["counts", "g", "ms2"]
 UNITS: tuple[str, ...] = ("counts", "g", "ms2")
 TIME_COLUMNS: dict[str, float] = {"t_us": 1.0, "t_ms": 1e3, "t_s": 1e6}  # name -> us per unit
+#: what a table without time needs, in the words of the command line (the Python API's
+#: ``rate_hz`` is the same number)
+NO_TIME_COLUMN = (f"the file has no time column ({', '.join(TIME_COLUMNS)}): give its sample "
+                  f"rate with --rate HZ")
 _AXES = ("x", "y", "z")
 _MAX_REPORTED_BAD_LINES = 20
 _WRITE_CHUNK_ROWS = 65536
@@ -201,7 +205,7 @@ def _times_us(table: np.ndarray, layout: _Layout, rate_hz: float | None, t0_us: 
     """Each row's time: its column, else synthesized (rows ``first`` on, at ``rate_hz``)."""
     if layout.time is None:
         if rate_hz is None or not rate_hz > 0:
-            raise InputError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
+            raise InputError(NO_TIME_COLUMN)
         i = np.arange(first, first + len(table))
         return t0_us + np.round(i * (1e6 / rate_hz)).astype(np.int64)
     return np.round(table[:, layout.time] * TIME_COLUMNS[layout.time_name]).astype(np.int64)
@@ -259,7 +263,7 @@ def iter_csv(path: str | os.PathLike[str], units: Units | None = None,
         except (InputError, UsageError) as exc:  # the same kind of error, with the file
             raise type(exc)(f"{path}: {exc}") from None
         if layout.time is None and (rate_hz is None or not rate_hz > 0):
-            raise InputError("the file has no time column (t_us, t_ms or t_s): pass rate_hz")
+            raise InputError(NO_TIME_COLUMN)
         done, reported = 0, 0  # rows kept, bad lines reported
         first_number = header[0] + 1
         for body in itertools.chain([rows], chunks):

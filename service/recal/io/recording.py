@@ -48,6 +48,7 @@ from mcap.opcode import Opcode
 from mcap.reader import McapReader, make_reader
 from mcap.records import Channel, ChunkIndex, Schema
 from mcap.summary import Summary
+from mcap.writer import MCAP0_MAGIC
 
 from recal.errors import RecordingError, UsageError
 from recal.io import messages
@@ -143,12 +144,34 @@ class LoggedMessage(NamedTuple):
 
 
 def _open_summary(f: IO[bytes], path: Path) -> tuple[McapReader, Summary | None]:
+    _check_mcap_start(f, path)
     try:
         reader = make_reader(f)
         return reader, reader.get_summary()
     except Exception as exc:  # the mcap reader raises many types on a damaged tail
         raise RecordingError(f"{path} is not a finished MCAP file ({exc}); recover what it "
                              f"holds with: recal repair {path} --out FIXED.mcap") from exc
+
+
+def _check_mcap_start(f: IO[bytes], path: Path) -> None:
+    """RecordingError for a file that is not an MCAP recording at all (the repair hint is
+    only for one that starts as MCAP and was not finished): a CSV or other text is what
+    ``recal import`` is for."""
+    head = f.read(512)
+    f.seek(0)
+    if head[:len(MCAP0_MAGIC)] == MCAP0_MAGIC[:len(head)]:  # MCAP, or cut before its magic
+        return
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as exc:  # cut inside a character at the end: still text
+        text = head[:exc.start].decode("utf-8") if exc.start > len(head) - 4 else ""
+    if text and "".join(text.split()).isprintable():  # whitespace and printable only
+        first = text.splitlines()[0][:60]
+        raise RecordingError(f"{path} is not an MCAP recording but text (first line "
+                             f"{first!r}); a CSV becomes one with: recal import {path} "
+                             f"--out RECORDING.mcap")
+    raise RecordingError(f"{path} is not an MCAP recording (it does not start with the MCAP "
+                         f"magic bytes)")
 
 
 def _iter_file(path: Path, want: Callable[[Channel, str], bool]) -> Iterator[LoggedMessage]:
