@@ -278,6 +278,7 @@ def test_cli_hindsight_writes_every_sample_calibrated_and_the_fit(tmp_path, caps
     assert "calibrated 360000 samples of wrist" in said and "cross_axis" in said
     cal = rec.read_all_calibrated(out, "wrist")
     assert np.array_equal(cal.t_us, r.raw.t_us)
+    assert cal.t_dev is not None and np.array_equal(cal.t_dev, r.raw.t_us)  # joins the raw
     # one calibrated message per raw one (corrected some 65 000 samples at a time, written
     # message by message), each sample as one correction of the whole recording gives it
     assert [len(b) for _, b, _ in rec.iter_calibrated(out, "wrist")] == [1000] * 360

@@ -180,8 +180,9 @@ class Corrected:
         suspect = fit.suspect(b.t_us)
         status[suspect] = Status.SUSPECT
         self.samples_suspect += int(suspect.sum())
+        # no time base here: the output keeps the device's stamps, so t_dev is t_us
         return CalibratedBatch(b.t_us, fit.correct(b), usable(d.gate, b, fit.model),
-                               d.detector_g, status, sigma)
+                               d.detector_g, status, sigma, t_dev=b.t_us)
 
 
 def _write_csv(src: Source, corrected: Corrected, out: str | Path,
