@@ -685,7 +685,7 @@ def test_checkpoint_from_the_old_code_restores_and_continues_bit_for_bit(case: s
     # the same JSON back: same keys, same order, same values
     state = pipe.state_dict()
     assert state.pop("unobserved") == [] and state["watch"].pop("probation") == 0
-    assert state["watch"].pop("misfit")["n"] == 0
+    assert state["watch"].pop("misfit")["n"] == 0 and state["watch"].pop("agreed") == []
     again = json.dumps(state)
     assert hashlib.sha256(again.encode()).hexdigest() == fx["state_json_sha256"]
     spec = sensor_type(fx["sensor_type"], np.random.default_rng(3))

@@ -11,12 +11,15 @@ from functools import cache
 import numpy as np
 
 from recal import sim
+from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import GROSS_MIN_MG, PROBATION_WINDOWS, Misfit, Status
+from recal.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
+from recal.sinks import EventSink
 
 RATE_HZ = 25.0
 S0 = 1024.0
@@ -184,8 +187,75 @@ def test_the_new_state_round_trips_and_old_checkpoints_load() -> None:
     assert json.loads(json.dumps(back.state_dict())) == d
     old = json.loads(json.dumps(d))
     del old["unobserved"]
-    for k in ("probation", "misfit"):
+    for k in ("probation", "misfit", "agreed"):
         del old["watch"][k]
     o = Pipeline.from_state_dict(old)
     assert o.watch.misfit == Misfit() and o.watch.probation == 0 and o.unobserved == ()
     assert o.status is Status.CALIBRATED
+
+
+class _Kept(EventSink):
+    """Keeps the node's events and calibrated batches (a real sink)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.batches: list[CalibratedBatch] = []
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        if suffix == "calibrated":
+            self.batches.append(batch)
+
+
+def _node(sink: EventSink) -> CalibrationNode:
+    sensor = SensorConfig("hip", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=S0))
+    settings = PipelineSettings()
+    model, pr = model_and_prior(sensor, settings)
+    return CalibrationNode(NodeSettings("hip", settings, model, pr, RATE_HZ), sink)
+
+
+def _feed(node: CalibrationNode, raw: RawBatch) -> None:
+    for i in range(0, len(raw), 250):  # one pass
+        b = raw[i:i + 250]
+        node.process(b, int(b.t_us[0]) * 1000)
+
+
+@cache
+def _calibrated_node_state() -> tuple[dict, int]:
+    res = sim.simulate(40 / 60, RATE_HZ, 21, _spec(21))
+    node = _node(EventSink())
+    _feed(node, res.raw)
+    return json.loads(json.dumps(node.checkpoint())), int(res.raw.t_us[-1])
+
+
+def test_the_node_holds_a_restored_state_and_another_sensor_is_suspect_at_once() -> None:
+    """Another sensor started with this id's checkpoint: held from the first sample (a
+    restore is a moment of doubt), suspect at its first still window, never calibrated while
+    more than 20 mg off."""
+    doc, end_us = _calibrated_node_state()
+    other = sim.simulate(10 / 60, RATE_HZ, 22, _spec(22), start_us=end_us + 40_000)
+    sink = _Kept()
+    node = CalibrationNode.from_checkpoint(_node(EventSink()).settings, sink, doc)
+    _feed(node, other.raw)
+    out = CalibratedBatch.concat(sink.batches)
+    assert out.status[0] == Status.HELD
+    suspect = np.flatnonzero(out.status == Status.SUSPECT)
+    assert len(suspect) and suspect[0] < 60 * RATE_HZ
+    e, _, cal = _err_1s(out, other.truth.a_true_g)
+    assert not np.any(cal & (e > GROSS_MIN_MG))
+
+
+def test_a_clock_restart_holds_the_output_until_the_windows_agree() -> None:
+    """The device's clock restarts (a reboot, the same sensor): held from there until the
+    first still windows agree, then calibrated again without a reset."""
+    doc, _ = _calibrated_node_state()
+    same = sim.simulate(10 / 60, RATE_HZ, 23, _spec(21), start_us=1_000_000)
+    sink = _Kept()
+    node = CalibrationNode.from_checkpoint(_node(EventSink()).settings, sink, doc)
+    node.pipeline.watch.probation = 0  # as if it ran on: only the reboot doubts
+    _feed(node, same.raw)
+    out = CalibratedBatch.concat(sink.batches)
+    assert sink.of("time_reboot")
+    assert out.status[0] == Status.HELD and out.status[-1] == Status.CALIBRATED
+    assert not np.any(out.status == Status.SUSPECT)
+    assert node.pipeline.watch.triggers == 0

@@ -315,6 +315,7 @@ class CalibrationNode(AlignmentRequests):
             timebase = tb.TimebaseState.from_dict(tbd) if isinstance(tbd, dict) else None
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"checkpoint time base: {type(exc).__name__}: {exc}") from None
+        pipe.doubt()  # another device may be under this id now: its first windows must agree
         node = cls(settings, sink, pipeline=pipe, alignment=alignment, start="checkpoint",
                    timebase=timebase)
         due = doc.get("next_discovery_us")  # absent in checkpoints from before it was kept
@@ -460,6 +461,8 @@ class CalibrationNode(AlignmentRequests):
                     f"{d['min_rate_hz']:g}-{d['max_rate_hz']:g} Hz in any unit: check the "
                     "time column")
         elif ev["kind"] == "time_reboot":
+            if self.pipeline is not None:  # a reboot, or another device: windows must agree
+                self.pipeline.doubt()
             note = (f"device time restarted ({d['device_before']} -> {d['device_after']} "
                     f"{d['unit']}): the device rebooted; output time continues")
         if note is not None and self.on_note is not None:
@@ -505,6 +508,10 @@ class CalibrationNode(AlignmentRequests):
             old, new = self._status, Status(int(st[i]))
             self._status = new
             first = new == Status.CALIBRATED and not self._calibrated_once
+            unseen = self.pipeline.unobserved if self.pipeline is not None else ()
+            if new == Status.HELD and unseen and self.on_note is not None:
+                self.on_note(f"held: {', '.join(unseen)} not observed by the data yet (sigma "
+                             "carries the prior's uncertainty on it)")
             if not (first or new == Status.SUSPECT or old == Status.SUSPECT):
                 continue
             self._calibrated_once |= new == Status.CALIBRATED

@@ -420,7 +420,8 @@ class Pipeline:
             ok, v, aux, t_mid, n, var, direction, run, cell = row
             done = slot[c] + 1
             if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), due[slot[c]][0],
-                                            self._grossly(chunk, c - chunk.lo, ok, n, var)):
+                                            self._grossly(chunk, c - chunk.lo, ok, n, var),
+                                            cell):
                 if ok:  # in the buffer it is about to replace: counted as the others
                     counts["windows"] += 1
                 else:
@@ -463,12 +464,13 @@ class Pipeline:
             misfit.see(r_g, noise_g2 + (1e-3 * sigma_c_mg) ** 2 / 3.0)
         return False
 
-    def _watch_window(self, bad: bool, window: tuple, idx: int, grossly: bool = False) -> bool:
+    def _watch_window(self, bad: bool, window: tuple, idx: int, grossly: bool = False,
+                      cell: int = -1) -> bool:
         """One committed window through the self-watch (`core.status.Watch`; bad: it failed
         the norm gate, its calibrated norm more than norm_tol_g from 1 g or not finite;
         grossly: `_grossly`): True when that became sustained (a reset runs at this window);
         a change of status or misfit applies from sample idx on."""
-        seen = self.watch.see(bad, window, grossly)
+        seen = self.watch.see(bad, window, grossly, cell)
         t_us = int(window[2])
         if seen == "gross":
             self._watch_events.append(WatchEvent(idx, t_us, "suspect", {

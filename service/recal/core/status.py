@@ -32,8 +32,8 @@ Besides the alarms above, two moments hold the status (`Watch.probation`, `Watch
   window's noise) makes the output suspect from that window on (no sustained test first);
   it clears like any alarm (CLEAR_GOOD_WINDOWS agreeing windows after GROSS_HOLD_S).
 * A moment of doubt (`Pipeline.doubt`: the device's clock restarted, the state came from a
-  checkpoint): the output is held until PROBATION_WINDOWS still windows in a row agree with
-  the estimate (a gross contradiction among them: suspect).
+  checkpoint): the output is held until still windows in PROBATION_WINDOWS orientation
+  cells agree with the estimate (a gross contradiction among them: suspect).
 
 A calibration whose offsets or scales the data never observed (a wearer who never lies down:
 the scale along the never-vertical axis) is ``held``, not calibrated, however long it runs;
@@ -114,7 +114,9 @@ RECENT_MAX = 256
 GROSS_MIN_MG = 20.0
 GROSS_SIGMAS = 10.0
 GROSS_HOLD_S = 0.0
-#: Still windows in a row that must agree after a moment of doubt before output is calibrated.
+#: After a moment of doubt, still windows in this many orientation cells must agree before
+#: output is calibrated: the norm at one posture sees one direction of the offsets' error
+#: (another sensor's offsets can be 100 mg off across gravity and agree in the norm).
 PROBATION_WINDOWS = 3
 #: The misfit's running means weigh each still window by this (a memory of ~32 windows).
 MISFIT_WEIGHT = 1.0 / 32.0
@@ -333,8 +335,8 @@ class Watch:
         alarm_us: device time until which an alarm holds the suspect status at least.
         recent: the windows since the onset (v, aux, t_us, n, var), at most RECENT_MAX,
             whatever the norm gate said of them: a reset re-fits them.
-        probation: still windows that must still agree before output is calibrated (after a
-            moment of doubt, `doubt`).
+        probation: orientation cells whose still windows must still agree before output is
+            calibrated (after a moment of doubt, `doubt`); agreed: the cells that did.
         misfit: what the model cannot explain (`Misfit`).
     """
 
@@ -349,12 +351,14 @@ class Watch:
     alarm_us: int | None = None
     probation: int = 0
     misfit: Misfit = field(default_factory=Misfit)
+    agreed: list[int] = field(default_factory=list)
 
     def doubt(self) -> None:
-        """A moment of doubt: the next PROBATION_WINDOWS still windows must agree."""
-        self.probation = PROBATION_WINDOWS
+        """A moment of doubt: still windows in PROBATION_WINDOWS cells must agree."""
+        self.probation, self.agreed = PROBATION_WINDOWS, []
 
-    def see(self, bad: bool, window: tuple, grossly: bool = False) -> str | None:
+    def see(self, bad: bool, window: tuple, grossly: bool = False,
+            cell: int = -1) -> str | None:
         """One window in order (grossly: it contradicts grossly, `gross`); returns "trigger"
         when the contradiction became sustained, "clear" when a suspect status ends, "gross"
         when a gross contradiction made the status suspect now, "trusted" when a probation
@@ -362,12 +366,13 @@ class Watch:
         t_us = int(window[2])
         said = None
         if grossly:
-            self.probation = 0
+            self.probation, self.agreed = 0, []
             said = "gross" if self.alarm(t_us, GROSS_HOLD_S) else None
             if not bad:  # no reset for it (the norm gate's test is the sustained one)
                 self.good_run = 0
                 return said
-        elif not bad and self.probation:
+        elif not bad and self.probation and cell not in self.agreed:
+            self.agreed.append(cell)
             self.probation -= 1
             said = "trusted" if not self.probation and not self.suspect else None
         if bad:
@@ -405,7 +410,7 @@ class Watch:
         self.suspect, self.alarm_us = True, int(t_us + CLEAR_AFTER_S * 1e6)  # a fresh start
         self.triggers += 1
         self.onset_us, self.n_all, self.n_bad, self.recent, self.good_run = None, 0, 0, None, 0
-        self.jump_us, self.probation = None, 0
+        self.jump_us, self.probation, self.agreed = None, 0, []
         self.misfit = Misfit()  # measured under the estimate the reset drops
         return recent
 
@@ -438,7 +443,8 @@ class Watch:
         return {"onset_us": self.onset_us, "jump_us": self.jump_us, "alarm_us": self.alarm_us,
                 "n_all": self.n_all, "n_bad": self.n_bad, "good_run": self.good_run,
                 "suspect": self.suspect, "triggers": self.triggers,
-                "probation": self.probation, "misfit": self.misfit.to_dict(),
+                "probation": self.probation, "agreed": list(self.agreed),
+                "misfit": self.misfit.to_dict(),
                 "recent": None if self.recent is None else [
                     [list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]),
                      float(w[4])] for w in self.recent]}
@@ -453,7 +459,8 @@ class Watch:
                    None if recent is None else [_window(w) for w in recent],
                    None if d.get("jump_us") is None else int(d["jump_us"]),
                    None if d.get("alarm_us") is None else int(d["alarm_us"]),
-                   int(d.get("probation", 0)), Misfit.from_dict(d.get("misfit")))
+                   int(d.get("probation", 0)), Misfit.from_dict(d.get("misfit")),
+                   [int(c) for c in d.get("agreed", ())])
 
 
 def _window(w: Sequence) -> tuple:
