@@ -49,6 +49,7 @@ from recal.core.refit import (
     tries,
 )
 from recal.core.status import (
+    MISFIT_MOVE_SDS,
     Status,
     Watch,
     gross,
@@ -612,6 +613,8 @@ class Pipeline:
         cov = self.covariates(w.t_us, w.aux)
         assert self.prior is not None and self.estimate is not None
         before = self.estimate
+        # the same orientations as at the last update: a move is no lesson of new postures
+        same_cells = self.refit.coverage_at_update == self.buffer.cells_opened
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
                                     self.cfg.estimator)
         self.refit = after_update(before, self.estimate, rep.accepted, self.buffer.cells_opened)
@@ -624,6 +627,8 @@ class Pipeline:
             s0 = self.model.s0
             noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
             self.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2)
+            self.watch.misfit.moved(_moved_mg2(self.model, before, self.estimate)
+                                    if same_cells and self.informed else 0.0, now_us)
             self.watch.misfit.restate()
         self.counts["updates"] += 1
         if not rep.accepted:
@@ -752,6 +757,27 @@ def _unobserved(model: SensorModel, est: Estimate | None,
                 if not observable[i] and sd_mg[i] > UNPINNED_MG:
                     out.append(model.names[i])
     return tuple(out)
+
+
+def _moved_mg2(model: SensorModel, before: Estimate, after: Estimate | None) -> float:
+    """How far an update moved the offsets and scales beyond what their covariance before it
+    allows (within it the data taught the estimate, correlations included; beyond it the
+    truth moved): |dp|^2 (mg at 1 g) x max(0, 1 - MISFIT_MOVE_SDS^2 k / d^2), d^2 the move's
+    Mahalanobis length under the covariance before, k the parameters."""
+    if after is None:
+        return 0.0
+    idx = [i for e in (Offset(), Scale()) if model.has(e.kind)
+           for i in range(model.slice(e).start, model.slice(e).stop)]
+    if not idx:
+        return 0.0
+    dp = (after.p - before.p)[idx]
+    c = before.cov[np.ix_(idx, idx)]
+    if not (np.isfinite(dp).all() and np.isfinite(c).all()):
+        return 0.0
+    d2 = float(dp @ np.linalg.pinv(c) @ dp)
+    if d2 <= MISFIT_MOVE_SDS ** 2 * len(idx):
+        return 0.0
+    return float(np.sum((1e3 * dp / model.s0) ** 2)) * (1.0 - MISFIT_MOVE_SDS ** 2 * len(idx) / d2)
 
 
 def _zero_of(model: SensorModel, p: np.ndarray) -> np.ndarray | None:
