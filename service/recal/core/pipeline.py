@@ -613,8 +613,10 @@ class Pipeline:
         cov = self.covariates(w.t_us, w.aux)
         assert self.prior is not None and self.estimate is not None
         before = self.estimate
-        # the same orientations as at the last update: a move is no lesson of new postures
-        same_cells = self.refit.coverage_at_update == self.buffer.cells_opened
+        # the same orientations as at the last update, every offset and scale observed: a
+        # move is no lesson of new postures
+        learnt = (self.refit.coverage_at_update == self.buffer.cells_opened and self.informed
+                  and not self.unobserved)
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
                                     self.cfg.estimator)
         self.refit = after_update(before, self.estimate, rep.accepted, self.buffer.cells_opened)
@@ -628,7 +630,7 @@ class Pipeline:
             noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
             self.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2)
             self.watch.misfit.moved(_moved_mg2(self.model, before, self.estimate)
-                                    if same_cells and self.informed else 0.0, now_us)
+                                    if learnt else 0.0, now_us)
             self.watch.misfit.restate()
         self.counts["updates"] += 1
         if not rep.accepted:

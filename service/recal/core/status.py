@@ -140,10 +140,9 @@ MISFIT_STEP = 0.1
 #: vector's error was ~10 x that rms (bench/sigma_honesty.py, docs/performance.md).
 MISFIT_FIT_FACTOR = 100.0
 MISFIT_FIT_FLOOR_MG = 0.5
-#: The estimate's movement (`Misfit.moved`): counted beyond MISFIT_MOVE_SDS of its sd, a mean
-#: over ~1/MISFIT_MOVE_WEIGHT accepted updates, the lag over MISFIT_DRIFT_S of device time.
+#: The estimate's movement (`Misfit.moved`): counted beyond MISFIT_MOVE_SDS of its sd, summed
+#: over the last MISFIT_DRIFT_S of device time (decaying).
 MISFIT_MOVE_SDS = 2.0
-MISFIT_MOVE_WEIGHT = 1.0 / 8.0
 MISFIT_DRIFT_S = 600.0
 MISFIT_STEP_MG = 0.05
 
@@ -172,11 +171,11 @@ class Misfit:
 
     The third witness is the estimate's own movement: an estimate that keeps moving by more
     than its covariance allows chases an effect the model lacks, and lags it in the
-    directions the current postures do not show. Its rate D (mg^2 per s: squared excess
-    movement per device time, `moved`) over MISFIT_DRIFT_S (how long a direction may go
-    unobserved: a wearer keeps postures for minutes) is that lag's variance.
+    directions the current postures do not show. Its squared excess movement over the last
+    MISFIT_DRIFT_S (how long a direction may go unobserved: a wearer keeps postures for
+    minutes), m (`moved`), is that lag's variance.
 
-    sigma^2 = sigma_C^2 + 3 q + MISFIT_FIT_FACTOR x q_f + MISFIT_DRIFT_S x D. Where the model
+    sigma^2 = sigma_C^2 + 3 q + MISFIT_FIT_FACTOR x q_f + m. Where the model
     fits, q, q_f and D stay near 0 and sigma is sigma_C.
 
     Attributes:
@@ -187,10 +186,9 @@ class Misfit:
             changes when the misfit moved by more than MISFIT_STEP, so a batch's samples
             take few values of it.
         fit_g2: the last accepted update's misfit (`fitted`).
-        moved_mg2, moved_s: running means (MISFIT_MOVE_WEIGHT per accepted update) of how far
-            the offsets and scales moved beyond what their covariance allows (mg at 1 g,
-            squared) and of the device time between updates (`moved`); moved_at_us: when
-            the last accepted update ran.
+        moved_mg2: how far the offsets and scales moved beyond what their covariance allows
+            (mg at 1 g, squared), summed over the accepted updates with a decay of
+            MISFIT_DRIFT_S of device time (`moved`); moved_at_us: the last accepted update.
     """
 
     r2_g2: float = 0.0
@@ -199,7 +197,6 @@ class Misfit:
     said_mg2: float = 0.0
     fit_g2: float = 0.0
     moved_mg2: float = 0.0
-    moved_s: float = 0.0
     moved_at_us: int | None = None
 
     @property
@@ -210,17 +207,15 @@ class Misfit:
     @property
     def extra_mg2(self) -> float:
         """What the misfit adds to sigma^2 (mg^2): 3 q + MISFIT_FIT_FACTOR x q_f."""
-        drift = MISFIT_DRIFT_S * self.moved_mg2 / self.moved_s if self.moved_s > 0 else 0.0
-        return 1e6 * (3.0 * self.q_g2 + MISFIT_FIT_FACTOR * self.fit_g2) + drift
+        return 1e6 * (3.0 * self.q_g2 + MISFIT_FIT_FACTOR * self.fit_g2) + self.moved_mg2
 
     def moved(self, excess_mg2: float, now_us: int) -> None:
         """An accepted update at now_us moved the offsets and scales by excess_mg2 (squared,
         mg at 1 g) beyond what their covariance allows."""
-        if self.moved_at_us is not None and now_us > self.moved_at_us and math.isfinite(
-                excess_mg2):
-            w = MISFIT_MOVE_WEIGHT
-            self.moved_mg2 += w * (excess_mg2 - self.moved_mg2)
-            self.moved_s += w * ((now_us - self.moved_at_us) / 1e6 - self.moved_s)
+        if self.moved_at_us is not None and now_us > self.moved_at_us:
+            self.moved_mg2 *= math.exp(-(now_us - self.moved_at_us) / (MISFIT_DRIFT_S * 1e6))
+        if math.isfinite(excess_mg2):
+            self.moved_mg2 += excess_mg2
         self.moved_at_us = now_us
 
     def fitted(self, residual_rms_g: float, noise_g2: float) -> None:
@@ -250,7 +245,7 @@ class Misfit:
     def to_dict(self) -> dict:
         return {"r2_g2": self.r2_g2, "e2_g2": self.e2_g2, "n": self.n,
                 "said_mg2": self.said_mg2, "fit_g2": self.fit_g2, "moved_mg2": self.moved_mg2,
-                "moved_s": self.moved_s, "moved_at_us": self.moved_at_us}
+                "moved_at_us": self.moved_at_us}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> Misfit:
@@ -258,7 +253,7 @@ class Misfit:
             return cls()
         return cls(float(d["r2_g2"]), float(d["e2_g2"]), int(d["n"]),
                    float(d.get("said_mg2", 0.0)), float(d.get("fit_g2", 0.0)),
-                   float(d.get("moved_mg2", 0.0)), float(d.get("moved_s", 0.0)),
+                   float(d.get("moved_mg2", 0.0)),
                    None if d.get("moved_at_us") is None else int(d["moved_at_us"]))
 
 
