@@ -259,3 +259,26 @@ def test_a_clock_restart_holds_the_output_until_the_windows_agree() -> None:
     assert out.status[0] == Status.HELD and out.status[-1] == Status.CALIBRATED
     assert not np.any(out.status == Status.SUSPECT)
     assert node.pipeline.watch.triggers == 0
+
+
+def test_the_console_and_the_replay_summary_name_an_unobserved_axis() -> None:
+    """The upright wearer through a node: the console says which parameter is not observed,
+    and `recal replay`'s summary lines (from the same node's state) say it too."""
+    from recal.replay import replay_lines
+
+    res = sim.simulate(30 / 60, RATE_HZ, 3, _spec(3), sim.WearerSpec(upright_only=True))
+    said: list[str] = []
+    node = _node(EventSink())
+    node.on_note = said.append
+    _feed(node, res.raw)
+    unseen = node.pipeline.unobserved
+    assert unseen and any(line.startswith("held: ") and all(n in line for n in unseen)
+                          for line in said), said
+    s = node.pipeline.summary()
+    info = {"counts": s["counts"], "start": "prior", "model": "diagonal", "bootstrapped": True,
+            "residual_rms_mg": s["residual_rms_mg"], "gain_reference": s["gain_reference"],
+            "status": s["status"], "described": {}, "unobserved": s["unobserved"],
+            "misfit_mg": s["misfit_mg"]}
+    lines = replay_lines({"samples": len(res.raw), "seconds": 1.0, "samples_per_s": 1e6,
+                          "out": "x.mcap", "sensors": {"hip": info}})
+    assert any("not observed by the data: " + ", ".join(unseen) in line for line in lines)

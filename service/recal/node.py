@@ -113,6 +113,9 @@ class NodeSettings:
     request_min_s: float = 2.0
     rediscovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
 
+#: Updates over which the same parameters stay unobserved before the console says so.
+UNSEEN_SAY_UPDATES = 10
+
 
 class CalibrationNode(AlignmentRequests):
     """Runs one sensor's pipeline and publishes what it produces (thread-safe).
@@ -157,6 +160,7 @@ class CalibrationNode(AlignmentRequests):
         self.samples_not_finite = 0
         self._status: Status | None = None  # of the last sample published
         self._calibrated_once = False
+        self._unseen: tuple[tuple[str, ...], int, bool] = ((), 0, False)  # `_say_unseen`
         self.last_t_us: int | None = None
         self.last_state: dict[str, Any] | None = None
         self._next_discovery_us: int | None = None
@@ -508,10 +512,6 @@ class CalibrationNode(AlignmentRequests):
             old, new = self._status, Status(int(st[i]))
             self._status = new
             first = new == Status.CALIBRATED and not self._calibrated_once
-            unseen = self.pipeline.unobserved if self.pipeline is not None else ()
-            if new == Status.HELD and unseen and self.on_note is not None:
-                self.on_note(f"held: {', '.join(unseen)} not observed by the data yet (sigma "
-                             "carries the prior's uncertainty on it)")
             if not (first or new == Status.SUSPECT or old == Status.SUSPECT):
                 continue
             self._calibrated_once |= new == Status.CALIBRATED
@@ -521,6 +521,23 @@ class CalibrationNode(AlignmentRequests):
                 "status": new.label, "was": old.label if old is not None else None})
             if self.on_note is not None:
                 self.on_note(f"{new.label}{why}")
+        self._say_unseen()
+
+    def _say_unseen(self) -> None:
+        """One line when the data leave the same offsets or scales unobserved over
+        UNSEEN_SAY_UPDATES updates (status held for it; a start learns them in fewer)."""
+        pipe = self.pipeline
+        if pipe is None:
+            return
+        unseen, updates = pipe.unobserved, int(pipe.counts["updates"])
+        if unseen != self._unseen[0]:
+            self._unseen = (unseen, updates, False)
+        elif (unseen and not self._unseen[2]
+              and updates - self._unseen[1] >= UNSEEN_SAY_UPDATES):
+            self._unseen = (unseen, self._unseen[1], True)
+            if self.on_note is not None:
+                self.on_note(f"held: {', '.join(unseen)} not observed by the data (sigma "
+                             "carries the prior's uncertainty on it)")
 
     def _fit_layout(self, batch: RawBatch, log_ns: int) -> RawBatch | None:
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
