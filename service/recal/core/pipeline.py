@@ -629,8 +629,10 @@ class Pipeline:
             s0 = self.model.s0
             noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
             self.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2)
+            # a fitted offset jump (a knock, a poisoned state) is an event, not a drift
+            jumped = self.estimate is not None and self.estimate.step_us != before.step_us
             self.watch.misfit.moved(_moved_mg2(self.model, before, self.estimate)
-                                    if learnt else 0.0, now_us)
+                                    if learnt and not jumped else 0.0, now_us)
             self.watch.misfit.restate()
         self.counts["updates"] += 1
         if not rep.accepted:
