@@ -14,7 +14,13 @@ Compared exactly (floats bit for bit): every MCAP message by topic, log and publ
 and payload bytes (the file's bytes may differ only in its metadata records, which are named);
 JSON key by key (timings "seconds" and "samples_per_s" left out; when not identical the largest
 relative difference is shown); CSV and stdout byte for byte; arrays bit for bit (else the
-largest absolute difference). Exit status 0 only if every case is identical.
+largest absolute difference). Exit status 0 only if every case is identical, or within the
+tolerance `--tolerate NAME=ABS` grants the arrays and JSON numbers called NAME where a change
+is known to move their last bits (say so with the result):
+
+    python bench/regression_check.py --tolerate detector_g=1e-12 --tolerate zi_hp=1e-12 \
+        --tolerate zi_lp=1e-12     # a new filter design: the detector's output may move
+
 
 Cases (group names for --only): recordings: `recal replay` of recordings/wearer-10min.mcap and
 wearer-temp-30min.mcap; sim: `recal simulate` (--sim-hours at 50 Hz) per sensor of --sensors,
@@ -39,7 +45,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -120,6 +126,13 @@ def ok_or_raise(tree: Tree, r: subprocess.CompletedProcess[str], what: str) -> s
 
 
 # --- comparing ---------------------------------------------------------------------------------
+#: name of an array or JSON key -> the largest absolute difference accepted (--tolerate);
+#: empty: everything bit for bit.
+TOLERATE: dict[str, float] = {}
+#: how a verdict within TOLERATE begins
+WITHIN = "within tolerance"
+
+
 @dataclass
 class Row:
     case: str
@@ -128,7 +141,7 @@ class Row:
 
     @property
     def ok(self) -> bool:
-        return self.verdict == "identical"
+        return self.verdict == "identical" or self.verdict.startswith(WITHIN)
 
 
 def _rel(a: float, b: float) -> float:
@@ -143,9 +156,17 @@ def _same_float(a: float, b: float) -> bool:
         math.isnan(a) and math.isnan(b))
 
 
-def json_diff(a: Any, b: Any, path: str = "") -> tuple[list[str], float]:
+def _tolerance(path: str) -> float | None:
+    """The tolerance for the JSON number at ``path`` (any of its keys in TOLERATE)."""
+    keys = [k for k in re.split(r"[/\[\]]", path) if k in TOLERATE]
+    return TOLERATE[keys[-1]] if keys else None
+
+
+def json_diff(a: Any, b: Any, path: str = "", within: list[str] | None = None
+              ) -> tuple[list[str], float]:
     """(differences as "path: what", the largest relative difference of numbers) of two
-    JSON values, key by key; floats must be equal bit for bit (NaN equals NaN)."""
+    JSON values, key by key; floats must be equal bit for bit (NaN equals NaN), but for those
+    under a key in TOLERATE, whose differences within it are noted in ``within``."""
     diffs: list[str] = []
     worst = 0.0
 
@@ -169,6 +190,11 @@ def json_diff(a: Any, b: Any, path: str = "") -> tuple[list[str], float]:
         elif (isinstance(x, (int, float)) and isinstance(y, (int, float))
               and not isinstance(x, bool) and not isinstance(y, bool)):
             if type(x) is not type(y) or not _same_float(float(x), float(y)):
+                tol = _tolerance(p)
+                if (within is not None and tol is not None and type(x) is type(y)
+                        and abs(float(x) - float(y)) <= tol):
+                    within.append(f"{p}: {x!r} vs {y!r}")
+                    return
                 worst = max(worst, _rel(float(x), float(y)))
                 diffs.append(f"{p}: {x!r} vs {y!r}")
         elif x != y or type(x) is not type(y):
@@ -184,7 +210,10 @@ def _short(x: Any) -> str:
 
 
 def json_verdict(a: Any, b: Any) -> str:
-    diffs, worst = json_diff(a, b)
+    within: list[str] = []
+    diffs, worst = json_diff(a, b, within=within)
+    if not diffs and within:
+        return f"{WITHIN}: {len(within)} numbers, first {within[0]}"
     if not diffs:
         return "identical"
     rel = f"; max rel diff {worst:.3g}" if worst else ""
@@ -205,8 +234,23 @@ def array_verdict(name: str, a: np.ndarray, b: np.ndarray) -> str:
     text = f"{name}: {len(rows)} of {len(a)} rows differ, first at row {first}"
     if a.dtype.kind in "fiu" and len(rows):
         d = np.abs(flat_a.astype(np.float64) - flat_b.astype(np.float64))[differ]
-        text += f"; max abs diff {np.nanmax(d) if np.isfinite(d).any() else d.max():.3g}"
+        worst = float(np.nanmax(d) if np.isfinite(d).any() else d.max())
+        text += f"; max abs diff {worst:.3g}"
+        if name in TOLERATE and worst <= TOLERATE[name]:  # NaN where the other is not: > tol
+            return f"{WITHIN}: {text}"
     return text
+
+
+def first_verdict(verdicts: Iterable[str]) -> str:
+    """The first verdict neither identical nor within tolerance; else the first within, else
+    identical."""
+    within = ""
+    for v in verdicts:
+        if v.startswith(WITHIN):
+            within = within or v
+        elif v != "identical":
+            return v
+    return within or "identical"
 
 
 def _isnan(x: np.ndarray) -> np.ndarray:
@@ -217,11 +261,7 @@ def npz_verdict(a: Path, b: Path) -> str:
     with np.load(a, allow_pickle=False) as za, np.load(b, allow_pickle=False) as zb:
         if sorted(za.files) != sorted(zb.files):
             return f"arrays {sorted(za.files)} vs {sorted(zb.files)}"
-        for k in za.files:
-            v = array_verdict(k, za[k], zb[k])
-            if v != "identical":
-                return v
-    return "identical"
+        return first_verdict(array_verdict(k, za[k], zb[k]) for k in za.files)
 
 
 @dataclass(frozen=True)
@@ -254,14 +294,19 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
     if a.read_bytes() == b.read_bytes():
         return "identical", "file bytes identical"
     ca, cb = read_mcap(a), read_mcap(b)
-    verdict = "identical"
+    verdict, within, n_within = "identical", "", 0
     if len(ca.messages) != len(cb.messages):
         verdict = f"{len(ca.messages)} vs {len(cb.messages)} messages"
     for i, (x, y) in enumerate(zip(ca.messages, cb.messages, strict=False)):
         if x != y:
-            verdict = f"message {i} ({x[0]} @ {x[1]}): {_message_diff(x, y)}"
-            break
-    if verdict == "identical" and ca.channels != cb.channels:
+            what = f"message {i} ({x[0]} @ {x[1]}): {_message_diff(x, y)}"
+            if f"payload {WITHIN}" not in what:
+                verdict = what
+                break
+            within, n_within = within or what, n_within + 1
+    if verdict == "identical" and within:
+        verdict = f"{WITHIN}: {n_within} messages, first {within}"
+    if (verdict == "identical" or verdict.startswith(WITHIN)) and ca.channels != cb.channels:
         topic = next(t for t in {**ca.channels, **cb.channels}
                      if ca.channels.get(t) != cb.channels.get(t))
         verdict = f"channel or schema of {topic} differs"
@@ -296,15 +341,21 @@ def payload_diff(schema: str, a: bytes, b: bytes) -> str:
         pass
     try:
         from recal.io import messages
+        if schema == messages.PLOT_MESSAGE_NAME:  # one sample: its fields as 1-element arrays
+            pa, pb = messages.decode_plot(a), messages.decode_plot(b)
+            v = first_verdict(array_verdict(k, np.atleast_1d(pa[k]), np.atleast_1d(pb[k]))
+                              for k in pa)
+            if v != "identical":
+                return f"payload {v}"
         decode = (messages.decode_calibrated if "alibrated" in schema else messages.decode_raw)
         ba, bb = decode(a)[1], decode(b)[1]
-        for name in ("t_us", "v", "aux", "a_g", "quasi_static", "detector_g", "status",
-                     "sigma_mg"):
-            if hasattr(ba, name) and getattr(ba, name) is not None:
-                v = array_verdict(name, np.asarray(getattr(ba, name)),
-                                  np.asarray(getattr(bb, name)))
-                if v != "identical":
-                    return f"payload {v}"
+        v = first_verdict(
+            array_verdict(name, np.asarray(getattr(ba, name)), np.asarray(getattr(bb, name)))
+            for name in ("t_us", "v", "aux", "a_g", "quasi_static", "detector_g", "status",
+                         "sigma_mg")
+            if hasattr(ba, name) and getattr(ba, name) is not None)
+        if v != "identical":
+            return f"payload {v}"
     except Exception:  # a decoder that moved, or a schema it does not know: bytes below
         pass
     k = next((i for i, (u, v) in enumerate(zip(a, b, strict=False)) if u != v), min(len(a),
@@ -635,6 +686,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--only", help="run only cases whose group is in this comma list: "
                     "recordings,sim,core,discover,static,real")
     ap.add_argument("--keep", type=Path, help="keep every output under this directory")
+    ap.add_argument("--tolerate", action="append", default=[], metavar="NAME=ABS",
+                    help="accept an absolute difference up to ABS in the arrays and JSON "
+                    "numbers called NAME (repeatable); everything else stays bit for bit")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("child_args", nargs="?", help=argparse.SUPPRESS)
     return ap.parse_args(argv)
@@ -645,6 +699,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.child:
         CHILDREN[a.child](json.loads(a.child_args))
         return 0
+    for item in a.tolerate:
+        name, _, limit = item.partition("=")
+        TOLERATE[name] = float(limit)
     old, new = Tree("old", a.old.resolve()), Tree("new", a.new.resolve())
     recordings = a.recordings
     only = set(a.only.split(",")) if a.only else None
@@ -684,7 +741,7 @@ def main(argv: list[str] | None = None) -> int:
                 got = [Row(label, "command", f"FAILED: {e}")]
             rows += got
             bad = sum(not r.ok for r in got)
-            print(f"  {label}: {len(got) - bad}/{len(got)} identical "
+            print(f"  {label}: {len(got) - bad}/{len(got)} identical or within tolerance "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
     finally:
         if a.keep is None:
@@ -692,7 +749,9 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(table(rows))
     bad = [r for r in rows if not r.ok]
-    print(f"\n{len(rows) - len(bad)} of {len(rows)} comparisons identical "
+    print(f"\n{len(rows) - len(bad)} of {len(rows)} comparisons identical"
+          + (f" or within tolerance ({', '.join(f'{k} {v:g}' for k, v in TOLERATE.items())})"
+             if TOLERATE else "") + " "
           f"({time.perf_counter() - t_start:.0f} s)" + (": NOT IDENTICAL: " + ", ".join(
               sorted({r.case for r in bad})) if bad else ""))
     return 0 if not bad and rows else 1

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -128,3 +129,54 @@ def test_mcap_changed_schema_is_a_difference(tmp_path: Path) -> None:
 def test_scalar_arrays_compare() -> None:
     assert rc.array_verdict("k", np.float64(1.0), np.float64(1.0)) == "identical"
     assert rc.array_verdict("k", np.array(1.0), np.array(2.0)).startswith("k: 1 of 1 rows")
+
+
+@pytest.fixture
+def tolerate_x() -> Iterator[None]:
+    rc.TOLERATE["x"] = 1e-12
+    try:
+        yield
+    finally:
+        rc.TOLERATE.clear()
+
+
+def test_tolerated_names_pass_within_and_fail_beyond(tolerate_x: None) -> None:
+    a = np.array([1.0, 2.0])
+    assert rc.array_verdict("x", a, a + 1e-13).startswith(rc.WITHIN)
+    assert not rc.array_verdict("x", a, a + 1e-11).startswith(rc.WITHIN)
+    assert not rc.array_verdict("y", a, a + 1e-13).startswith(rc.WITHIN)  # others: bit for bit
+    assert not rc.array_verdict("x", a, np.array([np.nan, 2.0])).startswith(rc.WITHIN)
+    assert rc.json_verdict({"d": {"x": [1.0]}}, {"d": {"x": [1.0 + 1e-13]}}).startswith(rc.WITHIN)
+    verdict = rc.json_verdict({"x": 1.0, "y": 1.0}, {"x": 1.0 + 1e-13, "y": 1.5})
+    assert verdict.startswith("1 differences, first /y")
+
+
+def test_a_tolerated_message_does_not_hide_a_later_difference(tmp_path: Path,
+                                                              tolerate_x: None) -> None:
+    msgs = [json.dumps({"x": 0.1 * i, "y": i}).encode() for i in range(5)]
+    close = [json.dumps({"x": 0.1 * i + 1e-14, "y": i}).encode() for i in range(5)]
+    a = _mcap(tmp_path / "a.mcap", msgs)
+    verdict, _ = rc.mcap_verdict(a, _mcap(tmp_path / "b.mcap", close))
+    assert verdict.startswith(f"{rc.WITHIN}: 5 messages")
+    close[4] = json.dumps({"x": 0.4, "y": 5}).encode()
+    verdict, _ = rc.mcap_verdict(a, _mcap(tmp_path / "c.mcap", close))
+    assert verdict.startswith("message 4") and "/y" in verdict
+    assert not rc.Row("c", "m", verdict).ok
+
+
+def test_plot_payloads_compare_field_by_field(tolerate_x: None) -> None:
+    from recal.io import messages
+    from recal.samples import CalibratedBatch
+
+    def plot(detector_g: float, x_g: float) -> bytes:
+        batch = CalibratedBatch(t_us=np.array([5], np.int64), a_g=np.array([[x_g, 0.0, 1.0]]),
+                                quasi_static=np.array([True]), detector_g=np.array([detector_g]),
+                                status=np.array([3], np.uint8), sigma_mg=np.array([0.5]))
+        return messages.encode_plot(batch)[0]
+
+    rc.TOLERATE["detector_g"] = 1e-12
+    name = messages.PLOT_MESSAGE_NAME
+    assert rc.payload_diff(name, plot(0.01, 0.1), plot(0.01 + 1e-15, 0.1)).startswith(
+        f"payload {rc.WITHIN}: detector_g")
+    assert rc.payload_diff(name, plot(0.01, 0.1), plot(0.01 + 1e-15, 0.1 + 1e-15)).startswith(
+        "payload x_g: 1 of 1 rows differ")

@@ -358,3 +358,37 @@ def test_plot_messages_are_exact_per_sample_protobuf() -> None:
     assert m.decode_plot(official.SerializeToString()) == {
         "t_us": int(batch.t_us[1]), "x_g": float(batch.a_g[1, 0]), "y_g": 0.0, "z_g": 0.0,
         "norm_g": 0.0, "quasi_static": False, "detector_g": 0.0, "status": 0, "sigma_mg": 0.0}
+
+
+@pytest.mark.parametrize("n", [0, 1, 77])
+def test_the_device_time_field_round_trips_and_older_messages_still_decode(n: int) -> None:
+    """Field 10 (t_dev) as the official runtime writes it (the same bytes) and reads it; a
+    message written before it existed (the official runtime, without field 10) decodes with
+    t_dev None and the rest unchanged."""
+    rng = np.random.default_rng(n)
+    base = _calibrated(n)
+    t_dev = rng.integers(-2**40, 2**40, n, dtype=np.int64)
+    status = rng.integers(1, 6, n).astype(np.uint8)
+    batch = CalibratedBatch(base.t_us, base.a_g, base.quasi_static, base.detector_g, status,
+                            rng.random(n), t_dev)
+    ours = m.encode_calibrated("s1", batch)
+    back = m.decode_calibrated(ours)[1]
+    _assert_calibrated_equal(back, batch)
+    if n:  # (an empty packed field is omitted, as protobuf does)
+        assert back.t_dev is not None and np.array_equal(back.t_dev, t_dev)
+    official = OfficialCalibrated.FromString(ours)
+    assert list(official.t_dev) == t_dev.tolist()
+    msg = OfficialCalibrated(sensor_id="s1", t_us=batch.t_us.tolist(),
+                             x_g=batch.a_g[:, 0].tolist(), y_g=batch.a_g[:, 1].tolist(),
+                             z_g=batch.a_g[:, 2].tolist(),
+                             quasi_static=batch.quasi_static.tolist(),
+                             detector_g=batch.detector_g.tolist(), status=status.tolist(),
+                             sigma_mg=batch.sigma_mg.tolist(), t_dev=t_dev.tolist())
+    assert msg.SerializeToString() == ours
+    old = m.decode_calibrated(_official_calibrated("s1", batch))[1]
+    _assert_calibrated_equal(old, batch)
+    assert old.t_dev is None
+    if n > 1:  # a length that differs from t_us is a malformed message
+        short = m.encode_calibrated("s1", base) + bytes([0x52, 8]) + t_dev[:1].tobytes()
+        with pytest.raises(ValueError, match="t_dev"):
+            m.decode_calibrated(short)

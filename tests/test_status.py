@@ -198,7 +198,7 @@ def test_upright_wearer_without_prior_is_not_published_as_calibrated_before_it_i
     assert cli_main(["export", str(out), "--csv", str(csv), "--json", str(js)]) == 0
     said = capsys.readouterr().out
     assert f"{n_not} with another status" in said
-    assert csv.read_text().splitlines()[0] == "t_us,x_g,y_g,z_g,status,sigma_mg"
+    assert csv.read_text().splitlines()[0] == "t_us,x_g,y_g,z_g,status,sigma_mg,device_t_us"
     table = read_csv(csv)
     assert np.array_equal(table.batch.channel("status"), cal.status)
     assert np.array_equal(table.batch.channel("sigma_mg"), cal.sigma_mg)

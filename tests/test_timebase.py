@@ -104,7 +104,7 @@ def test_a_32_bit_micros_counter_is_unwrapped_the_same_in_any_batches(sizes: lis
     assert [e["kind"] for e in events] == ["time_wrap"]
     assert events[0]["detail"]["period"] == WRAP and state.wraps == 1
     assert state.counts() == {"wraps": 1, "reboots": 0, "backwards": 0, "duplicates": 0,
-                              "jumps": 0}
+                              "jumps": 0, "refused": 0}
 
 
 def test_a_16_bit_millisecond_counter_wraps_every_65_5_s() -> None:
@@ -154,12 +154,37 @@ def test_anomalies_are_counted_and_the_output_never_goes_back() -> None:
     t[150:] += 10 * 10**6  # a 10 s gap (lost samples)
     state, out, events = _run(t, tb.TimebaseConfig(RATE_HZ), [33] * 7)
     assert state.counts() == {"wraps": 0, "reboots": 0, "backwards": 1, "duplicates": 1,
-                              "jumps": 1}
+                              "jumps": 1, "refused": 0}
     assert np.all(np.diff(out) > 0)
     assert {e["kind"] for e in events} == {"time_anomalies"}
     assert sum(e["detail"].get("duplicates", 0) for e in events) == 1
     np.testing.assert_array_equal(out[:50], t[:50])  # untouched where nothing happened
     assert out[150] - out[149] == t[150] - t[149]  # a gap is real: kept
+
+
+@pytest.mark.parametrize("sizes", [[1] * 300, [7] * 43, [300]])
+def test_an_implausible_jump_either_way_is_refused_not_a_new_time_base(sizes: list[int]) -> None:
+    """A clock that leaps 17 years ahead (a crafted stream) and later back to where it was: two
+    refused jumps, one event per batch at most, and the output goes on one step at a time, so
+    the real stream after it is still minutes, not years, from where it began."""
+    t = 10**9 + np.arange(300, dtype=np.int64) * 40_000
+    t[100:200] += 17 * 365 * 86_400 * 10**6
+    state, out, events = _run(t, tb.TimebaseConfig(RATE_HZ), sizes)
+    assert state.refused == 2 and state.counts()["jumps"] == 0
+    refused = [e for e in events if e["kind"] == "time_jump_refused"]
+    assert sum(e["detail"]["in_batch"] for e in refused) == 2
+    assert len(refused) == (1 if len(sizes) == 1 else 2)  # one event per batch at most
+    assert refused[0]["detail"]["jump_s"] > 17 * 365 * 86_400
+    if len(refused) == 2:
+        assert refused[1]["detail"]["jump_s"] < -16 * 365 * 86_400
+    assert np.all(np.diff(out) > 0)
+    np.testing.assert_array_equal(np.diff(out), 40_000)  # no gap either way
+    np.testing.assert_array_equal(out[:100], t[:100])
+    # a day is no jump to refuse: a real gap, kept
+    t2 = 10**9 + np.arange(300, dtype=np.int64) * 40_000
+    t2[150:] += 86_000 * 10**6
+    state2, out2, _ = _run(t2, tb.TimebaseConfig(RATE_HZ), sizes)
+    assert state2.refused == 0 and out2[150] - out2[149] == t2[150] - t2[149]
 
 
 def test_state_round_trips_through_json_mid_stream() -> None:

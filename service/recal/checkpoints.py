@@ -16,6 +16,13 @@ A sensor's state folder (``[checkpoint] dir``) holds, per sensor id:
 Every name ends in its own suffix after the sensor id, so no two sensors' files can share a
 name (sensor ids may contain dots: ``a.prev.json`` could be ``a``'s or ``a.prev``'s).
 
+No file of the folder is a way to write or read elsewhere (a daemon often runs as root): the
+folder is made 0700 (one that others may write is warned about), every file is opened with
+``O_NOFOLLOW``, temporaries get random names and ``O_EXCL``, and renames replace a link, never
+its target. A sensor with a symlink where one of its files should be is refused at the start
+(:meth:`Checkpoints.acquire`): one console line, the link and its target left alone, and that
+sensor is calibrated without checkpoints; the other sensors are not affected.
+
 A checkpoint is trusted only after it has been checked (:func:`load_checkpoint` for the file,
 :func:`restore_pipeline` for the state): size and nesting depth, strict JSON (no NaN, no
 infinity, no integer beyond 2^53), the format, then the pipeline rebuilt with
@@ -45,6 +52,7 @@ import json
 import logging
 import os
 import re
+import secrets
 import shutil
 import stat
 import time
@@ -67,7 +75,10 @@ __all__ = [
     "Checkpoints",
     "SensorLock",
     "SensorLockedError",
+    "StateFileRefused",
     "checkpoint_path",
+    "estimate_problem",
+    "finite_document",
     "json_depth",
     "load_checkpoint",
     "lock_path",
@@ -77,6 +88,8 @@ __all__ = [
     "previous_path",
     "restore_pipeline",
     "save_checkpoint",
+    "state_files",
+    "unsafe_state_file",
 ]
 
 log = logging.getLogger(__name__)
@@ -90,6 +103,11 @@ MAX_INT = 2**53  # larger integers are no device time or count (and overflow int
 FUTURE_US = 86_400 * 10**6  # a day: how far any time in a state may lie past its last sample
 FAIL_NOTE_S = 60.0  # failed saves are summed up for the operator at most this often
 PROBE_SAMPLES = 4
+
+# the files of a sensor in the state folder, by suffix after its id (see the module docstring)
+STATE_SUFFIXES = (".lock", ".json", ".json.prev", ".json.rejected", ".json.prev.rejected")
+FOLDER_MODE = 0o700
+_NOFOLLOW = os.O_NOFOLLOW | os.O_CLOEXEC
 
 _STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
 
@@ -108,9 +126,65 @@ class SensorLockedError(RuntimeError):
                          f"(lock {path}); one process per sensor id and state folder")
 
 
+class StateFileRefused(OSError):
+    """A symlink (or another non-file) where a state file should be: never opened through."""
+
+
 # ---------------------------------------------------------------------------------------------
 # Paths
 # ---------------------------------------------------------------------------------------------
+
+def state_files(directory: str | Path, sensor_id: str) -> list[Path]:
+    """Every file the daemon may write for this sensor in ``directory``."""
+    return [Path(directory) / f"{sensor_id}{suffix}" for suffix in STATE_SUFFIXES]
+
+
+def unsafe_state_file(directory: str | Path, sensor_id: str) -> Path | None:
+    """The first of the sensor's state files that is a symlink, or None."""
+    for path in state_files(directory, sensor_id):
+        with contextlib.suppress(OSError):
+            if stat.S_ISLNK(path.lstat().st_mode):
+                return path
+    return None
+
+
+def prepare_folder(directory: str | Path) -> str | None:
+    """Make the state folder (0700: checkpoints and locks are the daemon's alone); a warning
+    when it exists and others may write it (they could plant links or files), else None."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True, mode=FOLDER_MODE)
+    mode = d.stat().st_mode
+    if mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return (f"the state folder {d} is writable by others (mode {stat.S_IMODE(mode):o}); "
+                f"make it {FOLDER_MODE:o} (chmod {FOLDER_MODE:o} {d}), or use a folder of "
+                "its own")
+    return None
+
+
+def _refused(path: Path, err: OSError) -> StateFileRefused:
+    what = "a symlink" if err.errno == errno.ELOOP else "not a regular file"
+    return StateFileRefused(err.errno or errno.EINVAL, f"{path} is {what}; left alone",
+                            str(path))
+
+
+def _open_new(path_like: Path) -> tuple[int, Path]:
+    """A new file next to ``path_like`` with a random name (O_CREAT | O_EXCL: never an
+    existing file or link), mode 0600: (descriptor, path)."""
+    for _ in range(100):  # a clash of 64 random bits is as good as impossible
+        tmp = path_like.with_name(f".{path_like.name}.{secrets.token_hex(8)}.tmp")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o600)
+        except FileExistsError:
+            continue
+        return fd, tmp
+    raise FileExistsError(errno.EEXIST, "no free temporary name", str(path_like))
+
+
+def _is_regular(path: Path) -> bool:
+    try:
+        return stat.S_ISREG(path.lstat().st_mode)
+    except OSError:
+        return False
 
 def checkpoint_path(directory: str | Path, sensor_id: str) -> Path:
     return Path(directory) / f"{sensor_id}.json"
@@ -135,14 +209,14 @@ def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool
     the directory. ValueError (nothing written) if the state holds NaN or infinity."""
     p = Path(path)
     text = json.dumps(state, separators=(",", ":"), allow_nan=False)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    p.parent.mkdir(parents=True, exist_ok=True, mode=FOLDER_MODE)
+    fd, tmp = _open_new(p)
     try:
-        with open(tmp, "w") as f:
+        with open(fd, "w") as f:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
-        if keep_previous and p.is_file():
+        if keep_previous and _is_regular(p):  # a link there is replaced, never followed
             _replace_with_copy(p, p.with_name(f"{p.name}.prev"))
         os.replace(tmp, p)
     except BaseException:
@@ -154,20 +228,42 @@ def save_checkpoint(path: str | Path, state: dict[str, Any], keep_previous: bool
 
 def _replace_with_copy(src: Path, dst: Path) -> None:
     """``dst`` becomes ``src``'s content (a hard link, or a copy where the filesystem has
-    none), replaced atomically: a crash leaves the old ``dst`` or the new one."""
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    with contextlib.suppress(OSError):
-        tmp.unlink()
+    none), replaced atomically: a crash leaves the old ``dst`` or the new one. Neither
+    ``src`` nor the temporary is opened through a link."""
+    # a random name; link() and the copy's O_EXCL fail on any existing name, link or not
+    tmp = dst.with_name(f".{dst.name}.{secrets.token_hex(8)}.tmp")
     try:
-        try:
-            os.link(src, tmp)
-        except OSError:
-            shutil.copyfile(src, tmp)
+        os.link(src, tmp, follow_symlinks=False)
+    except FileExistsError:
+        raise  # not ours: left alone
+    except OSError:  # a filesystem without hard links
+        _copy_nofollow(src, tmp)  # cleans up after itself; O_EXCL fails on any existing name
+    try:
         os.replace(tmp, dst)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+
+
+def _copy_nofollow(src: Path, dst: Path) -> None:
+    """Copy a regular file ``src`` to a new file ``dst`` (O_EXCL), through no link."""
+    fd_in = os.open(src, os.O_RDONLY | os.O_NONBLOCK | _NOFOLLOW)
+    try:
+        if not stat.S_ISREG(os.fstat(fd_in).st_mode):
+            raise StateFileRefused(errno.EINVAL, f"{src} is not a regular file", str(src))
+        fd_out = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o600)
+        try:
+            with open(fd_in, "rb", closefd=False) as fin, open(fd_out, "wb") as fout:
+                shutil.copyfileobj(fin, fout)
+                fout.flush()
+                os.fsync(fout.fileno())
+        except BaseException:
+            with contextlib.suppress(OSError):
+                dst.unlink()
+            raise
+    finally:
+        os.close(fd_in)
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -184,21 +280,28 @@ def _fsync_dir(directory: Path) -> None:
 def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
     """A checkpoint written by :func:`save_checkpoint`; None if there is no file.
 
-    Raises CheckpointError (a ValueError) for anything else that is not a checkpoint: not a
-    regular file, unreadable, larger than MAX_BYTES, nested deeper than MAX_DEPTH, not strict
-    JSON (NaN, infinity, integers beyond 2^53), not a format-1 object.
+    Raises CheckpointError (a ValueError) for anything else that is not a checkpoint: a
+    symlink (never followed), not a regular file, unreadable, larger than MAX_BYTES, nested
+    deeper than MAX_DEPTH, not strict JSON (NaN, infinity, integers beyond 2^53), not a
+    format-1 object.
     """
     p = Path(path)
-    try:
-        mode = p.stat().st_mode
-        if stat.S_ISDIR(mode):
-            raise CheckpointError(f"{p}: a directory, not a checkpoint file")
-        if not stat.S_ISREG(mode):  # a FIFO would block the start
-            raise CheckpointError(f"{p}: not a regular file")
-        with open(p, "rb") as f:
-            data = f.read(MAX_BYTES + 1)
+    try:  # O_NONBLOCK: a FIFO would block the start
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | _NOFOLLOW)
     except FileNotFoundError:
         return None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise CheckpointError(f"{p}: a symlink, not followed") from None
+        raise CheckpointError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    try:
+        with open(fd, "rb") as f:
+            mode = os.fstat(fd).st_mode
+            if stat.S_ISDIR(mode):
+                raise CheckpointError(f"{p}: a directory, not a checkpoint file")
+            if not stat.S_ISREG(mode):
+                raise CheckpointError(f"{p}: not a regular file")
+            data = f.read(MAX_BYTES + 1)
     except OSError as exc:
         raise CheckpointError(f"{p}: cannot read ({exc.strerror or exc})") from None
     if len(data) > MAX_BYTES:
@@ -243,6 +346,48 @@ def _bounded_int(text: str) -> int:
     if abs(x) >= MAX_INT:
         raise ValueError(f"integer {x} out of range")
     return x
+
+
+def finite_document(doc: dict[str, Any]) -> tuple[dict[str, Any], list[str], int]:
+    """``doc`` as strict JSON can hold it: (the document, where values were not finite, how
+    many). A NaN or infinity (a window mean of a channel the stream lacked) is saved as null,
+    which the state restores as NaN, so one such value never costs the whole save; whether
+    the state may be trusted is still checked (`restore_pipeline`). The usual document is
+    returned as it is after one strict encode; only a failing one is walked (arrays of numbers
+    checked in numpy)."""
+    try:
+        json.dumps(doc, allow_nan=False)
+    except ValueError:
+        pass
+    else:
+        return doc, [], 0
+    where: list[str] = []
+    counted = [0]
+
+    def clean(obj: Any, path: str) -> Any:
+        if isinstance(obj, float):
+            if np.isfinite(obj):
+                return obj
+            counted[0] += 1
+            where.append(path)
+            return None
+        if isinstance(obj, dict):
+            return {k: clean(v, f"{path}.{k}" if path else str(k)) for k, v in obj.items()}
+        if isinstance(obj, (list, tuple)):
+            try:
+                arr = np.asarray(obj, np.float64)
+            except (TypeError, ValueError):  # mixed content: item by item
+                return [clean(v, f"{path}[{i}]") for i, v in enumerate(obj)]
+            bad = ~np.isfinite(arr)
+            if not bad.any():
+                return obj
+            counted[0] += int(bad.sum())
+            where.append(path)
+            return np.where(bad, None, arr.astype(object)).tolist()
+        return obj
+
+    out = clean(doc, "")
+    return out, where, counted[0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -307,6 +452,17 @@ def param_bounds(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | N
         lo[sl] += centre
         hi[sl] += centre
     return lo, hi
+
+
+def estimate_problem(pipe: Pipeline,
+                     reference: tuple[SensorModel, Prior | None] | None = None) -> str | None:
+    """Why the pipeline's model, estimate or prior would make its checkpoint refused at the
+    next start (`restore_pipeline` with the same ``reference``), or None: the check a node runs
+    on what it is about to adopt, so that it never holds a state it could not save."""
+    try:
+        return _estimate_problem(pipe, reference)
+    except Exception as exc:  # a field of the wrong type
+        return f"unreadable state: {type(exc).__name__}: {exc}"
 
 
 def _estimate_problem(pipe: Pipeline, reference: tuple[SensorModel, Prior | None] | None
@@ -431,10 +587,19 @@ class SensorLock:
 
 def lock_sensor(directory: str | Path, sensor_id: str) -> SensorLock:
     """Take the sensor's lock in ``directory`` without waiting; SensorLockedError (with the
-    holder's PID) if another process holds it, OSError if the folder cannot be used."""
+    holder's PID) if another process holds it, StateFileRefused (an OSError) for a symlink or
+    non-file in its place (left alone), OSError if the folder cannot be used."""
     path = lock_path(directory, sensor_id)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    path.parent.mkdir(parents=True, exist_ok=True, mode=FOLDER_MODE)
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | _NOFOLLOW, 0o600)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise _refused(path, exc) from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise _refused(path, OSError(errno.EINVAL, "not a regular file"))
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as exc:
@@ -531,9 +696,13 @@ class Checkpoints:
         self._event = event
         self._clock = clock
         self.locks: dict[str, SensorLock] = {}
+        #: sensors whose state files were refused (a symlink): calibrated without checkpoints
+        self.refused: dict[str, str] = {}
+        self._folder_checked = False
         self._saved_updates: dict[str, int] = {}
         self._saved_at: dict[str, float] = {}
         self._failures: dict[str, _Failures] = {}
+        self._dropping: set[str] = set()  # sensors whose saves drop values (said once)
         self._fail_noted_s = float("-inf")
         self.saves = 0
         self.failed_saves = 0
@@ -549,19 +718,42 @@ class Checkpoints:
     # -- ownership ----------------------------------------------------------------------------
 
     def acquire(self, sensor_ids: Iterable[str]) -> None:
-        """Lock these sensors (all or none: SensorLockedError or OSError, nothing held)."""
+        """Lock these sensors (all or none: SensorLockedError or OSError, nothing held). A
+        sensor with a symlink among its state files is not locked but refused (one line; it is
+        calibrated without checkpoints), never an error for the others."""
         if self.directory is None:
             return
+        if not self._folder_checked:
+            warning = prepare_folder(self.directory)
+            self._folder_checked = True
+            if warning is not None:
+                self.out(f"{self.prefix} {warning}")
         taken = []
         try:
             for sid in sensor_ids:
-                if sid not in self.locks:
+                if sid in self.locks or sid in self.refused:
+                    continue
+                bad = unsafe_state_file(self.directory, sid)
+                try:
+                    if bad is not None:
+                        raise _refused(bad, OSError(errno.ELOOP, "symlink"))
                     self.locks[sid] = lock_sensor(self.directory, sid)
-                    taken.append(sid)
+                except StateFileRefused as exc:
+                    self._refuse(sid, exc)
+                    continue
+                taken.append(sid)
         except BaseException:
             for sid in taken:
                 self.locks.pop(sid).release()
             raise
+
+    def _refuse(self, sid: str, exc: StateFileRefused) -> None:
+        why = exc.strerror or str(exc)
+        self.refused[sid] = why
+        self.out(f"{self.prefix} {sid}: {why}: calibrated without checkpoints (no resume, "
+                 "no saves) until it is removed")
+        if self._event is not None:
+            self._event(sid, "checkpoint_refused", {"error": why})
 
     def release(self) -> None:
         for lock in self.locks.values():
@@ -576,7 +768,7 @@ class Checkpoints:
         else None (start from the prior). A file that does not load or ``restore`` refuses is
         moved aside (``.rejected``), reported as an event ``checkpoint_invalid`` and one
         console line (and ``on_problem(kind, detail)``); nothing here raises for a bad file."""
-        if self.directory is None:
+        if self.directory is None or sensor_id in self.refused:
             return None
         cur = checkpoint_path(self.directory, sensor_id)
         if not cur.exists() and not cur.is_symlink():
@@ -658,18 +850,20 @@ class Checkpoints:
             return
         for sid in nodes if sensor_ids is None else sensor_ids:
             node = nodes.get(sid)
-            if node is None:
+            if node is None or sid in self.refused:
                 continue
             updates = getattr(node, "accepted_updates", 0)
             try:
                 doc = node.checkpoint()
                 if doc is None:
                     continue
+                doc, where, dropped = finite_document(doc)
                 self._check_before_save(doc)
                 save_checkpoint(checkpoint_path(self.directory, sid), doc)
             except (OSError, ValueError) as exc:
                 self._failed(sid, exc)
                 continue
+            self._note_dropped(sid, where, dropped)  # said of a save made, not one refused
             self._saved_updates[sid] = updates
             self._saved_at[sid] = self._clock()
             self.saves += 1
@@ -681,6 +875,22 @@ class Checkpoints:
         """The load checks (bar the probe): a state that would be refused at the next start is
         not written over the last good one (ValueError)."""
         restore_pipeline(doc.get("pipeline"), probe=False)
+
+    def _note_dropped(self, sid: str, where: list[str], count: int) -> None:
+        """An event and a line when a sensor's saves start holding values strict JSON cannot
+        (saved as null), not on every save; said again only after a clean save."""
+        if not count:
+            self._dropping.discard(sid)
+            return
+        if sid in self._dropping:
+            return
+        self._dropping.add(sid)
+        shown = where[:8]
+        if self._event is not None:
+            self._event(sid, "checkpoint_values_dropped", {
+                "values": count, "where": shown, "saved_as": None})
+        self.out(f"{self.prefix} {sid}: {count} value{'s' if count > 1 else ''} in the "
+                 f"checkpoint not finite ({', '.join(shown)}): saved as null, the rest as is")
 
     def _failed(self, sid: str, exc: Exception) -> None:
         self.failed_saves += 1

@@ -581,7 +581,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return _dispatch(args.func, args)
+    import logging
+
+    from recal.console import install_logging
+
+    handler = install_logging()  # warnings as bare stderr lines, each kind rate-limited
+    try:
+        return _dispatch(args.func, args)
+    finally:  # main() called in a process that goes on (tests) leaves logging as it was
+        logging.getLogger().removeHandler(handler)
 
 
 def _dispatch(func: Callable[[argparse.Namespace], int | None], args: argparse.Namespace

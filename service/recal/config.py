@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
@@ -69,6 +70,7 @@ __all__ = [
     "ServiceConfig",
     "ZenohSettings",
     "check_model_channels",
+    "default_sensor_id",
     "default_state_dir",
     "load_config",
     "load_model_file",
@@ -177,6 +179,49 @@ class McapConfig:
     compression: str = "zstd"
     fsync: bool = True
     backlog_mb: float = 4.0
+
+
+BY_ID_DIR = Path("/dev/serial/by-id")  # udev's stable names of USB serial devices
+_NOT_IN_ID = re.compile(r"[^A-Za-z0-9_.-]+")
+
+
+def default_sensor_id(port: str, by_id_dir: str | Path = BY_ID_DIR,
+                      listed: Sequence[Any] | None = None) -> str:
+    """The id of a sensor given only its ``port``: the device's own name, so that two devices
+    never share a calibration (and a device keeps its own on another port).
+
+    In order: the name of the ``by_id_dir`` link that points at the port's device
+    (``usb-Arduino_LLC_Nano_33_IoT_4F3A9C2E-if00``); else the USB serial number pyserial's
+    ``list_ports`` gives for it (``usb-<vid>-<pid>-<serial>``; ``listed``: its entries, by
+    default read now); else the port's path (``/dev/ttyUSB0`` -> ``ttyUSB0``,
+    ``/tmp/a/tty0`` -> ``tmp-a-tty0``). Made fit for the id's charset
+    ``[A-Za-z0-9][A-Za-z0-9_.-]*``."""
+    if "://" in port:
+        return _id_from(port.split("://", 1)[0])
+    device = os.path.realpath(port)
+    try:
+        links = sorted(Path(by_id_dir).iterdir())
+    except OSError:  # no USB serial device plugged, or not Linux
+        links = []
+    for link in links:
+        if os.path.realpath(link) == device:
+            return _id_from(link.name)
+    if listed is None:
+        from serial.tools import list_ports
+
+        listed = list_ports.comports()
+    for info in listed:
+        if os.path.realpath(info.device) == device and info.serial_number:
+            vid_pid = (f"{info.vid:04x}-{info.pid:04x}-" if info.vid is not None
+                       and info.pid is not None else "")
+            return _id_from(f"usb-{vid_pid}{info.serial_number}")
+    path = port.removeprefix("/dev/") if port.startswith("/dev/") else port
+    return _id_from(path.strip("/").replace("/", "-"))
+
+
+def _id_from(name: str) -> str:
+    sid = _NOT_IN_ID.sub("_", name).lstrip("_.-")
+    return sid if sid and sid != "gateway" else f"port-{sid or 'unnamed'}"
 
 
 def default_state_dir() -> Path:

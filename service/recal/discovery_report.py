@@ -34,9 +34,15 @@ import numpy as np
 from recal.core import discovery as dc
 from recal.core.discovery_data import DiscoveryData, data_from_batches
 from recal.core.effects import TIME
+from recal.core.hindsight import SUSPECT_EXCESS_G
 from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
-from recal.core.residuals import ORIENTATION_FEATURES, ResidualAnalysis, orientation_features
+from recal.core.residuals import (
+    ORIENTATION_FEATURES,
+    Misfit,
+    ResidualAnalysis,
+    orientation_features,
+)
 from recal.errors import RecordingError, UsageError
 from recal.samples import RawBatch
 
@@ -155,6 +161,39 @@ def criterion_text(cfg: dc.DiscoveryConfig, n_blocks: int) -> str:
             + "an earlier effect a later one made redundant is removed by the same test")
 
 
+def misfit_dict(mis: Misfit | None) -> dict[str, Any] | None:
+    """What a fit leaves beyond the noise (`residuals.Misfit`), in mg, for the reports."""
+    if mis is None:
+        return None
+    return {"excess_mg": 1e3 * mis.overall_g, "max_local_excess_mg": 1e3 * mis.max_excess_g,
+            "noise_mg": 1e3 * mis.noise_g, "chi2": mis.chi2,
+            "well_above_noise": mis.well_above_noise}
+
+
+def misfit_line(mis: Misfit | None, found: str) -> str | None:
+    """A person's line when the residual is well above the noise (None: it is not): how
+    much, and what to do next (``found``: what discover found, or what to run)."""
+    if mis is None or not mis.well_above_noise:
+        return None
+    return (f"the fit leaves {1e3 * mis.overall_g:.2f} mg beyond the sensor noise "
+            f"({1e3 * mis.noise_g:.2f} mg per window, reduced chi-square {mis.chi2:.3g}; "
+            f"{1e3 * mis.max_excess_g:.2f} mg where it is worst): the model lacks an effect; "
+            f"{found}")
+
+
+def _misfit_next(result: dc.DiscoveryResult) -> str:
+    """What to do about a residual the final model leaves (`misfit_line`)."""
+    best = max(result.last_round, key=lambda c: c.gain) if result.last_round else None
+    closest = (f"; the closest, {best.label}, took {100 * best.gain:.1f} % off the held-out "
+               f"error but not reliably (SE {100 * best.se:.1f} %): a longer recording, with "
+               f"more postures, may show it" if best is not None and best.gain > 0 else "")
+    further = "further " if result.steps else ""
+    return (f"no {further}candidate passed the held-out test (an effect recal does not model, "
+            f"or movement in the still windows){closest}. `recal hindsight` with this model "
+            f"widens sigma by it and marks samples suspect where it exceeds "
+            f"{1e3 * SUSPECT_EXCESS_G:g} mg")
+
+
 def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[str, Any]:
     """The JSON report (keys in the module docstring)."""
     cfg, data = result.config, result.data
@@ -168,8 +207,10 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
               "heldout_after_mg": s.heldout_after_mg, "gain": s.gain, "se": s.se,
               "candidates": [_candidate_dict(c) for c in s.candidates]}
              for i, s in enumerate(result.steps)]
+    mis = result.misfit()
     report = {
         "source": source,
+        "misfit": misfit_dict(mis),
         "held_at_start": list(result.held_at_start()),
         "input": {"kind": data.source, "windows": len(data), "dropped_moving": data.dropped,
                   "aux_names": list(data.aux_names), "s0": data.s0,
@@ -244,6 +285,9 @@ def format_table(result: dc.DiscoveryResult) -> str:
     held = result.held_at_start()
     if held:
         rows.append(f"held at their start, the poses cannot determine them: {', '.join(held)}")
+    line = misfit_line(result.misfit(), _misfit_next(result))
+    if line:
+        rows.append(line)
     for e in result.selected:
         unseen = [k for k, v in e.observable.items() if not v]
         rows.append(f"  {e.label}: {_short(e.params, 6)}"

@@ -20,6 +20,10 @@ stop event. Stopping reads what the ports still hold, calibrates it, writes the 
 closes (and indexes) the MCAP and the Zenoh session. A restart resumes each pipeline from its
 checked checkpoint; each calibrated sensor's lock in the state folder is taken before anything
 is opened, so a second daemon for the same sensor id exits with one line naming the holder.
+Then every port that exists is opened (exclusively) before the recording: the open decides who
+owns a port, so of two daemons started at the same instant on one port the one that lost
+exits at once with one line naming the holder; a port taken by another process later (after
+an unplug) stops the daemon the same way. A port that does not exist yet is waited for.
 A full disk never stops reading, calibrating or publishing (`recal.runtime.RecordingWatch`).
 
 Queries: ``recal/<sensor>/status`` answers the node's calibration state plus a ``gateway``
@@ -43,18 +47,25 @@ from typing import Any
 
 from recal.align_requests import align_handler
 from recal.checkpoints import Checkpoints, SensorLockedError
-from recal.config import SensorConfig, ServiceConfig, check_model_channels, load_config
-from recal.errors import ConfigError
+from recal.config import (
+    SensorConfig,
+    ServiceConfig,
+    check_model_channels,
+    default_sensor_id,
+    load_config,
+)
+from recal.errors import ConfigError, RecalError
 from recal.io import messages
 from recal.io.recording import sensor_topic
 from recal.io.recording_writer import RecordingWriter
-from recal.io.serial_source import SerialSource, SourceEvent, port_busy, port_problem
+from recal.io.serial_source import SerialSource, SourceEvent, port_problem
 from recal.io.wire_formats import make_parser
 from recal.node import CalibrationNode, make_node, node_settings
 from recal.runtime import (
     ERROR_PREFIX,
     RecordingWatch,
     console,
+    flush_console,
     install_stop_signals,
     open_bus,
     open_recording,
@@ -146,12 +157,16 @@ class Gateway:
             trading that much latency for fewer, larger batches (less CPU per sample).
         idle_batch_s: with ``batch_s`` = 0, the tick used while nobody subscribes to the
             sensors' live topics (0: always handle arrivals at once).
+        sources: the sensors' serial sources if already made (:func:`claim_ports`), else
+            made here; ``opened``: what their first opens reported (logged at :meth:`start`).
     """
 
     def __init__(self, cfg: ServiceConfig, writer: RecordingWriter, bus: Any,
                  nodes: dict[str, CalibrationNode | None],
                  out: Callable[[str], None] = print, *, batch_s: float = 0.0,
-                 idle_batch_s: float = 0.0, checkpoints: Checkpoints | None = None) -> None:
+                 idle_batch_s: float = 0.0, checkpoints: Checkpoints | None = None,
+                 sources: dict[str, SerialSource] | None = None,
+                 opened: dict[str, list[SourceEvent]] | None = None) -> None:
         if batch_s < 0 or idle_batch_s < 0:
             raise ValueError("batch_s and idle_batch_s must be >= 0")
         self.cfg = cfg
@@ -164,12 +179,9 @@ class Gateway:
         self._next_listen_check_s = 0.0
         self._stop_reading = threading.Event()
         self.ports: dict[str, _Port] = {}
+        self._opened = opened or {}
         for s in cfg.sensors:
-            assert s.port is not None
-            # a known rate lets ASCII lines come without a time column (x,y,z[,aux])
-            extra = {"rate_hz": s.rate_hz} if s.format == "ascii" and s.rate_hz else {}
-            parser = make_parser(s.format, s.aux_names, **extra)
-            src = SerialSource(s.port, parser, s.baudrate, read_timeout_s=0.02)
+            src = (sources or {}).get(s.id) or _source(s)
             node = nodes.get(s.id)
             if node is not None:
                 node.on_note = lambda line, sid=s.id: self.out(f"{NOTE_PREFIX} {sid}: {line}")
@@ -200,6 +212,9 @@ class Gateway:
             "sensors": {sid: p.sensor.port for sid, p in self.ports.items()},
             "mcap": str(self.writer.paths[0]), "run_nodes": self.cfg.run_nodes,
             "batch_s": self.batch_s, "idle_batch_s": self.idle_batch_s})
+        for sid, events in self._opened.items():
+            for ev in events:
+                self._source_event(self.ports[sid], ev, now)
         if self.bus is not None:
             from recal.io.bus import key
 
@@ -419,6 +434,12 @@ class Gateway:
                 if k != "port":
                     p.parse_errors[k] = p.parse_errors.get(k, 0) + int(v)
             return
+        if ev.kind == "port_busy" and self.fatal is None:
+            # another process owns the device now (it won a race for it after an unplug):
+            # reading on would take it back from that one at its next unplug
+            self.fatal = f"port {p.sensor.port} is {ev.detail.get('error', 'in use')}"
+            if self._stop_event is not None:
+                self._stop_event.set()
         if ev.kind in ("open_failed", "port_busy"):
             p.open_failures += 1
             if p.open_failures == 1:  # once per outage: retries follow with back-off
@@ -481,7 +502,7 @@ class Gateway:
         if kind in NOTE_KINDS:
             why = f": {detail['error']}" if isinstance(detail, dict) and "error" in detail else ""
             port = detail.get("port", "") if isinstance(detail, dict) else ""
-            wait = "; waiting for it" if kind in ("port_missing", "port_busy") else ""
+            wait = "; waiting for it" if kind == "port_missing" else ""
             self.out(f"{NOTE_PREFIX} {sid}: {kind.replace('_', ' ')} {port}{why}{wait}".rstrip())
         data = self.writer.write_event(kind, now, sensor_id=sid, detail=detail)
         if publish:
@@ -544,7 +565,7 @@ def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
     A device path that does not exist yet is waited for (a deployment may boot before its
     devices appear, a device may be plugged in later), as is any device unplugged later;
     one that can never be a serial port (a regular file, a directory, /dev/null, a URL scheme
-    pyserial does not know) or that another process holds is an error now."""
+    pyserial does not know) is an error now (one another process holds: `claim_ports`)."""
     if ports:
         if sensor_ids and len(sensor_ids) != len(ports):
             raise ConfigError(f"{len(ports)} ports but {len(sensor_ids)} sensor ids")
@@ -555,8 +576,8 @@ def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
                 base = cfg.sensor(sid) or SensorConfig(id=sid)
             elif i < len(cfg.sensors):
                 base = cfg.sensors[i]
-            else:
-                base = SensorConfig(id=f"sensor{i}")
+            else:  # the device's own name: two devices never share a calibration
+                base = SensorConfig(id=default_sensor_id(port))
             chosen.append(replace(base, port=port))
         return _distinct(chosen)
     chosen = [s for s in cfg.sensors if not sensor_ids or s.id in sensor_ids]
@@ -579,24 +600,52 @@ def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
             sensor_topic(s.id, "raw")
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-        if s.id in seen_ids:
-            raise ConfigError(f"sensor id {s.id!r} is given twice")
-        seen_ids.add(s.id)
-        assert s.port is not None
+        assert s.port is not None  # the port first: a device given twice gets one id twice
         device = s.port if "://" in s.port else os.path.realpath(s.port)
         if device in seen_ports:
             raise ConfigError(f"port {s.port} is given to two sensors "
                               f"({seen_ports[device]!r} and {s.id!r})")
         seen_ports[device] = s.id
+        if s.id in seen_ids:
+            raise ConfigError(f"sensor id {s.id!r} is given twice")
+        seen_ids.add(s.id)
     for s in sensors:
         assert s.port is not None
         problem = port_problem(s.port)
         if problem is not None:
             raise ConfigError(f"port {problem}")
-        busy = port_busy(s.port)
-        if busy is not None:  # e.g. a second daemon on the same device: it would split the
-            raise ConfigError(f"port {s.port} is {busy}")  # bytes with the first
     return sensors
+
+
+class PortTakenError(RecalError):
+    """A port another process holds (another daemon: it would split the bytes with us)."""
+
+
+def _source(s: SensorConfig) -> SerialSource:
+    assert s.port is not None
+    # a known rate lets ASCII lines come without a time column (x,y,z[,aux])
+    extra = {"rate_hz": s.rate_hz} if s.format == "ascii" and s.rate_hz else {}
+    parser = make_parser(s.format, s.aux_names, **extra)
+    return SerialSource(s.port, parser, s.baudrate, read_timeout_s=0.02)
+
+
+def claim_ports(cfg: ServiceConfig
+                ) -> tuple[dict[str, SerialSource], dict[str, list[SourceEvent]]]:
+    """Every sensor's serial source, opened now where its device exists: (sources, what
+    their opens reported). The exclusive open itself decides who owns a port, so two daemons
+    racing for one cannot both pass; PortTakenError (every source closed) for a port another
+    process holds. A port that is missing (``open_failed``) is retried by the I/O thread."""
+    sources: dict[str, SerialSource] = {}
+    opened: dict[str, list[SourceEvent]] = {}
+    for s in cfg.sensors:
+        src = sources[s.id] = _source(s)
+        opened[s.id] = events = src.open_now()
+        busy = [ev for ev in events if ev.kind == "port_busy"]
+        if busy:
+            for other in sources.values():
+                other.close()
+            raise PortTakenError(f"port {s.port} is {busy[0].detail.get('error', 'in use')}")
+    return sources, opened
 
 
 def _nodes(cfg: ServiceConfig, sink: Sink, model_path: str | Path | None,
@@ -689,8 +738,17 @@ def _serve(cfg: ServiceConfig, mcap_out: str | Path | None, model_path: str | Pa
              f"{exc.strerror or exc}")
         return 1
     try:
-        return _serve_locked(cfg, mcap_out, model_path, stop, emit, fail, on_ready, batch_s,
-                             idle_batch_s, checkpoints)
+        try:  # before the recording: a daemon that lost a port must leave no trace
+            sources, opened = claim_ports(cfg)
+        except PortTakenError as exc:
+            fail(f"{ERROR_PREFIX} {exc}")
+            return 1
+        try:
+            return _serve_locked(cfg, mcap_out, model_path, stop, emit, fail, on_ready,
+                                 batch_s, idle_batch_s, checkpoints, sources, opened)
+        finally:
+            for src in sources.values():
+                src.close()
     finally:
         checkpoints.release()
 
@@ -699,7 +757,9 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
                   model_path: str | Path | None, stop: threading.Event,
                   emit: Callable[[str], None], fail: Callable[[str], None],
                   on_ready: Callable[[Gateway], None] | None, batch_s: float,
-                  idle_batch_s: float, checkpoints: Checkpoints) -> int:
+                  idle_batch_s: float, checkpoints: Checkpoints,
+                  sources: dict[str, SerialSource], opened: dict[str, list[SourceEvent]]
+                  ) -> int:
     try:
         writer = open_recording(cfg, mcap_out)
     except (OSError, ValueError) as exc:
@@ -723,7 +783,7 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
         fail(f"{ERROR_PREFIX} {exc}")
         return 2
     gw = Gateway(cfg, writer, bus, nodes, emit, batch_s=batch_s, idle_batch_s=idle_batch_s,
-                 checkpoints=checkpoints)
+                 checkpoints=checkpoints, sources=sources, opened=opened)
     gw.start()
     for sid, kind, detail in problems:
         gw._sensor_event(sid, kind, time.time_ns(), detail)
@@ -737,6 +797,7 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
         gw.run(stop)
     finally:
         logged = gw.stop()
+    flush_console(emit)
     emit(f"{STOPPED_PREFIX} samples={logged}")
     if gw.fatal is not None:
         fail(f"{ERROR_PREFIX} {gw.fatal}")

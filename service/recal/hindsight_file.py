@@ -32,10 +32,11 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status, predicted_sigma_mg, sigma_form
+from recal.discovery_report import misfit_dict
 from recal.errors import RecordingError
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
-__all__ = ["Source", "calibrate_file", "open_source", "summary_lines"]
+__all__ = ["Corrected", "Source", "calibrate_file", "open_source", "summary_lines"]
 
 #: Samples per raw and calibrated message written from a CSV (as `recal import` writes them).
 MESSAGE_SAMPLES = 1000
@@ -91,14 +92,16 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
     model = model or SensorModel.diagonal(median_norm)
     cfg = PipelineConfig(rate_hz=rate_hz)
     fit = hindsight.calibrate(lambda: _counted(src.batches(), progress), model, cfg)
+    corrected = Corrected(fit, cfg)
     if Path(out).suffix.lower() == ".csv":
-        samples = _write_csv(src, fit, cfg, out, progress)
+        samples = _write_csv(src, corrected, out, progress)
     else:
-        samples = _write_mcap(src, fit, cfg, out, overwrite, progress)
+        samples = _write_mcap(src, corrected, out, overwrite, progress)
     seconds = time.perf_counter() - t0
     return {"in": src.name, "out": str(out), "sensor_id": src.sensor_id, "samples": samples,
             "seconds": seconds, "samples_per_s": samples / seconds if seconds > 0 else None,
-            "rate_hz": rate_hz, **fit_summary(fit)}
+            "rate_hz": rate_hz, **fit_summary(fit),
+            "samples_suspect": corrected.samples_suspect}
 
 
 def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
@@ -110,7 +113,7 @@ def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
             "described": fit.model.describe(fit.p, ref["counts_per_g"]),
             "sd": dict(zip(fit.model.names, sd.tolist(), strict=True)),
             "held": list(fit.held), "windows": fit.windows, "windows_dropped": fit.dropped,
-            "residual_rms_mg": fit.residual_rms_mg}
+            "residual_rms_mg": fit.residual_rms_mg, "misfit": misfit_dict(fit.misfit)}
 
 
 def summary_lines(s: dict[str, Any]) -> list[str]:
@@ -128,6 +131,17 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
     if s["held"]:
         lines.append(f"  held at nominal (the recording's poses cannot determine them): "
                      f"{', '.join(s['held'])}")
+    mis = s.get("misfit")
+    if mis and mis["well_above_noise"]:
+        suspect = s.get("samples_suspect", 0)
+        lines.append(
+            f"  poor fit: it leaves {mis['excess_mg']:.2f} mg beyond the sensor noise "
+            f"({mis['noise_mg']:.2f} mg per window, reduced chi-square {mis['chi2']:.3g}; "
+            f"{mis['max_local_excess_mg']:.2f} mg where it is worst): the model lacks an "
+            f"effect. sigma carries it; {suspect} samples where it exceeds "
+            f"{1e3 * hindsight.SUSPECT_EXCESS_G:g} mg are marked suspect. Next: "
+            f"`recal discover {s['in']}` finds the effect, then `recal hindsight` with "
+            f"--model of the model it writes")
     return lines
 
 
@@ -139,9 +153,11 @@ def _counted(batches: Iterable[RawBatch], progress: Callable[[int], None] | None
         yield b
 
 
-class _Corrected:
+class Corrected:
     """Pass 3: each batch corrected by the fit, with the detector's gate and output (its state
-    carried from batch to batch, as live)."""
+    carried from batch to batch, as live), status and predicted error (`HindsightFit.sigma_mg`:
+    what the model cannot explain around each sample counts; suspect where that is far above
+    the noise, `HindsightFit.suspect`)."""
 
     def __init__(self, fit: hindsight.HindsightFit, cfg: PipelineConfig) -> None:
         self.fit = fit
@@ -152,31 +168,36 @@ class _Corrected:
         # covariance, as the live node's
         self.status = Status.CALIBRATED if fit.free.any() else Status.HELD
         self.form = sigma_form(fit.model, fit.p, fit.cov)
+        self.samples_suspect = 0
 
     def __call__(self, b: RawBatch) -> CalibratedBatch:
         self.state, d = det.detect(self.det_cfg, self.state, b.v)
         fit = self.fit
         cov = Covariates.from_samples(b.t_us, b.aux, b.aux_names, fit.t0_us)
-        sigma = predicted_sigma_mg(fit.model, fit.p, fit.cov, b.v, cov, self.form)
+        sigma = fit.sigma_mg(b.t_us, predicted_sigma_mg(fit.model, fit.p, fit.cov, b.v, cov,
+                                                        self.form))
+        status = np.full(len(b), self.status, np.uint8)
+        suspect = fit.suspect(b.t_us)
+        status[suspect] = Status.SUSPECT
+        self.samples_suspect += int(suspect.sum())
         return CalibratedBatch(b.t_us, fit.correct(b), usable(d.gate, b, fit.model),
-                               d.detector_g, np.full(len(b), self.status, np.uint8), sigma)
+                               d.detector_g, status, sigma)
 
 
-def _write_csv(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, out: str | Path,
+def _write_csv(src: Source, corrected: Corrected, out: str | Path,
                progress: Callable[[int], None] | None) -> int:
     from recal.io.csv_table import write_calibrated_csv
 
-    corrected = _Corrected(fit, cfg)
     return write_calibrated_csv(out, (corrected(b) for b in
                                       rebatch(_counted(src.batches(), progress))))
 
 
-def _write_mcap(src: Source, fit: hindsight.HindsightFit, cfg: PipelineConfig, out: str | Path,
-                overwrite: bool, progress: Callable[[int], None] | None) -> int:
+def _write_mcap(src: Source, corrected: Corrected, out: str | Path, overwrite: bool,
+                progress: Callable[[int], None] | None) -> int:
     from recal.io import recording as rec
     from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 
-    corrected = _Corrected(fit, cfg)
+    fit = corrected.fit
     samples, last_ns = 0, 0
     writer = RecordingWriter(out, chunk_size=1024 * 1024, background_flush=False,
                              flush_interval_s=FILE_TO_FILE_FLUSH_S, fsync=False,

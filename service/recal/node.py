@@ -16,6 +16,7 @@ No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import threading
@@ -31,6 +32,7 @@ from recal.align_requests import AlignmentRequests
 from recal.checkpoints import (
     CHECKPOINT_FORMAT,
     Checkpoints,
+    estimate_problem,
     restore_pipeline,
 )
 from recal.config import (
@@ -43,7 +45,7 @@ from recal.config import (
 )
 from recal.core import alignment as al
 from recal.core import timebase as tb
-from recal.core.channels import missing_channels
+from recal.core.channels import missing_channels, unnamed_for
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.outputs import StepOutput
@@ -82,6 +84,12 @@ def model_name(model: SensorModel) -> str:
     if kinds == (("offset", None), ("scale", None), ("cross_axis", None)):
         return "full"
     return "+".join(e.label for e in model.effects)
+
+
+def _decade_reached(total: int, latest: int) -> bool:
+    """Whether ``total`` reached 1, 10, 100, ... with its ``latest`` additions."""
+    before = total - latest
+    return before <= 0 or len(str(total)) > len(str(before))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -171,6 +179,11 @@ class CalibrationNode(AlignmentRequests):
         self._refused_unreported = 0  # ... since the last align_refused event
         self.timebase = timebase
         self._anomalies_said_us = -ANOMALY_EVENT_US  # device time of the last time_anomalies
+        # the last state whose model, estimate and prior passed the restore checks
+        # (`_vet`), and which (by identity) were checked last
+        self._good: Pipeline | None = None
+        self._vetted: tuple[Any, Any, Any] | None = None
+        self.estimates_refused = 0
         #: why this sensor cannot be calibrated at all (a channel the model needs is missing
         #: from the stream), reported once as an event; None while it can
         self.failed: str | None = None
@@ -232,11 +245,14 @@ class CalibrationNode(AlignmentRequests):
                 for batch, log_ns in items:
                     self.process(batch, log_ns)
                 return
-            joined = self._device_time(RawBatch.concat([b for b, _ in items]), items[0][1])
-            outs = pipe.step_joined(joined, [len(b) for b, _ in items])
+            device = RawBatch.concat([b for b, _ in items])
+            joined = self._device_time(device, items[0][1])
+            lengths = [len(b) for b, _ in items]
+            outs = pipe.step_joined(joined, lengths)
             self._last_names = pipe.aux_names
-            for (_, log_ns), out in zip(items, outs, strict=True):
-                self._emit(out, log_ns)
+            devs = np.split(device.t_us, np.cumsum(lengths)[:-1])
+            for (_, log_ns), out, dev in zip(items, outs, devs, strict=True):
+                self._emit(out, log_ns, dev)
 
     def flush(self, log_time_ns: int) -> None:
         """End of stream: calibrate samples still held for rate measurement."""
@@ -262,6 +278,7 @@ class CalibrationNode(AlignmentRequests):
                              "samples_by_status": self.samples_by_status(),
                              "samples_not_finite": self.samples_not_finite,
                              "accepted_updates": self.accepted_updates,
+                             "estimates_refused": self.estimates_refused,
                              "still_s": self._tracker.duration_s if self._tracker else 0.0,
                              "align_requested": self._align_requested,
                              "align_refused": self.align_refused}
@@ -408,14 +425,16 @@ class CalibrationNode(AlignmentRequests):
         if fitted is None:
             return None
         out = pipe.step(self._device_time(fitted, log_ns))
-        self._emit(out, log_ns)
+        self._emit(out, log_ns, fitted.t_us)
         return out
 
-    def _emit(self, out: StepOutput, log_ns: int) -> None:
+    def _emit(self, out: StepOutput, log_ns: int, t_dev: np.ndarray) -> None:
         """Everything a step's output produces: calibrated, plot, events, state, body; the
         state as of the batch's end is the output's (`StepOutput.model`, ``estimate``,
-        ``state``), not the pipeline's, which may be some batches further (`process_many`)."""
-        cal = self._guard(out.calibrated, log_ns)
+        ``state``), not the pipeline's, which may be some batches further (`process_many`).
+        ``t_dev``: the batch's device time stamps as they came, kept on every calibrated
+        sample (`CalibratedBatch.t_dev`) beside the time base's ``t_us``."""
+        cal = self._guard(replace(out.calibrated, t_dev=t_dev), log_ns)
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
         self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
@@ -429,6 +448,41 @@ class CalibrationNode(AlignmentRequests):
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
                                  "body")
+        self._vet(self.last_t_us, log_ns)
+
+    def _vet(self, t_us: int, log_ns: int) -> None:
+        """Whatever the pipeline took on (a bootstrap, a reset, a new zero-g and scale, a
+        rediscovered model) must pass the checks its checkpoint meets at the next start
+        (`recal.checkpoints.estimate_problem`, bounds around the configured zero-g): a node
+        never holds a state it could not save, and a stream no sensor of this configuration
+        sends (a crafted one) cannot move it there. Refused: back to the last state that
+        passed (else the configured start), an event ``estimate_refused`` and a line. Runs
+        when the model, estimate or prior changed (by identity), not per batch."""
+        pipe = self.pipeline
+        assert pipe is not None
+        now = (pipe.model, pipe.estimate, pipe.prior)
+        if self._vetted is not None and all(a is b for a, b in zip(now, self._vetted,
+                                                                   strict=True)):
+            return
+        s = self.settings
+        why = estimate_problem(pipe, (s.model, s.prior))
+        if why is None:
+            self._vetted, self._good = now, copy.deepcopy(pipe)
+            return
+        back = (copy.deepcopy(self._good) if self._good is not None
+                else Pipeline(pipe.cfg, s.model, s.prior, pipe.aux_names))
+        back.counts = dict(pipe.counts)  # totals of what happened, refused or not
+        self.pipeline = back
+        self._vetted = (back.model, back.estimate, back.prior)
+        self.estimates_refused += 1
+        to = "the last good state" if self._good is not None else "the configured start"
+        if _decade_reached(self.estimates_refused, 1):
+            self._event("estimate_refused", t_us, log_ns, {
+                "reason": why, "back_to": to, "refused": self.estimates_refused})
+            if self.on_note is not None:
+                self.on_note(f"calibration refused ({why}): no sensor of this configuration "
+                             f"gives it; back to {to} ({self.estimates_refused} refused in all)")
+        self._publish_state(t_us, "estimate_refused", log_ns)
 
     def _device_time(self, batch: RawBatch, log_ns: int) -> RawBatch:
         """The batch on the time base (recal.core.timebase), its events reported."""
@@ -453,8 +507,11 @@ class CalibrationNode(AlignmentRequests):
             if t_us < self._anomalies_said_us + ANOMALY_EVENT_US:
                 return
             self._anomalies_said_us = t_us
-        self._event(ev["kind"], t_us, log_ns, ev["detail"])
         d = ev["detail"]
+        if ev["kind"] == "time_jump_refused" and not _decade_reached(d["refused"],
+                                                                      d["in_batch"]):
+            return  # a clock that jumps on every batch: said at 1, 10, 100, ... in all
+        self._event(ev["kind"], t_us, log_ns, d)
         note = None
         if ev["kind"] == "time_units":
             note = (f"device time is in {d['unit']}, not microseconds (as microseconds it "
@@ -469,6 +526,11 @@ class CalibrationNode(AlignmentRequests):
                 self.pipeline.doubt()
             note = (f"device time restarted ({d['device_before']} -> {d['device_after']} "
                     f"{d['unit']}): the device rebooted; output time continues")
+        elif ev["kind"] == "time_jump_refused":
+            note = (f"device time jumped {d['jump_s'] / 86_400:+.4g} days ({d['device_before']}"
+                    f" -> {d['device_after']} {d['unit']}), beyond the {d['limit_s'] / 86_400:g}"
+                    f" day a clock plausibly does: not taken as time, output time continues "
+                    f"({d['refused']} such jump{'s' if d['refused'] > 1 else ''} in all)")
         if note is not None and self.on_note is not None:
             self.on_note(note)
 
@@ -494,7 +556,8 @@ class CalibrationNode(AlignmentRequests):
             self._event("not_finite", int(cal.t_us[np.argmax(bad)]), log_ns, {
                 "samples": n, "published_as": "zeros, status uncalibrated, sigma_mg inf",
                 "total": self.samples_not_finite})
-        return CalibratedBatch(cal.t_us, a, cal.quasi_static, cal.detector_g, status, sigma)
+        return CalibratedBatch(cal.t_us, a, cal.quasi_static, cal.detector_g, status, sigma,
+                               cal.t_dev)
 
     def _report_watch(self, out: StepOutput, log_ns: int) -> None:
         """The pipeline's self-watch events (`core.outputs.WatchEvent`) as events."""
@@ -543,6 +606,18 @@ class CalibrationNode(AlignmentRequests):
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
         assert self.pipeline is not None
         names = self.pipeline.aux_names
+        if unnamed_for(batch.aux_names, names):
+            # a device that prints its header only at boot, heard after a restart: the same
+            # count of channels, unnamed, are the ones the state was built with (else each
+            # would be missing and its windows NaN)
+            if batch.aux_names != self._last_names:
+                self._event("layout_mapped", int(batch.t_us[0]), log_ns, {
+                    "got": list(batch.aux_names), "mapped_to": list(names)})
+                if self.on_note is not None:
+                    self.on_note(f"channels {', '.join(batch.aux_names)} (no header heard) "
+                                 f"taken as {', '.join(names)}, as before the restart")
+            self._last_names = batch.aux_names
+            return RawBatch(batch.t_us, batch.v, batch.aux, names)
         fitted = conform_channels(batch, names, self.pipeline.model.covariates)
         if batch.aux_names != self._last_names and batch.aux_names != names:
             self._event("layout_changed", int(batch.t_us[0]), log_ns, {
@@ -700,7 +775,7 @@ class CalibrationNode(AlignmentRequests):
     def _body(cal: CalibratedBatch, ali: al.Alignment) -> CalibratedBatch:
         # a rotation keeps each sample's status and the length of its error (sigma_mg)
         return CalibratedBatch(cal.t_us, al.to_body(ali.rotation, cal.a_g), cal.quasi_static,
-                               cal.detector_g, cal.status, cal.sigma_mg)
+                               cal.detector_g, cal.status, cal.sigma_mg, cal.t_dev)
 
     # -- state and events ---------------------------------------------------------------------
 

@@ -27,6 +27,7 @@ from recal.node import CalibrationNode, make_node, node_settings
 from recal.runtime import (
     ERROR_PREFIX,
     console,
+    flush_console,
     install_stop_signals,
     open_bus,
     open_recording,
@@ -178,6 +179,7 @@ def run_node(config: ServiceConfig | str | Path | None = None,
         if own_bus:
             bus.close()
         restore()
+        flush_console(emit)
     return 0
 
 

@@ -214,8 +214,21 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
                     "phase": s["phase"], "gain_reference": s["gain_reference"],
                     "status": s["status"], "unobserved": s["unobserved"],
                     "misfit_mg": s["misfit_mg"],
+                    "last_update_reason": (s["last_update"] or {}).get("reason", ""),
                     "alignment": node.alignment.to_dict() if node.alignment else None})
     return out
+
+
+def _why_not_calibrated(counts: dict, reason: str) -> str:
+    """Why a sensor without a prior ended with no calibration: its updates were rejected
+    (the data reached a fit the estimator would not take: say which gate), or it never
+    covered enough orientations for one."""
+    rejected = counts.get("updates_rejected", 0)
+    if rejected:
+        return (f"not calibrated: {rejected} updates rejected (last: {reason or 'no reason'}); "
+                "give a prior with --config or --model")
+    return ("not calibrated: without a prior the recording must first cover enough "
+            "orientations (5 half-axes); give one with --config or --model")
 
 
 def replay_lines(summary: dict) -> list[str]:
@@ -236,8 +249,7 @@ def replay_lines(summary: dict) -> list[str]:
                          + (f"; {info['samples_not_finite']} not finite, published zeroed"
                             if info.get("samples_not_finite") else ""))
         if not info["bootstrapped"]:
-            lines.append("    not calibrated: without a prior the recording must first cover "
-                         "enough orientations (5 half-axes); give one with --config or --model")
+            lines.append(f"    {_why_not_calibrated(c, info.get('last_update_reason', ''))}")
             continue
         ref = info.get("gain_reference")
         if ref:

@@ -21,6 +21,7 @@ from types import FrameType
 from typing import Any
 
 from recal.config import ServiceConfig
+from recal.console import LineLimiter
 from recal.io.recording_writer import RecordingWriter, WriteHealth
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "WRITE_NOTE_S",
     "RecordingWatch",
     "console",
+    "flush_console",
     "install_stop_signals",
     "open_bus",
     "open_recording",
@@ -43,10 +45,18 @@ def console(out: Callable[[str], None] | None
             ) -> tuple[Callable[[str], None], Callable[[str], None]]:
     """``(emit, fail)``: where a process's lines go, ``out`` for both if given (tests, the
     demo), else stdout for the operator's lines and stderr for the errors, flushed at once
-    (a journal under systemd sees them as they happen)."""
-    emit = out or (lambda line: print(line, flush=True))
+    (a journal under systemd sees them as they happen). The operator's lines are
+    rate-limited per kind (`recal.console`: a device that misbehaves on every sample floods
+    no journal; the recording keeps every event); call :func:`flush_console` at the end."""
+    emit = LineLimiter(out or (lambda line: print(line, flush=True)))
     fail = out or (lambda line: print(line, file=sys.stderr, flush=True))
     return emit, fail
+
+
+def flush_console(emit: Callable[[str], None]) -> None:
+    """Say how many lines :func:`console`'s limit left out and has not said yet."""
+    if isinstance(emit, LineLimiter):
+        emit.flush()
 
 
 def install_stop_signals(stop: threading.Event) -> Callable[[], None]:

@@ -101,6 +101,11 @@ class CalibratedBatch:
         sigma_mg: (N,) float64 the predicted 1-sigma error of the calibrated vector from the
             parameters' uncertainty, mg (`core.status.predicted_sigma_mg`); NaN: not recorded,
             inf: nothing known (a sample published zeroed).
+        t_dev: (N,) int64 the device's own time stamp of each sample, exactly as the raw
+            batch carried it (its unit is the time base's, `recal.core.timebase`): the key
+            that joins a calibrated sample to its raw one. ``t_us`` is the service's time
+            base, which never goes back and so continues past a reboot; ``t_dev`` restarts
+            with the device. None: not recorded (a recording made before it was kept).
     """
 
     t_us: np.ndarray
@@ -109,6 +114,7 @@ class CalibratedBatch:
     detector_g: np.ndarray
     status: np.ndarray | None = None
     sigma_mg: np.ndarray | None = None
+    t_dev: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = _as_time_us(self.t_us)
@@ -123,8 +129,11 @@ class CalibratedBatch:
                            else np.ascontiguousarray(self.status, np.uint8).reshape(-1))
         object.__setattr__(self, "sigma_mg", np.full(n, np.nan) if self.sigma_mg is None
                            else np.ascontiguousarray(self.sigma_mg, np.float64).reshape(-1))
+        if self.t_dev is not None:
+            object.__setattr__(self, "t_dev", _as_time_us(self.t_dev))
         if not (len(self.a_g) == len(self.quasi_static) == len(self.detector_g) == n
-                == len(self.status) == len(self.sigma_mg)):
+                == len(self.status) == len(self.sigma_mg)
+                == (n if self.t_dev is None else len(self.t_dev))):
             raise ValueError("calibrated batch fields differ in length")
 
     @classmethod
@@ -135,12 +144,14 @@ class CalibratedBatch:
     def concat(cls, batches: Sequence[CalibratedBatch]) -> CalibratedBatch:
         if not batches:
             return cls.empty()
+        devs = [b.t_dev for b in batches]
         return cls(np.concatenate([b.t_us for b in batches]),
                    np.concatenate([b.a_g for b in batches]),
                    np.concatenate([b.quasi_static for b in batches]),
                    np.concatenate([b.detector_g for b in batches]),
                    np.concatenate([b.status for b in batches]),
-                   np.concatenate([b.sigma_mg for b in batches]))
+                   np.concatenate([b.sigma_mg for b in batches]),
+                   None if any(d is None for d in devs) else np.concatenate(devs))
 
     @property
     def recorded(self) -> bool:
@@ -152,7 +163,8 @@ class CalibratedBatch:
 
     def __getitem__(self, index: slice | np.ndarray) -> CalibratedBatch:
         return CalibratedBatch(self.t_us[index], self.a_g[index], self.quasi_static[index],
-                               self.detector_g[index], self.status[index], self.sigma_mg[index])
+                               self.detector_g[index], self.status[index], self.sigma_mg[index],
+                               None if self.t_dev is None else self.t_dev[index])
 
 
 def batch_groups(items: Iterable[tuple[RawBatch, T]], min_samples: int = REBATCH_SAMPLES

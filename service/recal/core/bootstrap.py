@@ -25,11 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from recal.core.buffer import cell_of
-from recal.core.effects import CrossAxis, Offset, Scale
+from recal.core.effects import Covariates, CrossAxis, Offset, Scale
 from recal.core.model import SensorModel
 
-__all__ = ["Located", "fit_ellipsoid", "fit_sphere", "initial_params", "locate", "off_by",
-           "zero_and_scale"]
+__all__ = ["LOCATE_MIN_WINDOWS", "Located", "fit_ellipsoid", "fit_poses", "fit_sphere",
+           "initial_params", "locate", "off_by", "reach", "still_poses", "zero_and_scale"]
 
 #: Window means further than this from the sphere (relative: 50 mg) are not still poses.
 LOCATE_OUTLIER_G = 0.05
@@ -38,12 +38,24 @@ LOCATE_OUTLIER_G = 0.05
 #: degrees of freedom), while a whole recording of a ratiometric part whose zero-g follows a
 #: sagging supply is still a usable first guess at ~0.1.
 LOCATE_MAX_RESIDUAL_G = 0.2
+#: Fewest window means `locate` fits a sphere to: four unknowns, and two to judge it by (a lab's
+#: six positions).
+LOCATE_MIN_WINDOWS = 6
 #: Passes of `locate`'s fit, each dropping the windows the one before put off the sphere.
 LOCATE_PASSES = 6
 #: Half-axes the centred directions must reach beyond COVERAGE_LEVEL_G for a fit to stand
 #: (five of six: lying face down may never happen).
 LOCATE_HALF_AXES = 5
 COVERAGE_LEVEL_G = 0.3
+#: A window whose raw samples spread more than this (sd per axis, in g) turned while it was
+#: taken: the detector sees the norm (Lötters eq. 1), and a turn keeps the norm at 1 g, so a
+#: stream cut together from single-pose recordings passes it whole. Still, the spread is the
+#: sensor noise (a few mg; above ~20 mg the detector rejects the samples), while a window
+#: that spans two poses 90 degrees apart spreads sqrt(2 f (1 - f) / 3) g for a fraction f in
+#: the second: 50 mg already at f = 0.4 %, a norm ~4 mg short.
+TURN_SD_G = 0.05
+#: Passes of `fit_poses`, each dropping the windows the fit before put off its ellipsoid.
+FIT_PASSES = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,7 +93,7 @@ def locate(v: np.ndarray, grid: int = 6) -> Located | None:
     keep = np.ones(len(v), bool)
     fit = None
     for _ in range(LOCATE_PASSES):
-        if keep.sum() < 10:
+        if keep.sum() < LOCATE_MIN_WINDOWS:
             return None
         fit = fit_sphere(v[keep])
         if fit is None:
@@ -94,16 +106,22 @@ def locate(v: np.ndarray, grid: int = 6) -> Located | None:
         if np.array_equal(new, keep):
             break
         keep = new
-    if fit is None or keep.sum() < 10:
+    if fit is None or keep.sum() < LOCATE_MIN_WINDOWS:
         return None
     residual = float(np.sqrt(np.mean(dev[keep] ** 2)))
     if residual > LOCATE_MAX_RESIDUAL_G:  # no sphere: one pose's noise around a tiny one
         return None
-    u = v[keep] - c
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    half = int((u > COVERAGE_LEVEL_G).any(axis=0).sum() + (u < -COVERAGE_LEVEL_G).any(axis=0).sum())
-    cells = len(np.unique(cell_of(u, grid)))
+    half, cells = reach(v[keep] - c, grid)
     return Located(c, r, keep, half, cells, residual)
+
+
+def reach(a: np.ndarray, grid: int = 6) -> tuple[int, int]:
+    """Half-axes the directions of a (M,3, centred) reach beyond COVERAGE_LEVEL_G, and the
+    cube-face grid cells (`buffer.cell_of`) they fill."""
+    u = np.asarray(a, np.float64).reshape(-1, 3)
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    half = int((u > COVERAGE_LEVEL_G).any(axis=0).sum() + (u < -COVERAGE_LEVEL_G).any(axis=0).sum())
+    return half, len(np.unique(cell_of(u, grid)))
 
 
 def off_by(centre: np.ndarray, scale: float, centre0: np.ndarray, scale0: float,
@@ -122,7 +140,7 @@ def fit_ellipsoid(v: np.ndarray, full: bool = True) -> tuple[np.ndarray, np.ndar
     |U (v - o)| ~ 1, or None when the points do not pin down an ellipsoid."""
     v = np.asarray(v, np.float64).reshape(-1, 3)
     need = 9 if full else 6
-    if len(v) < need + 1:
+    if len(v) < need:  # six poses determine the diagonal model exactly
         return None
     c = v.mean(axis=0)
     span = float(np.max(np.abs(v - c))) or 1.0
@@ -132,7 +150,9 @@ def fit_ellipsoid(v: np.ndarray, full: bool = True) -> tuple[np.ndarray, np.ndar
         cols += [2 * x * y, 2 * x * z, 2 * y * z]
     cols += [2 * x, 2 * y, 2 * z]
     H = np.stack(cols, axis=1)
-    coef, *_ = np.linalg.lstsq(H, np.ones(len(v)), rcond=None)
+    coef, _, rank, _ = np.linalg.lstsq(H, np.ones(len(v)), rcond=None)
+    if rank < H.shape[1]:  # the poses do not tell the coefficients apart
+        return None
     if full:
         A, B, C, D, E, F, G, Hh, Ii = coef
     else:
@@ -168,8 +188,11 @@ def initial_params(model: SensorModel, v: np.ndarray,
                    sphere: bool = False) -> tuple[SensorModel, np.ndarray] | None:
     """Model with s0 set from the fit, and p from the ellipsoid (other effects at nominal).
 
-    sphere=True fits only offsets and one common scale (for partial orientation coverage)."""
-    fit = fit_sphere(v) if sphere else fit_ellipsoid(v, full=model.has("cross_axis"))
+    sphere=True fits only offsets and one common scale (for partial orientation coverage). A
+    model with cross-axis terms starts from the axis-aligned fit when the windows are too few
+    for the full one (fewer than ten: six clean poses), its cross-axis terms at nominal."""
+    full = model.has("cross_axis") and len(v) >= 10
+    fit = fit_sphere(v) if sphere else fit_ellipsoid(v, full=full)
     if fit is None:
         return None
     o, U = fit
@@ -180,10 +203,40 @@ def initial_params(model: SensorModel, v: np.ndarray,
     p = fitted.nominal()
     p[fitted.slice(Offset())] = o
     p[fitted.slice(Scale())] = s
-    if model.has("cross_axis") and not sphere:
+    if full and not sphere:
         M = U * s[None, :]
         p[fitted.slice(CrossAxis())] = [M[0, 1], M[0, 2], M[1, 2]]
     return fitted, p
+
+
+def still_poses(var: np.ndarray, s0: float) -> np.ndarray:
+    """Which windows (their mean per-axis variance var, raw units squared) are still poses
+    for a first fit: those that did not turn while taken (TURN_SD_G)."""
+    return np.asarray(var, np.float64) <= (TURN_SD_G * s0) ** 2
+
+
+def fit_poses(model: SensorModel, v: np.ndarray, cov: Covariates, sphere: bool, tol_g: float
+              ) -> tuple[SensorModel, np.ndarray, np.ndarray] | None:
+    """`initial_params` on the window means v (M,3) that agree with it (cov: the windows'
+    covariates, for the model's other effects at nominal): windows whose norm
+    under the fit is further than tol_g from 1 g (a pose mixed with the next, movement) are
+    dropped and the rest fitted again. A fit of few poses is exactly or nearly determined, so
+    one such window bends it by tenths of a g (a six-pose stream cut together gave s_z 0.75
+    of the truth and o_z 0.25 g), while the windows that agree fit it to their noise.
+    Returns (model, p, the windows used) or None (no fit through enough of them)."""
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    keep = np.all(np.isfinite(v), axis=1)
+    for _ in range(FIT_PASSES):
+        fit = initial_params(model, v[keep], sphere=sphere)
+        if fit is None:
+            return None
+        fitted, p = fit
+        a = fitted.correct(p, v, cov)
+        new = keep & (np.abs(np.linalg.norm(a, axis=1) - 1.0) <= tol_g)
+        if np.array_equal(new, keep):
+            return fitted, p, keep
+        keep = new
+    return None
 
 
 def zero_and_scale(v: np.ndarray) -> tuple[np.ndarray, float]:

@@ -8,7 +8,8 @@ is neither clipped (near full scale) nor part of a flat-lined stretch (a device 
 last sample while idle: zero variance is not stillness, it is no data).
 
 Streaming in the manner of scipy.signal.sosfilt: the filter state travels in `DetectorState`, so a
-recording fed in one batch or sample by sample gives the same gates to the last bit.
+recording fed in one batch or sample by sample gives the same gates to the last bit. The
+filters are `recal.core.sos_filter`'s, so a daemon does not import scipy.signal.
 The threshold and why: docs/design.md ("The detector threshold").
 """
 
@@ -18,14 +19,9 @@ import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import signal
 
+from recal.core.sos_filter import butter_sos, sos_zi, sosfilt
 from recal.core.triaxial import all3, any3, norm3
-
-try:  # the Cython kernel behind signal.sosfilt: its argument checks outweigh a small batch
-    from scipy.signal._sosfilt import _sosfilt
-except ImportError:  # pragma: no cover - a scipy that moved it: the public function
-    _sosfilt = None
 
 __all__ = ["DetectorConfig", "DetectorOutput", "DetectorState", "detect", "init_state"]
 
@@ -102,21 +98,9 @@ def _butter_pair(order: int, hp_hz: float, lp_hz: float,
                  rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """The high- and low-pass designs, made once per setting: a live sensor sending one sample
     per batch would otherwise pay for the design on every batch."""
-    hp = signal.butter(order, hp_hz, "highpass", fs=rate_hz, output="sos")
-    lp = signal.butter(order, lp_hz, "lowpass", fs=rate_hz, output="sos")
-    # Shared between callers (never changed in place); not marked read-only because
-    # sosfilt's Cython signature wants writable buffers.
-    return hp, lp
-
-
-def _filter(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """signal.sosfilt(sos, x, zi=zi) for 1-D float64 x: the same kernel on the same copies."""
-    if _sosfilt is None:
-        return signal.sosfilt(sos, x, zi=zi)
-    y = np.array(x, np.float64, order="C").reshape(1, -1)  # filtered in place
-    z = np.array(zi, np.float64, order="C").reshape(1, -1, 2)
-    _sosfilt(sos, y, z)
-    return y.reshape(-1), z.reshape(-1, 2)
+    # Shared between callers, never changed in place.
+    return (butter_sos(order, hp_hz, rate_hz, highpass=True),
+            butter_sos(order, lp_hz, rate_hz, highpass=False))
 
 
 def init_state(cfg: DetectorConfig) -> DetectorState:
@@ -129,8 +113,8 @@ def _start(cfg: DetectorConfig, state: DetectorState, x0_g: float) -> DetectorSt
     """Start the filters in steady state for the first sample; the low-pass starts *above*
     threshold, so a recording is not called still before the detector has seen a second of it."""
     hp, lp = cfg.sos()
-    return replace(state, zi_hp=signal.sosfilt_zi(hp) * x0_g,
-                   zi_lp=signal.sosfilt_zi(lp) * (2.0 * cfg.threshold_g), started=True)
+    return replace(state, zi_hp=sos_zi(hp) * x0_g,
+                   zi_lp=sos_zi(lp) * (2.0 * cfg.threshold_g), started=True)
 
 
 def _flat_runs(v: np.ndarray, last_v: np.ndarray, run0: int) -> np.ndarray:
@@ -166,8 +150,8 @@ def detect(cfg: DetectorConfig, state: DetectorState,
     if not state.started:
         state = _start(cfg, state, float(v_in[0]))
     hp, lp = cfg.sos()
-    y_hp, zi_hp = _filter(hp, v_in, state.zi_hp)
-    v_out, zi_lp = _filter(lp, np.abs(y_hp), state.zi_lp)  # eq. 2
+    y_hp, zi_hp = sosfilt(hp, v_in, state.zi_hp)
+    v_out, zi_lp = sosfilt(lp, np.abs(y_hp), state.zi_lp)  # eq. 2
     runs = _flat_runs(v, state.last_v, state.same_run)
     clipped = (any3(np.abs(vc) >= cfg.clip_raw) if cfg.clip_raw is not None
                else np.zeros(len(v), bool))

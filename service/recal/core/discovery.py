@@ -75,7 +75,13 @@ from recal.core.model_fit import (
     score_heldout,
     start_params,
 )
-from recal.core.residuals import ResidualAnalysis, explained_fraction, residual_analysis
+from recal.core.residuals import (
+    Misfit,
+    ResidualAnalysis,
+    explained_fraction,
+    misfit,
+    residual_analysis,
+)
 from recal.errors import ConfigError, InputError
 
 __all__ = [
@@ -296,6 +302,17 @@ class DiscoveryResult:
         value: e.g. every gain, and the offsets across gravity, of a recording in one pose."""
         free = free_params(self.model, self.p, self.data)
         return tuple(n for n, f in zip(self.model.names, free, strict=True) if not f)
+
+    def misfit(self) -> Misfit | None:
+        """What the final fit leaves beyond the noise of the window means (`residuals.misfit`;
+        None for a table, whose rows carry no noise)."""
+        w = self.data.windows
+        if self.data.source != "windows" or not len(w):
+            return None
+        noise2 = w.var / np.maximum(w.n, 1) / self.data.s0**2
+        if not (np.all(np.isfinite(noise2)) and noise2.any()):
+            return None
+        return misfit(self.model.residual(self.p, w.v, self.data.cov), noise2, w.t_us)
 
     def corrected(self, final: bool = True) -> np.ndarray:
         """The windows corrected by the final (or base) fit on all windows, g (M,3)."""

@@ -15,7 +15,12 @@ was known when it arrived); this module is for a recording already on disk.
    noise: every window counts alike whatever its age. Windows whose corrected norm is
    further than norm_tol_g from 1 g (movement the detector let through, the live pipeline's
    norm gate) are dropped and the fit repeated until it keeps the same windows;
-3. the correction (inverse of Lötters eq. 3) of every sample: `HindsightFit.correct`.
+3. the correction (inverse of Lötters eq. 3) of every sample: `HindsightFit.correct`, with
+   its predicted error: the parameters' covariance (Lötters eq. 11b) scaled by the fit's
+   reduced chi-square, and what the model cannot explain there (`residuals.misfit`: the still
+   windows' residual beyond their noise, pooled over the minutes around each sample), so
+   sigma grows where the residual grows (`HindsightFit.sigma_mg`); where that residual is
+   far above the noise the samples are suspect (`HindsightFit.poor`).
 
 Why and how it compares with the batch tools: docs/design.md and docs/performance.md
 ("Calibration with hindsight").
@@ -36,14 +41,23 @@ from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline_config import PipelineConfig
+from recal.core.residuals import Misfit, misfit
 from recal.core.windowing import Windowing
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
-__all__ = ["HindsightFit", "calibrate", "fit"]
+__all__ = ["MISFIT_AXES", "SUSPECT_EXCESS_G", "HindsightFit", "calibrate", "fit"]
 
 #: Most fits of `fit`: each drops the windows the one before put beyond norm_tol_g.
 MAX_PASSES = 5
+#: The norm residual sees an error along gravity only; an effect the model lacks (an offset
+#: that follows temperature, a supply that scales the output) errs as much across it, unseen:
+#: sigma carries the local excess once per axis (sqrt(3) times it).
+MISFIT_AXES = 3
+#: A local residual this far beyond the noise (along gravity, g) marks the samples there
+#: suspect: the model misses an effect of at least that size there (a clean fit leaves
+#: well under 1 mg).
+SUSPECT_EXCESS_G = 0.005
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +71,8 @@ class HindsightFit:
         t0_us: origin of the model's "time" covariate (the recording's first sample).
         windows: windows fitted; dropped: windows left out (movement, beyond norm_tol_g).
         residual_rms_mg: RMS of 1 g - |a| over the windows fitted.
+        misfit: the fitted windows' residual beyond their noise, in time (`residuals.misfit`;
+            None: not measured).
     """
 
     model: SensorModel
@@ -67,6 +83,36 @@ class HindsightFit:
     windows: int
     dropped: int
     residual_rms_mg: float
+    misfit: Misfit | None = None
+
+    @property
+    def chi2(self) -> float:
+        """Reduced chi-square of the fit (1 where the model explains the windows)."""
+        return self.misfit.chi2 if self.misfit is not None else 1.0
+
+    @property
+    def poor(self) -> bool:
+        """The fit leaves a residual well above the noise somewhere (SUSPECT_EXCESS_G)."""
+        return self.misfit is not None and self.misfit.max_excess_g > SUSPECT_EXCESS_G
+
+    def sigma_mg(self, t_us: np.ndarray, sigma_p_mg: np.ndarray) -> np.ndarray:
+        """Predicted 1-sigma error (mg) of samples at t_us whose error from the parameters'
+        covariance alone is sigma_p_mg: that scaled by the reduced chi-square (when above
+        1), with the excess beyond the noise once per axis (MISFIT_AXES) added: the local
+        one, or the whole recording's where that is larger (an effect whose error lies across
+        gravity, a cross-axis term under a diagonal model, shows in the norm only in the
+        postures between the axes: the minutes around a sample may not see it)."""
+        s2 = np.asarray(sigma_p_mg, np.float64) ** 2 * max(1.0, self.chi2)
+        if self.misfit is not None:
+            excess = np.maximum(self.misfit.at(t_us), self.misfit.overall_g)
+            s2 = s2 + MISFIT_AXES * (1e3 * excess) ** 2
+        return np.sqrt(s2)
+
+    def suspect(self, t_us: np.ndarray) -> np.ndarray:
+        """Which samples lie where the local excess is beyond SUSPECT_EXCESS_G."""
+        if self.misfit is None:
+            return np.zeros(len(t_us), bool)
+        return self.misfit.at(t_us) > SUSPECT_EXCESS_G
 
     def correct(self, b: RawBatch, out: np.ndarray | None = None) -> np.ndarray:
         """Raw samples -> acceleration in g (N,3), into ``out`` if given (a recording's output
@@ -118,9 +164,13 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
         if np.array_equal(keep, fitted) or not keep.any():
             break
     xi_fitted = xi[fitted]
+    w = data.windows
+    # the noise left in a window mean, per axis and so along gravity: var / n of its samples
+    noise2 = w.var[fitted] / np.maximum(w.n[fitted], 1) / model.s0**2
     return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(fitted.sum()),
                         dropped + int((~fitted).sum()),
-                        1e3 * float(np.sqrt(np.mean(xi_fitted**2))) if len(xi_fitted) else 0.0)
+                        1e3 * float(np.sqrt(np.mean(xi_fitted**2))) if len(xi_fitted) else 0.0,
+                        misfit(xi_fitted, noise2, w.t_us[fitted]))
 
 
 def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,

@@ -24,7 +24,14 @@ from enum import Enum
 import numpy as np
 
 from recal.core import detector as det
-from recal.core.bootstrap import initial_params, locate, off_by
+from recal.core.bootstrap import (
+    LOCATE_MIN_WINDOWS,
+    fit_poses,
+    locate,
+    off_by,
+    reach,
+    still_poses,
+)
 from recal.core.buffer import Coverage, WindowBuffer, Windows
 from recal.core.channels import check_channels, usable
 from recal.core.correction import Segment, calibrate
@@ -84,6 +91,10 @@ class Lifecycle(Enum):
 _AWAITING_SCALE, _BOOTSTRAPPING, _TRACKING, _SUSPECT = (
     Lifecycle.AWAITING_SCALE, Lifecycle.BOOTSTRAPPING, Lifecycle.TRACKING, Lifecycle.SUSPECT)
 
+
+#: Up to this many windows in the buffer before a bootstrap, its sphere fits run at every
+#: window, not every update_every (`Pipeline._sphere_due`).
+FEW_WINDOWS = 20
 
 #: The pipeline's attributes that are never changed in place (replaced when they change): a
 #: step's snapshot (`Pipeline._stepped`) keeps them as they are instead of copying them.
@@ -431,7 +442,12 @@ class Pipeline:
             if not ok:
                 counts["windows_rejected"] += 1
                 continue
+            opened = buf.cells_opened
             add(v, aux, t_mid, n, var, direction, run, cell)
+            if watch and buf.cells_opened != opened and self._axis_newly_covered():
+                fresh.append((v, aux, t_mid, n, var))
+                counts["windows"] += 1
+                return done, c  # a gain the last update could not see now can be: update
             if watch:  # before the bootstrap nothing tests them (and they would pile up)
                 fresh.append((v, aux, t_mid, n, var))
             counts["windows"] += 1
@@ -441,6 +457,18 @@ class Pipeline:
                     and buf.cells_opened != self.refit.coverage_at_update):
                 return done, c
         return done, None
+
+    def _axis_newly_covered(self) -> bool:
+        """An axis the buffer now sees from both sides whose scale the last update could not
+        observe (a sphere fitted to five half-axes, then the sixth): worth an update at once,
+        whatever the window count (a six-pose stream ends right after its last pose)."""
+        rep = self.last_report
+        if rep is None or not self.model.has("scale") or not rep.observable:
+            return False
+        sl = self.model.slice(Scale())
+        seen = rep.observable[sl.start:sl.stop]
+        covered = self.buffer.coverage().axes_covered
+        return any(c and not o for c, o in zip(covered, seen, strict=True))
 
     # --- self-watch --------------------------------------------------------------------------
     def _grossly(self, chunk: WindowChunk, i: int, ok: bool, n: int, var: float) -> bool:
@@ -644,25 +672,33 @@ class Pipeline:
 
     def _try_bootstrap(self, idx: int, now_us: int) -> UpdateEvent | None:
         self._relocate(idx)
+        slots = self.buffer.slots()  # windows that turned are no poses (`still_poses`)
+        self.buffer.drop(slots[~still_poses(self.buffer.windows().var, self.model.s0)])
         cov = self.buffer.coverage()
         # five of the six half-axes: lying face down (-z for a hip sensor) may never happen
         half_axes = sum(cov.seen_pos) + sum(cov.seen_neg)
         if half_axes < 5 or cov.cells_filled < self.cfg.bootstrap_min_cells:
             return None
         if self.centre0.any():  # zero-g was found, roughly: coverage around the best centre
-            if self.counts["windows"] % self.cfg.update_every:
+            if not self._sphere_due():
                 return None
             loc = locate(self.buffer.windows().v, self.cfg.buffer.grid)
             if loc is None or not loc.covers(cells=self.cfg.bootstrap_min_cells):
                 return None
-        w = self.buffer.windows()
-        fit = initial_params(self.model, w.v, sphere=not cov.full)
+        w, slots = self.buffer.windows(), self.buffer.slots()
+        fit = fit_poses(self.model, w.v, self.covariates(w.t_us, w.aux), not cov.full,
+                        self.cfg.norm_tol_g)
         if fit is None:
             return None
-        model, p = fit
+        model, p, used = fit
+        a = model.correct(p, w.v[used], self.covariates(w.t_us[used], w.aux[used]))
+        half, cells = reach(a, self.cfg.buffer.grid)
+        if half < (5 if not cov.full else 6) or cells < self.cfg.bootstrap_min_cells:
+            return None  # the windows that agree with the fit do not cover enough
         if not np.all((p[model.slice(Scale())] > 0.5 * self.model.s0)
                       & (p[model.slice(Scale())] < 2.0 * self.model.s0)):
             return None  # an ellipsoid far from the first sample's norm is not this sensor
+        self.buffer.drop(slots[~used])  # off the fit: not still poses, never to be fitted
         # keep the detector's scale: its filters already run in the first sample's units
         # (`_relocate` restarted it if those were materially wrong)
         self.model = model
@@ -676,27 +712,38 @@ class Pipeline:
         ev = self._update(idx, now_us, self.buffer.windows())  # the fit's own data
         return replace(ev, bootstrap=True)
 
+    def _sphere_due(self) -> bool:
+        """Whether a sphere fit of the buffer runs at this window: at every one while the
+        buffer holds few (a lab's six positions may give no more), then every update_every
+        windows (a wearer who never turns costs little)."""
+        return (len(self.buffer) <= FEW_WINDOWS
+                or self.counts["windows"] % self.cfg.update_every == 0)
+
     def _relocate(self, idx: int) -> None:
         """Before a bootstrap: if the still windows pin down zero-g and scale, roughly
         (`bootstrap.locate`: half-axes and cells of their centred directions), and the ones
         in use are materially wrong (`bootstrap.off_by`), use the found ones from the next
-        sample on: the detector restarts centred at the found scale (`step`), and the windows
-        the wrong one gated leave the buffer. Later windows bin by their centred directions,
-        and the bootstrap waits until those cover the orientations around the centre found
-        then (`_try_bootstrap`)."""
-        if len(self.buffer) < 10 or self.counts["windows"] % self.cfg.update_every:
-            return  # a sphere fit per update_every windows: a wearer who never turns costs little
-        slots = self.buffer.slots()
-        loc = locate(self.buffer.v[slots], self.cfg.buffer.grid)
-        if (loc is None or not loc.covers(cells=max(4, self.cfg.bootstrap_min_cells // 2))
+        sample on: the detector restarts centred at the found scale (`step`), and of the
+        windows the wrong one gated only those on the sphere that did not turn stay, binned by
+        their centred directions as later windows are; the bootstrap waits until those cover
+        the orientations around the centre found (`_try_bootstrap`)."""
+        if len(self.buffer) < LOCATE_MIN_WINDOWS or not self._sphere_due():
+            return
+        w = self.buffer.windows()
+        loc = locate(w.v, self.cfg.buffer.grid)
+        if (loc is None or len(loc.inliers) != len(w)
+                or not loc.covers(cells=max(4, self.cfg.bootstrap_min_cells // 2))
                 or not off_by(loc.centre, loc.scale, self.centre0, self.model.s0)):
             return
         self.centre0 = np.asarray(loc.centre, np.float64).copy()
         self.model = SensorModel(self.model.effects, loc.scale, self.model.spreads)
         # a detector that wrong (10x too loose on an unsigned part, blind along its offset)
-        # let movement through, and a few such windows bend a fit of few poses by tenths of
-        # a g: the bootstrap waits for windows the restarted detector gates
-        self.buffer.drop(slots)
+        # let movement through: only the windows on the sphere that did not turn stay, binned
+        # anew around the centre found (the bootstrap's fit drops those off it, `fit_poses`)
+        keep = np.flatnonzero(loc.inliers & still_poses(w.var, loc.scale))
+        self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+        self._refill([(w.v[i], w.aux[i], int(w.t_us[i]), int(w.n[i]), float(w.var[i]))
+                      for i in keep.tolist()], gate=False)
         self._restart_at = idx
 
     def _redirect(self) -> None:

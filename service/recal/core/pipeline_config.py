@@ -35,7 +35,9 @@ class PipelineConfig:
             since the last one agree with the estimate (`estimator.consistent`); until then a
             try is skipped when they agree, the estimate has settled and no new orientation
             cell or half-axis arrived. 0: every try updates (re-fit every update_every).
-        bootstrap_min_cells: orientation cells needed before a sensor without prior is fitted.
+        bootstrap_min_cells: orientation cells needed before a sensor without prior is fitted
+            (with five half-axes at least: five poses fit a sphere's four unknowns with one to
+            spare, six cover all six half-axes and fit the diagonal model's six exactly).
     """
 
     rate_hz: float = 50.0
@@ -50,7 +52,7 @@ class PipelineConfig:
     norm_tol_g: float = 0.1
     update_every: int = 5
     max_update_interval_s: float = 300.0
-    bootstrap_min_cells: int = 8
+    bootstrap_min_cells: int = 5
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     buffer: BufferConfig = field(default_factory=BufferConfig)
 

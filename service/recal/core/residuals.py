@@ -16,9 +16,14 @@ from recal.core.model import SensorModel
 from recal.core.model_fit import free_params
 
 __all__ = [
+    "LOCAL_SPAN_S",
     "ORIENTATION_FEATURES",
+    "POOR_CHI2",
+    "POOR_MIN_G",
+    "Misfit",
     "ResidualAnalysis",
     "explained_fraction",
+    "misfit",
     "orientation_features",
     "residual_analysis",
 ]
@@ -92,3 +97,82 @@ def residual_analysis(model: SensorModel, p: np.ndarray, data: DiscoveryData,
     orient = {n: _pearson(xi, feats[:, i]) for i, n in enumerate(ORIENTATION_FEATURES)}
     expl = {e.label: explained_fraction(model, p, data, xi, e, sp) for e, sp in (cands or [])}
     return ResidualAnalysis(1e3 * float(np.sqrt(np.mean(xi**2))), corr, orient, expl)
+
+
+#: Half-width of the time span over which `misfit` pools the residual around each window: a
+#: few postures (20-180 s each), short enough to follow a temperature or a supply that moves
+#: over tens of minutes.
+LOCAL_SPAN_S = 300.0
+#: Reduced chi-square beyond which a fit's residual is well above the noise (`Misfit`): the
+#: residual twice the noise. A model that fits stays near 1 (1.3 on a simulated wearer:
+#: sway the windows' variance underrates).
+POOR_CHI2 = 4.0
+#: ... and an excess at least this (g): a sensor whose noise is a fraction of a mg is not
+#: called poorly fitted for a residual nobody would see.
+POOR_MIN_G = 0.0005
+
+
+@dataclass(frozen=True, eq=False)
+class Misfit:
+    """What a fit leaves beyond the sensor noise, around each window in time.
+
+    xi = |a| - 1 g of a window mean holds the noise left in the mean (var / n of its samples,
+    along gravity) and whatever the model cannot explain there. Pooled over the windows
+    within LOCAL_SPAN_S of each: excess_g = sqrt(max(0, mean xi^2 - mean noise^2)), the
+    residual the noise does not account for (0 where the model fits); overall_g the same
+    over all windows, and chi2 = mean xi^2 / mean noise^2 over all windows (the reduced
+    chi-square, ~1 where the model fits).
+
+    Attributes:
+        t_us: window mid times, sorted.
+        excess_g: the local excess at each (g, along gravity).
+        noise_g: RMS noise of the window means (g, along gravity), all windows.
+        chi2: reduced chi-square of the fit over all windows.
+        overall_g: the excess over all windows (g).
+    """
+
+    t_us: np.ndarray
+    excess_g: np.ndarray
+    noise_g: float
+    chi2: float
+    overall_g: float = 0.0
+
+    def at(self, t_us: np.ndarray) -> np.ndarray:
+        """The local excess (g) at sample times t_us: linear between windows, the nearest
+        window's beyond the first and last."""
+        if not len(self.t_us):
+            return np.zeros(len(t_us))
+        return np.interp(np.asarray(t_us, np.float64), self.t_us.astype(np.float64),
+                         self.excess_g)
+
+    @property
+    def well_above_noise(self) -> bool:
+        """The residual is well above the noise (chi2 beyond POOR_CHI2, the residual twice
+        the noise, and the excess beyond POOR_MIN_G): the model lacks an effect."""
+        return self.chi2 > POOR_CHI2 and self.overall_g > POOR_MIN_G
+
+    @property
+    def max_excess_g(self) -> float:
+        return float(self.excess_g.max()) if len(self.excess_g) else 0.0
+
+
+def misfit(xi_g: np.ndarray, noise_var_g2: np.ndarray, t_us: np.ndarray,
+           span_s: float = LOCAL_SPAN_S) -> Misfit:
+    """`Misfit` of residuals xi_g (M,) of windows at t_us whose means carry noise variance
+    noise_var_g2 (M,) along gravity."""
+    order = np.argsort(t_us, kind="stable")
+    t = np.asarray(t_us, np.int64)[order]
+    x2 = np.asarray(xi_g, np.float64)[order] ** 2
+    n2 = np.asarray(noise_var_g2, np.float64)[order]
+    if not len(t):
+        return Misfit(t, np.zeros(0), 0.0, 1.0, 0.0)
+    span = round(span_s * 1e6)
+    lo = np.searchsorted(t, t - span, side="left")
+    hi = np.searchsorted(t, t + span, side="right")
+    cx, cn = np.concatenate(([0.0], np.cumsum(x2))), np.concatenate(([0.0], np.cumsum(n2)))
+    k = hi - lo
+    excess2 = ((cx[hi] - cx[lo]) - (cn[hi] - cn[lo])) / k
+    noise2 = float(np.mean(n2))
+    chi2 = float(np.mean(x2)) / noise2 if noise2 > 0 else float("inf")
+    overall = math.sqrt(max(float(np.mean(x2)) - noise2, 0.0))
+    return Misfit(t, np.sqrt(np.maximum(excess2, 0.0)), math.sqrt(noise2), chi2, overall)

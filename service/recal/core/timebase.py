@@ -17,6 +17,11 @@ only goes forwards. This module makes it, and says what it did:
 * **Anomalies.** Other steps backwards (continued the same way), duplicates (bumped by 1 us so
   the output strictly increases) and forward jumps beyond ``max(jump_s, 50 steps)`` (kept: a
   real gap) are counted.
+* **Implausible jumps.** A step forwards or backwards by more than ``implausible_s`` (a day)
+  that is no wrap or reboot is no clock a sensor keeps: a corrupted stamp, another device, a
+  crafted stream. It is not taken as a new time base for good: the output continues one
+  nominal step after the last one (as after a reboot), and a ``time_jump_refused`` event (one
+  per batch, with the count) says so.
 
 Pure (no I/O, no clocks): ``state, t_us, events = step(state, t_dev, cfg)``, like
 ``scipy.signal.sosfilt`` with ``zi``; the state is a small frozen dataclass that round-trips
@@ -48,6 +53,8 @@ class TimebaseConfig:
         min_rate_hz, max_rate_hz: rates an accelerometer plausibly samples at.
         jump_s: a forward step longer than this (and than 50 nominal steps) is a jump (counted).
         reboot_max_s: a step back to a device time below this is a reboot, when it is no wrap.
+        implausible_s: a step beyond this either way (no wrap, no reboot) is refused as a gap:
+            a day, as far as `recal.checkpoints` lets a state's times lie past its last sample.
     """
 
     rate_hz: float | None = None
@@ -55,6 +62,7 @@ class TimebaseConfig:
     max_rate_hz: float = 5000.0
     jump_s: float = 2.0
     reboot_max_s: float = 60.0
+    implausible_s: float = 86_400.0
 
 
 @dataclass(frozen=True)
@@ -67,7 +75,8 @@ class TimebaseState:
         offset_us: added to ``device time * unit_us`` (wraps, reboots).
         period: the counter period a wrap showed, device units (None: none seen yet).
         last_dev, last_us: the last sample's device time and output time.
-        wraps, reboots, backwards, duplicates, jumps: counts since the stream began.
+        wraps, reboots, backwards, duplicates, jumps: counts since the stream began;
+        refused: implausible jumps either way, not taken as time (`TimebaseConfig`).
     """
 
     unit_us: int = 1
@@ -81,6 +90,7 @@ class TimebaseState:
     backwards: int = 0
     duplicates: int = 0
     jumps: int = 0
+    refused: int = 0
 
     @property
     def unit(self) -> str:
@@ -88,7 +98,7 @@ class TimebaseState:
 
     def counts(self) -> dict[str, int]:
         return {k: getattr(self, k) for k in ("wraps", "reboots", "backwards", "duplicates",
-                                              "jumps")}
+                                              "jumps", "refused")}
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -172,7 +182,8 @@ def _clean_continuation(state: TimebaseState, t: np.ndarray, limit_dev: float
     if int(out[0]) <= state.last_us:  # after bumped duplicates: the general path
         return None
     s = TimebaseState(unit, state.step_us, offset, state.period, int(t[-1]), int(out[-1]),
-                      state.wraps, state.reboots, state.backwards, state.duplicates, state.jumps)
+                      state.wraps, state.reboots, state.backwards, state.duplicates, state.jumps,
+                      state.refused)
     return s, out, []
 
 
@@ -182,8 +193,8 @@ def step(state: TimebaseState, t_dev: np.ndarray, cfg: TimebaseConfig
 
     Returns (new state, int64 output times strictly after every earlier output, events). An
     event is ``{"kind", "index", "detail"}`` with ``index`` the sample in this batch:
-    ``time_wrap`` and ``time_reboot`` one each, other anomalies summed in one
-    ``time_anomalies`` event per batch.
+    ``time_wrap`` and ``time_reboot`` one each, implausible jumps in one ``time_jump_refused``
+    and other anomalies in one ``time_anomalies`` event per batch.
     """
     t = np.asarray(t_dev, np.int64)
     n = len(t)
@@ -203,6 +214,8 @@ def step(state: TimebaseState, t_dev: np.ndarray, cfg: TimebaseConfig
     offsets = [state.offset_us]
     s = state
     before = s.counts()
+    implausible_dev = cfg.implausible_s * 1e6 / unit
+    refused: list[tuple[int, int, int]] = []  # (index, device before, device after)
     for k in odd.tolist():
         prev = int(t[k - 1]) if k > 0 else int(prev0)
         prev_us = prev * unit + offsets[-1]
@@ -210,6 +223,10 @@ def step(state: TimebaseState, t_dev: np.ndarray, cfg: TimebaseConfig
         offset = offsets[-1]
         if now == prev:
             s = replace(s, duplicates=s.duplicates + 1)
+        elif now - prev > implausible_dev:  # no clock: continue one step after the last
+            offset = prev_us + round(s.step_us) - now * unit
+            s = replace(s, refused=s.refused + 1)
+            refused.append((k, prev, now))
         elif now > prev:
             s = replace(s, jumps=s.jumps + 1)
         else:
@@ -228,6 +245,9 @@ def step(state: TimebaseState, t_dev: np.ndarray, cfg: TimebaseConfig
                     events.append({"kind": "time_reboot", "index": k, "detail": {
                         "device_before": prev, "device_after": now, "unit": s.unit,
                         "reboots": s.reboots}})
+                elif prev - now > implausible_dev:
+                    s = replace(s, refused=s.refused + 1)
+                    refused.append((k, prev, now))
                 else:
                     s = replace(s, backwards=s.backwards + 1)
         offsets.append(offset)
@@ -243,6 +263,12 @@ def step(state: TimebaseState, t_dev: np.ndarray, cfg: TimebaseConfig
     if state.last_us is not None:
         y[0] = max(int(y[0]), state.last_us + 1)
     out = np.maximum.accumulate(y) + ramp
+    if refused:
+        k, prev, now = refused[0]
+        events.append({"kind": "time_jump_refused", "index": k, "detail": {
+            "device_before": prev, "device_after": now, "unit": s.unit,
+            "jump_s": (now - prev) * unit / 1e6, "limit_s": cfg.implausible_s,
+            "in_batch": len(refused), "refused": s.refused}})
     after = s.counts()
     extra = {k: after[k] - before[k] for k in ("backwards", "duplicates", "jumps")
              if after[k] != before[k]}

@@ -354,12 +354,16 @@ def _batches(data: RawBatch | CalibratedBatch | Iterable) -> tuple[Any, Iterator
 
 
 def write_raw_csv(path: str | os.PathLike[str], batch: RawBatch | Iterable[RawBatch],
-                  units: Units | None = None) -> int:
+                  units: Units | None = None, time_column: str = "t_us") -> int:
     """Write ``t_us,x,y,z,<aux...>`` (axes named ``x_<units>`` ... when units are given) of one
-    batch or of several with the same channels, read one at a time; returns the rows."""
+    batch or of several with the same channels, read one at a time; returns the rows.
+    ``time_column``: the time's name by its unit (``t_ms`` for a device that counts
+    milliseconds: the values are the device's, written as they are)."""
     axes = list(_AXES) if units is None else [f"{a}_{units}" for a in _AXES]
     if units is not None and units not in UNITS:
         raise UsageError(f"units must be one of {list(UNITS)}, got {units!r}")
+    if time_column not in TIME_COLUMNS:
+        raise UsageError(f"time column must be one of {list(TIME_COLUMNS)}, got {time_column!r}")
     first, batches = _batches(batch)
     aux_names = first.aux_names if first is not None else ()
     _check_names(aux_names, ["t_us", *TIME_COLUMNS, *axes])
@@ -370,16 +374,19 @@ def write_raw_csv(path: str | os.PathLike[str], batch: RawBatch | Iterable[RawBa
                              "one CSV has one set of columns")
         return [b.t_us, *b.v.T, *b.aux.T]
 
-    return _write_table(path, ["t_us", *axes, *aux_names], map(columns, batches),
+    return _write_table(path, [time_column, *axes, *aux_names], map(columns, batches),
                         [True] + [False] * (3 + len(aux_names)))
 
 
 def write_calibrated_csv(path: str | os.PathLike[str],
                          batch: CalibratedBatch | Iterable[CalibratedBatch],
-                         with_detector: bool = False, with_status: bool | None = None) -> int:
+                         with_detector: bool = False, with_status: bool | None = None,
+                         device_time: str | None = None) -> int:
     """Write ``t_us,x_g,y_g,z_g``, plus ``status,sigma_mg`` (``with_status``; None: when the
-    first batch carries statuses, `CalibratedBatch.recorded`) and ``quasi_static,detector_g``
-    (if asked), of one batch or of several, read one at a time; returns the rows.
+    first batch carries statuses, `CalibratedBatch.recorded`), ``quasi_static,detector_g``
+    (if asked) and the device's own time stamps (`CalibratedBatch.t_dev`) in a column named
+    ``device_time`` (if given; every batch must carry them), of one batch or of several, read
+    one at a time; returns the rows.
 
     ``read_csv`` reads the file back as a batch in units "g" (the other columns as auxiliary
     channels, ``quasi_static`` as 0/1).
@@ -395,6 +402,9 @@ def write_calibrated_csv(path: str | os.PathLike[str],
     if with_detector:
         header += ["quasi_static", "detector_g"]
         is_int += [True, False]
+    if device_time is not None:
+        header.append(device_time)
+        is_int.append(True)
 
     def columns(b: CalibratedBatch) -> list[np.ndarray]:
         cols = [b.t_us, *b.a_g.T]
@@ -402,6 +412,11 @@ def write_calibrated_csv(path: str | os.PathLike[str],
             cols += [b.status.astype(np.int64), b.sigma_mg]
         if with_detector:
             cols += [b.quasi_static.astype(np.int64), b.detector_g]
+        if device_time is not None:
+            if b.t_dev is None:
+                raise InputError("device time stamps stop partway (a recording joined from "
+                                 "an older one): export without them")
+            cols.append(b.t_dev)
         return cols
 
     return _write_table(path, header, map(columns, batches), is_int)

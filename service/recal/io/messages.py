@@ -25,6 +25,7 @@ message CalibratedBatch {
   repeated double detector_g = 7 [packed = true];
   repeated Status status = 8 [packed = true];   // per sample; absent in older recordings
   repeated double sigma_mg = 9 [packed = true]; // predicted 1-sigma error of the vector, mg
+  repeated sfixed64 t_dev = 10 [packed = true]; // the device's own stamp, as the raw batch had
 }
 enum Status {                                   // recal.core.status.Status
   STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
@@ -49,7 +50,10 @@ message PlotSample {                            // one decimated sample, for a P
 
 A CalibratedBatch whose samples all have status 0 (not recorded) is written without fields 8
 and 9, byte for byte as before they existed; a decoded message without them has status 0 and
-sigma_mg NaN for every sample.
+sigma_mg NaN for every sample. Field 10 (``t_dev``: each sample's device time stamp exactly
+as its ``RawBatch`` carried it, in the device's unit, so raw and calibrated join on it after a
+reboot too) is written when the batch has it; a message without it (an older recording)
+decodes with ``t_dev`` None.
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
@@ -124,6 +128,7 @@ _F_CAL_QUASI_STATIC = 6
 _F_CAL_DETECTOR = 7
 _F_CAL_STATUS = 8
 _F_CAL_SIGMA = 9
+_F_CAL_T_DEV = 10
 STATUS_ENUM_NAME = "Status"
 
 
@@ -195,6 +200,7 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(cal, "detector_g", _F_CAL_DETECTOR, fd.TYPE_DOUBLE, True)
     _add_field(cal, "status", _F_CAL_STATUS, fd.TYPE_ENUM, True)
     _add_field(cal, "sigma_mg", _F_CAL_SIGMA, fd.TYPE_DOUBLE, True)
+    _add_field(cal, "t_dev", _F_CAL_T_DEV, fd.TYPE_SFIXED64, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -338,6 +344,8 @@ def encode_calibrated(sensor_id: str, batch: CalibratedBatch) -> bytes:
     if batch.recorded:  # statuses 0-5 are one-byte varints, so uint8 is the wire form
         parts += [*_packed(_F_CAL_STATUS, _le_bytes(batch.status, "|u1")),
                   *_packed(_F_CAL_SIGMA, _le_bytes(batch.sigma_mg, "<f8"))]
+    if batch.t_dev is not None:
+        parts += _packed(_F_CAL_T_DEV, _le_bytes(batch.t_dev, "<i8"))
     return b"".join(parts)
 
 
@@ -504,7 +512,7 @@ def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
 
 _RAW_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES, _F_RAW_AUX))
 _CAL_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
-                         _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA))
+                         _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV))
 
 
 def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
@@ -540,8 +548,12 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
         sigma = np.array(_fixed64(buf, fields.get(_F_CAL_SIGMA), "<f8", "sigma_mg"),
                          dtype=np.float64)
         _same_length(t_us, status=status, sigma_mg=sigma)
+    t_dev = None  # absent: a recording from before device times were kept
+    if _F_CAL_T_DEV in fields:
+        t_dev = np.array(_fixed64(buf, fields.get(_F_CAL_T_DEV), "<i8", "t_dev"), np.int64)
+        _same_length(t_us, t_dev=t_dev)
     return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
-                                                                      status, sigma)
+                                                                      status, sigma, t_dev)
 
 
 def batch_extent(data: bytes | bytearray | memoryview) -> tuple[int, int | None, int | None]:

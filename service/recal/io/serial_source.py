@@ -17,8 +17,12 @@ at boot, the seconds of a daemon restart), so every byte the kernel holds is rea
 resync decides whether the first line is whole. A device path is opened exclusively: an
 advisory ``flock`` (pyserial's ``exclusive``; a second recal fails at once, and
 :func:`port_holder` names the holder's PID from /proc/locks) and the kernel's ``TIOCEXCL``
-(other non-root processes cannot open the tty at all), released at close. A port that is busy
-is reported as ``port_busy`` (with ``holder_pid``) and retried like a missing one.
+(other non-root processes cannot open the tty at all), released at close. Who owns a port is
+decided by that open alone (a check before opening would race with another process starting
+at the same instant): a port that is busy is reported as ``port_busy`` (with ``holder_pid``),
+which the gateway treats as fatal; the source itself retries it like a missing one.
+:meth:`SerialSource.open_now` makes the first attempt at once, so that a daemon learns it
+lost the port before it opens anything else.
 :func:`port_problem` says at start why a ``--port`` can never be a serial port (a regular
 file, a directory, a character device that is no terminal such as /dev/null, a URL scheme
 pyserial does not know); a path that does not exist yet is no problem (it is waited for).
@@ -125,7 +129,7 @@ def _busy_text(path: str) -> str:
 def port_problem(port: str) -> str | None:
     """Why ``port`` can never be read as a serial port, or None when it can (a terminal, a
     URL scheme pyserial knows, a path that does not exist yet), or is busy now (None too:
-    see :func:`port_busy`)."""
+    the open decides who owns it, see :meth:`SerialSource.open_now`)."""
     if "://" in port:
         try:
             serial.serial_for_url(port, do_not_open=True)
@@ -166,14 +170,6 @@ def _is_terminal(port: str, st: os.stat_result) -> bool:
     finally:
         os.close(fd)
 
-
-def port_busy(port: str) -> str | None:
-    """``"in use by process N"`` when another process holds an flock on the device ``port``
-    (another recal: read from /proc/locks, the device is not opened), else None."""
-    if "://" in port or not os.path.exists(port):
-        return None
-    pid = port_holder(port)
-    return None if pid is None else f"in use by process {pid}"
 
 def _open_unflushed(port: str, exclusive: bool, **kwargs: Any) -> Any:
     """``serial.serial_for_url(port, ...)``, opened without the input flush that pyserial
@@ -297,6 +293,15 @@ class SerialSource:
                 break
         self._report_parse_errors(events)
         return self._join(batches), events
+
+    def open_now(self) -> list[SourceEvent]:
+        """Try to open the port now, whatever the back-off schedule says; what happened
+        (``port_opened``, ``open_failed`` for a port that is not there yet, ``port_busy``
+        for one another process holds). Nothing is read: the bytes wait in the kernel."""
+        events: list[SourceEvent] = []
+        if self._ser is None and not self._closed:
+            self._try_open(events)
+        return events
 
     def fileno(self) -> int | None:
         """The open port's file descriptor, for a selector; None if closed or not a file."""

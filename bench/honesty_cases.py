@@ -1,0 +1,107 @@
+"""Cases and metric of the sigma-honesty benches (hindsight_honesty.py; shared, so every tool is
+measured on the same recordings by the same rule).
+
+A case is a simulated recording (2 h at 50 Hz by default) and the model a user would run on it
+without `recal discover`: the diagonal model (offsets, scales) on a sensor that also has an
+effect the model lacks, or on a clean sensor. `honesty` scores a tool's output on it:
+
+* windows: 1 s windows (rate samples each) whose every sample is marked calibrated;
+* error: |mean over the window of (calibrated - true)| in mg, after the best rotation (a
+  rotation of the sensor frame is not observable from gravity, `sim.error_1s_mg`);
+* sigma_eff = sqrt(sigma^2 + n^2), sigma the window's mean predicted sigma (mg), n the sensor
+  noise left in a 1 s mean: 1e3 noise_g sqrt(3 / rate), the norm of three axes' noise;
+* beyond_3 / beyond_10: fraction of those windows whose error exceeds 3 / 10 sigma_eff (goal:
+  at most 1 % and none);
+* over: RMS sigma_eff / RMS error over them (where the model fits: within 1/3 .. 3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from recal.core.model import SensorModel
+from recal.core.status import Status
+from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
+from recal.simulated_sensor import sensor_type
+
+__all__ = ["CASES", "Case", "honesty"]
+
+
+@dataclass(frozen=True)
+class Case:
+    """One recording and the model run on it.
+
+    Attributes:
+        name: the case's name in the tables.
+        sensor: the sensor from a random generator (the seed's).
+        model: the sensor model the tool runs (s0: the sensor's counts per g).
+        wearer: wearer settings other than the defaults.
+        lacks: the effect the model lacks ("" for a clean case).
+    """
+
+    name: str
+    sensor: Callable[[np.random.Generator], SensorSpec]
+    model: Callable[[float], SensorModel] = SensorModel.diagonal
+    wearer: dict = field(default_factory=dict)
+    lacks: str = ""
+
+    def simulate(self, seed: int, hours: float = 2.0, rate_hz: float = 50.0) -> SimResult:
+        return simulate(hours, rate_hz, seed, self.sensor(np.random.default_rng(seed)),
+                        WearerSpec(**self.wearer))
+
+
+def _digital(rng: np.random.Generator, **over: object) -> SensorSpec:
+    return SensorSpec.random(rng, offset_mg=50, gain_pct=3, **over)
+
+
+def _temp_offsets(rng: np.random.Generator) -> SensorSpec:
+    s = _digital(rng)
+    return replace(s, offset_tc_g_per_c=tuple(rng.choice([-1.0, 1.0], 3) * 0.002))
+
+
+def _analog_supply(rng: np.random.Generator) -> SensorSpec:
+    return sensor_type("adxl335-adc12", rng, ratiometric_per_v=1 / 3.3, v_ref_v=3.3)
+
+
+CASES: tuple[Case, ...] = (
+    Case("clean digital", _digital),
+    Case("temperature on offsets (2 mg/C)", _temp_offsets, lacks="offset[temp]"),
+    Case("cross-axis 1.5 deg, diagonal model",
+         lambda rng: _digital(rng, cross_axis_deg=1.5), lacks="cross_axis"),
+    Case("analog 12-bit, sagging supply", _analog_supply,
+         wearer={"vdd_start_v": 3.3, "vdd_end_v": 2.9}, lacks="ratiometric[vdd]"),
+)
+
+
+def _align(cal: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    ok = np.all(np.isfinite(cal), axis=1)
+    rot, _ = Rotation.align_vectors(truth[ok][::10], cal[ok][::10])
+    return rot.apply(cal)
+
+
+def honesty(cal_g: np.ndarray, truth_g: np.ndarray, sigma_mg: np.ndarray, status: np.ndarray,
+            rate_hz: float, noise_g: float) -> dict:
+    """The metric of the module doc for one tool's output on one recording."""
+    n = round(rate_hz)
+    k = len(cal_g) // n
+    c = _align(np.asarray(cal_g, np.float64), np.asarray(truth_g, np.float64))
+    e = 1e3 * np.linalg.norm((c - truth_g)[:k * n].reshape(k, n, 3).mean(axis=1), axis=1)
+    sig = np.asarray(sigma_mg, np.float64)[:k * n].reshape(k, n).mean(axis=1)
+    cal = np.all(np.asarray(status)[:k * n].reshape(k, n) == Status.CALIBRATED, axis=1)
+    noise_mg = 1e3 * noise_g * np.sqrt(3.0 / rate_hz)
+    eff = np.sqrt(sig**2 + noise_mg**2)
+    m = cal & np.isfinite(e) & np.isfinite(eff)
+    if not m.any():
+        return {"windows": int(k), "calibrated": 0, "beyond_3": float("nan"),
+                "beyond_10": float("nan"), "over": float("nan"), "error_rms_mg": float("nan"),
+                "sigma_rms_mg": float("nan")}
+    return {"windows": int(k), "calibrated": int(m.sum()),
+            "beyond_3": float(np.mean(e[m] > 3 * eff[m])),
+            "beyond_10": float(np.mean(e[m] > 10 * eff[m])),
+            "over": float(np.sqrt(np.mean(eff[m]**2)) / np.sqrt(np.mean(e[m]**2))),
+            "error_rms_mg": float(np.sqrt(np.mean(e[m]**2))),
+            "sigma_rms_mg": float(np.sqrt(np.mean(sig[m]**2)))}
