@@ -365,6 +365,8 @@ class Watch:
             whatever the norm gate said of them: a reset re-fits them.
         probation: orientation cells whose still windows must still agree before output is
             calibrated (after a moment of doubt, `doubt`); agreed: the cells that did.
+        calm_run: windows in a row that neither failed the norm gate nor contradicted
+            grossly (a suspect status clears at CLEAR_GOOD_WINDOWS of them).
         misfit: what the model cannot explain (`Misfit`).
     """
 
@@ -380,6 +382,7 @@ class Watch:
     probation: int = 0
     misfit: Misfit = field(default_factory=Misfit)
     agreed: list[int] = field(default_factory=list)
+    calm_run: int = 0
 
     def doubt(self) -> None:
         """A moment of doubt: still windows in PROBATION_WINDOWS cells must agree."""
@@ -393,12 +396,12 @@ class Watch:
         ended, else None."""
         t_us = int(window[2])
         said = None
+        # a gross contradiction that passes the norm gate counts as agreeing for the
+        # sustained test (which resets the estimate: the norm gate's alone), not for clearing
+        self.calm_run = 0 if bad or grossly else self.calm_run + 1
         if grossly:
             self.probation, self.agreed = 0, []
             said = "gross" if self.alarm(t_us, GROSS_HOLD_S) else None
-            if not bad:  # no reset for it (the norm gate's test is the sustained one)
-                self.good_run = 0
-                return said
         elif not bad and self.probation and cell not in self.agreed:
             self.agreed.append(cell)
             self.probation -= 1
@@ -421,9 +424,10 @@ class Watch:
                 return "trigger"
         if self.good_run >= CLEAR_GOOD_WINDOWS:
             self.onset_us, self.n_all, self.n_bad, self.recent = None, 0, 0, None
-            if self.suspect and (self.alarm_us is None or t_us >= self.alarm_us):
-                self.suspect = False
-                return "clear"
+        if (self.suspect and self.calm_run >= CLEAR_GOOD_WINDOWS
+                and (self.alarm_us is None or t_us >= self.alarm_us)):
+            self.suspect = False
+            return "clear"
         return said
 
     def alarm(self, t_us: int, hold_s: float = CLEAR_AFTER_S) -> bool:
@@ -438,7 +442,7 @@ class Watch:
         self.suspect, self.alarm_us = True, int(t_us + CLEAR_AFTER_S * 1e6)  # a fresh start
         self.triggers += 1
         self.onset_us, self.n_all, self.n_bad, self.recent, self.good_run = None, 0, 0, None, 0
-        self.jump_us, self.probation, self.agreed = None, 0, []
+        self.jump_us, self.probation, self.agreed, self.calm_run = None, 0, [], 0
         self.misfit = Misfit()  # measured under the estimate the reset drops
         return recent
 
@@ -472,6 +476,7 @@ class Watch:
                 "n_all": self.n_all, "n_bad": self.n_bad, "good_run": self.good_run,
                 "suspect": self.suspect, "triggers": self.triggers,
                 "probation": self.probation, "agreed": list(self.agreed),
+                "calm_run": self.calm_run,
                 "misfit": self.misfit.to_dict(),
                 "recent": None if self.recent is None else [
                     [list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]),
@@ -488,7 +493,8 @@ class Watch:
                    None if d.get("jump_us") is None else int(d["jump_us"]),
                    None if d.get("alarm_us") is None else int(d["alarm_us"]),
                    int(d.get("probation", 0)), Misfit.from_dict(d.get("misfit")),
-                   [int(c) for c in d.get("agreed", ())])
+                   [int(c) for c in d.get("agreed", ())],
+                   int(d.get("calm_run", d.get("good_run", 0))))
 
 
 def _window(w: Sequence) -> tuple:
