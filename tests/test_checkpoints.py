@@ -686,6 +686,7 @@ def test_checkpoint_from_the_old_code_restores_and_continues_bit_for_bit(case: s
     state = pipe.state_dict()
     assert state.pop("unobserved") == [] and state["watch"].pop("probation") == 0
     assert state["watch"].pop("misfit")["n"] == 0 and state["watch"].pop("agreed") == []
+    assert state["watch"].pop("calm_run") == state["watch"]["good_run"]
     again = json.dumps(state)
     assert hashlib.sha256(again.encode()).hexdigest() == fx["state_json_sha256"]
     spec = sensor_type(fx["sensor_type"], np.random.default_rng(3))

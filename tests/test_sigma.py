@@ -187,7 +187,7 @@ def test_the_new_state_round_trips_and_old_checkpoints_load() -> None:
     assert json.loads(json.dumps(back.state_dict())) == d
     old = json.loads(json.dumps(d))
     del old["unobserved"]
-    for k in ("probation", "misfit", "agreed"):
+    for k in ("probation", "misfit", "agreed", "calm_run"):
         del old["watch"][k]
     o = Pipeline.from_state_dict(old)
     assert o.watch.misfit == Misfit() and o.watch.probation == 0 and o.unobserved == ()
