@@ -51,6 +51,7 @@ from recal.config import (
     load_config,
 )
 from recal.core.pipeline import Pipeline
+from recal.core.status import Status
 from recal.demo import free_port
 from recal.gateway import NOTE_PREFIX, READY_PREFIX, run_gateway
 from recal.io import recording as rec
@@ -692,6 +693,22 @@ def _runs(a: np.ndarray) -> list[list]:
     return [[a[i].item(), int(c)] for i, c in zip(starts, counts, strict=True)]
 
 
+def _unruns(runs: list[list]) -> np.ndarray:
+    return np.concatenate([np.full(n, v) for v, n in runs])
+
+
+def _without_later_parts(state: dict[str, Any]) -> dict[str, Any]:
+    """A state as the old code wrote it: the parts added since (unobserved parameters, the
+    self-watch's misfit, probation, agreeing cells and calm run) taken out, each checked to be
+    at its default where a restored old state starts."""
+    state = json.loads(json.dumps(state))
+    assert isinstance(state.pop("unobserved"), list)
+    watch = state["watch"]
+    for k in ("probation", "misfit", "agreed", "calm_run"):
+        watch.pop(k)
+    return state
+
+
 def _assert_state_close(got: Any, want: Any, where: str = "state") -> None:
     """Same keys in the same order, same types, same integers, strings and flags; floats within
     STATE_REL_TOL (the estimate's parameters within PARAM_REL_TOL); NaN where NaN was."""
@@ -715,12 +732,15 @@ def _assert_state_close(got: Any, want: Any, where: str = "state") -> None:
 @pytest.mark.float_sensitive
 @pytest.mark.parametrize("case", ["prior_counts", "bootstrap_ms2"])
 def test_checkpoint_from_the_old_code_restores_and_continues(case: str) -> None:
-    """A checkpoint the old code wrote restores to the same state and goes on as the old code
-    went on: times, statuses and gates equal, values within tolerances no CPU difference reaches."""
+    """A checkpoint the old code wrote restores to the same state, with the self-watch's later
+    parts (misfit, probation, unobserved parameters) added at their defaults, and goes on as
+    the old code went on: times and gates equal, calibrated values and the estimate within
+    tolerances no CPU difference reaches. Sigma may only have grown (it now carries what the
+    model cannot explain) and a status may only have become more cautious."""
     fx = json.loads(MID_RUN_V1.read_text())[case]
     pipe = Pipeline.from_state_dict(fx["state"])
     # the same JSON back: same keys, same order, same values (parsing and printing, no arithmetic)
-    assert json.dumps(pipe.state_dict()) == json.dumps(fx["state"])
+    assert json.dumps(_without_later_parts(pipe.state_dict())) == json.dumps(fx["state"])
     spec = sensor_type(fx["sensor_type"], np.random.default_rng(3))
     raw = simulate(fx["minutes"] / 60, 50.0, 5, spec).raw
     parts = [pipe.step(raw[i:i + 100]).calibrated for i in range(fx["stop"], len(raw), 100)]
@@ -729,11 +749,16 @@ def test_checkpoint_from_the_old_code_restores_and_continues(case: str) -> None:
     want = fx["continued"]
     every = want["every"]
     np.testing.assert_array_equal(got["t_us"], raw.t_us[fx["stop"]:])
-    assert _runs(got["status"]) == want["status_runs"]
     assert _runs(got["quasi_static"]) == want["quasi_static_runs"]
     np.testing.assert_allclose(got["a_g"][::every], want["a_g"], rtol=0, atol=A_TOL_G)
     np.testing.assert_allclose(got["detector_g"][::every], want["detector_g"], rtol=0,
                                atol=A_TOL_G)
-    np.testing.assert_allclose(got["sigma_mg"][::every], np.array(want["sigma_mg"], float),
-                               rtol=0, atol=SIGMA_TOL_MG)
-    _assert_state_close(json.loads(json.dumps(pipe.state_dict())), fx["end_state"])
+    old_sigma = np.array(want["sigma_mg"], float)
+    assert np.all(got["sigma_mg"][::every] >= old_sigma - SIGMA_TOL_MG)
+    old_status = _unruns(want["status_runs"])
+    calibrated_now = got["status"] == Status.CALIBRATED
+    assert np.all(old_status[calibrated_now] == Status.CALIBRATED)  # never less cautious
+    assert got["status"][-1] == old_status[-1]  # and it got there by the end
+    end = _without_later_parts(json.loads(json.dumps(pipe.state_dict())))
+    _assert_state_close(end["estimate"], fx["end_state"]["estimate"], "state.estimate")
+    assert end["counts"] == fx["end_state"]["counts"]

@@ -177,7 +177,8 @@ def test_shipped_prior_calibrates_a_sensor_of_its_type(name: str) -> None:
 def test_a_prior_whose_zero_g_is_wrong_calibrates_nothing_and_counts_it() -> None:
     """An unsigned part given a prior at zero-g 0 (its readings ~9.5 g long): every window
     fails the norm gate around that prior, none reaches the estimator, the counts say so and
-    the output is held (the prior, nothing informed). After 3 minutes of that the self-watch
+    the output is held (the prior, nothing informed) until the first such window, which
+    contradicts it grossly: suspect from there. After 3 minutes of that the self-watch
     (core/status.py) resets: the prior does not fit those windows either, so the pipeline
     bootstraps from them (suspect, then the bootstrap's own phase)."""
     from recal.core.status import SUSPECT_AFTER_S, Status
@@ -191,11 +192,14 @@ def test_a_prior_whose_zero_g_is_wrong_calibrates_nothing_and_counts_it() -> Non
         if s.raw.t_us[min(i + 999, len(s.raw) - 1)] - s.raw.t_us[0] < SUSPECT_AFTER_S * 1e6:
             c = pipe.counts  # until the self-watch may fire
             assert c["windows"] == 0 and c["updates"] == 0
-            assert pipe.summary()["phase"] == "prior" and pipe.status == Status.HELD
+            assert pipe.summary()["phase"] == "prior"
+            assert pipe.status == (Status.SUSPECT if c["windows_rejected"] else Status.HELD)
     assert pipe.counts["windows_rejected"] > 50
     watch = [w for o in outs for w in o.watch]
-    assert [w.kind for w in watch] == ["suspect"]
-    assert watch[0].detail["reason"] == "still windows fail the norm gate under the estimate"
+    assert [w.kind for w in watch] == ["suspect", "suspect"]
+    assert [w.detail["reason"] for w in watch] == [
+        "a still window contradicts the estimate grossly",
+        "still windows fail the norm gate under the estimate"]
     assert pipe.summary()["phase"] == "bootstrap" and pipe.status == Status.SUSPECT
 
 

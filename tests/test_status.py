@@ -185,16 +185,20 @@ def test_upright_wearer_without_prior_is_not_published_as_calibrated_before_it_i
         cal.status == Status.CALIBRATED).any() else len(cal)
     assert first > 60 * RATE_HZ  # a bootstrap takes more than a minute of data
     before = cal.status[:first]
-    assert set(np.unique(before).tolist()) <= {Status.UNCALIBRATED, Status.BOOTSTRAPPING}
-    assert np.all(cal.sigma_mg[:first] > 50.0)  # a provisional scale: not known to 50 mg
+    # held once bootstrapped: the gain along the never-vertical axis is not observed
+    assert set(np.unique(before).tolist()) <= {Status.UNCALIBRATED, Status.BOOTSTRAPPING,
+                                               Status.HELD}
+    assert not (before == Status.HELD).any() or info["unobserved"]
+    provisional = np.isin(before, [Status.UNCALIBRATED, Status.BOOTSTRAPPING])
+    assert np.all(cal.sigma_mg[:first][provisional] > 50.0)  # a provisional scale
     n_not = int(np.count_nonzero(cal.status != Status.CALIBRATED))
     assert n_not >= first
     assert info["samples_uncalibrated"] == n_not == summary["samples_uncalibrated"]
     assert sum(info["samples_by_status"].values()) == len(cal)
     plots = [messages.decode_plot(m.data) for m in rec.iter_messages(out, f"/{SID}/plot")]
     early = [p for p in plots if p["t_us"] < cal.t_us[first - 1]]
-    assert early and all(p["status"] in (Status.UNCALIBRATED, Status.BOOTSTRAPPING)
-                         for p in early)
+    assert early and all(p["status"] in (Status.UNCALIBRATED, Status.BOOTSTRAPPING,
+                                         Status.HELD) for p in early)
     assert cli_main(["export", str(out), "--csv", str(csv), "--json", str(js)]) == 0
     said = capsys.readouterr().out
     assert f"{n_not} with another status" in said
@@ -297,7 +301,9 @@ def test_non_finite_output_goes_out_zeroed_uncalibrated_and_counted() -> None:
     assert np.all(np.isinf(out.sigma_mg[bad]))
     assert node.samples_not_finite == 4
     assert sum(e["detail"]["samples"] for e in sink.events if e["kind"] == "not_finite") == 4
-    assert np.array_equal(out.status[~bad], ref.status[~bad])
+    # the NaNs gate a few windows: an update, and when the last axis counts as observed, may
+    # come a window later or earlier
+    assert np.mean(out.status[~bad] == ref.status[~bad]) > 0.99 and out.status[-1] == ref.status[-1]
     assert np.max(np.abs(out.a_g[~bad] - ref.a_g[~bad])) < 0.01  # NaNs gate a few windows
 
 
@@ -350,7 +356,9 @@ def test_predicted_sigma_means_something() -> None:
     ratio = _rms(err_mg[late]) / _rms(out.sigma_mg[late])
     assert 0.1 < ratio < 2.0, ratio
     held = out.status == Status.HELD
-    assert held[0] and np.all(out.sigma_mg[held] > 50.0)
+    # held at the start: the prior's uncertainty on every axis (later held samples: on the
+    # axes the data did not observe yet, small where those read ~0 g)
+    assert held[0] and np.all(out.sigma_mg[:100] > 50.0)
     assert _rms(out.sigma_mg[late]) < 5.0
 
 
@@ -404,7 +412,9 @@ def test_a_knock_is_suspect_for_a_while_but_keeps_the_gains() -> None:
     outs = [pipe.step(raw[i:i + 500]) for i in range(0, len(raw), 500)]
     watch = [w for o in outs for w in o.watch]
     assert [w.kind for w in watch][:1] == ["suspect"] and watch[0].t_us >= raw.t_us[k]
-    assert all(w.detail.get("reason") == "the offsets jumped" for w in watch
+    assert all(w.detail.get("reason") in ("the offsets jumped",
+                                          "a still window contradicts the estimate grossly")
+               for w in watch
                if w.kind == "suspect")
     assert pipe.watch.triggers == 0  # no reset
     s_true = S0 * (1 + np.array(spec.gain))
@@ -497,7 +507,8 @@ def test_the_gateway_says_when_a_sensor_is_first_calibrated(tmp_path: Path) -> N
     assert first > 0 and np.all(cal.status[:first] == Status.HELD)
     assert np.all(cal.status[first:] == Status.CALIBRATED)
     # the datasheet's spread before; falling as the postures inform the parameters
-    assert np.all(cal.sigma_mg[:first] > 50.0) and np.all(cal.sigma_mg[-500:] < 5.0)
+    # held at the start: the prior's uncertainty on every axis (then on the axes not observed)
+    assert np.all(cal.sigma_mg[:100] > 50.0) and np.all(cal.sigma_mg[-500:] < 5.0)
 
 
 def test_hindsight_output_says_calibrated_and_its_predicted_error(tmp_path: Path) -> None:

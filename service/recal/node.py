@@ -121,6 +121,9 @@ class NodeSettings:
     request_min_s: float = 2.0
     rediscovery: RediscoveryConfig = field(default_factory=RediscoveryConfig)
 
+#: Updates over which the same parameters stay unobserved before the console says so.
+UNSEEN_SAY_UPDATES = 10
+
 
 class CalibrationNode(AlignmentRequests):
     """Runs one sensor's pipeline and publishes what it produces (thread-safe).
@@ -165,6 +168,7 @@ class CalibrationNode(AlignmentRequests):
         self.samples_not_finite = 0
         self._status: Status | None = None  # of the last sample published
         self._calibrated_once = False
+        self._unseen: tuple[tuple[str, ...], int, bool] = ((), 0, False)  # `_say_unseen`
         self.last_t_us: int | None = None
         self.last_state: dict[str, Any] | None = None
         self._next_discovery_us: int | None = None
@@ -332,6 +336,7 @@ class CalibrationNode(AlignmentRequests):
             timebase = tb.TimebaseState.from_dict(tbd) if isinstance(tbd, dict) else None
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"checkpoint time base: {type(exc).__name__}: {exc}") from None
+        pipe.doubt()  # another device may be under this id now: its first windows must agree
         node = cls(settings, sink, pipeline=pipe, alignment=alignment, start="checkpoint",
                    timebase=timebase)
         due = doc.get("next_discovery_us")  # absent in checkpoints from before it was kept
@@ -517,6 +522,8 @@ class CalibrationNode(AlignmentRequests):
                     f"{d['min_rate_hz']:g}-{d['max_rate_hz']:g} Hz in any unit: check the "
                     "time column")
         elif ev["kind"] == "time_reboot":
+            if self.pipeline is not None:  # a reboot, or another device: windows must agree
+                self.pipeline.doubt()
             note = (f"device time restarted ({d['device_before']} -> {d['device_after']} "
                     f"{d['unit']}): the device rebooted; output time continues")
         elif ev["kind"] == "time_jump_refused":
@@ -577,6 +584,23 @@ class CalibrationNode(AlignmentRequests):
                 "status": new.label, "was": old.label if old is not None else None})
             if self.on_note is not None:
                 self.on_note(f"{new.label}{why}")
+        self._say_unseen()
+
+    def _say_unseen(self) -> None:
+        """One line when the data leave the same offsets or scales unobserved over
+        UNSEEN_SAY_UPDATES updates (status held for it; a start learns them in fewer)."""
+        pipe = self.pipeline
+        if pipe is None:
+            return
+        unseen, updates = pipe.unobserved, int(pipe.counts["updates"])
+        if unseen != self._unseen[0]:
+            self._unseen = (unseen, updates, False)
+        elif (unseen and not self._unseen[2]
+              and updates - self._unseen[1] >= UNSEEN_SAY_UPDATES):
+            self._unseen = (unseen, self._unseen[1], True)
+            if self.on_note is not None:
+                self.on_note(f"held: {', '.join(unseen)} not observed by the data (sigma "
+                             "carries the prior's uncertainty on it)")
 
     def _fit_layout(self, batch: RawBatch, log_ns: int) -> RawBatch | None:
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""

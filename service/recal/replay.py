@@ -212,7 +212,8 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
                     "described": s["described"], "residual_rms_mg": s["residual_rms_mg"],
                     "counts": s["counts"], "bootstrapped": s["bootstrapped"],
                     "phase": s["phase"], "gain_reference": s["gain_reference"],
-                    "status": s["status"],
+                    "status": s["status"], "unobserved": s["unobserved"],
+                    "misfit_mg": s["misfit_mg"],
                     "last_update_reason": (s["last_update"] or {}).get("reason", ""),
                     "alignment": node.alignment.to_dict() if node.alignment else None})
     return out
@@ -254,6 +255,12 @@ def replay_lines(summary: dict) -> list[str]:
         if ref:
             lines.append(f"    gains against {ref['counts_per_g']:.6g} counts per g "
                          f"(from the {ref['source']}); status at the end: {info.get('status')}")
+        if info.get("unobserved"):
+            lines.append(f"    not observed by the data: {', '.join(info['unobserved'])} (status "
+                         "held; sigma carries the prior's uncertainty on it)")
+        if (info.get("misfit_mg") or 0.0) >= 0.5:
+            lines.append(f"    the model misses {info['misfit_mg']:.2f} mg the data show (sigma "
+                         "widened by it); `recal discover` may find the effect")
         for effect, values in info["described"].items():
             lines.append(f"    {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in
                                                         values.items()))

@@ -29,14 +29,15 @@ class Segment:
     cov: np.ndarray
     form: np.ndarray | None
     status: Status
+    extra_mg2: float = 0.0  # what the model cannot explain, added to sigma^2 (`status.Misfit`)
 
 
 def calibrate(segs: list[Segment], b: RawBatch,
               covariates: Callable[[np.ndarray, np.ndarray], Covariates]
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each sample corrected with the segment in force when it arrived (segs: in index order,
-    the first at 0); its status and predicted error (`status.predicted_sigma_mg`) as they
-    were then."""
+    the first at 0); its status and predicted error (`status.predicted_sigma_mg`, widened by
+    the misfit then) as they were then."""
     out = np.empty_like(b.v)
     status = np.empty(len(b), np.uint8)
     sigma = np.empty(len(b))
@@ -47,4 +48,6 @@ def calibrate(segs: list[Segment], b: RawBatch,
             out[s:e] = g.model.correct(g.p, b.v[s:e], cov)
             status[s:e] = g.status
             sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
+            if g.extra_mg2 > 0:
+                sigma[s:e] = np.sqrt(sigma[s:e] ** 2 + g.extra_mg2)
     return out, status, sigma

@@ -16,6 +16,7 @@ feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, replace
 from enum import Enum
@@ -55,8 +56,11 @@ from recal.core.refit import (
     tries,
 )
 from recal.core.status import (
+    MISFIT_MOVE_SDS,
     Status,
     Watch,
+    gross,
+    predicted_sigma_mg,
     refill,
     sigma_form,
 )
@@ -145,6 +149,9 @@ class Pipeline:
         # data informed the estimate (an accepted update observed a parameter): `status`
         self.informed = False
         self.watch = Watch()
+        #: offsets and scales the data did not observe at the last accepted update and the
+        #: prior does not pin (`_unobserved`): status held while any
+        self.unobserved: tuple[str, ...] = ()
         self._segs: list[Segment] = []  # during a step: what is in force from where
         self._watch_events: list[WatchEvent] = []
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
@@ -198,7 +205,16 @@ class Pipeline:
             return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
         if life is _SUSPECT:
             return Status.SUSPECT
-        return Status.CALIBRATED if self.informed else Status.HELD
+        if not self.informed or self.watch.probation or self.unobserved:
+            return Status.HELD
+        return Status.CALIBRATED
+
+    def doubt(self) -> None:
+        """A moment of doubt (the device's clock restarted, the state came from a checkpoint,
+        another device may be under this id): output is held until the next still windows
+        agree with the estimate (`core.status`: probation), suspect at the first that
+        contradicts it grossly."""
+        self.watch.doubt()
 
     def step(self, batch: RawBatch) -> StepOutput:
         """Process one batch of raw samples (any size, in time order)."""
@@ -338,7 +354,11 @@ class Pipeline:
             "coverage": self.coverage().to_dict(),
             "counts": dict(self.counts),
             "status": self.status.label,  # of output calibrated now (core/status.py)
-            "watch": {"suspect": self.watch.suspect, "resets": self.watch.triggers},
+            "watch": {"suspect": self.watch.suspect, "resets": self.watch.triggers,
+                      "probation": self.watch.probation},
+            # parameters no data observed (status held), and sigma's share of misfit
+            "unobserved": list(self.unobserved),
+            "misfit_mg": math.sqrt(self.watch.misfit.said_mg2),
         }
 
     # --- windows -----------------------------------------------------------------------------
@@ -411,7 +431,9 @@ class Pipeline:
                 self._reach(due[slot[c]][0])
             ok, v, aux, t_mid, n, var, direction, run, cell = row
             done = slot[c] + 1
-            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), due[slot[c]][0]):
+            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), due[slot[c]][0],
+                                            self._grossly(chunk, c - chunk.lo, ok, n, var),
+                                            cell):
                 if ok:  # in the buffer it is about to replace: counted as the others
                     counts["windows"] += 1
                 else:
@@ -449,15 +471,46 @@ class Pipeline:
         return any(c and not o for c, o in zip(covered, seen, strict=True))
 
     # --- self-watch --------------------------------------------------------------------------
-    def _watch_window(self, bad: bool, window: tuple, idx: int) -> bool:
+    def _grossly(self, chunk: WindowChunk, i: int, ok: bool, n: int, var: float) -> bool:
+        """Window i of the chunk against the estimate: whether it contradicts grossly
+        (`status.gross`); if not and it passed the norm gate, its residual feeds the misfit
+        (`status.Misfit`), which goes on the output from this window on when it moved."""
+        if self.estimate is None or chunk.norm is None:
+            return False
+        if chunk.sigma_mg is None:  # once per chunk, under the parameters it was cut with
+            _, _, p, cov, form = self._segment_cache()
+            w = chunk.w
+            chunk.sigma_mg = predicted_sigma_mg(self.model, p, cov, w.v,
+                                                self.covariates(w.t_us, w.aux), form)
+        r_g = float(chunk.norm[i]) - 1.0
+        sigma_c_mg = float(chunk.sigma_mg[i])
+        s0 = self.model.s0
+        noise_g2 = var / max(n, 1) / (s0 * s0) if math.isfinite(var) else 0.0
+        misfit = self.watch.misfit
+        if gross(r_g, sigma_c_mg ** 2 + misfit.said_mg2 + 1e6 * noise_g2):
+            return True
+        if ok and math.isfinite(sigma_c_mg):
+            misfit.see(r_g, noise_g2 + (1e-3 * sigma_c_mg) ** 2 / 3.0)
+        return False
+
+    def _watch_window(self, bad: bool, window: tuple, idx: int, grossly: bool = False,
+                      cell: int = -1) -> bool:
         """One committed window through the self-watch (`core.status.Watch`; bad: it failed
-        the norm gate, its calibrated norm more than norm_tol_g from 1 g or not finite): True
-        when that became sustained (a reset runs at this window); an end of suspicion changes
-        the status from sample idx on."""
-        seen = self.watch.see(bad, window)
-        if seen == "clear":
-            self._watch_events.append(WatchEvent(idx, int(window[2]), "agrees", {
+        the norm gate, its calibrated norm more than norm_tol_g from 1 g or not finite;
+        grossly: `_grossly`): True when that became sustained (a reset runs at this window);
+        a change of status or misfit applies from sample idx on."""
+        seen = self.watch.see(bad, window, grossly, cell)
+        t_us = int(window[2])
+        if seen == "gross":
+            self._watch_events.append(WatchEvent(idx, t_us, "suspect", {
+                "reason": "a still window contradicts the estimate grossly"}))
+        elif seen == "trusted":
+            self._watch_events.append(WatchEvent(idx, t_us, "agrees", {
+                "status": self.status.label, "after": "probation"}))
+        elif seen == "clear":
+            self._watch_events.append(WatchEvent(idx, t_us, "agrees", {
                 "status": self.status.label}))
+        if self.watch.misfit.restate() or seen in ("gross", "trusted", "clear"):
             self._segs.append(self._segment(idx))
         if seen == "trigger":
             self._reset_due = "still windows fail the norm gate under the estimate"
@@ -489,7 +542,7 @@ class Pipeline:
         before = self.estimate
         assert self.prior is not None
         self.estimate = Estimate.from_prior(self.prior)
-        self.informed = False
+        self.informed, self.unobserved = False, ()
         self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
         kept = self._refill(recent)
         self._watch_events.append(WatchEvent(idx, now_us, "suspect", {
@@ -529,7 +582,7 @@ class Pipeline:
                         and np.isfinite(prior.info).all())
         self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
         self.fresh, self.refit = [], self.refit.restarted()
-        self.informed, self.watch = False, Watch()
+        self.informed, self.watch, self.unobserved = False, Watch(), ()
         if usable_prior:
             assert prior is not None
             self.estimate = Estimate.from_prior(prior)
@@ -588,6 +641,10 @@ class Pipeline:
         cov = self.covariates(w.t_us, w.aux)
         assert self.prior is not None and self.estimate is not None
         before = self.estimate
+        # the same orientations as at the last update, every offset and scale observed: a
+        # move is no lesson of new postures
+        learnt = (self.refit.coverage_at_update == self.buffer.cells_opened and self.informed
+                  and not self.unobserved)
         self.estimate, rep = update(self.model, self.prior, self.estimate, w, cov, now_us,
                                     self.cfg.estimator)
         self.refit = after_update(before, self.estimate, rep.accepted, self.buffer.cells_opened)
@@ -595,6 +652,16 @@ class Pipeline:
             self._watch_jump(before, idx, now_us)
         if rep.accepted and any(rep.observable):
             self.informed = True
+        if rep.accepted:
+            self.unobserved = _unobserved(self.model, self.estimate, rep.observable)
+            s0 = self.model.s0
+            noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
+            self.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2)
+            # a fitted offset jump (a knock, a poisoned state) is an event, not a drift
+            jumped = self.estimate is not None and self.estimate.step_us != before.step_us
+            self.watch.misfit.moved(_moved_mg2(self.model, before, self.estimate)
+                                    if learnt and not jumped else 0.0, now_us)
+            self.watch.misfit.restate()
         self.counts["updates"] += 1
         if not rep.accepted:
             self.counts["updates_rejected"] += 1
@@ -691,7 +758,14 @@ class Pipeline:
     # --- correction --------------------------------------------------------------------------
     def _segment(self, idx: int) -> Segment:
         """What is in force from sample idx on (now): model, parameters, covariance (no
-        estimate: the model's default prior spread around the provisional scale), status."""
+        estimate: the model's default prior spread around the provisional scale), status,
+        misfit."""
+        cache = self._segment_cache()
+        extra = self.watch.misfit.said_mg2 if self.estimate is not None else 0.0
+        return Segment(idx, cache[0], cache[2], cache[3], cache[4], self.status, extra)
+
+    def _segment_cache(self) -> tuple:
+        """(model, estimate, p, cov, sigma form) of the estimate in force, kept while it is."""
         est, model = self.estimate, self.model
         cache = self._form_cache
         if cache is None or cache[0] is not model or cache[1] is not est:
@@ -699,7 +773,7 @@ class Pipeline:
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
             cache = self._form_cache = (model, est, p, cov, form)
-        return Segment(idx, model, cache[2], cache[3], cache[4], self.status)
+        return cache
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
         self.det_cfg = self.cfg.detector(s0, zero_raw)
@@ -712,6 +786,49 @@ def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
     if from_prior or not model.has("scale"):
         return {"source": "prior", "counts_per_g": float(model.s0)}
     return {"source": "fit", "counts_per_g": float(np.mean(p[model.slice(Scale())]))}
+
+
+#: An offset or scale the data did not observe holds the status only if the estimate's sd of it
+#: is worth more than this at 1 g (a tight pre-calibration pins it without data).
+UNPINNED_MG = 5.0
+
+
+def _unobserved(model: SensorModel, est: Estimate | None,
+                observable: Sequence[bool]) -> tuple[str, ...]:
+    """The offsets and scales an accepted update did not observe (`UpdateReport.observable`)
+    whose sd (of the estimate) is worth more than UNPINNED_MG at 1 g: what the data left to
+    the prior, and the prior does not know well."""
+    if est is None or len(observable) != model.size:
+        return ()
+    sd_mg = 1e3 * np.sqrt(np.clip(np.diag(est.cov), 0, None)) / model.s0
+    out = []
+    for e in (Offset(), Scale()):
+        if model.has(e.kind):
+            for i in range(model.slice(e).start, model.slice(e).stop):
+                if not observable[i] and sd_mg[i] > UNPINNED_MG:
+                    out.append(model.names[i])
+    return tuple(out)
+
+
+def _moved_mg2(model: SensorModel, before: Estimate, after: Estimate | None) -> float:
+    """How far an update moved the offsets and scales beyond what their covariance before it
+    allows (within it the data taught the estimate, correlations included; beyond it the
+    truth moved): |dp|^2 (mg at 1 g) x max(0, 1 - MISFIT_MOVE_SDS^2 k / d^2), d^2 the move's
+    Mahalanobis length under the covariance before, k the parameters."""
+    if after is None:
+        return 0.0
+    idx = [i for e in (Offset(), Scale()) if model.has(e.kind)
+           for i in range(model.slice(e).start, model.slice(e).stop)]
+    if not idx:
+        return 0.0
+    dp = (after.p - before.p)[idx]
+    c = before.cov[np.ix_(idx, idx)]
+    if not (np.isfinite(dp).all() and np.isfinite(c).all()):
+        return 0.0
+    d2 = float(dp @ np.linalg.pinv(c) @ dp)
+    if d2 <= MISFIT_MOVE_SDS ** 2 * len(idx):
+        return 0.0
+    return float(np.sum((1e3 * dp / model.s0) ** 2)) * (1.0 - MISFIT_MOVE_SDS ** 2 * len(idx) / d2)
 
 
 def _zero_of(model: SensorModel, p: np.ndarray) -> np.ndarray | None:
@@ -756,6 +873,7 @@ def state_dict(pipe: Pipeline) -> dict:
         **pipe.refit.to_dict(),
         "informed": pipe.informed,
         "watch": pipe.watch.to_dict(),
+        "unobserved": list(pipe.unobserved),
     }
 
 
@@ -791,6 +909,7 @@ def from_state_dict(d: dict) -> Pipeline:
     pipe.informed = (bool(informed) if informed is not None
                      else pipe.estimate is not None and pipe.estimate.t_us is not None)
     pipe.watch = Watch.from_dict(d.get("watch"))
+    pipe.unobserved = tuple(str(x) for x in d.get("unobserved", ()))  # absent in older ones
     rep = d.get("last_report")
     pipe.last_report = (UpdateReport(**{**rep, "observable": tuple(rep["observable"]),
                                         "free": tuple(rep["free"])}) if rep else None)

@@ -113,6 +113,8 @@ class WindowChunk:
     dirs: np.ndarray
     runs: np.ndarray
     cells: np.ndarray
+    norm: np.ndarray | None = None  # calibrated norms (g), for the self-watch
+    sigma_mg: np.ndarray | None = None  # their predicted error, when the self-watch asks
     z: np.ndarray | None = None
 
     @classmethod
@@ -128,7 +130,7 @@ class WindowChunk:
               else np.ones(len(a), bool))
         with np.errstate(invalid="ignore", divide="ignore"):
             dirs = np.where((norm > 0)[:, None], a / norm[:, None], [0.0, 0.0, 1.0])
-        return cls(lo, mine, ok, dirs, runs[s], cell_of(dirs, grid))
+        return cls(lo, mine, ok, dirs, runs[s], cell_of(dirs, grid), norm)
 
     def __len__(self) -> int:
         return len(self.ok)

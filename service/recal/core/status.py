@@ -11,7 +11,8 @@ Statuses (one per sample, `Status`; the numbers are the wire values of ``recal.S
   not the prior, determined at least one parameter) and the self-watch has no objection.
 * ``held`` (4): an estimate exists but no data informed it yet: the pre-calibration as given
   (a configured prior), or the prior again after a self-watch reset, until an accepted update
-  observes a parameter.
+  observes a parameter; or data did not observe an offset or scale the prior does not pin
+  (`Pipeline.unobserved`); or a moment of doubt is not yet over (below).
 * ``suspect`` (5): the self-watch's alarm (`Watch`): the estimator fitted an offset jump (a
   knock, or another sensor now under this id: held for JUMP_REPEAT_S), or the still windows
   contradicted the estimate beyond its uncertainty for a sustained time (a second jump
@@ -25,17 +26,33 @@ Precedence: no estimate (uncalibrated, bootstrapping) before suspect before held
 
 0 (``not_recorded``) is the protobuf default: a recording made before statuses existed.
 
+Besides the alarms above, two moments hold the status (`Watch.probation`, `Watch.gross`):
+
+* A gross contradiction: a still window whose calibrated norm is further from 1 g than
+  GROSS_MIN_MG and GROSS_SIGMAS x its predicted 1-sigma error (calibration, misfit and the
+  window's noise) makes the output suspect from that window on (no sustained test first);
+  it clears like any alarm (CLEAR_GOOD_WINDOWS agreeing windows after GROSS_HOLD_S).
+* A moment of doubt (`Pipeline.doubt`: the device's clock restarted, the state came from a
+  checkpoint): the output is held until still windows in PROBATION_WINDOWS orientation
+  cells agree with the estimate (a gross contradiction among them: suspect).
+
+A calibration whose offsets or scales the data never observed (a wearer who never lies down:
+the scale along the never-vertical axis) is ``held``, not calibrated, however long it runs;
+the calibration state names the unobserved parameters (``unobserved``).
+
 The predicted error (`predicted_sigma_mg`) is the 1-sigma length of the error of the
 calibrated vector that the parameters' uncertainty causes: the estimate's covariance C_e
 (Lötters eq. 11b) through the correction's Jacobian J = da/dp at each sample,
-sigma^2 = trace(J C_e J^T). The sensor's own noise on the sample is not in it.
+sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`Misfit`):
+sigma^2 = sigma_C^2 + 3 q, q the variance of the still windows' norm residual beyond what the
+sensor's noise and C_e explain. The sensor's own noise on the sample is not in it.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
 
@@ -46,8 +63,9 @@ from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 from recal.core.triaxial import norm3
 
-__all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG",
-           "SUSPECT_AFTER_S", "Status", "Watch",
+__all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "GROSS_MIN_MG", "GROSS_SIGMAS",
+           "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG", "PROBATION_WINDOWS", "SUSPECT_AFTER_S",
+           "Misfit", "Status", "Watch",
            "correction_jacobian", "predicted_sigma_mg", "refill", "sigma_form", "status_line"]
 
 
@@ -91,6 +109,161 @@ CLEAR_GOOD_WINDOWS = 10
 CLEAR_AFTER_S = 600.0
 #: Most windows the watch keeps from a contradiction, to re-fit them after a reset (bounded).
 RECENT_MAX = 256
+#: A still window contradicts grossly when its calibrated norm is further from 1 g than both
+#: GROSS_MIN_MG and GROSS_SIGMAS x sqrt(sigma_C^2 + 3 q + noise^2) (the window's own sigma):
+#: the output is suspect from that window on, for GROSS_HOLD_S at least.
+GROSS_MIN_MG = 20.0
+GROSS_SIGMAS = 10.0
+GROSS_HOLD_S = 0.0
+#: After a moment of doubt, still windows in this many orientation cells must agree before
+#: output is calibrated: the norm at one posture sees one direction of the offsets' error
+#: (another sensor's offsets can be 100 mg off across gravity and agree in the norm).
+PROBATION_WINDOWS = 3
+#: The misfit's running means weigh each still window by this (a memory of ~32 windows).
+MISFIT_WEIGHT = 1.0 / 32.0
+#: A window's squared residual enters the misfit's mean clipped at this many times the
+#: variance expected of it (noise, C_e and the misfit so far), at least MISFIT_FLOOR_MG^2
+#: (one window through a leak of the detector is no misfit; a growing effect doubles q
+#: within a few windows all the same).
+MISFIT_CLIP = 9.0
+MISFIT_FLOOR_MG = 1.0
+#: Of the residual's mean square, what chance allows above the expected one before any of it
+#: counts as misfit (the relative sd of a mean of ~2/MISFIT_WEIGHT squares is ~0.18; 1.5 x
+#: the expected is ~3 sd of it): clean data leave q at 0, sigma as it was.
+MISFIT_CHANCE = 1.5
+#: The misfit on the output changes when it moved by more than this (relative, in sigma) and
+#: MISFIT_STEP_MG: per window work, a few segments per batch.
+MISFIT_STEP = 0.1
+#: The buffer fit's residual beyond noise and MISFIT_FIT_FLOOR_MG, as the vector's error
+#: variance (`Misfit`): the fit follows a drifting effect and leaves little of it in its
+#: residual, and little of that along the norm; on the simulated temperature effect the
+#: vector's error was ~10 x that rms (bench/sigma_honesty.py, docs/performance.md).
+MISFIT_FIT_FACTOR = 100.0
+MISFIT_FIT_FLOOR_MG = 0.5
+#: The estimate's movement (`Misfit.moved`): counted beyond MISFIT_MOVE_SDS of its sd, summed
+#: over the last MISFIT_DRIFT_S of device time (decaying).
+MISFIT_MOVE_SDS = 2.0
+MISFIT_DRIFT_S = 600.0
+MISFIT_STEP_MG = 0.05
+
+
+@dataclass
+class Misfit:
+    """What the model cannot explain, from the still windows' calibrated norms.
+
+    Two witnesses. The estimator's fit of the buffer (windows of many postures, hours apart):
+    its residual's mean square beyond the windows' noise, q_f (`fitted`), is what one set of
+    parameters cannot explain across them (a temperature, a supply, a cross-axis term the
+    model lacks). The fit absorbs part of such an effect in the parameters, and the norm sees
+    one direction of three: the vector's error variance is taken as MISFIT_FIT_FACTOR x q_f
+    (measured on the simulated effects, bench/sigma_honesty.py), q_f counted beyond
+    MISFIT_FIT_FLOOR_MG (a fit that good needs no widening).
+
+    And each still window (after the bootstrap) gives r = |a| - 1 g under the parameters in force
+    when it came, and the variance e2 = noise^2 + sigma_C^2 / 3 the model expects of r: the
+    window mean's noise (per-axis variance / n, over s0^2) and the radial share of the
+    calibration's own (isotropic) error. Running means (weight MISFIT_WEIGHT per window) of
+    min(r^2, MISFIT_CLIP x (e2 + q)) and of e2 give the misfit variance
+    q = max(mean r^2 - MISFIT_CHANCE x mean e2, 0): the reduced chi-square of recent windows
+    beyond chance, as a variance: what the estimate in force fails to explain now (an effect
+    that changes faster than the re-fits follow). It errs in every direction, and the norm
+    sees one of three: 3 q.
+
+    The third witness is the estimate's own movement: an estimate that keeps moving by more
+    than its covariance allows chases an effect the model lacks, and lags it in the
+    directions the current postures do not show. Its squared excess movement over the last
+    MISFIT_DRIFT_S (how long a direction may go unobserved: a wearer keeps postures for
+    minutes), m (`moved`), is that lag's variance.
+
+    sigma^2 = sigma_C^2 + 3 q + MISFIT_FIT_FACTOR x q_f + m. Where the model
+    fits, q, q_f and D stay near 0 and sigma is sigma_C.
+
+    Attributes:
+        r2_g2: running mean of the clipped squared residuals (g^2).
+        e2_g2: running mean of the variance expected of them (g^2).
+        n: windows seen (the first weigh more: a plain mean until 1/MISFIT_WEIGHT of them).
+        said_mg2: the misfit's share of sigma^2 in force on the output (`restate`): it
+            changes when the misfit moved by more than MISFIT_STEP, so a batch's samples
+            take few values of it.
+        fit_g2: the last accepted update's misfit (`fitted`).
+        moved_mg2: how far the offsets and scales moved beyond what their covariance allows
+            (mg at 1 g, squared), summed over the accepted updates with a decay of
+            MISFIT_DRIFT_S of device time (`moved`); moved_at_us: the last accepted update.
+    """
+
+    r2_g2: float = 0.0
+    e2_g2: float = 0.0
+    n: int = 0
+    said_mg2: float = 0.0
+    fit_g2: float = 0.0
+    moved_mg2: float = 0.0
+    moved_at_us: int | None = None
+
+    @property
+    def q_g2(self) -> float:
+        """The misfit variance of the norm (g^2)."""
+        return max(self.r2_g2 - MISFIT_CHANCE * self.e2_g2, 0.0)
+
+    @property
+    def extra_mg2(self) -> float:
+        """What the misfit adds to sigma^2 (mg^2): 3 q + MISFIT_FIT_FACTOR x q_f."""
+        return 1e6 * (3.0 * self.q_g2 + MISFIT_FIT_FACTOR * self.fit_g2) + self.moved_mg2
+
+    def moved(self, excess_mg2: float, now_us: int) -> None:
+        """An accepted update at now_us moved the offsets and scales by excess_mg2 (squared,
+        mg at 1 g) beyond what their covariance allows."""
+        if self.moved_at_us is not None and now_us > self.moved_at_us:
+            self.moved_mg2 *= math.exp(-(now_us - self.moved_at_us) / (MISFIT_DRIFT_S * 1e6))
+        if math.isfinite(excess_mg2):
+            self.moved_mg2 += excess_mg2
+        self.moved_at_us = now_us
+
+    def fitted(self, residual_rms_g: float, noise_g2: float) -> None:
+        """An accepted update: its residual's rms over the buffer, and the mean noise
+        variance of the buffer's window means (g^2)."""
+        if math.isfinite(residual_rms_g) and math.isfinite(noise_g2):
+            self.fit_g2 = max(residual_rms_g ** 2 - MISFIT_CHANCE * noise_g2
+                              - (1e-3 * MISFIT_FIT_FLOOR_MG) ** 2, 0.0)
+
+    def see(self, r_g: float, e2_g2: float) -> None:
+        """One still window's residual r_g and its expected variance e2_g2 (g^2)."""
+        cap = MISFIT_CLIP * max(e2_g2 + self.q_g2, (MISFIT_FLOOR_MG * 1e-3) ** 2)
+        w = max(MISFIT_WEIGHT, 1.0 / (self.n + 1))
+        self.r2_g2 += w * (min(r_g * r_g, cap) - self.r2_g2)
+        self.e2_g2 += w * (e2_g2 - self.e2_g2)
+        self.n += 1
+
+    def restate(self) -> bool:
+        """The misfit in force takes the current one if that moved by more than MISFIT_STEP
+        (relative, in sigma) or MISFIT_STEP_MG; True if it did."""
+        old, new = math.sqrt(self.said_mg2), math.sqrt(self.extra_mg2)
+        if abs(new - old) <= max(MISFIT_STEP * old, MISFIT_STEP_MG):
+            return False
+        self.said_mg2 = self.extra_mg2
+        return True
+
+    def to_dict(self) -> dict:
+        return {"r2_g2": self.r2_g2, "e2_g2": self.e2_g2, "n": self.n,
+                "said_mg2": self.said_mg2, "fit_g2": self.fit_g2, "moved_mg2": self.moved_mg2,
+                "moved_at_us": self.moved_at_us}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> Misfit:
+        if not d:
+            return cls()
+        return cls(float(d["r2_g2"]), float(d["e2_g2"]), int(d["n"]),
+                   float(d.get("said_mg2", 0.0)), float(d.get("fit_g2", 0.0)),
+                   float(d.get("moved_mg2", 0.0)),
+                   None if d.get("moved_at_us") is None else int(d["moved_at_us"]))
+
+
+def gross(r_g: float, sigma2_mg2: float) -> bool:
+    """A still window's norm residual r_g beyond both GROSS_MIN_MG and GROSS_SIGMAS x its
+    sigma (sigma2_mg2: its variance, mg^2), or not finite."""
+    r_mg = abs(1e3 * r_g)
+    if not math.isfinite(r_mg):
+        return True
+    return r_mg > GROSS_MIN_MG and r_mg > GROSS_SIGMAS * math.sqrt(max(sigma2_mg2, 0.0))
 
 
 def correction_jacobian(model: SensorModel, p: np.ndarray, v: np.ndarray,
@@ -190,6 +363,11 @@ class Watch:
         alarm_us: device time until which an alarm holds the suspect status at least.
         recent: the windows since the onset (v, aux, t_us, n, var), at most RECENT_MAX,
             whatever the norm gate said of them: a reset re-fits them.
+        probation: orientation cells whose still windows must still agree before output is
+            calibrated (after a moment of doubt, `doubt`); agreed: the cells that did.
+        calm_run: windows in a row that neither failed the norm gate nor contradicted
+            grossly (a suspect status clears at CLEAR_GOOD_WINDOWS of them).
+        misfit: what the model cannot explain (`Misfit`).
     """
 
     onset_us: int | None = None
@@ -201,11 +379,33 @@ class Watch:
     recent: list[tuple] | None = None
     jump_us: int | None = None
     alarm_us: int | None = None
+    probation: int = 0
+    misfit: Misfit = field(default_factory=Misfit)
+    agreed: list[int] = field(default_factory=list)
+    calm_run: int = 0
 
-    def see(self, bad: bool, window: tuple) -> str | None:
-        """One window in order; returns "trigger" when the contradiction became sustained,
-        "clear" when a suspect status ends, else None."""
+    def doubt(self) -> None:
+        """A moment of doubt: still windows in PROBATION_WINDOWS cells must agree."""
+        self.probation, self.agreed = PROBATION_WINDOWS, []
+
+    def see(self, bad: bool, window: tuple, grossly: bool = False,
+            cell: int = -1) -> str | None:
+        """One window in order (grossly: it contradicts grossly, `gross`); returns "trigger"
+        when the contradiction became sustained, "clear" when a suspect status ends, "gross"
+        when a gross contradiction made the status suspect now, "trusted" when a probation
+        ended, else None."""
         t_us = int(window[2])
+        said = None
+        # a gross contradiction that passes the norm gate counts as agreeing for the
+        # sustained test (which resets the estimate: the norm gate's alone), not for clearing
+        self.calm_run = 0 if bad or grossly else self.calm_run + 1
+        if grossly:
+            self.probation, self.agreed = 0, []
+            said = "gross" if self.alarm(t_us, GROSS_HOLD_S) else None
+        elif not bad and self.probation and cell not in self.agreed:
+            self.agreed.append(cell)
+            self.probation -= 1
+            said = "trusted" if not self.probation and not self.suspect else None
         if bad:
             self.good_run = 0
             if self.onset_us is None:
@@ -224,10 +424,11 @@ class Watch:
                 return "trigger"
         if self.good_run >= CLEAR_GOOD_WINDOWS:
             self.onset_us, self.n_all, self.n_bad, self.recent = None, 0, 0, None
-            if self.suspect and (self.alarm_us is None or t_us >= self.alarm_us):
-                self.suspect = False
-                return "clear"
-        return None
+        if (self.suspect and self.calm_run >= CLEAR_GOOD_WINDOWS
+                and (self.alarm_us is None or t_us >= self.alarm_us)):
+            self.suspect = False
+            return "clear"
+        return said
 
     def alarm(self, t_us: int, hold_s: float = CLEAR_AFTER_S) -> bool:
         """Suspect from device time t_us on, for hold_s at least; True if it was not."""
@@ -241,7 +442,8 @@ class Watch:
         self.suspect, self.alarm_us = True, int(t_us + CLEAR_AFTER_S * 1e6)  # a fresh start
         self.triggers += 1
         self.onset_us, self.n_all, self.n_bad, self.recent, self.good_run = None, 0, 0, None, 0
-        self.jump_us = None
+        self.jump_us, self.probation, self.agreed, self.calm_run = None, 0, [], 0
+        self.misfit = Misfit()  # measured under the estimate the reset drops
         return recent
 
     def jumped(self, step_us: int, now_us: int) -> str | None:
@@ -273,6 +475,9 @@ class Watch:
         return {"onset_us": self.onset_us, "jump_us": self.jump_us, "alarm_us": self.alarm_us,
                 "n_all": self.n_all, "n_bad": self.n_bad, "good_run": self.good_run,
                 "suspect": self.suspect, "triggers": self.triggers,
+                "probation": self.probation, "agreed": list(self.agreed),
+                "calm_run": self.calm_run,
+                "misfit": self.misfit.to_dict(),
                 "recent": None if self.recent is None else [
                     [list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]),
                      float(w[4])] for w in self.recent]}
@@ -286,7 +491,10 @@ class Watch:
                    int(d["n_bad"]), int(d["good_run"]), bool(d["suspect"]), int(d["triggers"]),
                    None if recent is None else [_window(w) for w in recent],
                    None if d.get("jump_us") is None else int(d["jump_us"]),
-                   None if d.get("alarm_us") is None else int(d["alarm_us"]))
+                   None if d.get("alarm_us") is None else int(d["alarm_us"]),
+                   int(d.get("probation", 0)), Misfit.from_dict(d.get("misfit")),
+                   [int(c) for c in d.get("agreed", ())],
+                   int(d.get("calm_run", d.get("good_run", 0))))
 
 
 def _window(w: Sequence) -> tuple:
