@@ -193,7 +193,7 @@ def test_upright_wearer_without_prior_is_not_published_as_calibrated_before_it_i
     assert np.all(cal.sigma_mg[:first][provisional] > 50.0)  # a provisional scale
     n_not = int(np.count_nonzero(cal.status != Status.CALIBRATED))
     assert n_not >= first
-    assert info["samples_uncalibrated"] == n_not == summary["samples_uncalibrated"]
+    assert info["samples_not_calibrated"] == n_not == summary["samples_not_calibrated"]
     assert sum(info["samples_by_status"].values()) == len(cal)
     plots = [messages.decode_plot(m.data) for m in rec.iter_messages(out, f"/{SID}/plot")]
     early = [p for p in plots if p["t_us"] < cal.t_us[first - 1]]
@@ -277,7 +277,7 @@ def test_a_checkpoint_with_nan_parameters_publishes_no_nan(prior_too: bool) -> N
     reset = [e for e in sink.events if e["kind"] == "estimate_reset"]
     assert len(reset) == 1 and reset[0]["detail"]["to"] == ("bootstrap" if prior_too else "prior")
     assert out.status[0] == (Status.UNCALIBRATED if prior_too else Status.HELD)
-    assert node.samples_uncalibrated > 0
+    assert node.samples_not_calibrated > 0
     assert node.status()["node"]["samples_by_status"][Status(int(out.status[0])).label] > 0
 
 

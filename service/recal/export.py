@@ -95,6 +95,4 @@ class StatusCounts:
                 "samples_status_not_recorded": int(self.counts[S.NOT_RECORDED])}
 
     def line(self) -> str:
-        d = self.to_dict()
-        # status_line's "with another status" figure is what this calls not calibrated
-        return status_line({**d, "samples_uncalibrated": d["samples_not_calibrated"]})
+        return status_line(self.to_dict())

@@ -289,7 +289,7 @@ class CalibrationNode(AlignmentRequests):
         return {Status(i).label: int(n) for i, n in enumerate(self.status_counts.tolist()) if n}
 
     @property
-    def samples_uncalibrated(self) -> int:
+    def samples_not_calibrated(self) -> int:
         """Samples published with any status but calibrated."""
         return int(self.status_counts.sum() - self.status_counts[Status.CALIBRATED])
 

@@ -142,11 +142,12 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
         config: a ServiceConfig or TOML path: per-sensor priors, rates, pipeline settings.
         progress: show a tqdm progress bar (in raw messages) on stderr.
         sensor_ids: only these sensors (default: all with a raw topic).
-    Returns ``{"in", "out", "seconds", "samples", "samples_per_s", "samples_uncalibrated",
+    Returns ``{"in", "out", "seconds", "samples", "samples_per_s", "samples_not_calibrated",
     "sensors": {id: {...}}}`` with per sensor the start (config | recording | bootstrap), rate,
     sample and update counts, the samples published per status (``samples_by_status``), how
-    many with a status other than calibrated (``samples_uncalibrated``) and how many were not
-    finite (published zeroed, ``samples_not_finite``), and the final parameters.
+    many with a status other than calibrated (``samples_not_calibrated``, as `recal export`
+    counts it) and how many were not finite (published zeroed, ``samples_not_finite``), and
+    the final parameters.
     """
     from tqdm import tqdm
 
@@ -195,7 +196,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     total = sum(r.samples for r in runs.values())
     return {"in": str(in_mcap), "out": str(writer.paths[0]), "seconds": seconds,
             "samples": total, "samples_per_s": total / seconds if seconds > 0 else None,
-            "samples_uncalibrated": sum(r.node.samples_uncalibrated for r in runs.values()),
+            "samples_not_calibrated": sum(r.node.samples_not_calibrated for r in runs.values()),
             "sensors": {sid: _sensor_summary(r) for sid, r in runs.items()}}
 
 
@@ -204,7 +205,7 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
     out: dict[str, Any] = {**run.extra, "samples": run.samples, "batches": run.batches,
                            "rate_hz": node.rate_hz,
                            "samples_by_status": node.samples_by_status(),
-                           "samples_uncalibrated": node.samples_uncalibrated,
+                           "samples_not_calibrated": node.samples_not_calibrated,
                            "samples_not_finite": node.samples_not_finite}
     if node.pipeline is not None:
         s = node.pipeline.summary()

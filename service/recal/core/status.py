@@ -532,7 +532,7 @@ def status_line(d: dict) -> str:
     by = d.get("samples_by_status") or {}
     others = ", ".join(f"{k} {v}" for k, v in by.items() if k not in ("calibrated",
                                                                         "not_recorded"))
-    text = (f"{by.get('calibrated', 0)} samples out calibrated, {d['samples_uncalibrated']} "
+    text = (f"{by.get('calibrated', 0)} samples out calibrated, {d['samples_not_calibrated']} "
             "with another status" + (f" ({others})" if others else ""))
     if d.get("samples_status_not_recorded"):
         text += (f"; {d['samples_status_not_recorded']} without a status (recorded before "
