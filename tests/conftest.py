@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 
 from gateway_process import GatewayProcess
+from recal.demo import free_port
+from recal.io.router import RouterProcess
 
 #: Modules whose every test checks numeric results that BLAS and numpy's SIMD kernels could
 #: move in the last bits (the streaming windows, statuses and sigma, replay, alignment,
@@ -24,6 +26,18 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.module is not None and item.module.__name__ in FLOAT_SENSITIVE_MODULES:
             item.add_marker(pytest.mark.float_sensitive)
+
+
+@pytest.fixture
+def plain_router() -> Iterator[str]:
+    """A `recal router` child process on 127.0.0.1 without access control (no fleet config):
+    only the node stands between a rogue and its state."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = RouterProcess([endpoint]).start()
+    try:
+        yield endpoint
+    finally:
+        proc.stop()
 
 
 @pytest.fixture

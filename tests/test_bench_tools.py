@@ -3,9 +3,7 @@ bit of a float, a -0.0 for a 0.0 are differences; metadata naming a version is n
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,18 +11,9 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from bench_modules import load_bench
 
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while the class is made
-    spec.loader.exec_module(module)
-    return module
-
-
-rc = _load("regression_check")
+rc = load_bench("regression_check")
 
 
 def _mcap(path: Path, payloads: list[bytes], metadata: dict[str, str] | None = None) -> Path:

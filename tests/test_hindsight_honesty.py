@@ -6,13 +6,11 @@ windows marked calibrated, error against sigma_eff = sqrt(sigma^2 + n^2))."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from functools import cache
-from pathlib import Path
 
 import numpy as np
 
+from bench_modules import load_bench
 from recal.core import hindsight
 from recal.core.discovery import DiscoveryConfig, discover
 from recal.core.discovery_data import data_from_windows, rate_and_scale
@@ -26,18 +24,7 @@ from recal.hindsight_file import Corrected, fit_summary, summary_lines
 from recal.samples import rebatch
 from recal.sim import error_1s_mg
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while the class is made
-    spec.loader.exec_module(module)
-    return module
-
-
-hc = _load("honesty_cases")
+hc = load_bench("honesty_cases")
 CASE = {c.lacks or "clean": c for c in hc.CASES}
 
 

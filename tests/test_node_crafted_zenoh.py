@@ -7,36 +7,21 @@ Real parts only: a `recal router` child process on 127.0.0.1, Zenoh client sessi
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from polling import wait_for
 from recal import sim
 from recal.checkpoints import load_checkpoint
-from recal.demo import free_port
 from recal.io import recording as rec
 from recal.io.bus import key
 from recal.io.messages import encode_raw
-from recal.io.router import RouterProcess
 from recal.samples import RawBatch
 from test_security import RATE_HZ, NodeThread, node_config, plain_client, status_of
 
 SID = "wrist"
 YEARS_17_US = 17 * 365 * 86_400 * 10**6
-
-
-@pytest.fixture
-def router() -> Iterator[str]:
-    """A router without access control (no fleet config): only the node stands in the way."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = RouterProcess([endpoint]).start()
-    try:
-        yield endpoint
-    finally:
-        proc.stop()
 
 
 def _crafted(after_us: int, n: int) -> RawBatch:
@@ -49,7 +34,7 @@ def _crafted(after_us: int, n: int) -> RawBatch:
 
 
 def test_a_crafted_stream_on_a_configured_id_leaves_the_node_able_to_save(
-        router: str, tmp_path: Path) -> None:
+        plain_router: str, tmp_path: Path) -> None:
     """A wearer's stream, then a fake one on the same id: the 17-year clock jump is refused
     (event and line), no estimate outside the configured bounds is kept (estimate_refused),
     and every checkpoint save succeeds: the last one holds every sample and a time within
@@ -59,7 +44,7 @@ def test_a_crafted_stream_on_a_configured_id_leaves_the_node_able_to_save(
     cfg = node_config(tmp_path, (SID,), checkpoint={"dir": str(tmp_path / "ck"),
                                                      "interval_s": 0.2,
                                                      "after_update_s": 0.1})
-    node_bus, gw = plain_client(router), plain_client(router)
+    node_bus, gw = plain_client(plain_router), plain_client(plain_router)
     try:
         nt = NodeThread(cfg, node_bus, tmp_path / "node.mcap")
         try:

@@ -316,17 +316,6 @@ def test_node_behind_the_fleet_router_calibrates_only_the_owners_stream(
 
 # --------------------------------------------------------------------------- node admission
 
-@pytest.fixture()
-def plain_router() -> Iterator[str]:
-    """A router without access control: only the node stands between a rogue and its state."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = RouterProcess([endpoint]).start()
-    try:
-        yield endpoint
-    finally:
-        proc.stop()
-
-
 #: A generous bound for what a node under load does in a moment (the tests poll, so they take
 #: this long only when it fails)
 SETTLE_S = 30.0
