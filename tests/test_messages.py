@@ -392,3 +392,18 @@ def test_the_device_time_field_round_trips_and_older_messages_still_decode(n: in
         short = m.encode_calibrated("s1", base) + bytes([0x52, 8]) + t_dev[:1].tobytes()
         with pytest.raises(ValueError, match="t_dev"):
             m.decode_calibrated(short)
+
+
+def test_device_time_attached_to_a_batch_is_the_same_as_built_with_it() -> None:
+    rng = np.random.default_rng(11)
+    n = 7
+    fields = (rng.integers(0, 2**40, n, dtype=np.int64), rng.normal(size=(n, 3)),
+              rng.random(n) > 0.5, rng.random(n), rng.integers(1, 6, n).astype(np.uint8),
+              rng.random(n))
+    t_dev = rng.integers(0, 2**31, n, dtype=np.int32)  # converted like any time stamps
+    built = CalibratedBatch(*fields, t_dev)
+    attached = CalibratedBatch(*fields).with_device_time(t_dev)
+    assert attached.t_dev is not None and attached.t_dev.dtype == np.int64
+    assert m.encode_calibrated("s", attached) == m.encode_calibrated("s", built)
+    with pytest.raises(ValueError, match="differ in length"):
+        CalibratedBatch(*fields).with_device_time(t_dev[:-1])

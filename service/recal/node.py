@@ -434,7 +434,7 @@ class CalibrationNode(AlignmentRequests):
         ``state``), not the pipeline's, which may be some batches further (`process_many`).
         ``t_dev``: the batch's device time stamps as they came, kept on every calibrated
         sample (`CalibratedBatch.t_dev`) beside the time base's ``t_us``."""
-        cal = self._guard(replace(out.calibrated, t_dev=t_dev), log_ns)
+        cal = self._guard(out.calibrated.with_device_time(t_dev), log_ns)
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
         self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]

@@ -6,6 +6,7 @@ Plain frozen dataclasses over numpy arrays, no I/O. The core computes on them, t
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
@@ -160,6 +161,17 @@ class CalibratedBatch:
 
     def __len__(self) -> int:
         return len(self.t_us)
+
+    def with_device_time(self, t_dev: np.ndarray) -> CalibratedBatch:
+        """This batch with the device's own stamps (``t_dev``), its other arrays shared and
+        not converted or checked again: the live node attaches them to every batch it
+        publishes, where a whole construction would cost more than the rest of the copy."""
+        t = _as_time_us(t_dev)
+        if len(t) != len(self.t_us):
+            raise ValueError("calibrated batch fields differ in length")
+        new = copy.copy(self)
+        object.__setattr__(new, "t_dev", t)
+        return new
 
     def __getitem__(self, index: slice | np.ndarray) -> CalibratedBatch:
         return CalibratedBatch(self.t_us[index], self.a_g[index], self.quasi_static[index],
