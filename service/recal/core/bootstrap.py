@@ -216,14 +216,15 @@ def still_poses(var: np.ndarray, s0: float) -> np.ndarray:
 
 
 def fit_poses(model: SensorModel, v: np.ndarray, cov: Covariates, sphere: bool, tol_g: float
-              ) -> tuple[SensorModel, np.ndarray, np.ndarray] | None:
+              ) -> tuple[SensorModel, np.ndarray, np.ndarray, np.ndarray] | None:
     """`initial_params` on the window means v (M,3) that agree with it (cov: the windows'
     covariates, for the model's other effects at nominal): windows whose norm
     under the fit is further than tol_g from 1 g (a pose mixed with the next, movement) are
     dropped and the rest fitted again. A fit of few poses is exactly or nearly determined, so
     one such window bends it by tenths of a g (a six-pose stream cut together gave s_z 0.75
     of the truth and o_z 0.25 g), while the windows that agree fit it to their noise.
-    Returns (model, p, the windows used) or None (no fit through enough of them)."""
+    Returns (model, p, the windows used, every window corrected by the fit, g (M,3)) or None
+    (no fit through enough of them)."""
     v = np.asarray(v, np.float64).reshape(-1, 3)
     keep = np.all(np.isfinite(v), axis=1)
     for _ in range(FIT_PASSES):
@@ -234,7 +235,7 @@ def fit_poses(model: SensorModel, v: np.ndarray, cov: Covariates, sphere: bool, 
         a = fitted.correct(p, v, cov)
         new = keep & (np.abs(np.linalg.norm(a, axis=1) - 1.0) <= tol_g)
         if np.array_equal(new, keep):
-            return fitted, p, keep
+            return fitted, p, keep, a
         keep = new
     return None
 

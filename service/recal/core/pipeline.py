@@ -679,20 +679,19 @@ class Pipeline:
         half_axes = sum(cov.seen_pos) + sum(cov.seen_neg)
         if half_axes < 5 or cov.cells_filled < self.cfg.bootstrap_min_cells:
             return None
+        w, slots = self.buffer.windows(), self.buffer.slots()
         if self.centre0.any():  # zero-g was found, roughly: coverage around the best centre
             if not self._sphere_due():
                 return None
-            loc = locate(self.buffer.windows().v, self.cfg.buffer.grid)
+            loc = locate(w.v, self.cfg.buffer.grid)
             if loc is None or not loc.covers(cells=self.cfg.bootstrap_min_cells):
                 return None
-        w, slots = self.buffer.windows(), self.buffer.slots()
         fit = fit_poses(self.model, w.v, self.covariates(w.t_us, w.aux), not cov.full,
                         self.cfg.norm_tol_g)
         if fit is None:
             return None
-        model, p, used = fit
-        a = model.correct(p, w.v[used], self.covariates(w.t_us[used], w.aux[used]))
-        half, cells = reach(a, self.cfg.buffer.grid)
+        model, p, used, a = fit
+        half, cells = reach(a[used], self.cfg.buffer.grid)
         if half < (5 if not cov.full else 6) or cells < self.cfg.bootstrap_min_cells:
             return None  # the windows that agree with the fit do not cover enough
         if not np.all((p[model.slice(Scale())] > 0.5 * self.model.s0)
@@ -801,13 +800,14 @@ def _unobserved(model: SensorModel, est: Estimate | None,
     if est is None or len(observable) != model.size:
         return ()
     sd_mg = 1e3 * np.sqrt(np.clip(np.diag(est.cov), 0, None)) / model.s0
-    out = []
-    for e in (Offset(), Scale()):
-        if model.has(e.kind):
-            for i in range(model.slice(e).start, model.slice(e).stop):
-                if not observable[i] and sd_mg[i] > UNPINNED_MG:
-                    out.append(model.names[i])
-    return tuple(out)
+    return tuple(model.names[i] for i in _offsets_and_scales(model)
+                 if not observable[i] and sd_mg[i] > UNPINNED_MG)
+
+
+def _offsets_and_scales(model: SensorModel) -> list[int]:
+    """The indices of the model's offsets and scales in p."""
+    return [i for e in (Offset(), Scale()) if model.has(e.kind)
+            for i in range(model.slice(e).start, model.slice(e).stop)]
 
 
 def _moved_mg2(model: SensorModel, before: Estimate, after: Estimate | None) -> float:
@@ -817,8 +817,7 @@ def _moved_mg2(model: SensorModel, before: Estimate, after: Estimate | None) -> 
     Mahalanobis length under the covariance before, k the parameters."""
     if after is None:
         return 0.0
-    idx = [i for e in (Offset(), Scale()) if model.has(e.kind)
-           for i in range(model.slice(e).start, model.slice(e).stop)]
+    idx = _offsets_and_scales(model)
     if not idx:
         return 0.0
     dp = (after.p - before.p)[idx]
