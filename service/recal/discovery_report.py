@@ -170,15 +170,20 @@ def misfit_dict(mis: Misfit | None) -> dict[str, Any] | None:
             "well_above_noise": mis.well_above_noise}
 
 
+def misfit_words(d: dict[str, Any]) -> str:
+    """How much a fit leaves beyond the noise, for a person (``d``: `misfit_dict`'s)."""
+    return (f"leaves {d['excess_mg']:.2f} mg beyond the sensor noise ({d['noise_mg']:.2f} mg "
+            f"per window, reduced chi-square {d['chi2']:.3g}; {d['max_local_excess_mg']:.2f} "
+            "mg where it is worst): the model lacks an effect")
+
+
 def misfit_line(mis: Misfit | None, found: str) -> str | None:
     """A person's line when the residual is well above the noise (None: it is not): how
     much, and what to do next (``found``: what discover found, or what to run)."""
-    if mis is None or not mis.well_above_noise:
+    d = misfit_dict(mis)
+    if d is None or not d["well_above_noise"]:
         return None
-    return (f"the fit leaves {1e3 * mis.overall_g:.2f} mg beyond the sensor noise "
-            f"({1e3 * mis.noise_g:.2f} mg per window, reduced chi-square {mis.chi2:.3g}; "
-            f"{1e3 * mis.max_excess_g:.2f} mg where it is worst): the model lacks an effect; "
-            f"{found}")
+    return f"the fit {misfit_words(d)}; {found}"
 
 
 def _misfit_next(result: dc.DiscoveryResult) -> str:

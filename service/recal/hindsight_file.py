@@ -32,7 +32,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status, predicted_sigma_mg, sigma_form
-from recal.discovery_report import misfit_dict
+from recal.discovery_report import misfit_dict, misfit_words
 from recal.errors import RecordingError
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
@@ -135,10 +135,8 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
     if mis and mis["well_above_noise"]:
         suspect = s.get("samples_suspect", 0)
         lines.append(
-            f"  poor fit: it leaves {mis['excess_mg']:.2f} mg beyond the sensor noise "
-            f"({mis['noise_mg']:.2f} mg per window, reduced chi-square {mis['chi2']:.3g}; "
-            f"{mis['max_local_excess_mg']:.2f} mg where it is worst): the model lacks an "
-            f"effect. sigma carries it; {suspect} samples where it exceeds "
+            f"  poor fit: it {misfit_words(mis)}. sigma carries it; {suspect} samples where "
+            "it exceeds "
             f"{1e3 * hindsight.SUSPECT_EXCESS_G:g} mg are marked suspect. Next: "
             f"`recal discover {s['in']}` finds the effect, then `recal hindsight` with "
             f"--model of the model it writes")

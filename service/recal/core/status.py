@@ -43,9 +43,9 @@ the calibration state names the unobserved parameters (``unobserved``).
 The predicted error (`predicted_sigma_mg`) is the 1-sigma length of the error of the
 calibrated vector that the parameters' uncertainty causes: the estimate's covariance C_e
 (Lötters eq. 11b) through the correction's Jacobian J = da/dp at each sample,
-sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`Misfit`):
-sigma^2 = sigma_C^2 + 3 q, q the variance of the still windows' norm residual beyond what the
-sensor's noise and C_e explain. The sensor's own noise on the sample is not in it.
+sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`Misfit`: the still
+windows' norm residual beyond what the sensor's noise and C_e explain, the buffer fit's
+residual, the estimate's excess movement). The sensor's own noise on the sample is not in it.
 """
 
 from __future__ import annotations
@@ -176,7 +176,7 @@ class Misfit:
     minutes), m (`moved`), is that lag's variance.
 
     sigma^2 = sigma_C^2 + 3 q + MISFIT_FIT_FACTOR x q_f + m. Where the model
-    fits, q, q_f and D stay near 0 and sigma is sigma_C.
+    fits, q, q_f and m stay near 0 and sigma is sigma_C.
 
     Attributes:
         r2_g2: running mean of the clipped squared residuals (g^2).
@@ -206,7 +206,7 @@ class Misfit:
 
     @property
     def extra_mg2(self) -> float:
-        """What the misfit adds to sigma^2 (mg^2): 3 q + MISFIT_FIT_FACTOR x q_f."""
+        """What the misfit adds to sigma^2 (mg^2): 3 q + MISFIT_FIT_FACTOR x q_f + m."""
         return 1e6 * (3.0 * self.q_g2 + MISFIT_FIT_FACTOR * self.fit_g2) + self.moved_mg2
 
     def moved(self, excess_mg2: float, now_us: int) -> None:
