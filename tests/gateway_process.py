@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -15,10 +16,15 @@ from recal.gateway import READY_PREFIX
 
 
 def write_config(tmp: Path, link: str, zenoh: str, flush_s: float, sensor_id: str = "s1",
-                 rate_hz: float = 100.0) -> Path:
+                 rate_hz: float = 100.0, aux_names: Sequence[str] | None = (),
+                 after_update_s: float | None = None) -> Path:
     """``tmp/gateway.toml`` for one sensor on ``link``: the ``zenoh`` table as given, MCAP
-    flushed every ``flush_s``, checkpoints every 0.25 s in ``tmp/ck``, a 1024 counts/g prior."""
+    flushed every ``flush_s``, checkpoints every 0.25 s in ``tmp/ck`` (and ``after_update_s``
+    after an update, if given), a 1024 counts/g prior; ``aux_names`` None: the channels are
+    whatever the device's header says."""
     path = tmp / "gateway.toml"
+    after = "" if after_update_s is None else f"after_update_s = {after_update_s}\n"
+    names = "" if aux_names is None else f"aux_names = {json.dumps(list(aux_names))}\n"
     path.write_text(f"""{zenoh}
 [mcap]
 flush_interval_s = {flush_s}
@@ -26,12 +32,11 @@ flush_interval_s = {flush_s}
 [checkpoint]
 dir = "{tmp / 'ck'}"
 interval_s = 0.25
-
+{after}
 [[sensors]]
 id = "{sensor_id}"
 port = "{link}"
-aux_names = []
-rate_hz = {rate_hz}
+{names}rate_hz = {rate_hz}
 prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
 """)
     return path
@@ -40,7 +45,10 @@ prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
 class GatewayProcess:
     """`python -m recal run` as a child process; its output is read by a thread."""
 
-    def __init__(self, config: Path, mcap: Path, args: Sequence[str] = ()) -> None:
+    def __init__(self, config: Path, mcap: Path, args: Sequence[str] = (),
+                 wait_ready: bool = True) -> None:
+        """Start it; unless ``wait_ready`` is False, wait for its ready line (AssertionError
+        with its output if it exits or does not get ready in 30 s)."""
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "recal", "run", "--config", str(config), "--mcap", str(mcap),
@@ -48,6 +56,8 @@ class GatewayProcess:
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
+        if not wait_ready:
+            return
         ready = wait_for(lambda: self.ready_line is not None or self.proc.poll() is not None,
                          30, 0.02)
         if not ready or self.ready_line is None or self.proc.poll() is not None:
@@ -63,6 +73,10 @@ class GatewayProcess:
     @property
     def ready_line(self) -> str | None:
         return next((ln for ln in self.lines if ln.startswith(READY_PREFIX)), None)
+
+    @property
+    def ready(self) -> bool:
+        return self.ready_line is not None
 
     @property
     def mcap(self) -> Path:

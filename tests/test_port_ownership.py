@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
+from gateway_process import GatewayProcess
 from polling import wait_for
-from recal.gateway import READY_PREFIX
 from recal.io.pty_device import PtyDevice
 
 TRIES = 8
@@ -34,36 +32,14 @@ dir = "{tmp / ('ck-' + name)}"
     return path
 
 
-class _Run:
-    """`python -m recal run` with its output collected by a thread."""
-
-    def __init__(self, tmp: Path, name: str, link: str) -> None:
-        self.lines: list[str] = []
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "recal", "run", "--config", str(_config(tmp, name)),
-             "--mcap", str(tmp / f"{name}.mcap"), "--port", link, "--sensor-id", name,
-             "--counts-per-g", "1024", "--zero-g", "0", "--rate", "100"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            if len(self.lines) < 1000:
-                self.lines.append(line.rstrip("\n"))
-
-    @property
-    def ready(self) -> bool:
-        return any(ln.startswith(READY_PREFIX) for ln in list(self.lines))
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
+def _run(tmp: Path, name: str, link: str) -> GatewayProcess:
+    """`python -m recal run` on ``link`` as sensor ``name``, not waited for."""
+    return GatewayProcess(_config(tmp, name), tmp / f"{name}.mcap",
+                          ["--port", link, "--sensor-id", name, "--counts-per-g", "1024",
+                           "--zero-g", "0", "--rate", "100"], wait_ready=False)
 
 
-def _settled(runs: list[_Run]) -> bool:
+def _settled(runs: list[GatewayProcess]) -> bool:
     """One has exited and the other is ready."""
     return sum(r.proc.poll() is not None for r in runs) == 1 and any(r.ready for r in runs)
 
@@ -74,7 +50,7 @@ def test_two_daemons_started_at_once_on_one_port_leave_exactly_one(tmp_path: Pat
         for attempt in range(TRIES):
             tmp = tmp_path / f"try{attempt}"
             tmp.mkdir()
-            runs = [_Run(tmp, "a", link), _Run(tmp, "b", link)]
+            runs = [_run(tmp, "a", link), _run(tmp, "b", link)]
             try:
                 assert wait_for(lambda runs=runs: _settled(runs), START_S, 0.05), \
                     [r.lines for r in runs]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway_process import GatewayProcess
+from gateway_process import GatewayProcess, write_config
 from polling import wait_for
 from recal.checkpoints import checkpoint_path, load_checkpoint
 from recal.io.pty_device import PtyDevice
@@ -19,29 +19,6 @@ from recal.samples import RawBatch
 from test_gateway import sim_raw, stream
 
 SID = "wrist"
-
-
-def _config(tmp: Path, link: str) -> Path:
-    """One sensor without aux_names: the channels are whatever the device's header says."""
-    path = tmp / "gateway.toml"
-    path.write_text(f"""[zenoh]
-enabled = false
-
-[mcap]
-flush_interval_s = 0.05
-
-[checkpoint]
-dir = "{tmp / 'ck'}"
-interval_s = 0.25
-after_update_s = 0.2
-
-[[sensors]]
-id = "{SID}"
-port = "{link}"
-rate_hz = 100.0
-prior = {{ counts_per_g = 1024.0, zero_g = 0 }}
-""")
-    return path
 
 
 def _start(config: Path, mcap: Path, dev: PtyDevice,
@@ -68,7 +45,9 @@ def test_a_restart_without_the_header_keeps_the_channel_and_the_checkpoints(
     raw = RawBatch(raw.t_us, raw.v, temp[:, None], ("temp_c",))
     unnamed = RawBatch(raw.t_us, raw.v, raw.aux, ("aux0",))
     link = str(tmp_path / "ttyHDR")
-    config = _config(tmp_path, link)
+    # one sensor without aux_names: the channels are whatever the device's header says
+    config = write_config(tmp_path, link, "[zenoh]\nenabled = false\n", 0.05, SID,
+                          aux_names=None, after_update_s=0.2)
     ckpt = checkpoint_path(tmp_path / "ck", SID)
     half = len(raw) // 2
     with PtyDevice(link, "ascii", header=False, write_timeout_s=5.0) as dev:
