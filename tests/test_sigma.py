@@ -16,7 +16,7 @@ from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
-from recal.core.status import GROSS_MIN_MG, PROBATION_WINDOWS, Misfit, Status
+from recal.core.status import GROSS_MIN_MG, PROBATION_WINDOWS, RunningMisfit, Status
 from recal.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sinks import EventSink
@@ -67,13 +67,13 @@ def test_misfit_is_zero_for_noise_and_the_excess_beyond_it() -> None:
     """The misfit's variance is what the residuals carry beyond what is expected of them."""
     rng = np.random.default_rng(0)
     noise_g, extra_g = 0.5e-3, 5e-3
-    clean, off = Misfit(), Misfit()
+    clean, off = RunningMisfit(), RunningMisfit()
     for _ in range(2000):  # bounded
         clean.see(float(rng.normal(0, noise_g)), noise_g ** 2)
         off.see(float(rng.normal(0, np.hypot(noise_g, extra_g))), noise_g ** 2)
     assert clean.q_g2 < 0.1 * extra_g ** 2
     assert 0.3 * extra_g ** 2 < off.q_g2 < 1.5 * extra_g ** 2, off.q_g2 / extra_g ** 2
-    assert off.extra_mg2 == 3e6 * off.q_g2
+    assert off.extra_mg2 == 1e6 * off.across * off.q_g2  # kappa: `core.misfit`
 
 
 def test_sigma_widens_where_the_model_lacks_an_effect_and_not_on_clean_data() -> None:
@@ -175,7 +175,7 @@ def test_an_upright_wearer_is_held_and_says_which_axis() -> None:
 
 
 def test_the_new_state_round_trips_and_old_checkpoints_load() -> None:
-    """Misfit, probation and the unobserved parameters are in the checkpoint; a checkpoint
+    """RunningMisfit, probation and the unobserved parameters are in the checkpoint; a checkpoint
     without them (older) loads with none."""
     _, _, pipe0 = _temperature_run(True)
     pipe0 = Pipeline.from_state_dict(json.loads(json.dumps(pipe0.state_dict())))
@@ -190,7 +190,7 @@ def test_the_new_state_round_trips_and_old_checkpoints_load() -> None:
     for k in ("probation", "misfit", "agreed", "calm_run"):
         del old["watch"][k]
     o = Pipeline.from_state_dict(old)
-    assert o.watch.misfit == Misfit() and o.watch.probation == 0 and o.unobserved == ()
+    assert o.watch.misfit == RunningMisfit() and o.watch.probation == 0 and o.unobserved == ()
     assert o.status is Status.CALIBRATED
 
 

@@ -39,7 +39,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.residuals import (
     ORIENTATION_FEATURES,
-    Misfit,
+    MisfitProfile,
     ResidualAnalysis,
     orientation_features,
 )
@@ -161,8 +161,8 @@ def criterion_text(cfg: dc.DiscoveryConfig, n_blocks: int) -> str:
             + "an earlier effect a later one made redundant is removed by the same test")
 
 
-def misfit_dict(mis: Misfit | None) -> dict[str, Any] | None:
-    """What a fit leaves beyond the noise (`residuals.Misfit`), in mg, for the reports."""
+def misfit_dict(mis: MisfitProfile | None) -> dict[str, Any] | None:
+    """What a fit leaves beyond the noise (`residuals.MisfitProfile`), in mg, for the reports."""
     if mis is None:
         return None
     return {"excess_mg": 1e3 * mis.overall_g, "max_local_excess_mg": 1e3 * mis.max_excess_g,
@@ -177,7 +177,7 @@ def misfit_words(d: dict[str, Any]) -> str:
             "mg where it is worst): the model lacks an effect")
 
 
-def misfit_line(mis: Misfit | None, found: str) -> str | None:
+def misfit_line(mis: MisfitProfile | None, found: str) -> str | None:
     """A person's line when the residual is well above the noise (None: it is not): how
     much, and what to do next (``found``: what discover found, or what to run)."""
     d = misfit_dict(mis)

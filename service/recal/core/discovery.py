@@ -76,7 +76,7 @@ from recal.core.model_fit import (
     start_params,
 )
 from recal.core.residuals import (
-    Misfit,
+    MisfitProfile,
     ResidualAnalysis,
     explained_fraction,
     misfit,
@@ -303,7 +303,7 @@ class DiscoveryResult:
         free = free_params(self.model, self.p, self.data)
         return tuple(n for n, f in zip(self.model.names, free, strict=True) if not f)
 
-    def misfit(self) -> Misfit | None:
+    def misfit(self) -> MisfitProfile | None:
         """What the final fit leaves beyond the noise of the window means (`residuals.misfit`;
         None for a table, whose rows carry no noise)."""
         w = self.data.windows
@@ -312,7 +312,8 @@ class DiscoveryResult:
         noise2 = w.var / np.maximum(w.n, 1) / self.data.s0**2
         if not (np.all(np.isfinite(noise2)) and noise2.any()):
             return None
-        return misfit(self.model.residual(self.p, w.v, self.data.cov), noise2, w.t_us)
+        return misfit(self.model.residual(self.p, w.v, self.data.cov), noise2, w.t_us,
+                      a=self.corrected())
 
     def corrected(self, final: bool = True) -> np.ndarray:
         """The windows corrected by the final (or base) fit on all windows, g (M,3)."""

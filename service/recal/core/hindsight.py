@@ -18,9 +18,11 @@ was known when it arrived); this module is for a recording already on disk.
 3. the correction (inverse of Lötters eq. 3) of every sample: `HindsightFit.correct`, with
    its predicted error: the parameters' covariance (Lötters eq. 11b) scaled by the fit's
    reduced chi-square, and what the model cannot explain there (`residuals.misfit`: the still
-   windows' residual beyond their noise, pooled over the minutes around each sample), so
-   sigma grows where the residual grows (`HindsightFit.sigma_mg`); where that residual is
-   far above the noise the samples are suspect (`HindsightFit.poor`).
+   windows' residual beyond their noise, pooled over the minutes around each sample, times
+   the factor by which the error of the vector can exceed what the norm shows,
+   `misfit.across_factor` of those windows' directions), so sigma grows where the residual
+   grows (`HindsightFit.sigma_mg`); where that residual is far above the noise the samples
+   are suspect (`HindsightFit.poor`).
 
 Why and how it compares with the batch tools: docs/design.md and docs/performance.md
 ("Calibration with hindsight").
@@ -41,19 +43,15 @@ from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline_config import PipelineConfig
-from recal.core.residuals import Misfit, misfit
+from recal.core.residuals import MisfitProfile, misfit
 from recal.core.windowing import Windowing
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
-__all__ = ["MISFIT_AXES", "SUSPECT_EXCESS_G", "HindsightFit", "calibrate", "fit"]
+__all__ = ["SUSPECT_EXCESS_G", "HindsightFit", "calibrate", "fit"]
 
 #: Most fits of `fit`: each drops the windows the one before put beyond norm_tol_g.
 MAX_PASSES = 5
-#: The norm residual sees an error along gravity only; an effect the model lacks (an offset
-#: that follows temperature, a supply that scales the output) errs as much across it, unseen:
-#: sigma carries the local excess once per axis (sqrt(3) times it).
-MISFIT_AXES = 3
 #: A local residual this far beyond the noise (along gravity, g) marks the samples there
 #: suspect: the model misses an effect of at least that size there (a clean fit leaves
 #: well under 1 mg).
@@ -83,7 +81,7 @@ class HindsightFit:
     windows: int
     dropped: int
     residual_rms_mg: float
-    misfit: Misfit | None = None
+    misfit: MisfitProfile | None = None
 
     @property
     def chi2(self) -> float:
@@ -98,14 +96,12 @@ class HindsightFit:
     def sigma_mg(self, t_us: np.ndarray, sigma_p_mg: np.ndarray) -> np.ndarray:
         """Predicted 1-sigma error (mg) of samples at t_us whose error from the parameters'
         covariance alone is sigma_p_mg: that scaled by the reduced chi-square (when above
-        1), with the excess beyond the noise once per axis (MISFIT_AXES) added: the local
-        one, or the whole recording's where that is larger (an effect whose error lies across
-        gravity, a cross-axis term under a diagonal model, shows in the norm only in the
-        postures between the axes: the minutes around a sample may not see it)."""
+        1), with the misfit's variance of the vector added (`MisfitProfile.vector_var_g2`:
+        the excess beyond the noise times the factor by which the vector's error can exceed
+        the norm's, locally or over the whole recording, whichever is larger)."""
         s2 = np.asarray(sigma_p_mg, np.float64) ** 2 * max(1.0, self.chi2)
         if self.misfit is not None:
-            excess = np.maximum(self.misfit.at(t_us), self.misfit.overall_g)
-            s2 = s2 + MISFIT_AXES * (1e3 * excess) ** 2
+            s2 = s2 + 1e6 * self.misfit.vector_var_g2(t_us)
         return np.sqrt(s2)
 
     def suspect(self, t_us: np.ndarray) -> np.ndarray:
@@ -165,12 +161,13 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
             break
     xi_fitted = xi[fitted]
     w = data.windows
+    a = model.correct(res.p, w.v, data.cov)[fitted]  # directions: `misfit.across_factor`
     # the noise left in a window mean, per axis and so along gravity: var / n of its samples
     noise2 = w.var[fitted] / np.maximum(w.n[fitted], 1) / model.s0**2
     return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(fitted.sum()),
                         dropped + int((~fitted).sum()),
                         1e3 * float(np.sqrt(np.mean(xi_fitted**2))) if len(xi_fitted) else 0.0,
-                        misfit(xi_fitted, noise2, w.t_us[fitted]))
+                        misfit(xi_fitted, noise2, w.t_us[fitted], a=a))
 
 
 def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,

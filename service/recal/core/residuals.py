@@ -12,6 +12,7 @@ import numpy as np
 
 from recal.core.discovery_data import DiscoveryData
 from recal.core.effects import TIME, Effect
+from recal.core.misfit import ACROSS_MAX, across_factor, chance, direction_moments, excess_g2
 from recal.core.model import SensorModel
 from recal.core.model_fit import free_params
 
@@ -20,7 +21,7 @@ __all__ = [
     "ORIENTATION_FEATURES",
     "POOR_CHI2",
     "POOR_MIN_G",
-    "Misfit",
+    "MisfitProfile",
     "ResidualAnalysis",
     "explained_fraction",
     "misfit",
@@ -103,7 +104,7 @@ def residual_analysis(model: SensorModel, p: np.ndarray, data: DiscoveryData,
 #: few postures (20-180 s each), short enough to follow a temperature or a supply that moves
 #: over tens of minutes.
 LOCAL_SPAN_S = 300.0
-#: Reduced chi-square beyond which a fit's residual is well above the noise (`Misfit`): the
+#: Reduced chi-square beyond which a fit's residual is well above the noise (`MisfitProfile`): the
 #: residual twice the noise. A model that fits stays near 1 (1.3 on a simulated wearer:
 #: sway the windows' variance underrates).
 POOR_CHI2 = 4.0
@@ -113,15 +114,20 @@ POOR_MIN_G = 0.0005
 
 
 @dataclass(frozen=True, eq=False)
-class Misfit:
-    """What a fit leaves beyond the sensor noise, around each window in time.
+class MisfitProfile:
+    """What a finished fit leaves beyond the sensor noise, around each window in time (the
+    streaming pipeline's running form of the same estimate: `status.RunningMisfit`; both
+    from `core.misfit`).
 
     xi = |a| - 1 g of a window mean holds the noise left in the mean (var / n of its samples,
     along gravity) and whatever the model cannot explain there. Pooled over the windows
-    within LOCAL_SPAN_S of each: excess_g = sqrt(max(0, mean xi^2 - mean noise^2)), the
-    residual the noise does not account for (0 where the model fits); overall_g the same
-    over all windows, and chi2 = mean xi^2 / mean noise^2 over all windows (the reduced
-    chi-square, ~1 where the model fits).
+    within LOCAL_SPAN_S of each: excess_g = sqrt(`misfit.excess_g2`(mean xi^2, mean
+    noise^2, `misfit.chance` of their count)), the residual the noise and chance do not
+    account for (0 where the model fits);
+    overall_g the same over all windows, and chi2 = mean xi^2 / mean noise^2 over all windows
+    (the reduced chi-square, ~1 where the model fits). The error of the calibrated vector
+    that misfit implies is larger (it errs across gravity too, unseen): `misfit.across_factor`
+    of the same windows' directions, across (local) and across_all (all windows).
 
     Attributes:
         t_us: window mid times, sorted.
@@ -129,6 +135,9 @@ class Misfit:
         noise_g: RMS noise of the window means (g, along gravity), all windows.
         chi2: reduced chi-square of the fit over all windows.
         overall_g: the excess over all windows (g).
+        across: kappa of the windows within LOCAL_SPAN_S of each (None: directions not given,
+            `misfit.ACROSS_MAX` then).
+        across_all: kappa of all windows.
     """
 
     t_us: np.ndarray
@@ -136,14 +145,27 @@ class Misfit:
     noise_g: float
     chi2: float
     overall_g: float = 0.0
+    across: np.ndarray | None = None
+    across_all: float = ACROSS_MAX
 
     def at(self, t_us: np.ndarray) -> np.ndarray:
         """The local excess (g) at sample times t_us: linear between windows, the nearest
         window's beyond the first and last."""
+        return self._interp(t_us, self.excess_g)
+
+    def vector_var_g2(self, t_us: np.ndarray) -> np.ndarray:
+        """The variance (g^2) the misfit adds to the calibrated vector's error at sample times
+        t_us: kappa x excess^2, locally, or over the whole recording where that is larger (an
+        effect whose error lies across gravity shows in the norm only at some postures: the
+        minutes around a sample may not see it)."""
+        local = self._interp(t_us, self.excess_g ** 2 * (
+            self.across if self.across is not None else ACROSS_MAX))
+        return np.maximum(local, self.across_all * self.overall_g ** 2)
+
+    def _interp(self, t_us: np.ndarray, y: np.ndarray) -> np.ndarray:
         if not len(self.t_us):
             return np.zeros(len(t_us))
-        return np.interp(np.asarray(t_us, np.float64), self.t_us.astype(np.float64),
-                         self.excess_g)
+        return np.interp(np.asarray(t_us, np.float64), self.t_us.astype(np.float64), y)
 
     @property
     def well_above_noise(self) -> bool:
@@ -157,22 +179,31 @@ class Misfit:
 
 
 def misfit(xi_g: np.ndarray, noise_var_g2: np.ndarray, t_us: np.ndarray,
-           span_s: float = LOCAL_SPAN_S) -> Misfit:
-    """`Misfit` of residuals xi_g (M,) of windows at t_us whose means carry noise variance
-    noise_var_g2 (M,) along gravity."""
+           span_s: float = LOCAL_SPAN_S, a: np.ndarray | None = None) -> MisfitProfile:
+    """`MisfitProfile` of residuals xi_g (M,) of windows at t_us whose means carry noise
+    variance noise_var_g2 (M,) along gravity; a (M, 3): the windows' calibrated means (their
+    directions give `misfit.across_factor`; None: ACROSS_MAX)."""
     order = np.argsort(t_us, kind="stable")
     t = np.asarray(t_us, np.int64)[order]
     x2 = np.asarray(xi_g, np.float64)[order] ** 2
     n2 = np.asarray(noise_var_g2, np.float64)[order]
     if not len(t):
-        return Misfit(t, np.zeros(0), 0.0, 1.0, 0.0)
+        return MisfitProfile(t, np.zeros(0), 0.0, 1.0, 0.0)
     span = round(span_s * 1e6)
     lo = np.searchsorted(t, t - span, side="left")
     hi = np.searchsorted(t, t + span, side="right")
     cx, cn = np.concatenate(([0.0], np.cumsum(x2))), np.concatenate(([0.0], np.cumsum(n2)))
     k = hi - lo
-    excess2 = ((cx[hi] - cx[lo]) - (cn[hi] - cn[lo])) / k
+    # beyond what chance allows a mean of k squares (`misfit.chance`): pure noise leaves 0
+    excess2 = excess_g2((cx[hi] - cx[lo]) / k, (cn[hi] - cn[lo]) / k, chance(k))
     noise2 = float(np.mean(n2))
     chi2 = float(np.mean(x2)) / noise2 if noise2 > 0 else float("inf")
-    overall = math.sqrt(max(float(np.mean(x2)) - noise2, 0.0))
-    return Misfit(t, np.sqrt(np.maximum(excess2, 0.0)), math.sqrt(noise2), chi2, overall)
+    overall = math.sqrt(float(excess_g2(float(np.mean(x2)), noise2, chance(len(t)))))
+    across, across_all = None, ACROSS_MAX
+    if a is not None:
+        mom = direction_moments(np.asarray(a, np.float64)[order])
+        cm = np.concatenate((np.zeros((1, 9, 9)), np.cumsum(mom, axis=0)))
+        across = np.asarray(across_factor(cm[hi] - cm[lo], k))
+        across_all = float(across_factor(cm[-1], len(t)))
+    return MisfitProfile(t, np.sqrt(excess2), math.sqrt(noise2), chi2, overall, across,
+                         across_all)

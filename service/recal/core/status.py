@@ -43,7 +43,7 @@ the calibration state names the unobserved parameters (``unobserved``).
 The predicted error (`predicted_sigma_mg`) is the 1-sigma length of the error of the
 calibrated vector that the parameters' uncertainty causes: the estimate's covariance C_e
 (Lötters eq. 11b) through the correction's Jacobian J = da/dp at each sample,
-sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`Misfit`: the still
+sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`RunningMisfit`: the still
 windows' norm residual beyond what the sensor's noise and C_e explain, the buffer fit's
 residual, the estimate's excess movement). The sensor's own noise on the sample is not in it.
 """
@@ -60,12 +60,13 @@ import numpy as np
 
 from recal.core.buffer import WindowBuffer, Windows, cell_of
 from recal.core.effects import Covariates
+from recal.core.misfit import ACROSS_SPHERE, excess_g2
 from recal.core.model import SensorModel
 from recal.core.triaxial import norm3
 
 __all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "GROSS_MIN_MG", "GROSS_SIGMAS",
            "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG", "PROBATION_WINDOWS", "SUSPECT_AFTER_S",
-           "Misfit", "Status", "Watch",
+           "RunningMisfit", "Status", "Watch",
            "correction_jacobian", "predicted_sigma_mg", "refill", "sigma_form", "status_line"]
 
 
@@ -129,18 +130,21 @@ MISFIT_CLIP = 9.0
 MISFIT_FLOOR_MG = 1.0
 #: Of the residual's mean square, what chance allows above the expected one before any of it
 #: counts as misfit (the relative sd of a mean of ~2/MISFIT_WEIGHT squares is ~0.18; 1.5 x
-#: the expected is ~3 sd of it): clean data leave q at 0, sigma as it was.
+#: the expected is ~3 sd of it, `misfit.chance`): clean data leave q at 0, sigma as it was.
 MISFIT_CHANCE = 1.5
 #: The misfit on the output changes when it moved by more than this (relative, in sigma) and
 #: MISFIT_STEP_MG: per window work, a few segments per batch.
 MISFIT_STEP = 0.1
 #: The buffer fit's residual beyond noise and MISFIT_FIT_FLOOR_MG, as the vector's error
-#: variance (`Misfit`): the fit follows a drifting effect and leaves little of it in its
-#: residual, and little of that along the norm; on the simulated temperature effect the
-#: vector's error was ~10 x that rms (bench/sigma_honesty.py, docs/performance.md).
-MISFIT_FIT_FACTOR = 100.0
+#: variance (`RunningMisfit`): kappa (`misfit.across_factor` of the buffer's directions: how
+#: much more the vector errs than the norm shows, 5 on the whole sphere) times MISFIT_TRACK:
+#: the fit follows a drifting effect and leaves little of it in its residual; on the
+#: simulated temperature effect the vector's error was ~10 x that rms over windows of
+#: every posture (a variance factor of 100 = 5 x 20; bench/sigma_honesty.py,
+#: docs/performance.md).
+MISFIT_TRACK = 20.0
 MISFIT_FIT_FLOOR_MG = 0.5
-#: The estimate's movement (`Misfit.moved`): counted beyond MISFIT_MOVE_SDS of its sd, summed
+#: The estimate's movement (`RunningMisfit.moved`): counted beyond MISFIT_MOVE_SDS of its sd, summed
 #: over the last MISFIT_DRIFT_S of device time (decaying).
 MISFIT_MOVE_SDS = 2.0
 MISFIT_DRIFT_S = 600.0
@@ -148,16 +152,18 @@ MISFIT_STEP_MG = 0.05
 
 
 @dataclass
-class Misfit:
+class RunningMisfit:
     """What the model cannot explain, from the still windows' calibrated norms.
 
     Two witnesses. The estimator's fit of the buffer (windows of many postures, hours apart):
     its residual's mean square beyond the windows' noise, q_f (`fitted`), is what one set of
     parameters cannot explain across them (a temperature, a supply, a cross-axis term the
-    model lacks). The fit absorbs part of such an effect in the parameters, and the norm sees
-    one direction of three: the vector's error variance is taken as MISFIT_FIT_FACTOR x q_f
-    (measured on the simulated effects, bench/sigma_honesty.py), q_f counted beyond
-    MISFIT_FIT_FLOOR_MG (a fit that good needs no widening).
+    model lacks). The norm sees the error along gravity only: the vector's error can be
+    kappa x larger in variance (`misfit.across_factor` of the buffer's window directions at
+    that update, `across`: 5 when they cover the sphere, up to ACROSS_MAX when they do not
+    span), and the fit absorbs part of such an effect in the parameters (MISFIT_TRACK,
+    measured): the vector's error variance is taken as MISFIT_TRACK x kappa x q_f, q_f
+    counted beyond MISFIT_FIT_FLOOR_MG (a fit that good needs no widening).
 
     And each still window (after the bootstrap) gives r = |a| - 1 g under the parameters in force
     when it came, and the variance e2 = noise^2 + sigma_C^2 / 3 the model expects of r: the
@@ -166,8 +172,7 @@ class Misfit:
     min(r^2, MISFIT_CLIP x (e2 + q)) and of e2 give the misfit variance
     q = max(mean r^2 - MISFIT_CHANCE x mean e2, 0): the reduced chi-square of recent windows
     beyond chance, as a variance: what the estimate in force fails to explain now (an effect
-    that changes faster than the re-fits follow). It errs in every direction, and the norm
-    sees one of three: 3 q.
+    that changes faster than the re-fits follow). It errs across gravity too: kappa q.
 
     The third witness is the estimate's own movement: an estimate that keeps moving by more
     than its covariance allows chases an effect the model lacks, and lags it in the
@@ -175,8 +180,8 @@ class Misfit:
     MISFIT_DRIFT_S (how long a direction may go unobserved: a wearer keeps postures for
     minutes), m (`moved`), is that lag's variance.
 
-    sigma^2 = sigma_C^2 + 3 q + MISFIT_FIT_FACTOR x q_f + m. Where the model
-    fits, q, q_f and m stay near 0 and sigma is sigma_C.
+    sigma^2 = sigma_C^2 + kappa (q + MISFIT_TRACK x q_f) + m. Where the model fits, q, q_f
+    and m stay at 0 (the residual within chance of the noise) and sigma is sigma_C.
 
     Attributes:
         r2_g2: running mean of the clipped squared residuals (g^2).
@@ -186,6 +191,7 @@ class Misfit:
             changes when the misfit moved by more than MISFIT_STEP, so a batch's samples
             take few values of it.
         fit_g2: the last accepted update's misfit (`fitted`).
+        across: kappa of the buffer's directions at the last accepted update (`fitted`).
         moved_mg2: how far the offsets and scales moved beyond what their covariance allows
             (mg at 1 g, squared), summed over the accepted updates with a decay of
             MISFIT_DRIFT_S of device time (`moved`); moved_at_us: the last accepted update.
@@ -198,16 +204,17 @@ class Misfit:
     fit_g2: float = 0.0
     moved_mg2: float = 0.0
     moved_at_us: int | None = None
+    across: float = ACROSS_SPHERE
 
     @property
     def q_g2(self) -> float:
         """The misfit variance of the norm (g^2)."""
-        return max(self.r2_g2 - MISFIT_CHANCE * self.e2_g2, 0.0)
+        return float(excess_g2(self.r2_g2, self.e2_g2, MISFIT_CHANCE))
 
     @property
     def extra_mg2(self) -> float:
-        """What the misfit adds to sigma^2 (mg^2): 3 q + MISFIT_FIT_FACTOR x q_f + m."""
-        return 1e6 * (3.0 * self.q_g2 + MISFIT_FIT_FACTOR * self.fit_g2) + self.moved_mg2
+        """What the misfit adds to sigma^2 (mg^2): kappa (q + MISFIT_TRACK x q_f) + m."""
+        return 1e6 * self.across * (self.q_g2 + MISFIT_TRACK * self.fit_g2) + self.moved_mg2
 
     def moved(self, excess_mg2: float, now_us: int) -> None:
         """An accepted update at now_us moved the offsets and scales by excess_mg2 (squared,
@@ -218,12 +225,15 @@ class Misfit:
             self.moved_mg2 += excess_mg2
         self.moved_at_us = now_us
 
-    def fitted(self, residual_rms_g: float, noise_g2: float) -> None:
-        """An accepted update: its residual's rms over the buffer, and the mean noise
-        variance of the buffer's window means (g^2)."""
+    def fitted(self, residual_rms_g: float, noise_g2: float,
+               across: float = ACROSS_SPHERE) -> None:
+        """An accepted update: its residual's rms over the buffer, the mean noise variance of
+        the buffer's window means (g^2) and kappa of their directions."""
         if math.isfinite(residual_rms_g) and math.isfinite(noise_g2):
-            self.fit_g2 = max(residual_rms_g ** 2 - MISFIT_CHANCE * noise_g2
-                              - (1e-3 * MISFIT_FIT_FLOOR_MG) ** 2, 0.0)
+            self.fit_g2 = float(excess_g2(residual_rms_g ** 2, MISFIT_CHANCE * noise_g2
+                                          + (1e-3 * MISFIT_FIT_FLOOR_MG) ** 2))
+        if math.isfinite(across):
+            self.across = across
 
     def see(self, r_g: float, e2_g2: float) -> None:
         """One still window's residual r_g and its expected variance e2_g2 (g^2)."""
@@ -245,16 +255,17 @@ class Misfit:
     def to_dict(self) -> dict:
         return {"r2_g2": self.r2_g2, "e2_g2": self.e2_g2, "n": self.n,
                 "said_mg2": self.said_mg2, "fit_g2": self.fit_g2, "moved_mg2": self.moved_mg2,
-                "moved_at_us": self.moved_at_us}
+                "moved_at_us": self.moved_at_us, "across": self.across}
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> Misfit:
+    def from_dict(cls, d: dict | None) -> RunningMisfit:
         if not d:
             return cls()
         return cls(float(d["r2_g2"]), float(d["e2_g2"]), int(d["n"]),
                    float(d.get("said_mg2", 0.0)), float(d.get("fit_g2", 0.0)),
                    float(d.get("moved_mg2", 0.0)),
-                   None if d.get("moved_at_us") is None else int(d["moved_at_us"]))
+                   None if d.get("moved_at_us") is None else int(d["moved_at_us"]),
+                   float(d.get("across", ACROSS_SPHERE)))
 
 
 def gross(r_g: float, sigma2_mg2: float) -> bool:
@@ -367,7 +378,7 @@ class Watch:
             calibrated (after a moment of doubt, `doubt`); agreed: the cells that did.
         calm_run: windows in a row that neither failed the norm gate nor contradicted
             grossly (a suspect status clears at CLEAR_GOOD_WINDOWS of them).
-        misfit: what the model cannot explain (`Misfit`).
+        misfit: what the model cannot explain (`RunningMisfit`).
     """
 
     onset_us: int | None = None
@@ -380,7 +391,7 @@ class Watch:
     jump_us: int | None = None
     alarm_us: int | None = None
     probation: int = 0
-    misfit: Misfit = field(default_factory=Misfit)
+    misfit: RunningMisfit = field(default_factory=RunningMisfit)
     agreed: list[int] = field(default_factory=list)
     calm_run: int = 0
 
@@ -443,7 +454,7 @@ class Watch:
         self.triggers += 1
         self.onset_us, self.n_all, self.n_bad, self.recent, self.good_run = None, 0, 0, None, 0
         self.jump_us, self.probation, self.agreed, self.calm_run = None, 0, [], 0
-        self.misfit = Misfit()  # measured under the estimate the reset drops
+        self.misfit = RunningMisfit()  # measured under the estimate the reset drops
         return recent
 
     def jumped(self, step_us: int, now_us: int) -> str | None:
@@ -492,7 +503,7 @@ class Watch:
                    None if recent is None else [_window(w) for w in recent],
                    None if d.get("jump_us") is None else int(d["jump_us"]),
                    None if d.get("alarm_us") is None else int(d["alarm_us"]),
-                   int(d.get("probation", 0)), Misfit.from_dict(d.get("misfit")),
+                   int(d.get("probation", 0)), RunningMisfit.from_dict(d.get("misfit")),
                    [int(c) for c in d.get("agreed", ())],
                    int(d.get("calm_run", d.get("good_run", 0))))
 

@@ -1,0 +1,99 @@
+"""What the model cannot explain, one estimate for every tool: the still windows' norm residual
+beyond their noise (`excess_g2`), and how much larger the error of the calibrated *vector* can
+be than that residual, which sees along gravity only (`across_factor`).
+
+The streaming pipeline keeps it as running means (`status.RunningMisfit`); hindsight and
+discover pool a finished fit's residuals over time (`residuals.MisfitProfile`). Both take the
+excess from `excess_g2` and widen sigma by `across_factor` of the windows' gravity directions.
+
+Why a factor (docs/design.md, "sigma and what the model cannot explain"). A window at gravity
+direction u (unit) shows r = |a| - 1 g = u . e(u) to first order, e(u) the calibrated vector's
+error there; the error across gravity is not in r. Two kinds of effect a diagonal model
+(offsets, scales) lacks, and the worst ratio of |e|^2 at any orientation to the mean of r^2
+over the windows' directions u_i:
+
+* offset-like (temperature or supply on the offsets): e = o, r_i = u_i . o, so
+  mean r^2 = o^T S o >= lambda_min(S) |o|^2 with S = mean u_i u_i^T:
+  kappa_o = 1 / lambda_min(S) (3 on the whole sphere);
+* a symmetric off-diagonal term D (cross-axis: its antisymmetric part is a rotation, which
+  gravity cannot see): e = D u, r_i = u_i^T D u_i = f_i . d with d = (d_xy, d_xz, d_yz) and
+  f = 2 (u_x u_y, u_x u_z, u_y u_z). The fit absorbs what its own columns (u for the offsets,
+  u_k^2 for the scales) explain of f, so mean r^2 = d^T M d, M the second moment of f after
+  that projection, >= lambda_min(M) |d|^2; and |D u|^2 <= lambda_max(D)^2 <= 2/3 |D|_F^2 =
+  4/3 |d|^2 (D traceless: lambda_1 = -(lambda_2 + lambda_3)). kappa_c = (4/3) / lambda_min(M)
+  (5 on the whole sphere, where M = 4/15 I).
+
+kappa = max(kappa_o, kappa_c), at most ACROSS_MAX: directions that do not span (a wearer
+who never lies down) bound nothing across the unseen axis; the cap is where sigma stops
+growing with that ignorance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["ACROSS_MAX", "ACROSS_SPHERE", "CHANCE_SDS", "across_factor", "chance",
+           "direction_moments", "excess_g2"]
+
+#: Most `across_factor` gives: directions so close to one plane or axis that the residual
+#: bounds nothing across it (sigma then ~10x the residual's excess).
+ACROSS_MAX = 100.0
+#: `across_factor` of directions covering the whole sphere evenly (module doc).
+ACROSS_SPHERE = 5.0
+#: Up to this many windows' worth of moments do not span: `across_factor` is ACROSS_MAX.
+_FEW = 3
+
+
+#: How far above the noise a mean of squared residuals may lie by chance, in its sd (`chance`).
+CHANCE_SDS = 3.0
+
+
+def chance(count: float | np.ndarray) -> float | np.ndarray:
+    """What chance allows a mean of `count` squared residuals, relative to their expected
+    value: 1 + CHANCE_SDS sd, the sd of a mean of count chi-square(1) variables being
+    sqrt(2 / count) (a count below 1 allows anything)."""
+    return 1.0 + CHANCE_SDS * np.sqrt(2.0 / np.maximum(np.asarray(count, np.float64), 1e-12))
+
+
+def excess_g2(mean_r2_g2: float | np.ndarray, mean_noise2_g2: float | np.ndarray,
+              chance: float = 1.0) -> float | np.ndarray:
+    """The residual's mean square beyond `chance` x what the noise explains (g^2), never below
+    0: the reduced chi-square beyond chance, as a variance (0 where the model fits)."""
+    return np.maximum(np.asarray(mean_r2_g2) - chance * np.asarray(mean_noise2_g2), 0.0)
+
+
+def _features(u: np.ndarray) -> np.ndarray:
+    """(M, 9): u (3), u_k^2 (3), 2 (u_x u_y, u_x u_z, u_y u_z) of unit directions u (M, 3)."""
+    x, y, z = u.T
+    return np.stack([x, y, z, x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z], axis=1)
+
+
+def direction_moments(a: np.ndarray) -> np.ndarray:
+    """Per row of a (M, 3) (calibrated window means): the outer product (M, 9, 9) of its
+    direction's features, whose mean over windows `across_factor` reads (summed or pooled as
+    the caller likes: a running window's cumulative sums)."""
+    a = np.asarray(a, np.float64)
+    n = np.linalg.norm(a, axis=1, keepdims=True)
+    f = _features(a / np.where(n > 0, n, 1.0))
+    return f[:, :, None] * f[:, None, :]
+
+
+def across_factor(moments: np.ndarray, count: np.ndarray | float | None = None
+                  ) -> np.ndarray | float:
+    """kappa (module doc) of mean direction moments (..., 9, 9) (`direction_moments` averaged),
+    or of their sums over `count` windows; ACROSS_MAX where fewer than 3 windows."""
+    g = np.asarray(moments, np.float64)
+    if count is not None:
+        c = np.asarray(count, np.float64)
+        g = g / np.maximum(c, 1.0)[..., None, None]
+    s = g[..., :3, :3]
+    a_aa, a_af, a_ff = g[..., :6, :6], g[..., :6, 6:], g[..., 6:, 6:]
+    m = a_ff - np.swapaxes(a_af, -1, -2) @ np.linalg.pinv(a_aa, rcond=1e-10, hermitian=True) @ a_af
+    lam_o = np.linalg.eigvalsh(s)[..., 0]
+    lam_c = np.linalg.eigvalsh(0.5 * (m + np.swapaxes(m, -1, -2)))[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = np.maximum(1.0 / np.maximum(lam_o, 0.0), (4.0 / 3.0) / np.maximum(lam_c, 0.0))
+    k = np.where(np.isfinite(k), np.minimum(k, ACROSS_MAX), ACROSS_MAX)
+    if count is not None:
+        k = np.where(np.asarray(count) < _FEW, ACROSS_MAX, k)
+    return float(k) if np.ndim(k) == 0 else k
