@@ -85,6 +85,10 @@ def test_analog_part_on_a_sagging_supply_is_marked_suspect_and_says_what_next() 
     assert fit.poor and corrected.samples_suspect > 0.5 * len(cal)
     err = 1e3 * np.linalg.norm(cal - r.truth.a_true_g, axis=1)
     assert np.median(sigma) > 0.1 * np.median(err)
+    # sigma itself covers the error, whatever the status (before: 87 mg against 299 mg)
+    every = hc.honesty(cal, r.truth.a_true_g, sigma, np.full(len(cal), Status.CALIBRATED),
+                       50.0, float(r.truth.params["sensor"]["noise_g"]))
+    assert every["over"] > 1.0 and every["beyond_10"] == 0.0 and every["beyond_3"] < 0.1
     s = {"samples": len(cal), "sensor_id": "s", "seconds": 1.0, "out": "o.mcap",
          "in": "in.mcap", "samples_suspect": corrected.samples_suspect, **fit_summary(fit)}
     text = "\n".join(summary_lines(s))
