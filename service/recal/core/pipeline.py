@@ -26,6 +26,7 @@ import numpy as np
 from recal.core import detector as det
 from recal.core.bootstrap import (
     LOCATE_MIN_WINDOWS,
+    TURN_SD_G,
     fit_poses,
     locate,
     off_by,
@@ -488,7 +489,10 @@ class Pipeline:
         s0 = self.model.s0
         noise_g2 = var / max(n, 1) / (s0 * s0) if math.isfinite(var) else 0.0
         misfit = self.watch.misfit
-        if gross(r_g, sigma_c_mg ** 2 + misfit.said_mg2 + 1e6 * noise_g2):
+        # a window that turned while taken (two poses in one mean: `bootstrap.TURN_SD_G`)
+        # says nothing of the calibration, however far its norm
+        turned = math.isfinite(var) and var > (TURN_SD_G * s0) ** 2
+        if not turned and gross(r_g, sigma_c_mg ** 2 + misfit.said_mg2 + 1e6 * noise_g2):
             return True
         if ok and math.isfinite(sigma_c_mg):
             misfit.see(r_g, noise_g2 + (1e-3 * sigma_c_mg) ** 2 / 3.0)
