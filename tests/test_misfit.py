@@ -17,6 +17,7 @@ from recal.core.misfit import (
     excess_g2,
 )
 from recal.core.residuals import misfit
+from recal.core.status import MISFIT_TRACK, RunningMisfit
 
 
 def _sphere(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -83,3 +84,15 @@ def test_a_diagonal_model_on_a_sagging_supply_or_cross_axis_terms_is_honest_stre
     assert supply["beyond10_pct"] == 0.0
     cross = sh.run("cross", sh.CASES["cross-axis 1.5 deg, diagonal (lacks it)"], 60.0, 2)
     assert cross["cal_pct"] > 5 and cross["beyond3_pct"] < 8.0 and cross["beyond10_pct"] == 0.0
+
+
+def test_the_running_misfit_keeps_kappa_in_the_checkpoint_and_reads_old_ones() -> None:
+    """kappa is part of the state (an update's, applied until the next); a checkpoint from
+    before it loads with the whole sphere's."""
+    m = RunningMisfit()
+    m.fitted(2e-3, 1e-7, 40.0)
+    assert m.across == 40.0
+    assert abs(m.extra_mg2 - 1e6 * 40.0 * MISFIT_TRACK * m.fit_g2) < 1e-9
+    assert RunningMisfit.from_dict(m.to_dict()) == m
+    old = {k: v for k, v in m.to_dict().items() if k != "across"}
+    assert RunningMisfit.from_dict(old).across == ACROSS_SPHERE
