@@ -13,7 +13,7 @@ from recal.core.misfit import (
     ACROSS_SPHERE,
     across_factor,
     chance,
-    direction_moments,
+    direction_sums,
     excess_g2,
 )
 from recal.core.residuals import misfit
@@ -33,11 +33,11 @@ def _absorbable(u: np.ndarray) -> np.ndarray:
 
 def test_across_factor_is_five_on_the_sphere_and_capped_for_one_posture() -> None:
     rng = np.random.default_rng(0)
-    k = across_factor(direction_moments(_sphere(rng, 20000)).mean(axis=0))
+    k = across_factor(direction_sums(_sphere(rng, 20000)), 20000)
     assert abs(k - ACROSS_SPHERE) < 0.3, k
     one = np.array([0.0, -1.0, 0.0]) + rng.normal(0, 0.01, (200, 3))  # upright, swaying
-    assert across_factor(direction_moments(one).mean(axis=0)) == ACROSS_MAX
-    assert across_factor(direction_moments(one[:2]).sum(axis=0), 2) == ACROSS_MAX
+    assert across_factor(direction_sums(one), len(one)) == ACROSS_MAX
+    assert across_factor(direction_sums(one[:2]), 2) == ACROSS_MAX
 
 
 def test_the_vector_error_stays_within_kappa_times_the_norm_residual() -> None:
@@ -51,7 +51,7 @@ def test_the_vector_error_stays_within_kappa_times_the_norm_residual() -> None:
         u = _sphere(rng, n)
         if trial % 2:  # a cap: postures within ~60 degrees of upright
             u = u[u[:, 1] < -0.3] if np.count_nonzero(u[:, 1] < -0.3) > 12 else u
-        k = across_factor(direction_moments(u).mean(axis=0))
+        k = across_factor(direction_sums(u), len(u))
         a = _absorbable(u)
         d = rng.normal(size=3)
         D = np.array([[0, d[0], d[1]], [d[0], 0, d[2]], [d[1], d[2], 0]])
@@ -96,3 +96,17 @@ def test_the_running_misfit_keeps_kappa_in_the_checkpoint_and_reads_old_ones() -
     assert RunningMisfit.from_dict(m.to_dict()) == m
     old = {k: v for k, v in m.to_dict().items() if k != "across"}
     assert RunningMisfit.from_dict(old).across == ACROSS_SPHERE
+
+
+def test_hindsight_pools_kappa_over_the_minutes_around_each_window() -> None:
+    """An hour upright (one posture: kappa capped), then an hour of postures all round (kappa
+    near the sphere's): each window's kappa is its own span's, the recording's that of all."""
+    rng = np.random.default_rng(3)
+    t = np.arange(3600) * 2_000_000  # a window every 2 s
+    a = np.where((t < 3600e6)[:, None], np.array([0.0, -1.0, 0.0]) + rng.normal(0, 0.01, (3600, 3)),
+                 _sphere(rng, 3600))
+    m = misfit(rng.normal(0, 4e-4, len(t)), np.full(len(t), 4e-4 ** 2), t, a=a)
+    assert m.across is not None
+    assert np.all(m.across[t < 3000e6] == ACROSS_MAX)
+    assert np.all(m.across[t > 4200e6] < 8.0)
+    assert m.across_all < 12.0  # half the windows all round: ~2 x the sphere's 5

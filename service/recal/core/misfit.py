@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["ACROSS_MAX", "ACROSS_SPHERE", "CHANCE_SDS", "across_factor", "chance",
-           "direction_moments", "excess_g2"]
+           "direction_features", "direction_sums", "excess_g2"]
 
 #: Most `across_factor` gives: directions so close to one plane or axis that the residual
 #: bounds nothing across it (sigma then ~10x the residual's excess).
@@ -62,26 +62,26 @@ def excess_g2(mean_r2_g2: float | np.ndarray, mean_noise2_g2: float | np.ndarray
     return np.maximum(np.asarray(mean_r2_g2) - chance * np.asarray(mean_noise2_g2), 0.0)
 
 
-def _features(u: np.ndarray) -> np.ndarray:
-    """(M, 9): u (3), u_k^2 (3), 2 (u_x u_y, u_x u_z, u_y u_z) of unit directions u (M, 3)."""
-    x, y, z = u.T
+def direction_features(a: np.ndarray) -> np.ndarray:
+    """(M, 9) per row of a (M, 3) (calibrated window means), of its unit direction u: u (3),
+    u_k^2 (3), 2 (u_x u_y, u_x u_z, u_y u_z); their outer products summed over windows are
+    what `across_factor` reads (`direction_sums`, or binned in time by the caller)."""
+    a = np.asarray(a, np.float64).reshape(-1, 3)
+    n = np.linalg.norm(a, axis=1, keepdims=True)
+    x, y, z = (a / np.where(n > 0, n, 1.0)).T
     return np.stack([x, y, z, x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z], axis=1)
 
 
-def direction_moments(a: np.ndarray) -> np.ndarray:
-    """Per row of a (M, 3) (calibrated window means): the outer product (M, 9, 9) of its
-    direction's features, whose mean over windows `across_factor` reads (summed or pooled as
-    the caller likes: a running window's cumulative sums)."""
-    a = np.asarray(a, np.float64)
-    n = np.linalg.norm(a, axis=1, keepdims=True)
-    f = _features(a / np.where(n > 0, n, 1.0))
-    return f[:, :, None] * f[:, None, :]
+def direction_sums(a: np.ndarray) -> np.ndarray:
+    """The sum over rows of a (M, 3) of their `direction_features`' outer products (9, 9)."""
+    f = direction_features(a)
+    return f.T @ f
 
 
 def across_factor(moments: np.ndarray, count: np.ndarray | float | None = None
                   ) -> np.ndarray | float:
-    """kappa (module doc) of mean direction moments (..., 9, 9) (`direction_moments` averaged),
-    or of their sums over `count` windows; ACROSS_MAX where fewer than 3 windows."""
+    """kappa (module doc) of mean direction moments (..., 9, 9), or of their sums over `count`
+    windows (`direction_sums`); ACROSS_MAX where fewer than 3 windows."""
     g = np.asarray(moments, np.float64)
     if count is not None:
         c = np.asarray(count, np.float64)

@@ -44,7 +44,7 @@ from recal.core.estimator import (
     innovations,
     update,
 )
-from recal.core.misfit import across_factor, direction_moments
+from recal.core.misfit import across_factor, direction_sums
 from recal.core.model import SensorModel
 from recal.core.outputs import JoinedStep, Marks, StepOutput, UpdateEvent, WatchEvent
 from recal.core.pipeline_config import PipelineConfig
@@ -663,7 +663,7 @@ class Pipeline:
             noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
             # how much more the vector can err than the buffer's norms show (`core.misfit`)
             a = self.model.correct(self.params, w.v, cov)
-            across = float(across_factor(direction_moments(a).sum(axis=0), len(a)))
+            across = float(across_factor(direction_sums(a), len(a)))
             self.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2, across)
             # a fitted offset jump (a knock, a poisoned state) is an event, not a drift
             jumped = self.estimate is not None and self.estimate.step_us != before.step_us

@@ -12,7 +12,7 @@ import numpy as np
 
 from recal.core.discovery_data import DiscoveryData
 from recal.core.effects import TIME, Effect
-from recal.core.misfit import ACROSS_MAX, across_factor, chance, direction_moments, excess_g2
+from recal.core.misfit import ACROSS_MAX, across_factor, chance, direction_features, excess_g2
 from recal.core.model import SensorModel
 from recal.core.model_fit import free_params
 
@@ -201,9 +201,30 @@ def misfit(xi_g: np.ndarray, noise_var_g2: np.ndarray, t_us: np.ndarray,
     overall = math.sqrt(float(excess_g2(float(np.mean(x2)), noise2, chance(len(t)))))
     across, across_all = None, ACROSS_MAX
     if a is not None:
-        mom = direction_moments(np.asarray(a, np.float64)[order])
-        cm = np.concatenate((np.zeros((1, 9, 9)), np.cumsum(mom, axis=0)))
-        across = np.asarray(across_factor(cm[hi] - cm[lo], k))
-        across_all = float(across_factor(cm[-1], len(t)))
+        across, across_all = _across(np.asarray(a, np.float64)[order], t, span_s)
     return MisfitProfile(t, np.sqrt(excess2), math.sqrt(noise2), chi2, overall, across,
                          across_all)
+
+
+#: `misfit` pools the directions in bins of this much time (the span rounded to them): the
+#: memory is per bin, not per window (a week's recording: 10 080 bins of 81 numbers).
+ACROSS_BIN_S = 60.0
+
+
+def _across(a: np.ndarray, t_us: np.ndarray, span_s: float) -> tuple[np.ndarray, float]:
+    """kappa (`misfit.across_factor`) of the windows within span_s of each (a: their
+    calibrated means, t_us sorted), pooled by ACROSS_BIN_S bins, and of all windows."""
+    f = direction_features(a)
+    b = ((t_us - t_us[0]) // round(ACROSS_BIN_S * 1e6)).astype(np.int64)
+    nb = int(b[-1]) + 1
+    sums = np.empty((nb + 1, 9, 9))
+    sums[0] = 0.0
+    for i in range(9):  # 45 products, each binned: no (windows, 9, 9) array
+        for j in range(i, 9):
+            sums[1:, i, j] = sums[1:, j, i] = np.cumsum(np.bincount(b, f[:, i] * f[:, j], nb))
+    count = np.concatenate(([0], np.cumsum(np.bincount(b, minlength=nb))))
+    s = math.ceil(span_s / ACROSS_BIN_S)
+    lo = np.clip(np.arange(nb) - s, 0, nb)
+    hi = np.clip(np.arange(nb) + s + 1, 0, nb)
+    per_bin = np.asarray(across_factor(sums[hi] - sums[lo], count[hi] - count[lo]))
+    return per_bin[b], float(across_factor(sums[-1], len(a)))
