@@ -179,9 +179,9 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
                 run = runs[sid] = _SensorRun(node, extra={"start": start})
             log_ns = logged.log_time_ns
-            # the raw topic is copied as logged (same bytes, times), not encoded again
-            writer.write_encoded(logged.topic, logged.data, log_ns, logged.publish_time_ns,
-                                 schema=rec.messages.RAW_SCHEMA)
+            # the raw topic is logged again in the compact form (the same values; an older
+            # recording's float64 batches get joined and shrunk like a live log's)
+            writer.log_raw(sid, batch, log_ns)
             run.add(batch, log_ns)  # several messages per pipeline step, output per message
             run.samples += len(batch)
             run.batches += 1

@@ -98,10 +98,12 @@ __all__ = [
     "decode_plot",
     "decode_raw",
     "encode_calibrated",
+    "encode_calibrated_compact",
     "encode_event",
     "encode_json",
     "encode_plot",
     "encode_raw",
+    "encode_raw_compact",
     "file_descriptor_set",
     "plot_payloads",
     "protobuf_message_class",
@@ -129,6 +131,14 @@ _F_CAL_DETECTOR = 7
 _F_CAL_STATUS = 8
 _F_CAL_SIGMA = 9
 _F_CAL_T_DEV = 10
+# The compact form (the log's): first stamp + int32 deltas, values as int32 fixed point.
+_F_T0_US = 11
+_F_DT_US = 12
+_F_X_FIX, _F_Y_FIX, _F_Z_FIX = 13, 14, 15
+_F_CAL_DETECTOR_UG = 16
+_F_CAL_SIGMA_UG = 17
+_F_CAL_T_DEV0 = 18
+_F_CAL_DT_DEV = 19
 STATUS_ENUM_NAME = "Status"
 
 
@@ -191,6 +201,10 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
         _add_field(raw, name, number, fd.TYPE_DOUBLE, True)
     _add_field(raw, "aux_names", _F_RAW_AUX_NAMES, fd.TYPE_STRING, True)
     _add_field(raw, "aux", _F_RAW_AUX, fd.TYPE_DOUBLE, True)
+    _add_field(raw, "t0_us", _F_T0_US, fd.TYPE_SFIXED64, False)
+    _add_field(raw, "dt_us", _F_DT_US, fd.TYPE_SFIXED32, True)
+    for name, number in (("x_counts", _F_X_FIX), ("y_counts", _F_Y_FIX), ("z_counts", _F_Z_FIX)):
+        _add_field(raw, name, number, fd.TYPE_SFIXED32, True)
     cal = f.message_type.add(name="CalibratedBatch")
     _add_field(cal, "sensor_id", _F_SENSOR, fd.TYPE_STRING, False)
     _add_field(cal, "t_us", _F_T_US, fd.TYPE_SFIXED64, True)
@@ -201,6 +215,13 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(cal, "status", _F_CAL_STATUS, fd.TYPE_ENUM, True)
     _add_field(cal, "sigma_mg", _F_CAL_SIGMA, fd.TYPE_DOUBLE, True)
     _add_field(cal, "t_dev", _F_CAL_T_DEV, fd.TYPE_SFIXED64, True)
+    _add_field(cal, "t0_us", _F_T0_US, fd.TYPE_SFIXED64, False)
+    _add_field(cal, "dt_us", _F_DT_US, fd.TYPE_SFIXED32, True)
+    for name, number in (("x_ug", _F_X_FIX), ("y_ug", _F_Y_FIX), ("z_ug", _F_Z_FIX),
+                         ("detector_ug", _F_CAL_DETECTOR_UG), ("sigma_ug", _F_CAL_SIGMA_UG)):
+        _add_field(cal, name, number, fd.TYPE_SFIXED32, True)
+    _add_field(cal, "t_dev0", _F_CAL_T_DEV0, fd.TYPE_SFIXED64, False)
+    _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SFIXED32, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -318,21 +339,28 @@ def _axes_bytes(v: np.ndarray) -> list[memoryview]:
 
 
 def encode_raw(sensor_id: str, batch: RawBatch) -> bytes:
-    """Serialize a raw batch as a ``recal.RawBatch`` protobuf message."""
+    """Serialize a raw batch as a ``recal.RawBatch`` protobuf message (float64 form: the bus's,
+    cheapest to make for a sample or two)."""
     x, y, z = _axes_bytes(batch.v)
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_packed(_F_T_US, _le_bytes(batch.t_us, "<i8")),
              *_packed(_F_X, x), *_packed(_F_Y, y), *_packed(_F_Z, z)]
+    return b"".join(parts + _aux_fields(batch))
+
+
+def _aux_fields(batch: RawBatch) -> list[bytes | memoryview]:
+    parts: list[bytes | memoryview] = []
     for name in batch.aux_names:
         # An empty name is still a list element, so it must be written (not omitted).
         parts += _len_prefixed(_F_RAW_AUX_NAMES, name.encode())
     if batch.aux.size:  # (an empty packed field is omitted)
         parts += _packed(_F_RAW_AUX, _le_bytes(batch.aux, "<f8"))
-    return b"".join(parts)
+    return parts
 
 
 def encode_calibrated(sensor_id: str, batch: CalibratedBatch) -> bytes:
-    """Serialize a calibrated batch as a ``recal.CalibratedBatch`` protobuf message."""
+    """Serialize a calibrated batch as a ``recal.CalibratedBatch`` protobuf message (float64
+    form: the bus's)."""
     x, y, z = _axes_bytes(batch.a_g)
     # Packed bools are varints; 0 and 1 are single bytes, so uint8 is the wire form.
     quasi = _le_bytes(batch.quasi_static, "|u1")
@@ -346,6 +374,87 @@ def encode_calibrated(sensor_id: str, batch: CalibratedBatch) -> bytes:
                   *_packed(_F_CAL_SIGMA, _le_bytes(batch.sigma_mg, "<f8"))]
     if batch.t_dev is not None:
         parts += _packed(_F_CAL_T_DEV, _le_bytes(batch.t_dev, "<i8"))
+    return b"".join(parts)
+
+
+# -- the compact form (the log's) -------------------------------------------------------------
+
+_I32_MAX = 2**31 - 1
+#: micro-g per g: calibrated values, the detector and sigma are logged as int32 micro-g
+#: (rounded: within 0.5 micro-g of the float64 value, range +-2147 g).
+UG_PER_G = 1e6
+
+
+def _time_fields(t: np.ndarray, f_abs: int, f_first: int, f_delta: int
+                 ) -> list[bytes | memoryview]:
+    """A stamp column as its first value (sfixed64) and int32 deltas (sfixed32), or as
+    absolute sfixed64 values when a delta does not fit in int32 (a gap of 36 min)."""
+    if len(t) == 0:
+        return []
+    dt = np.diff(t)
+    if len(dt) and (dt.min() < -_I32_MAX or dt.max() > _I32_MAX):
+        return _packed(f_abs, _le_bytes(t, "<i8"))
+    return [_key(f_first, _WT_I64), struct.pack("<q", int(t[0])),
+            *_packed(f_delta, _le_bytes(dt, "<i4"))]
+
+
+def _fixed_point(values: np.ndarray, scale: float) -> np.ndarray | None:
+    """``values * scale`` rounded to int32, or None if one is not finite or out of range
+    (that column is then written as float64)."""
+    scaled = np.rint(values * scale) if scale != 1.0 else values
+    if scaled.size and not (np.abs(scaled).max() <= _I32_MAX):  # (NaN fails the test too)
+        return None
+    out = scaled.astype("<i4")
+    if scale == 1.0 and not np.array_equal(out, values):  # raw values that are not integers
+        return None
+    return out
+
+
+def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: Sequence[int]
+                  ) -> list[bytes | memoryview]:
+    fixed = _fixed_point(v, scale)
+    if fixed is None:
+        return [p for f, col in zip(f_float, _axes_bytes(v), strict=True) for p in _packed(f, col)]
+    cols = memoryview(np.ascontiguousarray(fixed.T).tobytes())
+    n4 = 4 * len(v)
+    return [p for i, f in enumerate(f_fixed) for p in _packed(f, cols[i * n4:(i + 1) * n4])]
+
+
+def _compact_column(values: np.ndarray, scale: float, f_float: int, f_fixed: int
+                    ) -> list[bytes | memoryview]:
+    fixed = _fixed_point(values, scale)
+    if fixed is None:
+        return _packed(f_float, _le_bytes(values, "<f8"))
+    return _packed(f_fixed, _le_bytes(fixed, "<i4"))
+
+
+def encode_raw_compact(sensor_id: str, batch: RawBatch) -> bytes:
+    """A ``recal.RawBatch`` in the log's compact form: ``t0_us`` + int32 ``dt_us`` deltas, and
+    integer readings (ADC counts) as int32 ``x_counts`` ... (readings that are not all
+    integers stay float64 in ``x`` ...). `decode_raw` reads both forms."""
+    parts = [*_string_fields(_F_SENSOR, sensor_id),
+             *_time_fields(batch.t_us, _F_T_US, _F_T0_US, _F_DT_US),
+             *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
+    return b"".join(parts + _aux_fields(batch))
+
+
+def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
+    """A ``recal.CalibratedBatch`` in the log's compact form: times as ``t0_us`` + int32
+    deltas, values, detector and sigma as int32 micro-g (a column with a value that is not
+    finite or beyond +-2147 g stays float64 in its old field). `decode_calibrated` reads
+    both forms."""
+    parts = [*_string_fields(_F_SENSOR, sensor_id),
+             *_time_fields(batch.t_us, _F_T_US, _F_T0_US, _F_DT_US),
+             *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
+                            (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)),
+             *_packed(_F_CAL_QUASI_STATIC, _le_bytes(batch.quasi_static, "|u1")),
+             *_compact_column(batch.detector_g, UG_PER_G, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG)]
+    if batch.recorded:
+        parts += [*_packed(_F_CAL_STATUS, _le_bytes(batch.status, "|u1")),
+                  *_compact_column(batch.sigma_mg, UG_PER_G / 1e3, _F_CAL_SIGMA,
+                                   _F_CAL_SIGMA_UG)]
+    if batch.t_dev is not None:
+        parts += _time_fields(batch.t_dev, _F_CAL_T_DEV, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
     return b"".join(parts)
 
 
@@ -497,12 +606,60 @@ def _same_length(t_us: np.ndarray, **columns: np.ndarray) -> None:
             raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
 
 
-def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """Time stamps and the (N, 3) axis block, with the lengths checked against each other."""
-    t_us = np.array(_fixed64(buf, fields.get(_F_T_US), "<i8", "t_us"), dtype=np.int64)
-    columns = [_fixed64(buf, fields.get(f), "<f8", name)
-               for f, name in zip((_F_X, _F_Y, _F_Z), names, strict=True)]
+def _fixed32(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> np.ndarray:
+    """A repeated sfixed32 field (packed runs and/or single values) as int64."""
+    runs = []
+    for wire_type, start, end in occurrences or ():
+        if wire_type not in (_WT_LEN, _WT_I32):
+            continue
+        if (end - start) % 4:
+            raise ValueError(f"packed field {what} has {end - start} bytes, not a multiple of 4")
+        runs.append(np.frombuffer(buf, dtype="<i4", count=(end - start) // 4, offset=start))
+    if not runs:
+        return np.zeros(0, np.int64)
+    return (runs[0] if len(runs) == 1 else np.concatenate(runs)).astype(np.int64)
+
+
+def _present(fields: dict[int, list[_Occurrence]], field: int, wire_types: tuple[int, ...]
+             ) -> bool:
+    """Whether the field occurs with a wire type of its own (protobuf skips the others as
+    unknown fields)."""
+    return any(wt in wire_types for wt, _, _ in fields.get(field, ()))
+
+
+_FIXED32_WT = (_WT_LEN, _WT_I32)
+
+
+def _stamps(buf: bytes, fields: dict[int, list[_Occurrence]], f_abs: int, f_first: int,
+            f_delta: int, what: str) -> np.ndarray | None:
+    """A stamp column from its absolute field or from first value + deltas; None if the
+    message has neither."""
+    if _present(fields, f_first, (_WT_I64,)):
+        first = _fixed64(buf, fields[f_first], "<i8", what)
+        dt = _fixed32(buf, fields.get(f_delta), what)
+        t = np.empty(len(dt) + 1, np.int64)
+        t[0] = first[-1]  # a singular field: the last occurrence wins
+        np.cumsum(dt, out=t[1:])
+        t[1:] += t[0]
+        return t
+    if f_abs in fields:
+        return np.array(_fixed64(buf, fields[f_abs], "<i8", what), dtype=np.int64)
+    return None
+
+
+def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str],
+          scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Time stamps and the (N, 3) axis block (float64 fields, or the int32 fixed-point ones
+    divided by ``scale``), with the lengths checked against each other."""
+    t_us = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
+    if t_us is None:
+        t_us = np.zeros(0, np.int64)
+    if any(_present(fields, f, _FIXED32_WT) for f in (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)):
+        columns = [_fixed32(buf, fields.get(f), name) / scale
+                   for f, name in zip((_F_X_FIX, _F_Y_FIX, _F_Z_FIX), names, strict=True)]
+    else:
+        columns = [_fixed64(buf, fields.get(f), "<f8", name)
+                   for f, name in zip((_F_X, _F_Y, _F_Z), names, strict=True)]
     _same_length(t_us, **dict(zip(names, columns, strict=True)))
     v = np.empty((len(t_us), 3))
     for i, column in enumerate(columns):
@@ -510,9 +667,20 @@ def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
     return t_us, v
 
 
-_RAW_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES, _F_RAW_AUX))
-_CAL_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
-                         _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV))
+def _column(buf: bytes, fields: dict[int, list[_Occurrence]], f_float: int, f_fixed: int,
+            scale: float, what: str) -> np.ndarray:
+    if _present(fields, f_fixed, _FIXED32_WT):
+        return _fixed32(buf, fields[f_fixed], what) / scale
+    return np.array(_fixed64(buf, fields.get(f_float), "<f8", what), dtype=np.float64)
+
+
+_STAMP_FIELDS = (_F_T_US, _F_T0_US, _F_DT_US)
+_RAW_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES,
+                         _F_RAW_AUX, _F_X_FIX, _F_Y_FIX, _F_Z_FIX))
+_CAL_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
+                         _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV,
+                         _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_CAL_DETECTOR_UG, _F_CAL_SIGMA_UG,
+                         _F_CAL_T_DEV0, _F_CAL_DT_DEV))
 
 
 def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
@@ -520,10 +688,11 @@ def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
 
 
 def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
-    """Parse a ``recal.RawBatch`` message into (sensor_id, batch); ValueError if malformed."""
+    """Parse a ``recal.RawBatch`` message (either form) into (sensor_id, batch); ValueError if
+    malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _RAW_FIELDS)
-    t_us, v = _axes(buf, fields, ("x", "y", "z"))
+    t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0)
     names = tuple(_strings(buf, fields.get(_F_RAW_AUX_NAMES)))
     aux = np.array(_fixed64(buf, fields.get(_F_RAW_AUX), "<f8", "aux"), dtype=np.float64)
     if len(aux) != len(t_us) * len(names):
@@ -534,36 +703,43 @@ def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
 
 
 def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, CalibratedBatch]:
-    """Parse a ``recal.CalibratedBatch`` into (sensor_id, batch); ValueError if malformed."""
+    """Parse a ``recal.CalibratedBatch`` (either form) into (sensor_id, batch); ValueError if
+    malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _CAL_FIELDS)
-    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"))
+    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G)
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
-    detector = np.array(_fixed64(buf, fields.get(_F_CAL_DETECTOR), "<f8", "detector_g"),
-                        dtype=np.float64)
+    detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
+                       "detector_g")
     _same_length(t_us, quasi_static=quasi, detector_g=detector)
     status = sigma = None  # absent: a recording from before statuses (not recorded, NaN)
-    if _F_CAL_STATUS in fields or _F_CAL_SIGMA in fields:
+    if (_F_CAL_STATUS in fields or _F_CAL_SIGMA in fields
+            or _present(fields, _F_CAL_SIGMA_UG, _FIXED32_WT)):
         status = _small_varints(buf, fields.get(_F_CAL_STATUS), "status")
-        sigma = np.array(_fixed64(buf, fields.get(_F_CAL_SIGMA), "<f8", "sigma_mg"),
-                         dtype=np.float64)
+        sigma = _column(buf, fields, _F_CAL_SIGMA, _F_CAL_SIGMA_UG, UG_PER_G / 1e3, "sigma_mg")
         _same_length(t_us, status=status, sigma_mg=sigma)
-    t_dev = None  # absent: a recording from before device times were kept
-    if _F_CAL_T_DEV in fields:
-        t_dev = np.array(_fixed64(buf, fields.get(_F_CAL_T_DEV), "<i8", "t_dev"), np.int64)
+    # absent: a recording from before device times were kept
+    t_dev = _stamps(buf, fields, _F_CAL_T_DEV, _F_CAL_T_DEV0, _F_CAL_DT_DEV, "t_dev")
+    if t_dev is not None:
         _same_length(t_us, t_dev=t_dev)
     return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
                                                                       status, sigma, t_dev)
 
 
 def batch_extent(data: bytes | bytearray | memoryview) -> tuple[int, int | None, int | None]:
-    """(sample count, first t_us, last t_us) of a RawBatch or CalibratedBatch message.
+    """(sample count, first t_us, last t_us) of a RawBatch or CalibratedBatch message (either
+    form).
 
-    Reads only the time field (both messages keep it as field 2), so summaries of long
-    recordings need not decode the samples. Times are None for an empty batch.
+    Reads only the time fields (both messages keep them as fields 2, 11 and 12), so summaries
+    of long recordings need not decode the samples. Times are None for an empty batch.
     """
     buf = _as_bytes(data)
-    runs = [(s, e) for wt, s, e in _scan(buf, frozenset((_F_T_US,))).get(_F_T_US, ())
+    fields = _scan(buf, frozenset(_STAMP_FIELDS))
+    if _present(fields, _F_T0_US, (_WT_I64,)):
+        t = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
+        assert t is not None
+        return len(t), int(t[0]), int(t[-1])
+    runs = [(s, e) for wt, s, e in fields.get(_F_T_US, ())
             if wt in (_WT_LEN, _WT_I64) and e > s]
     if any((e - s) % 8 for s, e in runs):
         raise ValueError("packed field t_us is not a multiple of 8 bytes")
