@@ -165,7 +165,8 @@ def test_replay_with_config_prior_model_file_and_rotated_parts(tmp_path: Path,
 
 def test_replay_of_a_truncated_file_needs_repair(tmp_path: Path) -> None:
     s = sim(1.0, seed=2)
-    _raw_only(tmp_path / "full.mcap", s.raw, chunk_size=4096)
+    # one message per batch (not joined), so that half the file holds some of them
+    _raw_only(tmp_path / "full.mcap", s.raw, chunk_size=4096, log_batch_samples=1)
     data = (tmp_path / "full.mcap").read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[:len(data) // 2])
     with pytest.raises(RecordingError):

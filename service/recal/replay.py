@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from recal.config import (
     AlignmentConfig,
     SensorConfig,
@@ -74,6 +76,22 @@ class _SensorRun:
         if self.waiting:
             self.node.process_many(self.waiting)
         self.waiting, self.waiting_samples = [], 0
+
+
+def _arrivals(batch: RawBatch, logged: rec.LoggedMessage) -> list[tuple[RawBatch, int]]:
+    """The batches as they arrived live, with their log times: a joined message's arrivals
+    (the live node stepped once per arrival, and the calibration states fall at step ends),
+    or the message itself."""
+    found = rec.messages.raw_arrivals(logged.data)
+    if found is None:
+        return [(batch, logged.log_time_ns)]
+    sizes, log_us = found
+    ends = np.cumsum(sizes)
+    starts = ends - sizes
+    log_ns = (logged.log_time_ns + 1000 * log_us if log_us is not None
+              else np.full(len(sizes), logged.log_time_ns))
+    return [(batch[a:b], t) for a, b, t in zip(starts.tolist(), ends.tolist(),
+                                               log_ns.tolist(), strict=True)]
 
 
 def _raw_message_count(paths: list[Path]) -> int | None:
@@ -178,14 +196,14 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
             if run is None:
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
                 run = runs[sid] = _SensorRun(node, extra={"start": start})
-            log_ns = logged.log_time_ns
-            # the raw topic is logged again in the compact form (the same values; an older
-            # recording's float64 batches get joined and shrunk like a live log's)
-            writer.log_raw(sid, batch, log_ns)
-            run.add(batch, log_ns)  # several messages per pipeline step, output per message
+            for piece, log_ns in _arrivals(batch, logged):
+                # the raw topic is logged again in the compact form (the same values; an
+                # older recording's float64 batches get joined and shrunk like a live log's)
+                writer.log_raw(sid, piece, log_ns)
+                run.add(piece, log_ns)  # several per pipeline step, output per arrival
+                run.batches += 1
+                run.last_log_ns = log_ns
             run.samples += len(batch)
-            run.batches += 1
-            run.last_log_ns = log_ns
         for run in runs.values():
             run.drain()
             run.node.flush(run.last_log_ns)

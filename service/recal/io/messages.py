@@ -107,6 +107,7 @@ __all__ = [
     "file_descriptor_set",
     "plot_payloads",
     "protobuf_message_class",
+    "raw_arrivals",
 ]
 
 PROTO_PACKAGE = "recal"
@@ -139,6 +140,10 @@ _F_CAL_DETECTOR_UG = 16
 _F_CAL_SIGMA_UG = 17
 _F_CAL_T_DEV0 = 18
 _F_CAL_DT_DEV = 19
+# A joined raw message keeps its arrivals: samples per arrival and each one's log time (us
+# after the message's), so a replay hands the node the batches the live node had.
+_F_RAW_ARRIVAL_SAMPLES = 20
+_F_RAW_ARRIVAL_LOG_US = 21
 STATUS_ENUM_NAME = "Status"
 
 
@@ -203,7 +208,9 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(raw, "aux", _F_RAW_AUX, fd.TYPE_DOUBLE, True)
     _add_field(raw, "t0_us", _F_T0_US, fd.TYPE_SFIXED64, False)
     _add_field(raw, "dt_us", _F_DT_US, fd.TYPE_SFIXED32, True)
-    for name, number in (("x_counts", _F_X_FIX), ("y_counts", _F_Y_FIX), ("z_counts", _F_Z_FIX)):
+    for name, number in (("x_counts", _F_X_FIX), ("y_counts", _F_Y_FIX), ("z_counts", _F_Z_FIX),
+                         ("arrival_samples", _F_RAW_ARRIVAL_SAMPLES),
+                         ("arrival_log_us", _F_RAW_ARRIVAL_LOG_US)):
         _add_field(raw, name, number, fd.TYPE_SFIXED32, True)
     cal = f.message_type.add(name="CalibratedBatch")
     _add_field(cal, "sensor_id", _F_SENSOR, fd.TYPE_STRING, False)
@@ -428,14 +435,45 @@ def _compact_column(values: np.ndarray, scale: float, f_float: int, f_fixed: int
     return _packed(f_fixed, _le_bytes(fixed, "<i4"))
 
 
-def encode_raw_compact(sensor_id: str, batch: RawBatch) -> bytes:
+def encode_raw_compact(sensor_id: str, batch: RawBatch,
+                       arrivals: tuple[Sequence[int], Sequence[int]] | None = None) -> bytes:
     """A ``recal.RawBatch`` in the log's compact form: ``t0_us`` + int32 ``dt_us`` deltas, and
     integer readings (ADC counts) as int32 ``x_counts`` ... (readings that are not all
-    integers stay float64 in ``x`` ...). `decode_raw` reads both forms."""
+    integers stay float64 in ``x`` ...). `decode_raw` reads both forms.
+
+    ``arrivals``: (samples per arrival, log time of each in us after the message's) of a
+    batch joined from several arrivals (`raw_arrivals` reads them back); the log times are
+    left out if one does not fit in int32."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T_US, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
+    if arrivals is not None and len(arrivals[0]) > 1:
+        sizes, log_us = np.asarray(arrivals[0]), np.asarray(arrivals[1])
+        parts += _packed(_F_RAW_ARRIVAL_SAMPLES, _le_bytes(sizes, "<i4"))
+        if log_us.min() >= 0 and log_us.max() <= _I32_MAX:
+            parts += _packed(_F_RAW_ARRIVAL_LOG_US, _le_bytes(log_us, "<i4"))
     return b"".join(parts + _aux_fields(batch))
+
+
+def raw_arrivals(data: bytes | bytearray | memoryview
+                 ) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """(samples per arrival, log time of each in us after the message's, or None) of a
+    joined raw message; None for a message of one arrival (any message of an older
+    recording). ValueError if the sizes do not add up to the message's samples."""
+    buf = _as_bytes(data)
+    fields = _scan(buf, frozenset((_F_RAW_ARRIVAL_SAMPLES, _F_RAW_ARRIVAL_LOG_US)))
+    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _FIXED32_WT):
+        return None
+    sizes = _fixed32(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
+    log_us = None
+    if _present(fields, _F_RAW_ARRIVAL_LOG_US, _FIXED32_WT):
+        log_us = _fixed32(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us")
+        if len(log_us) != len(sizes):
+            raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
+                             "arrivals")
+    if (sizes < 0).any() or sizes.sum() != batch_extent(buf)[0]:
+        raise ValueError("arrival_samples do not add up to the message's samples")
+    return sizes, log_us
 
 
 def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:

@@ -106,6 +106,7 @@ class _Pending:
     publish_ns: int
     batches: list[Any]
     samples: int
+    log_times: list[int]  # each batch's log time (raw: kept in the message)
 
 
 @dataclass(frozen=True)
@@ -554,8 +555,9 @@ class RecordingWriter:
             if p is None:
                 first = int(batch.t_us[0]) if len(batch) else None
                 p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
-                                                    _publish_ns(first, log_ns), [], 0)
+                                                    _publish_ns(first, log_ns), [], 0, [])
             p.batches.append(batch)
+            p.log_times.append(log_ns)
             p.samples += len(batch)
             if p.samples >= self._log_batch_samples:
                 self._emit(topic)
@@ -566,15 +568,21 @@ class RecordingWriter:
         p = self._pending.pop(topic)  # first: the write may flush, which emits the rest
         if p.raw:
             batch = p.batches[0] if len(p.batches) == 1 else RawBatch.concat(p.batches)
-            encode, spec = messages.encode_raw_compact, messages.RAW_SCHEMA
-        else:
-            batch = p.batches[0] if len(p.batches) == 1 else CalibratedBatch.concat(p.batches)
-            encode, spec = messages.encode_calibrated_compact, messages.CALIBRATED_SCHEMA
+            # the arrivals, so that a replay gives the node the batches the live node had
+            arrivals = ([len(b) for b in p.batches],
+                        [(t - p.log_ns) // 1000 for t in p.log_times])
+            data = messages.encode_raw_compact(p.sensor_id, batch, arrivals)
+            spec = messages.RAW_SCHEMA
+            self._write_many(topic, spec, [(data, p.log_ns, p.publish_ns)], p.log_ns,
+                             samples=len(batch))
+            return
+        batch = p.batches[0] if len(p.batches) == 1 else CalibratedBatch.concat(p.batches)
         step = max(self._log_batch_samples, _MAX_MESSAGE_SAMPLES)  # (a file tool's batches)
         for i in range(0, max(len(batch), 1), step):
             part = batch if len(batch) <= step else batch[i:i + step]
-            self._write_many(topic, spec, [(encode(p.sensor_id, part), p.log_ns, p.publish_ns)],
-                             p.log_ns, samples=len(part) if p.raw else 0)
+            self._write_many(topic, messages.CALIBRATED_SCHEMA,
+                             [(messages.encode_calibrated_compact(p.sensor_id, part), p.log_ns,
+                               p.publish_ns)], p.log_ns)
 
     def _emit_pending(self) -> None:
         for topic in list(self._pending):
