@@ -172,8 +172,8 @@ def test_decoded_arrays_are_writable_and_independent_of_the_buffer() -> None:
 
 def test_unknown_fields_and_mismatched_wire_types_are_skipped_like_protobuf() -> None:
     batch = _raw(20)
-    before = _key(15, 0) + _varint(300) + _key(16, 1) + b"\x01" * 8
-    after = (_key(17, 2) + _varint(3) + b"abc" + _key(18, 5) + b"\x02" * 4
+    before = _key(25, 0) + _varint(300) + _key(26, 1) + b"\x01" * 8
+    after = (_key(27, 2) + _varint(3) + b"abc" + _key(28, 5) + b"\x02" * 4
              + _key(1000, 2) + _varint(0)
              + _key(3, 0) + _varint(7))  # field x as a varint: an unknown field to protobuf
     data = before + m.encode_raw("s", batch) + after

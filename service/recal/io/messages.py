@@ -207,11 +207,11 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(raw, "aux_names", _F_RAW_AUX_NAMES, fd.TYPE_STRING, True)
     _add_field(raw, "aux", _F_RAW_AUX, fd.TYPE_DOUBLE, True)
     _add_field(raw, "t0_us", _F_T0_US, fd.TYPE_SFIXED64, False)
-    _add_field(raw, "dt_us", _F_DT_US, fd.TYPE_SFIXED32, True)
-    for name, number in (("x_counts", _F_X_FIX), ("y_counts", _F_Y_FIX), ("z_counts", _F_Z_FIX),
+    for name, number in (("dt_us", _F_DT_US), ("x_counts_delta", _F_X_FIX),
+                         ("y_counts_delta", _F_Y_FIX), ("z_counts_delta", _F_Z_FIX),
                          ("arrival_samples", _F_RAW_ARRIVAL_SAMPLES),
-                         ("arrival_log_us", _F_RAW_ARRIVAL_LOG_US)):
-        _add_field(raw, name, number, fd.TYPE_SFIXED32, True)
+                         ("arrival_log_dt_us", _F_RAW_ARRIVAL_LOG_US)):
+        _add_field(raw, name, number, fd.TYPE_SINT64, True)
     cal = f.message_type.add(name="CalibratedBatch")
     _add_field(cal, "sensor_id", _F_SENSOR, fd.TYPE_STRING, False)
     _add_field(cal, "t_us", _F_T_US, fd.TYPE_SFIXED64, True)
@@ -223,12 +223,13 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(cal, "sigma_mg", _F_CAL_SIGMA, fd.TYPE_DOUBLE, True)
     _add_field(cal, "t_dev", _F_CAL_T_DEV, fd.TYPE_SFIXED64, True)
     _add_field(cal, "t0_us", _F_T0_US, fd.TYPE_SFIXED64, False)
-    _add_field(cal, "dt_us", _F_DT_US, fd.TYPE_SFIXED32, True)
-    for name, number in (("x_ug", _F_X_FIX), ("y_ug", _F_Y_FIX), ("z_ug", _F_Z_FIX),
-                         ("detector_ug", _F_CAL_DETECTOR_UG), ("sigma_ug", _F_CAL_SIGMA_UG)):
-        _add_field(cal, name, number, fd.TYPE_SFIXED32, True)
+    _add_field(cal, "dt_us", _F_DT_US, fd.TYPE_SINT64, True)
+    for name, number in (("x_ug_delta", _F_X_FIX), ("y_ug_delta", _F_Y_FIX),
+                         ("z_ug_delta", _F_Z_FIX), ("detector_ug_delta", _F_CAL_DETECTOR_UG),
+                         ("sigma_ug_delta", _F_CAL_SIGMA_UG)):
+        _add_field(cal, name, number, fd.TYPE_SINT64, True)
     _add_field(cal, "t_dev0", _F_CAL_T_DEV0, fd.TYPE_SFIXED64, False)
-    _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SFIXED32, True)
+    _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SINT64, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -392,17 +393,13 @@ _I32_MAX = 2**31 - 1
 UG_PER_G = 1e6
 
 
-def _time_fields(t: np.ndarray, f_abs: int, f_first: int, f_delta: int
-                 ) -> list[bytes | memoryview]:
-    """A stamp column as its first value (sfixed64) and int32 deltas (sfixed32), or as
-    absolute sfixed64 values when a delta does not fit in int32 (a gap of 36 min)."""
+def _time_fields(t: np.ndarray, f_first: int, f_delta: int) -> list[bytes | memoryview]:
+    """A stamp column as its first value (sfixed64) and the differences (sint64 varints: a
+    few bytes each at any rate)."""
     if len(t) == 0:
         return []
-    dt = np.diff(t)
-    if len(dt) and (dt.min() < -_I32_MAX or dt.max() > _I32_MAX):
-        return _packed(f_abs, _le_bytes(t, "<i8"))
     return [_key(f_first, _WT_I64), struct.pack("<q", int(t[0])),
-            *_packed(f_delta, _le_bytes(dt, "<i4"))]
+            *_varint_field(f_delta, np.diff(t))]
 
 
 def _fixed_point(values: np.ndarray, scale: float) -> np.ndarray | None:
@@ -417,11 +414,66 @@ def _fixed_point(values: np.ndarray, scale: float) -> np.ndarray | None:
     return out
 
 
-def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: Sequence[int]
-                  ) -> list[bytes | memoryview]:
+def zigzag_varints(values: np.ndarray) -> bytes:
+    """Signed integers as protobuf ``sint64`` packed varints (zigzag, 7 bits a byte), all in
+    numpy: small magnitudes (deltas) take one or two bytes."""
+    v = np.asarray(values, np.int64)
+    z = ((v << 1) ^ (v >> 63)).view(np.uint64)
+    nbytes = np.ones(len(z), np.int64)
+    for k in range(1, 10):
+        more = z >= np.uint64(1 << (7 * k))
+        if not more.any():
+            break
+        nbytes += more
+    out = np.empty(int(nbytes.sum()), np.uint8)
+    starts = np.cumsum(nbytes) - nbytes
+    for k in range(int(nbytes.max()) if len(z) else 0):
+        sel = nbytes > k
+        byte = (z[sel] >> np.uint64(7 * k)) & np.uint64(0x7F)
+        out[starts[sel] + k] = byte | np.where(nbytes[sel] > k + 1, 0x80, 0).astype(np.uint64)
+    return out.tobytes()
+
+
+def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
+    """`zigzag_varints` back (a packed run of bytes) as int64; ValueError if it ends inside a
+    varint or a varint is longer than 10 bytes."""
+    if run.size == 0:
+        return np.zeros(0, np.int64)
+    last = run < 0x80
+    if not last[-1]:
+        raise ValueError(f"packed field {what} ends inside a varint")
+    ends = np.flatnonzero(last)
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    lengths = ends - starts + 1
+    if lengths.max() > 10:
+        raise ValueError(f"packed field {what} has a varint longer than 10 bytes")
+    z = np.zeros(len(ends), np.uint64)
+    for k in range(int(lengths.max())):
+        sel = lengths > k
+        z[sel] |= (run[starts[sel] + k] & 0x7F).astype(np.uint64) << np.uint64(7 * k)
+    return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+
+
+def _varint_field(field: int, values: np.ndarray) -> list[bytes | memoryview]:
+    return _packed(field, zigzag_varints(values)) if len(values) else []
+
+
+def _deltas(values: np.ndarray) -> np.ndarray:
+    """Each value minus the one before (the first as it is): what a delta field holds."""
+    out = np.array(values, np.int64)
+    out[1:] -= out[:-1].copy()
+    return out
+
+
+def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: Sequence[int],
+                  delta: bool) -> list[bytes | memoryview]:
+    """The three axes as fixed-point columns (sfixed32 values, or sint64 varint deltas), or
+    as float64 ones if the fixed point cannot hold them."""
     fixed = _fixed_point(v, scale)
     if fixed is None:
         return [p for f, col in zip(f_float, _axes_bytes(v), strict=True) for p in _packed(f, col)]
+    if delta:
+        return [p for i, f in enumerate(f_fixed) for p in _varint_field(f, _deltas(fixed[:, i]))]
     cols = memoryview(np.ascontiguousarray(fixed.T).tobytes())
     n4 = 4 * len(v)
     return [p for i, f in enumerate(f_fixed) for p in _packed(f, cols[i * n4:(i + 1) * n4])]
@@ -429,29 +481,29 @@ def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: 
 
 def _compact_column(values: np.ndarray, scale: float, f_float: int, f_fixed: int
                     ) -> list[bytes | memoryview]:
+    """A column as sint64 varint deltas of its fixed-point values, or float64."""
     fixed = _fixed_point(values, scale)
     if fixed is None:
         return _packed(f_float, _le_bytes(values, "<f8"))
-    return _packed(f_fixed, _le_bytes(fixed, "<i4"))
+    return _varint_field(f_fixed, _deltas(fixed))
 
 
 def encode_raw_compact(sensor_id: str, batch: RawBatch,
                        arrivals: tuple[Sequence[int], Sequence[int]] | None = None) -> bytes:
-    """A ``recal.RawBatch`` in the log's compact form: ``t0_us`` + int32 ``dt_us`` deltas, and
-    integer readings (ADC counts) as int32 ``x_counts`` ... (readings that are not all
-    integers stay float64 in ``x`` ...). `decode_raw` reads both forms.
+    """A ``recal.RawBatch`` in the log's compact form: ``t0_us`` + ``dt_us`` deltas, integer
+    readings (ADC counts) as deltas ``x_counts_delta`` ... (each value minus the one before;
+    readings that are not all integers stay float64 in ``x`` ...), all deltas zigzag varints.
+    `decode_raw` reads both forms.
 
     ``arrivals``: (samples per arrival, log time of each in us after the message's) of a
-    batch joined from several arrivals (`raw_arrivals` reads them back); the log times are
-    left out if one does not fit in int32."""
+    batch joined from several arrivals (`raw_arrivals` reads them back)."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
-             *_time_fields(batch.t_us, _F_T_US, _F_T0_US, _F_DT_US),
-             *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
+             *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
+             *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX),
+                            delta=True)]
     if arrivals is not None and len(arrivals[0]) > 1:
-        sizes, log_us = np.asarray(arrivals[0]), np.asarray(arrivals[1])
-        parts += _packed(_F_RAW_ARRIVAL_SAMPLES, _le_bytes(sizes, "<i4"))
-        if log_us.min() >= 0 and log_us.max() <= _I32_MAX:
-            parts += _packed(_F_RAW_ARRIVAL_LOG_US, _le_bytes(log_us, "<i4"))
+        parts += _varint_field(_F_RAW_ARRIVAL_SAMPLES, np.asarray(arrivals[0], np.int64))
+        parts += _varint_field(_F_RAW_ARRIVAL_LOG_US, _deltas(np.asarray(arrivals[1])))
     return b"".join(parts + _aux_fields(batch))
 
 
@@ -462,12 +514,12 @@ def raw_arrivals(data: bytes | bytearray | memoryview
     recording). ValueError if the sizes do not add up to the message's samples."""
     buf = _as_bytes(data)
     fields = _scan(buf, frozenset((_F_RAW_ARRIVAL_SAMPLES, _F_RAW_ARRIVAL_LOG_US)))
-    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _FIXED32_WT):
+    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, (_WT_LEN, _WT_VARINT)):
         return None
-    sizes = _fixed32(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
+    sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
     log_us = None
-    if _present(fields, _F_RAW_ARRIVAL_LOG_US, _FIXED32_WT):
-        log_us = _fixed32(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us")
+    if _F_RAW_ARRIVAL_LOG_US in fields:
+        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
         if len(log_us) != len(sizes):
             raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
                              "arrivals")
@@ -477,14 +529,17 @@ def raw_arrivals(data: bytes | bytearray | memoryview
 
 
 def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
-    """A ``recal.CalibratedBatch`` in the log's compact form: times as ``t0_us`` + int32
-    deltas, values, detector and sigma as int32 micro-g (a column with a value that is not
-    finite or beyond +-2147 g stays float64 in its old field). `decode_calibrated` reads
-    both forms."""
+    """A ``recal.CalibratedBatch`` in the log's compact form: times as ``t0_us`` + ``dt_us``
+    deltas, values, detector and sigma as deltas of their micro-g values (``x_ug_delta`` ...,
+    ``detector_ug_delta``, ``sigma_ug_delta``: each value minus the one before, the first as
+    it is; Foxglove plots the ``plot`` topic, whose values are whole), the device stamps as
+    ``t_dev0`` + deltas, all deltas zigzag varints; a column with a value that is not finite
+    or beyond +-2147 g stays float64 in its old field. `decode_calibrated` reads both
+    forms."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
-             *_time_fields(batch.t_us, _F_T_US, _F_T0_US, _F_DT_US),
+             *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
-                            (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)),
+                            (_F_X_FIX, _F_Y_FIX, _F_Z_FIX), delta=True),
              *_packed(_F_CAL_QUASI_STATIC, _le_bytes(batch.quasi_static, "|u1")),
              *_compact_column(batch.detector_g, UG_PER_G, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG)]
     if batch.recorded:
@@ -492,7 +547,7 @@ def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
                   *_compact_column(batch.sigma_mg, UG_PER_G / 1e3, _F_CAL_SIGMA,
                                    _F_CAL_SIGMA_UG)]
     if batch.t_dev is not None:
-        parts += _time_fields(batch.t_dev, _F_CAL_T_DEV, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
+        parts += _time_fields(batch.t_dev, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
     return b"".join(parts)
 
 
@@ -668,13 +723,22 @@ def _present(fields: dict[int, list[_Occurrence]], field: int, wire_types: tuple
 _FIXED32_WT = (_WT_LEN, _WT_I32)
 
 
+def _sint_varints(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> np.ndarray:
+    """A repeated sint64 field (packed runs and/or single varints) as int64."""
+    runs = [unzigzag_varints(np.frombuffer(buf, np.uint8, end - start, start), what)
+            for wire_type, start, end in occurrences or () if wire_type in (_WT_LEN, _WT_VARINT)]
+    if not runs:
+        return np.zeros(0, np.int64)
+    return runs[0] if len(runs) == 1 else np.concatenate(runs)
+
+
 def _stamps(buf: bytes, fields: dict[int, list[_Occurrence]], f_abs: int, f_first: int,
             f_delta: int, what: str) -> np.ndarray | None:
     """A stamp column from its absolute field or from first value + deltas; None if the
     message has neither."""
     if _present(fields, f_first, (_WT_I64,)):
         first = _fixed64(buf, fields[f_first], "<i8", what)
-        dt = _fixed32(buf, fields.get(f_delta), what)
+        dt = _sint_varints(buf, fields.get(f_delta), what)
         t = np.empty(len(dt) + 1, np.int64)
         t[0] = first[-1]  # a singular field: the last occurrence wins
         np.cumsum(dt, out=t[1:])
@@ -686,14 +750,17 @@ def _stamps(buf: bytes, fields: dict[int, list[_Occurrence]], f_abs: int, f_firs
 
 
 def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str],
-          scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Time stamps and the (N, 3) axis block (float64 fields, or the int32 fixed-point ones
-    divided by ``scale``), with the lengths checked against each other."""
+          scale: float, delta: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Time stamps and the (N, 3) axis block (float64 fields, or the fixed-point ones, sfixed32
+    values or varint deltas, divided by ``scale``), with the lengths checked against each
+    other."""
     t_us = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
     if t_us is None:
         t_us = np.zeros(0, np.int64)
-    if any(_present(fields, f, _FIXED32_WT) for f in (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)):
-        columns = [_fixed32(buf, fields.get(f), name) / scale
+    fixed_wt = (_WT_LEN, _WT_VARINT) if delta else _FIXED32_WT
+    if any(_present(fields, f, fixed_wt) for f in (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)):
+        columns = [(np.cumsum(_sint_varints(buf, fields.get(f), name)) if delta
+                    else _fixed32(buf, fields.get(f), name)) / scale
                    for f, name in zip((_F_X_FIX, _F_Y_FIX, _F_Z_FIX), names, strict=True)]
     else:
         columns = [_fixed64(buf, fields.get(f), "<f8", name)
@@ -707,8 +774,8 @@ def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
 
 def _column(buf: bytes, fields: dict[int, list[_Occurrence]], f_float: int, f_fixed: int,
             scale: float, what: str) -> np.ndarray:
-    if _present(fields, f_fixed, _FIXED32_WT):
-        return _fixed32(buf, fields[f_fixed], what) / scale
+    if _present(fields, f_fixed, (_WT_LEN, _WT_VARINT)):
+        return np.cumsum(_sint_varints(buf, fields[f_fixed], what)) / scale
     return np.array(_fixed64(buf, fields.get(f_float), "<f8", what), dtype=np.float64)
 
 
@@ -730,7 +797,7 @@ def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
     malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _RAW_FIELDS)
-    t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0)
+    t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0, delta=True)
     names = tuple(_strings(buf, fields.get(_F_RAW_AUX_NAMES)))
     aux = np.array(_fixed64(buf, fields.get(_F_RAW_AUX), "<f8", "aux"), dtype=np.float64)
     if len(aux) != len(t_us) * len(names):
@@ -745,14 +812,14 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _CAL_FIELDS)
-    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G)
+    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G, delta=True)
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
     detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
                        "detector_g")
     _same_length(t_us, quasi_static=quasi, detector_g=detector)
     status = sigma = None  # absent: a recording from before statuses (not recorded, NaN)
     if (_F_CAL_STATUS in fields or _F_CAL_SIGMA in fields
-            or _present(fields, _F_CAL_SIGMA_UG, _FIXED32_WT)):
+            or _present(fields, _F_CAL_SIGMA_UG, (_WT_LEN, _WT_VARINT))):
         status = _small_varints(buf, fields.get(_F_CAL_STATUS), "status")
         sigma = _column(buf, fields, _F_CAL_SIGMA, _F_CAL_SIGMA_UG, UG_PER_G / 1e3, "sigma_mg")
         _same_length(t_us, status=status, sigma_mg=sigma)
