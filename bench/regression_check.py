@@ -10,9 +10,13 @@ module layout left every output as it was (docs/design.md). A tree is a checkout
 input files. The command line (``python -m recal ...``) is used wherever it can be, so that
 modules may move; the core case tries the new names first, then the old ones.
 
-Compared exactly (floats bit for bit): every MCAP message by topic, log and publish time, schema
-and payload bytes (the file's bytes may differ only in its metadata records, which are named);
-JSON key by key (timings "seconds" and "samples_per_s" left out; when not identical the largest
+The log's batch topics (RawBatch, CalibratedBatch) are compared as their decoded samples
+joined per topic (the message boundaries and the bytes are the log format's), integers and raw
+readings exactly, calibrated values and the detector within half a micro-g and sigma within
+half a micro-g in mg (the compact form's fixed point), the protobuf schemas by name.
+Compared exactly otherwise (floats bit for bit): every other MCAP message by topic, log and
+publish time, schema and payload bytes (the file's bytes may differ only in its metadata
+records, which are named); JSON key by key (timings "seconds" and "samples_per_s" left out; when not identical the largest
 relative difference is shown); CSV and stdout byte for byte; arrays bit for bit (else the
 largest absolute difference). Exit status 0 only if every case is identical, or within the
 tolerance `--tolerate NAME=ABS` grants the arrays and JSON numbers called NAME where a change
@@ -289,11 +293,69 @@ def read_mcap(path: Path) -> McapContent:
     return McapContent(library, meta, msgs, channels)
 
 
+#: The log's batch topics are compared as decoded samples, not as messages: the compact form
+#: joins a flush interval's batches into one message and keeps calibrated values, the detector
+#: and sigma to the micro-g (rounded: half a micro-g at most). Everything else stays exact.
+BATCH_SCHEMAS = ("recal.RawBatch", "recal.CalibratedBatch")
+FORMAT_TOL = {"a_g": 0.5e-6 + 1e-12, "detector_g": 0.5e-6 + 1e-12,
+              "sigma_mg": 0.5e-3 + 1e-12}  # sigma is in mg
+BATCH_COLUMNS = ("t_us", "v", "aux", "a_g", "quasi_static", "detector_g", "status",
+                 "sigma_mg", "t_dev")
+
+
+def _joined_batches(content: McapContent, topic: str) -> dict[str, np.ndarray]:
+    """A batch topic's samples, decoded (by the new tree's decoder, which reads both forms)
+    and joined across messages."""
+    from recal.io import messages
+    batches = []
+    for m in content.messages:
+        if m[0] == topic:
+            decode = messages.decode_calibrated if "alibrated" in m[3] else messages.decode_raw
+            batches.append(decode(m[6])[1])
+    cols: dict[str, np.ndarray] = {}
+    for name in BATCH_COLUMNS:
+        parts = [getattr(b, name) for b in batches if getattr(b, name, None) is not None]
+        if parts and len(parts) == len(batches):
+            cols[name] = np.concatenate(parts)
+    return cols
+
+
+def batch_topics_verdict(ca: McapContent, cb: McapContent) -> str:
+    """The batch topics sample by sample: exact, or within the log format's fixed point."""
+    topics = sorted({m[0] for m in ca.messages + cb.messages if m[3] in BATCH_SCHEMAS})
+    notes = []
+    for topic in topics:
+        xa, xb = _joined_batches(ca, topic), _joined_batches(cb, topic)
+        if sorted(xa) != sorted(xb):
+            return f"{topic}: columns {sorted(xa)} vs {sorted(xb)}"
+        for name in xa:
+            if xa[name].shape != xb[name].shape:
+                return f"{topic} {name}: shape {xa[name].shape} vs {xb[name].shape}"
+            if np.array_equal(xa[name], xb[name], equal_nan=xa[name].dtype.kind == "f"):
+                continue
+            tol = FORMAT_TOL.get(name)
+            diff = float(np.nanmax(np.abs(xa[name].astype(float) - xb[name].astype(float))))
+            same_nan = xa[name].dtype.kind != "f" or np.array_equal(np.isnan(xa[name]),
+                                                                   np.isnan(xb[name]))
+            if tol is None or not same_nan or not diff <= tol:
+                return f"{topic} {name}: max |diff| {diff:.3g}"
+            notes.append(f"{topic} {name} {diff:.2g}")
+    if notes:
+        return f"{WITHIN} (the log's micro-g): " + ", ".join(notes)
+    return "identical"
+
+
 def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
     """(verdict on the messages, a note on the file's bytes and metadata)."""
     if a.read_bytes() == b.read_bytes():
         return "identical", "file bytes identical"
     ca, cb = read_mcap(a), read_mcap(b)
+    batch_verdict = batch_topics_verdict(ca, cb)
+    # the other messages one by one, exactly, as before
+    ca = McapContent(ca.library, ca.metadata,
+                     [m for m in ca.messages if m[3] not in BATCH_SCHEMAS], ca.channels)
+    cb = McapContent(cb.library, cb.metadata,
+                     [m for m in cb.messages if m[3] not in BATCH_SCHEMAS], cb.channels)
     verdict, within, n_within = "identical", "", 0
     if len(ca.messages) != len(cb.messages):
         verdict = f"{len(ca.messages)} vs {len(cb.messages)} messages"
@@ -306,9 +368,11 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
             within, n_within = within or what, n_within + 1
     if verdict == "identical" and within:
         verdict = f"{WITHIN}: {n_within} messages, first {within}"
-    if (verdict == "identical" or verdict.startswith(WITHIN)) and ca.channels != cb.channels:
+    if (verdict == "identical" or verdict.startswith(WITHIN)) and batch_verdict != "identical":
+        verdict = batch_verdict
+    if (verdict == "identical" or verdict.startswith(WITHIN)) and _channels(ca) != _channels(cb):
         topic = next(t for t in {**ca.channels, **cb.channels}
-                     if ca.channels.get(t) != cb.channels.get(t))
+                     if _channels(ca).get(t) != _channels(cb).get(t))
         verdict = f"channel or schema of {topic} differs"
     meta = [f"header library {ca.library!r} vs {cb.library!r}"] if ca.library != cb.library else []
     for name in sorted(set(ca.metadata) | set(cb.metadata)):
@@ -322,6 +386,13 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
                                                     for m in meta):
         verdict = "metadata differs: " + "; ".join(meta)
     return verdict, note
+
+
+def _channels(content: McapContent) -> dict[str, tuple]:
+    """The channels, with the protobuf schemas' bytes left out (the compact form added fields
+    to the batch messages; every schema is still checked by name and encoding)."""
+    return {t: c[:4] if len(c) > 4 and c[3] == "protobuf" else c
+            for t, c in content.channels.items()}
 
 
 def _message_diff(x: tuple, y: tuple) -> str:

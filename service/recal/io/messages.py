@@ -1,4 +1,5 @@
-"""Codecs shared by the bus and the log: the same bytes go on Zenoh and into MCAP.
+"""Codecs of the bus and the log: the bus carries each batch in the float64 fields, the log
+joins batches into compact messages of the same protobuf types.
 
 Bulk sample batches are protobuf, so Foxglove decodes them from the schema we store in the
 log (a serialized ``FileDescriptorSet``, schema encoding ``protobuf``):
@@ -14,7 +15,15 @@ message RawBatch {
   repeated double z = 5 [packed = true];
   repeated string aux_names = 6;                // K auxiliary channel names
   repeated double aux = 7 [packed = true];      // N x K, row-major
-}
+  // the compact form (the log's), instead of fields 2-5:
+  sfixed64 t0_us = 11;                          // first stamp
+  repeated sint64 dt_us = 12 [packed = true];   // N - 1 differences
+  repeated sint64 x_counts_delta = 13 [packed = true];  // integer readings: x[i] - x[i-1]
+  repeated sint64 y_counts_delta = 14 [packed = true];  // (x[-1] = 0); readings that are not
+  repeated sint64 z_counts_delta = 15 [packed = true];  // integers stay in fields 3-5
+  repeated sint64 arrival_samples = 20 [packed = true];   // a joined batch's arrivals:
+  repeated sint64 arrival_log_dt_us = 21 [packed = true]; // samples, log time deltas (us
+}                                               // after the message's log time, then apart)
 message CalibratedBatch {
   string sensor_id = 1;
   repeated sfixed64 t_us = 2 [packed = true];
@@ -26,6 +35,16 @@ message CalibratedBatch {
   repeated Status status = 8 [packed = true];   // per sample; absent in older recordings
   repeated double sigma_mg = 9 [packed = true]; // predicted 1-sigma error of the vector, mg
   repeated sfixed64 t_dev = 10 [packed = true]; // the device's own stamp, as the raw batch had
+  // the compact form (the log's), instead of fields 2-5, 7, 9, 10:
+  sfixed64 t0_us = 11;
+  repeated sint64 dt_us = 12 [packed = true];
+  repeated sint64 x_ug_delta = 13 [packed = true];        // micro-g, differences
+  repeated sint64 y_ug_delta = 14 [packed = true];
+  repeated sint64 z_ug_delta = 15 [packed = true];
+  repeated sint64 detector_ug_delta = 16 [packed = true];
+  repeated sint64 sigma_ug_delta = 17 [packed = true];
+  sfixed64 t_dev0 = 18;
+  repeated sint64 dt_dev = 19 [packed = true];
 }
 enum Status {                                   // recal.core.status.Status
   STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
@@ -54,6 +73,18 @@ sigma_mg NaN for every sample. Field 10 (``t_dev``: each sample's device time st
 as its ``RawBatch`` carried it, in the device's unit, so raw and calibrated join on it after a
 reboot too) is written when the batch has it; a message without it (an older recording)
 decodes with ``t_dev`` None.
+
+The compact form (`encode_raw_compact`, `encode_calibrated_compact`) is what the recording
+writer logs: a column is written either in its float64 field or in its compact one. Times are
+the first stamp and the differences; raw readings that are all integers (ADC counts) and
+calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g) are
+differences from the sample before (the first from 0), all as zigzag varints, which a few
+numpy passes write and read (`zigzag_varints`, `unzigzag_varints`); a column with a value
+that is not finite or beyond +-2147 g stays in float64. Differences make most varints one or
+two bytes, and zstd, restarted at every one-second chunk, finds little else to take. The bus
+keeps the float64 form: one sample is cheapest to encode that way, and subscribers read
+either. The decoders accept both forms (and older recordings, which have only the float64
+fields).
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
@@ -465,18 +496,14 @@ def _deltas(values: np.ndarray) -> np.ndarray:
     return out
 
 
-def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: Sequence[int],
-                  delta: bool) -> list[bytes | memoryview]:
-    """The three axes as fixed-point columns (sfixed32 values, or sint64 varint deltas), or
-    as float64 ones if the fixed point cannot hold them."""
+def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: Sequence[int]
+                  ) -> list[bytes | memoryview]:
+    """The three axes as sint64 varint deltas of their fixed-point values, or as float64
+    columns if the fixed point cannot hold them."""
     fixed = _fixed_point(v, scale)
     if fixed is None:
         return [p for f, col in zip(f_float, _axes_bytes(v), strict=True) for p in _packed(f, col)]
-    if delta:
-        return [p for i, f in enumerate(f_fixed) for p in _varint_field(f, _deltas(fixed[:, i]))]
-    cols = memoryview(np.ascontiguousarray(fixed.T).tobytes())
-    n4 = 4 * len(v)
-    return [p for i, f in enumerate(f_fixed) for p in _packed(f, cols[i * n4:(i + 1) * n4])]
+    return [p for i, f in enumerate(f_fixed) for p in _varint_field(f, _deltas(fixed[:, i]))]
 
 
 def _compact_column(values: np.ndarray, scale: float, f_float: int, f_fixed: int
@@ -499,8 +526,7 @@ def encode_raw_compact(sensor_id: str, batch: RawBatch,
     batch joined from several arrivals (`raw_arrivals` reads them back)."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
-             *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX),
-                            delta=True)]
+             *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
     if arrivals is not None and len(arrivals[0]) > 1:
         parts += _varint_field(_F_RAW_ARRIVAL_SAMPLES, np.asarray(arrivals[0], np.int64))
         parts += _varint_field(_F_RAW_ARRIVAL_LOG_US, _deltas(np.asarray(arrivals[1])))
@@ -514,7 +540,7 @@ def raw_arrivals(data: bytes | bytearray | memoryview
     recording). ValueError if the sizes do not add up to the message's samples."""
     buf = _as_bytes(data)
     fields = _scan(buf, frozenset((_F_RAW_ARRIVAL_SAMPLES, _F_RAW_ARRIVAL_LOG_US)))
-    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, (_WT_LEN, _WT_VARINT)):
+    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _VARINT_WT):
         return None
     sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
     log_us = None
@@ -539,7 +565,7 @@ def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
-                            (_F_X_FIX, _F_Y_FIX, _F_Z_FIX), delta=True),
+                            (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)),
              *_packed(_F_CAL_QUASI_STATIC, _le_bytes(batch.quasi_static, "|u1")),
              *_compact_column(batch.detector_g, UG_PER_G, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG)]
     if batch.recorded:
@@ -699,20 +725,6 @@ def _same_length(t_us: np.ndarray, **columns: np.ndarray) -> None:
             raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
 
 
-def _fixed32(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> np.ndarray:
-    """A repeated sfixed32 field (packed runs and/or single values) as int64."""
-    runs = []
-    for wire_type, start, end in occurrences or ():
-        if wire_type not in (_WT_LEN, _WT_I32):
-            continue
-        if (end - start) % 4:
-            raise ValueError(f"packed field {what} has {end - start} bytes, not a multiple of 4")
-        runs.append(np.frombuffer(buf, dtype="<i4", count=(end - start) // 4, offset=start))
-    if not runs:
-        return np.zeros(0, np.int64)
-    return (runs[0] if len(runs) == 1 else np.concatenate(runs)).astype(np.int64)
-
-
 def _present(fields: dict[int, list[_Occurrence]], field: int, wire_types: tuple[int, ...]
              ) -> bool:
     """Whether the field occurs with a wire type of its own (protobuf skips the others as
@@ -720,7 +732,7 @@ def _present(fields: dict[int, list[_Occurrence]], field: int, wire_types: tuple
     return any(wt in wire_types for wt, _, _ in fields.get(field, ()))
 
 
-_FIXED32_WT = (_WT_LEN, _WT_I32)
+_VARINT_WT = (_WT_LEN, _WT_VARINT)
 
 
 def _sint_varints(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> np.ndarray:
@@ -750,17 +762,14 @@ def _stamps(buf: bytes, fields: dict[int, list[_Occurrence]], f_abs: int, f_firs
 
 
 def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str],
-          scale: float, delta: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Time stamps and the (N, 3) axis block (float64 fields, or the fixed-point ones, sfixed32
-    values or varint deltas, divided by ``scale``), with the lengths checked against each
-    other."""
+          scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Time stamps and the (N, 3) axis block (float64 fields, or the fixed-point deltas summed
+    and divided by ``scale``), with the lengths checked against each other."""
     t_us = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
     if t_us is None:
         t_us = np.zeros(0, np.int64)
-    fixed_wt = (_WT_LEN, _WT_VARINT) if delta else _FIXED32_WT
-    if any(_present(fields, f, fixed_wt) for f in (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)):
-        columns = [(np.cumsum(_sint_varints(buf, fields.get(f), name)) if delta
-                    else _fixed32(buf, fields.get(f), name)) / scale
+    if any(_present(fields, f, _VARINT_WT) for f in (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)):
+        columns = [np.cumsum(_sint_varints(buf, fields.get(f), name)) / scale
                    for f, name in zip((_F_X_FIX, _F_Y_FIX, _F_Z_FIX), names, strict=True)]
     else:
         columns = [_fixed64(buf, fields.get(f), "<f8", name)
@@ -774,7 +783,7 @@ def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
 
 def _column(buf: bytes, fields: dict[int, list[_Occurrence]], f_float: int, f_fixed: int,
             scale: float, what: str) -> np.ndarray:
-    if _present(fields, f_fixed, (_WT_LEN, _WT_VARINT)):
+    if _present(fields, f_fixed, _VARINT_WT):
         return np.cumsum(_sint_varints(buf, fields[f_fixed], what)) / scale
     return np.array(_fixed64(buf, fields.get(f_float), "<f8", what), dtype=np.float64)
 
@@ -797,7 +806,7 @@ def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
     malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _RAW_FIELDS)
-    t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0, delta=True)
+    t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0)
     names = tuple(_strings(buf, fields.get(_F_RAW_AUX_NAMES)))
     aux = np.array(_fixed64(buf, fields.get(_F_RAW_AUX), "<f8", "aux"), dtype=np.float64)
     if len(aux) != len(t_us) * len(names):
@@ -812,14 +821,14 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _CAL_FIELDS)
-    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G, delta=True)
+    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G)
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
     detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
                        "detector_g")
     _same_length(t_us, quasi_static=quasi, detector_g=detector)
     status = sigma = None  # absent: a recording from before statuses (not recorded, NaN)
     if (_F_CAL_STATUS in fields or _F_CAL_SIGMA in fields
-            or _present(fields, _F_CAL_SIGMA_UG, (_WT_LEN, _WT_VARINT))):
+            or _present(fields, _F_CAL_SIGMA_UG, _VARINT_WT)):
         status = _small_varints(buf, fields.get(_F_CAL_STATUS), "status")
         sigma = _column(buf, fields, _F_CAL_SIGMA, _F_CAL_SIGMA_UG, UG_PER_G / 1e3, "sigma_mg")
         _same_length(t_us, status=status, sigma_mg=sigma)
