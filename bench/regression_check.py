@@ -19,8 +19,8 @@ publish time, schema and payload bytes (the file's bytes may differ only in its 
 records, which are named); JSON key by key (timings "seconds" and "samples_per_s" left out;
 when not identical the largest relative difference is shown); CSV and stdout byte for byte;
 arrays bit for bit (else the largest absolute difference). Exit status 0 only if every case is
-identical, or within the tolerance `--tolerate NAME=ABS` grants the arrays and JSON numbers called NAME where a change
-is known to move their last bits (say so with the result):
+identical, or within the tolerance `--tolerate NAME=ABS` grants the arrays and JSON numbers
+called NAME where a change is known to move their last bits (say so with the result):
 
     python bench/regression_check.py --tolerate detector_g=1e-12 --tolerate zi_hp=1e-12 \
         --tolerate zi_lp=1e-12     # a new filter design: the detector's output may move
