@@ -107,7 +107,7 @@ import math
 import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from google.protobuf import descriptor_pb2
@@ -445,24 +445,39 @@ def _fixed_point(values: np.ndarray, scale: float) -> np.ndarray | None:
     return out
 
 
-def zigzag_varints(values: np.ndarray) -> bytes:
-    """Signed integers as protobuf ``sint64`` packed varints (zigzag, 7 bits a byte), all in
-    numpy: small magnitudes (deltas) take one or two bytes."""
-    v = np.asarray(values, np.int64)
+#: the smallest value that takes k + 2 bytes as a varint, k = 0..8
+_VARINT_THRESHOLDS = np.array([1 << (7 * k) for k in range(1, 10)], np.uint64)
+_VARINT_SHIFTS = np.arange(10, dtype=np.uint64) * np.uint64(7)
+
+
+def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
+    """Each column of signed integers as protobuf ``sint64`` packed varints (zigzag, 7 bits
+    a byte): small magnitudes (deltas) take one or two bytes. All columns in one pass of a
+    dozen numpy calls, whatever their number (a message's columns are encoded together)."""
+    v = np.concatenate([np.asarray(c, np.int64) for c in columns])
+    if len(v) == 0:
+        return [b"" for _ in columns]
     z = ((v << 1) ^ (v >> 63)).view(np.uint64)
-    nbytes = np.ones(len(z), np.int64)
-    for k in range(1, 10):
-        more = z >= np.uint64(1 << (7 * k))
-        if not more.any():
-            break
-        nbytes += more
-    out = np.empty(int(nbytes.sum()), np.uint8)
-    starts = np.cumsum(nbytes) - nbytes
-    for k in range(int(nbytes.max()) if len(z) else 0):
-        sel = nbytes > k
-        byte = (z[sel] >> np.uint64(7 * k)) & np.uint64(0x7F)
-        out[starts[sel] + k] = byte | np.where(nbytes[sel] > k + 1, 0x80, 0).astype(np.uint64)
-    return out.tobytes()
+    width = 1 + int(np.searchsorted(_VARINT_THRESHOLDS, z.max(), side="right"))
+    nbytes = 1 + (z[:, None] >= _VARINT_THRESHOLDS[None, :width - 1]).sum(axis=1)
+    k = np.arange(width)
+    table = ((z[:, None] >> _VARINT_SHIFTS[None, :width]) & np.uint64(0x7F)).astype(np.uint8)
+    table[k[None, :] < (nbytes - 1)[:, None]] |= 0x80  # continuation bits
+    flat = table[k[None, :] < nbytes[:, None]].tobytes()  # row by row: value by value
+    ends = np.cumsum(nbytes)[np.cumsum([len(c) for c in columns]) - 1].tolist()
+    out, start = [], 0
+    for c, end in zip(columns, ends, strict=True):
+        if len(c) == 0:
+            out.append(b"")
+            continue
+        out.append(flat[start:end])
+        start = end
+    return out
+
+
+def zigzag_varints(values: np.ndarray) -> bytes:
+    """One column as `zigzag_varints_many` writes it."""
+    return zigzag_varints_many([values])[0]
 
 
 def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
@@ -485,8 +500,30 @@ def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
     return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
 
 
-def _varint_field(field: int, values: np.ndarray) -> list[bytes | memoryview]:
-    return _packed(field, zigzag_varints(values)) if len(values) else []
+class _Ints(NamedTuple):
+    """A packed sint64 field waiting to be encoded with the message's others (`_join`)."""
+
+    field: int
+    values: np.ndarray
+
+
+def _varint_field(field: int, values: np.ndarray) -> list[Any]:
+    return [_Ints(field, values)] if len(values) else []
+
+
+def _join(parts: list[Any]) -> bytes:
+    """The message: its parts, with every sint64 field encoded in one pass."""
+    ints = [p for p in parts if isinstance(p, _Ints)]
+    if not ints:
+        return b"".join(parts)
+    encoded = iter(zigzag_varints_many([p.values for p in ints]))
+    out: list[bytes | memoryview] = []
+    for p in parts:
+        if isinstance(p, _Ints):
+            out += _len_prefixed(p.field, next(encoded))
+        else:
+            out.append(p)
+    return b"".join(out)
 
 
 def _deltas(values: np.ndarray) -> np.ndarray:
@@ -530,7 +567,7 @@ def encode_raw_compact(sensor_id: str, batch: RawBatch,
     if arrivals is not None and len(arrivals[0]) > 1:
         parts += _varint_field(_F_RAW_ARRIVAL_SAMPLES, np.asarray(arrivals[0], np.int64))
         parts += _varint_field(_F_RAW_ARRIVAL_LOG_US, _deltas(np.asarray(arrivals[1])))
-    return b"".join(parts + _aux_fields(batch))
+    return _join(parts + _aux_fields(batch))
 
 
 def raw_arrivals(data: bytes | bytearray | memoryview
@@ -574,7 +611,7 @@ def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
                                    _F_CAL_SIGMA_UG)]
     if batch.t_dev is not None:
         parts += _time_fields(batch.t_dev, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
-    return b"".join(parts)
+    return _join(parts)
 
 
 # ---------------------------------------------------------------------------------------------
