@@ -28,10 +28,10 @@ called NAME where a change is known to move their last bits (say so with the res
 
 Cases (group names for --only): recordings: `recal replay` of recordings/wearer-10min.mcap and
 wearer-temp-30min.mcap; sim: `recal simulate` (--sim-hours at 50 Hz) per sensor of --sensors,
-each tree's file compared, then both replay the new tree's; core: `Pipeline.step` over a
---core-hours simulation in batches of --batch, and --group batches per call (`step_many`, or
-the old `step(marks=)`); discover: `recal discover --json --write-model` and `recal hindsight`
-(MCAP, JSON, CSV) of wearer-temp-30min.mcap; static: `recal static` of a phone table of the
+each tree's file compared, then both replay the old tree's (which both can read); core:
+`Pipeline.step` over a --core-hours simulation in batches of --batch, and --group batches per
+call (`step_many`, or the old `step(marks=)`); discover: `recal discover --json
+--write-model` and `recal hindsight` (MCAP, JSON, CSV) of wearer-temp-30min.mcap; static: `recal static` of a phone table of the
 measured data (unknown and known orientations); real: the measured Xsens and GENEActiv arrays
 as CSV through `recal import`, then `recal discover` of the import.
 """
@@ -509,14 +509,16 @@ def case_replay(ctx: Context, case: str, src: Path) -> list[Row]:
 
 
 def case_simulated(ctx: Context, sensor: str) -> list[Row]:
-    """`recal simulate` with both trees (compared), then both replay the same (new) file."""
+    """`recal simulate` with both trees (compared), then both replay the same (old) file."""
     case = f"sim {sensor}"
     argv = ["simulate", "--out", "sim.mcap", "--hours", str(ctx.args.sim_hours), "--rate", "50",
             "--seed", "11", *SENSORS[sensor]]
     od, nd, so, sn = both(ctx, case, argv, "recal simulate")
     rows = compare_files(case, od, nd, ["sim.mcap", "sim.truth.npz"])
     rows.append(Row(case, "simulate stdout", text_verdict(so, sn)))
-    return rows + case_replay(ctx, f"replay sim {sensor}", nd / "sim.mcap")
+    # both replay the old tree's file: the new tree reads the older log format, not the
+    # other way round
+    return rows + case_replay(ctx, f"replay sim {sensor}", od / "sim.mcap")
 
 
 def case_core(ctx: Context, variant: str) -> list[Row]:
