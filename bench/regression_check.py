@@ -30,10 +30,10 @@ Cases (group names for --only): recordings: `recal replay` of recordings/wearer-
 wearer-temp-30min.mcap; sim: `recal simulate` (--sim-hours at 50 Hz) per sensor of --sensors,
 each tree's file compared, then both replay the old tree's (which both can read); core:
 `Pipeline.step` over a --core-hours simulation in batches of --batch, and --group batches per
-call (`step_many`, or the old `step(marks=)`); discover: `recal discover --json
---write-model` and `recal hindsight` (MCAP, JSON, CSV) of wearer-temp-30min.mcap; static: `recal static` of a phone table of the
-measured data (unknown and known orientations); real: the measured Xsens and GENEActiv arrays
-as CSV through `recal import`, then `recal discover` of the import.
+call (`step_many`, or the old `step(marks=)`); discover: `recal discover --json --write-model`
+and `recal hindsight` (MCAP, JSON, CSV) of wearer-temp-30min.mcap; static: `recal static` of a
+phone table of the measured data (unknown and known orientations); real: the measured Xsens and
+GENEActiv arrays as CSV through `recal import`, then `recal discover` of the import.
 """
 
 from __future__ import annotations
