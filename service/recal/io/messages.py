@@ -445,25 +445,29 @@ def _fixed_point(values: np.ndarray, scale: float) -> np.ndarray | None:
     return out
 
 
-#: the smallest value that takes k + 2 bytes as a varint, k = 0..8
-_VARINT_THRESHOLDS = np.array([1 << (7 * k) for k in range(1, 10)], np.uint64)
-_VARINT_SHIFTS = np.arange(10, dtype=np.uint64) * np.uint64(7)
-
-
 def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
     """Each column of signed integers as protobuf ``sint64`` packed varints (zigzag, 7 bits
     a byte): small magnitudes (deltas) take one or two bytes. All columns in one pass of a
-    dozen numpy calls, whatever their number (a message's columns are encoded together)."""
+    few numpy calls per byte of the widest value, whatever their number (a message's columns
+    are encoded together)."""
     v = np.concatenate([np.asarray(c, np.int64) for c in columns])
     if len(v) == 0:
         return [b"" for _ in columns]
     z = ((v << 1) ^ (v >> 63)).view(np.uint64)
-    width = 1 + int(np.searchsorted(_VARINT_THRESHOLDS, z.max(), side="right"))
-    nbytes = 1 + (z[:, None] >= _VARINT_THRESHOLDS[None, :width - 1]).sum(axis=1)
-    k = np.arange(width)
-    table = ((z[:, None] >> _VARINT_SHIFTS[None, :width]) & np.uint64(0x7F)).astype(np.uint8)
-    table[k[None, :] < (nbytes - 1)[:, None]] |= 0x80  # continuation bits
-    flat = table[k[None, :] < nbytes[:, None]].tobytes()  # row by row: value by value
+    width = max(1, (int(z.max()).bit_length() + 6) // 7)
+    if width <= 4:  # (values below 2**28: 32-bit arithmetic is faster)
+        z = z.astype(np.uint32)
+    # byte j of every value in row j: numpy's loops run along the values, not along 2-3 bytes
+    nbytes = np.ones(len(z), np.uint8)
+    for j in range(1, width):
+        nbytes += z >= (1 << (7 * j))
+    table = np.empty((width, len(z)), np.uint8)
+    keep = np.empty((width, len(z)), bool)
+    for j in range(width):
+        table[j] = (z >> (7 * j)) & 0x7F
+        table[j] |= (nbytes > j + 1).view(np.uint8) << 7  # continuation bit
+        keep[j] = nbytes > j
+    flat = np.ascontiguousarray(table.T)[np.ascontiguousarray(keep.T)].tobytes()  # by value
     ends = np.cumsum(nbytes)[np.cumsum([len(c) for c in columns]) - 1].tolist()
     out, start = [], 0
     for c, end in zip(columns, ends, strict=True):
