@@ -5,11 +5,13 @@ included), runs each sensor's :class:`recal.node.CalibrationNode` (the code path
 runs live) and writes raw + calibrated + body + calibration + plot + events + setup to a new
 recording, with the original log times.
 
-Speed: the raw messages are copied as logged (not encoded again); consecutive messages of a
-sensor go through the pipeline together (``JOIN_SAMPLES`` at a time, via
-``CalibrationNode.process_many``), which changes nothing in the output, still one of each per
-message (the pipeline is batch-size invariant and reports its state at each message's end);
-the output is written in 1 MiB chunks compressed on a second thread.
+Speed: consecutive arrivals of a sensor (the raw messages, or the arrivals a joined message
+keeps) go through the pipeline together (``JOIN_SAMPLES`` at a time, via
+``CalibrationNode.process_many``), which changes nothing in the output, still as of each
+arrival's end (the pipeline is batch-size invariant and reports its state at each arrival's
+end); the raw samples are logged again in the compact form and every batch topic is joined
+into messages of up to 8192 samples; the output is written in 1 MiB chunks compressed on a
+second thread.
 
 How each sensor's pipeline starts, first match wins:
 1. ``model`` or a ``config`` whose sensor entry has a prior: a fresh pipeline from them;
