@@ -12,6 +12,9 @@ import pytest
 from mcap.writer import Writer
 
 from bench_modules import load_bench
+from recal.io import messages
+from recal.io.recording_writer import RecordingWriter
+from recal.samples import CalibratedBatch, RawBatch
 
 rc = load_bench("regression_check")
 
@@ -169,3 +172,39 @@ def test_plot_payloads_compare_field_by_field(tolerate_x: None) -> None:
         f"payload {rc.WITHIN}: detector_g")
     assert rc.payload_diff(name, plot(0.01, 0.1), plot(0.01 + 1e-15, 0.1 + 1e-15)).startswith(
         "payload x_g: 1 of 1 rows differ")
+
+
+def _batches_mcap(path: Path, cal: CalibratedBatch, raw: RawBatch, joined: bool) -> Path:
+    """The first form (a float64 message per batch of 10) or the compact, joined one."""
+    with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True,
+                         log_batch_samples=8192 if joined else 1) as w:
+        for i in range(0, len(cal), 10):
+            log_ns = 10**18 + i
+            if joined:
+                w.log_raw("s", raw[i:i + 10], log_ns)
+                w.log_calibrated("s", cal[i:i + 10], log_ns)
+            else:
+                w.write_encoded("/s/raw", messages.encode_raw("s", raw[i:i + 10]), log_ns)
+                w.write_encoded("/s/calibrated", messages.encode_calibrated("s", cal[i:i + 10]),
+                                log_ns, schema=messages.CALIBRATED_SCHEMA)
+    return path
+
+
+def test_batch_topics_compare_as_samples_within_the_log_micro_g_and_no_further(
+        tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    n = 100
+    t = np.arange(n, dtype=np.int64) * 10_000
+    cal = CalibratedBatch(t, rng.normal(size=(n, 3)), rng.random(n) < 0.5, rng.random(n) * 0.1,
+                          np.full(n, 3, np.uint8), rng.random(n) * 5.0, t)
+    raw = RawBatch(t, rng.integers(-900, 900, (n, 3)).astype(float), np.zeros((n, 0)))
+    first = _batches_mcap(tmp_path / "first.mcap", cal, raw, joined=False)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "c.mcap", cal, raw, True))
+    assert verdict.startswith(rc.WITHIN) and "/s/calibrated a_g" in verdict
+    off = CalibratedBatch(t, cal.a_g + np.where(np.arange(n) == 40, 2e-6, 0.0)[:, None],
+                          cal.quasi_static, cal.detector_g, cal.status, cal.sigma_mg, t)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "d.mcap", off, raw, True))
+    assert verdict.startswith("/s/calibrated a_g: max |diff|")
+    raw2 = RawBatch(t, raw.v + (np.arange(n) == 7)[:, None], raw.aux)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "e.mcap", cal, raw2, True))
+    assert verdict.startswith("/s/raw v: max |diff| 1")
