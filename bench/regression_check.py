@@ -13,7 +13,8 @@ modules may move; the core case tries the new names first, then the old ones.
 The log's batch topics (RawBatch, CalibratedBatch) are compared as their decoded samples
 joined per topic (the message boundaries and the bytes are the log format's), integers and raw
 readings exactly, calibrated values and the detector within half a micro-g and sigma within
-half a micro-g in mg (the compact form's fixed point), the protobuf schemas by name.
+half a micro-g in mg (the compact form's fixed point), the protobuf schemas by name. A plot
+message's values (float32 in the log, double before) are compared rounded to float32.
 Compared exactly otherwise (floats bit for bit): every other MCAP message by topic, log and
 publish time, schema and payload bytes (the file's bytes may differ only in its metadata
 records, which are named); JSON key by key (timings "seconds" and "samples_per_s" left out;
@@ -416,6 +417,8 @@ def payload_diff(schema: str, a: bytes, b: bytes) -> str:
             pa, pb = messages.decode_plot(a), messages.decode_plot(b)
             v = first_verdict(array_verdict(k, np.atleast_1d(pa[k]), np.atleast_1d(pb[k]))
                               for k in pa)
+            if v != "identical" and _plot_float32_equal(pa, pb):
+                v = f"{WITHIN} (the plot's float32)"
             if v != "identical":
                 return f"payload {v}"
         decode = (messages.decode_calibrated if "alibrated" in schema else messages.decode_raw)
@@ -432,6 +435,15 @@ def payload_diff(schema: str, a: bytes, b: bytes) -> str:
     k = next((i for i, (u, v) in enumerate(zip(a, b, strict=False)) if u != v), min(len(a),
                                                                                        len(b)))
     return f"payload bytes differ ({len(a)} vs {len(b)} bytes, first at byte {k})"
+
+
+def _plot_float32_equal(pa: dict, pb: dict) -> bool:
+    """Two plot samples the same once their values are rounded to float32 (the plot's fields
+    are floats; older recordings have doubles), everything else exactly."""
+    def f32(value: float) -> np.ndarray:
+        return np.atleast_1d(np.float32(value))
+    return all(np.array_equal(f32(pa[k]), f32(pb[k]), equal_nan=True)
+               if isinstance(pa[k], float) else pa[k] == pb[k] for k in pa)
 
 
 def mask_stdout(text: str) -> str:

@@ -56,14 +56,14 @@ enum Status {                                   // recal.core.status.Status
 }
 message PlotSample {                            // one decimated sample, for a Plot panel
   sfixed64 t_us = 1;
-  double x_g = 2;
-  double y_g = 3;
-  double z_g = 4;
-  double norm_g = 5;
+  float x_g = 2;                                // float32 (double in older recordings)
+  float y_g = 3;
+  float z_g = 4;
+  float norm_g = 5;
   bool quasi_static = 6;
-  double detector_g = 7;
+  float detector_g = 7;
   Status status = 8;
-  double sigma_mg = 9;
+  float sigma_mg = 9;
 }
 ```
 
@@ -89,7 +89,7 @@ fields).
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
 directly (``protobuf``'s Python runtime is slow for large repeated fields). A ``PlotSample`` is
-written with every field present, so each one is the same 67 bytes and a whole batch of them is
+written with every field present, so each one is the same 43 bytes and a whole batch of them is
 one numpy structured array (formatting floats as JSON text cost more than the calibration).
 The decoder follows protobuf semantics (unknown fields and known fields with an unexpected
 wire type are skipped, packed and unpacked repeated encodings are both accepted, the last
@@ -212,14 +212,14 @@ def _add_field(msg: descriptor_pb2.DescriptorProto, name: str, number: int, ftyp
 
 
 _PLOT_FIELDS = (("t_us", 1, descriptor_pb2.FieldDescriptorProto.TYPE_SFIXED64),
-                ("x_g", 2, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
-                ("y_g", 3, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
-                ("z_g", 4, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
-                ("norm_g", 5, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
+                ("x_g", 2, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
+                ("y_g", 3, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
+                ("z_g", 4, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
+                ("norm_g", 5, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
                 ("quasi_static", 6, descriptor_pb2.FieldDescriptorProto.TYPE_BOOL),
-                ("detector_g", 7, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
+                ("detector_g", 7, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
                 ("status", 8, descriptor_pb2.FieldDescriptorProto.TYPE_ENUM),
-                ("sigma_mg", 9, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE))
+                ("sigma_mg", 9, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT))
 
 
 def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
@@ -973,18 +973,21 @@ def encode_event(kind: str, *, t_us: int | None = None, sensor_id: str | None = 
 
 # One PlotSample with every field present: a tag byte before each value (field << 3 | wire
 # type), so numpy lays out a batch of them in one structured array.
+# The values are float32 (fields of type float): a plot needs no more, float32 keeps a value
+# below 16 g within 1 micro-g, and a message of doubles cost 24 bytes more (about 2.4 bytes
+# a logged sample at 100 Hz, plot_hz 10). Older recordings' doubles decode as well.
 PLOT_DTYPE = np.dtype([
-    ("k_t", "u1"), ("t_us", "<i8"), ("k_x", "u1"), ("x_g", "<f8"), ("k_y", "u1"),
-    ("y_g", "<f8"), ("k_z", "u1"), ("z_g", "<f8"), ("k_n", "u1"), ("norm_g", "<f8"),
-    ("k_q", "u1"), ("quasi_static", "u1"), ("k_d", "u1"), ("detector_g", "<f8"),
-    ("k_s", "u1"), ("status", "u1"), ("k_e", "u1"), ("sigma_mg", "<f8")])
-_PLOT_TAGS = {"k_t": 1 << 3 | _WT_I64, "k_x": 2 << 3 | _WT_I64, "k_y": 3 << 3 | _WT_I64,
-              "k_z": 4 << 3 | _WT_I64, "k_n": 5 << 3 | _WT_I64, "k_q": 6 << 3 | _WT_VARINT,
-              "k_d": 7 << 3 | _WT_I64, "k_s": 8 << 3 | _WT_VARINT, "k_e": 9 << 3 | _WT_I64}
+    ("k_t", "u1"), ("t_us", "<i8"), ("k_x", "u1"), ("x_g", "<f4"), ("k_y", "u1"),
+    ("y_g", "<f4"), ("k_z", "u1"), ("z_g", "<f4"), ("k_n", "u1"), ("norm_g", "<f4"),
+    ("k_q", "u1"), ("quasi_static", "u1"), ("k_d", "u1"), ("detector_g", "<f4"),
+    ("k_s", "u1"), ("status", "u1"), ("k_e", "u1"), ("sigma_mg", "<f4")])
+_PLOT_TAGS = {"k_t": 1 << 3 | _WT_I64, "k_x": 2 << 3 | _WT_I32, "k_y": 3 << 3 | _WT_I32,
+              "k_z": 4 << 3 | _WT_I32, "k_n": 5 << 3 | _WT_I32, "k_q": 6 << 3 | _WT_VARINT,
+              "k_d": 7 << 3 | _WT_I32, "k_s": 8 << 3 | _WT_VARINT, "k_e": 9 << 3 | _WT_I32}
 _PLOT_FIELD_NUMBERS = {name: number for name, number, _ in _PLOT_FIELDS}
 
 
-_PLOT_STRUCT = struct.Struct("<BqBdBdBdBdBBBdBBBd")  # one PlotSample, the layout of PLOT_DTYPE
+_PLOT_STRUCT = struct.Struct("<BqBfBfBfBfBBBfBBBf")  # one PlotSample, the layout of PLOT_DTYPE
 _PLOT_TAG_VALUES = tuple(_PLOT_TAGS.values())
 
 
@@ -997,8 +1000,9 @@ def _selection(indices: np.ndarray | Iterable[int] | slice | None) -> slice | np
 def plot_payloads(batch: CalibratedBatch,
                   indices: np.ndarray | Iterable[int] | slice | None = None) -> np.ndarray:
     """The selected samples (all when ``indices`` is None) as ``recal.PlotSample`` messages:
-    a structured array of PLOT_DTYPE, one 56-byte message per row (``.tobytes()`` of a row is
-    the message). Values are exact (doubles), NaN and inf included."""
+    a structured array of PLOT_DTYPE, one 43-byte message per row (``.tobytes()`` of a row is
+    the message). Values are the float32 nearest each double (the norm from the doubles), NaN
+    and inf included."""
     sel = _selection(indices)
     a_g = batch.a_g[sel]
     out = np.empty(len(a_g), PLOT_DTYPE)
@@ -1050,6 +1054,22 @@ def decode_plot(data: bytes | bytearray | memoryview) -> dict[str, Any]:
             values = _small_varints(buf, fields.get(number), name)
             out[name] = int(values[-1]) if len(values) else 0
             continue
-        values = _fixed64(buf, fields.get(number), "<i8" if name == "t_us" else "<f8", name)
-        out[name] = values[-1].item() if len(values) else (0 if name == "t_us" else 0.0)
+        if name == "t_us":
+            values = _fixed64(buf, fields.get(number), "<i8", name)
+            out[name] = values[-1].item() if len(values) else 0
+            continue
+        out[name] = _last_real(buf, fields.get(number), name)
     return out
+
+
+def _last_real(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> float:
+    """A singular float or double field (the last occurrence wins, as in protobuf): float32
+    since the plot's values are floats, float64 in older recordings; 0.0 when absent; another
+    wire type is an unknown field to protobuf, so it is skipped."""
+    value = 0.0
+    for wire_type, start, _end in occurrences or ():
+        if wire_type == _WT_I32:
+            value = float(np.frombuffer(buf, "<f4", 1, start)[0])
+        elif wire_type == _WT_I64:
+            value = float(np.frombuffer(buf, "<f8", 1, start)[0])
+    return value
