@@ -26,7 +26,9 @@ write_plot, the log part of what the daemon does per sample, medians of --runs r
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
+import struct
 import sys
 import tempfile
 import time
@@ -90,6 +92,29 @@ class Clock:
         return self.now_s
 
 
+# The plot message as it was before its values became float32: every value a double.
+_PLOT_DOUBLES = struct.Struct("<BqBdBdBdBdBBBdBBBd")
+
+
+def _write_plot_doubles(w: RecordingWriter, batch: CalibratedBatch, log_ns: int, every_n: int,
+                        phase: int) -> int:
+    """The first form's plot: every ``every_n``-th sample as a message of doubles (the same
+    decimation, log and publish times as `RecordingWriter.write_plot`); returns the phase."""
+    first = (-phase) % every_n
+    last_us = int(batch.t_us[-1])
+    for i in range(first, len(batch), every_n):
+        x, y, z = (float(v) for v in batch.a_g[i])
+        t_us = int(batch.t_us[i])
+        data = _PLOT_DOUBLES.pack(1 << 3 | 1, t_us, 2 << 3 | 1, x, 3 << 3 | 1, y, 4 << 3 | 1, z,
+                                  5 << 3 | 1, math.sqrt(x * x + y * y + z * z), 6 << 3,
+                                  int(batch.quasi_static[i]), 7 << 3 | 1,
+                                  float(batch.detector_g[i]), 8 << 3, int(batch.status[i]),
+                                  9 << 3 | 1, float(batch.sigma_mg[i]))
+        w.write_encoded(f"/{SENSOR}/plot", data, max(log_ns - (last_us - t_us) * 1000, 0),
+                        t_us * 1000, schema=messages.PLOT_SCHEMA)
+    return (phase + len(batch)) % every_n
+
+
 def write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
           topics: frozenset[str] | None = None) -> float:
     """Write the captured calls (only ``topics``' when given); returns seconds spent in the
@@ -98,6 +123,7 @@ def write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
     w = RecordingWriter(path, clock=clock, background_flush=False, fsync=False,
                         overwrite=True, log_batch_samples=1 if first_form else 8192)
     spent = 0.0
+    plot_phase = 0
     t_first = calls[0][3]
     for kind, suffix, payload, log_ns in calls:
         if topics is not None and suffix not in topics:
@@ -118,7 +144,10 @@ def write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
             else:
                 w.write_calibrated(SENSOR, payload, log_ns, suffix)
         elif kind == "plot":
-            w.write_plot(SENSOR, payload[0], log_ns, payload[1])
+            if first_form:
+                plot_phase = _write_plot_doubles(w, payload[0], log_ns, payload[1], plot_phase)
+            else:
+                w.write_plot(SENSOR, payload[0], log_ns, payload[1])
         else:
             w.write_json(f"/{SENSOR}/{suffix}", payload, log_ns)
         if kind != "json":
