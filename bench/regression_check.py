@@ -10,13 +10,18 @@ module layout left every output as it was (docs/design.md). A tree is a checkout
 input files. The command line (``python -m recal ...``) is used wherever it can be, so that
 modules may move; the core case tries the new names first, then the old ones.
 
-Compared exactly (floats bit for bit): every MCAP message by topic, log and publish time, schema
-and payload bytes (the file's bytes may differ only in its metadata records, which are named);
-JSON key by key (timings "seconds" and "samples_per_s" left out; when not identical the largest
-relative difference is shown); CSV and stdout byte for byte; arrays bit for bit (else the
-largest absolute difference). Exit status 0 only if every case is identical, or within the
-tolerance `--tolerate NAME=ABS` grants the arrays and JSON numbers called NAME where a change
-is known to move their last bits (say so with the result):
+The log's batch topics (RawBatch, CalibratedBatch) are compared as their decoded samples
+joined per topic (the message boundaries and the bytes are the log format's), integers and raw
+readings exactly, calibrated values and the detector within half a micro-g and sigma within
+half a micro-g in mg (the compact form's fixed point), the protobuf schemas by name. A plot
+message's values (float32 in the log, double before) are compared rounded to float32.
+Compared exactly otherwise (floats bit for bit): every other MCAP message by topic, log and
+publish time, schema and payload bytes (the file's bytes may differ only in its metadata
+records, which are named); JSON key by key (timings "seconds" and "samples_per_s" left out;
+when not identical the largest relative difference is shown); CSV and stdout byte for byte;
+arrays bit for bit (else the largest absolute difference). Exit status 0 only if every case is
+identical, or within the tolerance `--tolerate NAME=ABS` grants the arrays and JSON numbers
+called NAME where a change is known to move their last bits (say so with the result):
 
     python bench/regression_check.py --tolerate detector_g=1e-12 --tolerate zi_hp=1e-12 \
         --tolerate zi_lp=1e-12     # a new filter design: the detector's output may move
@@ -24,12 +29,12 @@ is known to move their last bits (say so with the result):
 
 Cases (group names for --only): recordings: `recal replay` of recordings/wearer-10min.mcap and
 wearer-temp-30min.mcap; sim: `recal simulate` (--sim-hours at 50 Hz) per sensor of --sensors,
-each tree's file compared, then both replay the new tree's; core: `Pipeline.step` over a
---core-hours simulation in batches of --batch, and --group batches per call (`step_many`, or
-the old `step(marks=)`); discover: `recal discover --json --write-model` and `recal hindsight`
-(MCAP, JSON, CSV) of wearer-temp-30min.mcap; static: `recal static` of a phone table of the
-measured data (unknown and known orientations); real: the measured Xsens and GENEActiv arrays
-as CSV through `recal import`, then `recal discover` of the import.
+each tree's file compared, then both replay the old tree's (which both can read); core:
+`Pipeline.step` over a --core-hours simulation in batches of --batch, and --group batches per
+call (`step_many`, or the old `step(marks=)`); discover: `recal discover --json --write-model`
+and `recal hindsight` (MCAP, JSON, CSV) of wearer-temp-30min.mcap; static: `recal static` of a
+phone table of the measured data (unknown and known orientations); real: the measured Xsens and
+GENEActiv arrays as CSV through `recal import`, then `recal discover` of the import.
 """
 
 from __future__ import annotations
@@ -289,11 +294,69 @@ def read_mcap(path: Path) -> McapContent:
     return McapContent(library, meta, msgs, channels)
 
 
+#: The log's batch topics are compared as decoded samples, not as messages: the compact form
+#: joins a flush interval's batches into one message and keeps calibrated values, the detector
+#: and sigma to the micro-g (rounded: half a micro-g at most). Everything else stays exact.
+BATCH_SCHEMAS = ("recal.RawBatch", "recal.CalibratedBatch")
+FORMAT_TOL = {"a_g": 0.5e-6 + 1e-12, "detector_g": 0.5e-6 + 1e-12,
+              "sigma_mg": 0.5e-3 + 1e-12}  # sigma is in mg
+BATCH_COLUMNS = ("t_us", "v", "aux", "a_g", "quasi_static", "detector_g", "status",
+                 "sigma_mg", "t_dev")
+
+
+def _joined_batches(content: McapContent, topic: str) -> dict[str, np.ndarray]:
+    """A batch topic's samples, decoded (by the new tree's decoder, which reads both forms)
+    and joined across messages."""
+    from recal.io import messages
+    batches = []
+    for m in content.messages:
+        if m[0] == topic:
+            decode = messages.decode_calibrated if "alibrated" in m[3] else messages.decode_raw
+            batches.append(decode(m[6])[1])
+    cols: dict[str, np.ndarray] = {}
+    for name in BATCH_COLUMNS:
+        parts = [getattr(b, name) for b in batches if getattr(b, name, None) is not None]
+        if parts and len(parts) == len(batches):
+            cols[name] = np.concatenate(parts)
+    return cols
+
+
+def batch_topics_verdict(ca: McapContent, cb: McapContent) -> str:
+    """The batch topics sample by sample: exact, or within the log format's fixed point."""
+    topics = sorted({m[0] for m in ca.messages + cb.messages if m[3] in BATCH_SCHEMAS})
+    notes = []
+    for topic in topics:
+        xa, xb = _joined_batches(ca, topic), _joined_batches(cb, topic)
+        if sorted(xa) != sorted(xb):
+            return f"{topic}: columns {sorted(xa)} vs {sorted(xb)}"
+        for name in xa:
+            if xa[name].shape != xb[name].shape:
+                return f"{topic} {name}: shape {xa[name].shape} vs {xb[name].shape}"
+            if np.array_equal(xa[name], xb[name], equal_nan=xa[name].dtype.kind == "f"):
+                continue
+            tol = FORMAT_TOL.get(name)
+            diff = float(np.nanmax(np.abs(xa[name].astype(float) - xb[name].astype(float))))
+            same_nan = xa[name].dtype.kind != "f" or np.array_equal(np.isnan(xa[name]),
+                                                                   np.isnan(xb[name]))
+            if tol is None or not same_nan or not diff <= tol:
+                return f"{topic} {name}: max |diff| {diff:.3g}"
+            notes.append(f"{topic} {name} {diff:.2g}")
+    if notes:
+        return f"{WITHIN} (the log's micro-g): " + ", ".join(notes)
+    return "identical"
+
+
 def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
     """(verdict on the messages, a note on the file's bytes and metadata)."""
     if a.read_bytes() == b.read_bytes():
         return "identical", "file bytes identical"
     ca, cb = read_mcap(a), read_mcap(b)
+    batch_verdict = batch_topics_verdict(ca, cb)
+    # the other messages one by one, exactly, as before
+    ca = McapContent(ca.library, ca.metadata,
+                     [m for m in ca.messages if m[3] not in BATCH_SCHEMAS], ca.channels)
+    cb = McapContent(cb.library, cb.metadata,
+                     [m for m in cb.messages if m[3] not in BATCH_SCHEMAS], cb.channels)
     verdict, within, n_within = "identical", "", 0
     if len(ca.messages) != len(cb.messages):
         verdict = f"{len(ca.messages)} vs {len(cb.messages)} messages"
@@ -306,9 +369,11 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
             within, n_within = within or what, n_within + 1
     if verdict == "identical" and within:
         verdict = f"{WITHIN}: {n_within} messages, first {within}"
-    if (verdict == "identical" or verdict.startswith(WITHIN)) and ca.channels != cb.channels:
+    if (verdict == "identical" or verdict.startswith(WITHIN)) and batch_verdict != "identical":
+        verdict = batch_verdict
+    if (verdict == "identical" or verdict.startswith(WITHIN)) and _channels(ca) != _channels(cb):
         topic = next(t for t in {**ca.channels, **cb.channels}
-                     if ca.channels.get(t) != cb.channels.get(t))
+                     if _channels(ca).get(t) != _channels(cb).get(t))
         verdict = f"channel or schema of {topic} differs"
     meta = [f"header library {ca.library!r} vs {cb.library!r}"] if ca.library != cb.library else []
     for name in sorted(set(ca.metadata) | set(cb.metadata)):
@@ -322,6 +387,13 @@ def mcap_verdict(a: Path, b: Path) -> tuple[str, str]:
                                                     for m in meta):
         verdict = "metadata differs: " + "; ".join(meta)
     return verdict, note
+
+
+def _channels(content: McapContent) -> dict[str, tuple]:
+    """The channels, with the protobuf schemas' bytes left out (the compact form added fields
+    to the batch messages; every schema is still checked by name and encoding)."""
+    return {t: c[:4] if len(c) > 4 and c[3] == "protobuf" else c
+            for t, c in content.channels.items()}
 
 
 def _message_diff(x: tuple, y: tuple) -> str:
@@ -345,6 +417,8 @@ def payload_diff(schema: str, a: bytes, b: bytes) -> str:
             pa, pb = messages.decode_plot(a), messages.decode_plot(b)
             v = first_verdict(array_verdict(k, np.atleast_1d(pa[k]), np.atleast_1d(pb[k]))
                               for k in pa)
+            if v != "identical" and _plot_float32_equal(pa, pb):
+                v = f"{WITHIN} (the plot's float32)"
             if v != "identical":
                 return f"payload {v}"
         decode = (messages.decode_calibrated if "alibrated" in schema else messages.decode_raw)
@@ -361,6 +435,15 @@ def payload_diff(schema: str, a: bytes, b: bytes) -> str:
     k = next((i for i, (u, v) in enumerate(zip(a, b, strict=False)) if u != v), min(len(a),
                                                                                        len(b)))
     return f"payload bytes differ ({len(a)} vs {len(b)} bytes, first at byte {k})"
+
+
+def _plot_float32_equal(pa: dict, pb: dict) -> bool:
+    """Two plot samples the same once their values are rounded to float32 (the plot's fields
+    are floats; older recordings have doubles), everything else exactly."""
+    def f32(value: float) -> np.ndarray:
+        return np.atleast_1d(np.float32(value))
+    return all(np.array_equal(f32(pa[k]), f32(pb[k]), equal_nan=True)
+               if isinstance(pa[k], float) else pa[k] == pb[k] for k in pa)
 
 
 def mask_stdout(text: str) -> str:
@@ -438,14 +521,16 @@ def case_replay(ctx: Context, case: str, src: Path) -> list[Row]:
 
 
 def case_simulated(ctx: Context, sensor: str) -> list[Row]:
-    """`recal simulate` with both trees (compared), then both replay the same (new) file."""
+    """`recal simulate` with both trees (compared), then both replay the same (old) file."""
     case = f"sim {sensor}"
     argv = ["simulate", "--out", "sim.mcap", "--hours", str(ctx.args.sim_hours), "--rate", "50",
             "--seed", "11", *SENSORS[sensor]]
     od, nd, so, sn = both(ctx, case, argv, "recal simulate")
     rows = compare_files(case, od, nd, ["sim.mcap", "sim.truth.npz"])
     rows.append(Row(case, "simulate stdout", text_verdict(so, sn)))
-    return rows + case_replay(ctx, f"replay sim {sensor}", nd / "sim.mcap")
+    # both replay the old tree's file: the new tree reads the older log format, not the
+    # other way round
+    return rows + case_replay(ctx, f"replay sim {sensor}", od / "sim.mcap")
 
 
 def case_core(ctx: Context, variant: str) -> list[Row]:

@@ -59,11 +59,14 @@ SENSOR = "s1"
 
 
 def write_recording(path: Path, raw: RawBatch, samples_per_message: int) -> None:
-    """The samples as `recal simulate` logs them, in messages of the given size."""
+    """The samples in float64 messages of the given size, one per batch (the first log form,
+    which every version reads: the same input for an old tree's run of this bench)."""
     with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
         for i in range(0, len(raw), samples_per_message):
             b = raw[i:i + samples_per_message]
-            w.write_raw(SENSOR, b, 1_700_000_000_000_000_000 + int(b.t_us[0]) * 1000)
+            w.write_encoded(f"/{SENSOR}/raw", messages.encode_raw(SENSOR, b),
+                            1_700_000_000_000_000_000 + int(b.t_us[0]) * 1000,
+                            int(b.t_us[0]) * 1000, schema=messages.RAW_SCHEMA)
 
 
 def read_mcap(path: Path) -> int:

@@ -4,6 +4,8 @@ bit of a float, a -0.0 for a 0.0 are differences; metadata naming a version is n
 from __future__ import annotations
 
 import json
+import math
+import struct
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,6 +14,9 @@ import pytest
 from mcap.writer import Writer
 
 from bench_modules import load_bench
+from recal.io import messages
+from recal.io.recording_writer import RecordingWriter
+from recal.samples import CalibratedBatch, RawBatch
 
 rc = load_bench("regression_check")
 
@@ -163,9 +168,68 @@ def test_plot_payloads_compare_field_by_field(tolerate_x: None) -> None:
                                 status=np.array([3], np.uint8), sigma_mg=np.array([0.5]))
         return messages.encode_plot(batch)[0]
 
-    rc.TOLERATE["detector_g"] = 1e-12
+    rc.TOLERATE["detector_g"] = 1e-8  # the plot's values are float32: steps of ~1e-9 at 0.01
     name = messages.PLOT_MESSAGE_NAME
-    assert rc.payload_diff(name, plot(0.01, 0.1), plot(0.01 + 1e-15, 0.1)).startswith(
+    assert rc.payload_diff(name, plot(0.01, 0.1), plot(0.01 + 5e-9, 0.1)).startswith(
         f"payload {rc.WITHIN}: detector_g")
-    assert rc.payload_diff(name, plot(0.01, 0.1), plot(0.01 + 1e-15, 0.1 + 1e-15)).startswith(
+    assert rc.payload_diff(name, plot(0.01, 0.1), plot(0.01 + 5e-9, 0.1 + 1e-7)).startswith(
         "payload x_g: 1 of 1 rows differ")
+
+
+def test_plot_of_doubles_compares_to_float32_plot() -> None:
+    """An older log's plot sample (doubles) against the same sample as the plot logs it now
+    (float32): within the format's rounding, and a real difference is still one."""
+    from recal.io import messages
+
+    def doubles(x_g: float) -> bytes:  # the older PlotSample: every value a double
+        norm = math.sqrt(x_g * x_g + 1.0)
+        return struct.pack("<BqBdBdBdBdBBBdBBBd", 1 << 3 | 1, 5, 2 << 3 | 1, x_g, 3 << 3 | 1,
+                           0.0, 4 << 3 | 1, 1.0, 5 << 3 | 1, norm, 6 << 3, 1, 7 << 3 | 1, 0.01,
+                           8 << 3, 3, 9 << 3 | 1, 0.5)
+
+    batch = CalibratedBatch(t_us=np.array([5], np.int64), a_g=np.array([[0.1, 0.0, 1.0]]),
+                            quasi_static=np.array([True]), detector_g=np.array([0.01]),
+                            status=np.array([3], np.uint8), sigma_mg=np.array([0.5]))
+    new = messages.encode_plot(batch)[0]
+    old = doubles(0.1)
+    assert len(new) < len(old) and messages.decode_plot(old)["x_g"] == 0.1
+    assert abs(messages.decode_plot(new)["x_g"] - 0.1) < 1e-8
+    name = messages.PLOT_MESSAGE_NAME
+    assert rc.payload_diff(name, old, new) == f"payload {rc.WITHIN} (the plot's float32)"
+    assert rc.payload_diff(name, doubles(0.1 + 1e-6), new).startswith("payload x_g")
+
+
+def _batches_mcap(path: Path, cal: CalibratedBatch, raw: RawBatch, joined: bool) -> Path:
+    """The first form (a float64 message per batch of 10) or the compact, joined one."""
+    with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True,
+                         log_batch_samples=8192 if joined else 1) as w:
+        for i in range(0, len(cal), 10):
+            log_ns = 10**18 + i
+            if joined:
+                w.log_raw("s", raw[i:i + 10], log_ns)
+                w.log_calibrated("s", cal[i:i + 10], log_ns)
+            else:
+                w.write_encoded("/s/raw", messages.encode_raw("s", raw[i:i + 10]), log_ns)
+                w.write_encoded("/s/calibrated", messages.encode_calibrated("s", cal[i:i + 10]),
+                                log_ns, schema=messages.CALIBRATED_SCHEMA)
+    return path
+
+
+def test_batch_topics_compare_as_samples_within_the_log_micro_g_and_no_further(
+        tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    n = 100
+    t = np.arange(n, dtype=np.int64) * 10_000
+    cal = CalibratedBatch(t, rng.normal(size=(n, 3)), rng.random(n) < 0.5, rng.random(n) * 0.1,
+                          np.full(n, 3, np.uint8), rng.random(n) * 5.0, t)
+    raw = RawBatch(t, rng.integers(-900, 900, (n, 3)).astype(float), np.zeros((n, 0)))
+    first = _batches_mcap(tmp_path / "first.mcap", cal, raw, joined=False)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "c.mcap", cal, raw, True))
+    assert verdict.startswith(rc.WITHIN) and "/s/calibrated a_g" in verdict
+    off = CalibratedBatch(t, cal.a_g + np.where(np.arange(n) == 40, 2e-6, 0.0)[:, None],
+                          cal.quasi_static, cal.detector_g, cal.status, cal.sigma_mg, t)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "d.mcap", off, raw, True))
+    assert verdict.startswith("/s/calibrated a_g: max |diff|")
+    raw2 = RawBatch(t, raw.v + (np.arange(n) == 7)[:, None], raw.aux)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "e.mcap", cal, raw2, True))
+    assert verdict.startswith("/s/raw v: max |diff| 1")

@@ -142,7 +142,7 @@ def test_cli_replay_summary_json_and_overwrite(tmp_path: Path, capsys: Any) -> N
 def test_replay_with_config_prior_model_file_and_rotated_parts(tmp_path: Path,
                                                              capsys: Any) -> None:
     s = sim(3.0, seed=8)
-    _raw_only(tmp_path / "rot.mcap", s.raw, rotate_bytes=30_000, chunk_size=8192)
+    _raw_only(tmp_path / "rot.mcap", s.raw, rotate_bytes=8_000, chunk_size=4096)
     parts = rec.recording_parts(tmp_path / "rot.mcap")
     assert len(parts) >= 3
     cfg = tmp_path / "replay.toml"
@@ -165,7 +165,8 @@ def test_replay_with_config_prior_model_file_and_rotated_parts(tmp_path: Path,
 
 def test_replay_of_a_truncated_file_needs_repair(tmp_path: Path) -> None:
     s = sim(1.0, seed=2)
-    _raw_only(tmp_path / "full.mcap", s.raw, chunk_size=4096)
+    # one message per batch (not joined), so that half the file holds some of them
+    _raw_only(tmp_path / "full.mcap", s.raw, chunk_size=4096, log_batch_samples=1)
     data = (tmp_path / "full.mcap").read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[:len(data) // 2])
     with pytest.raises(RecordingError):

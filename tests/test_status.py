@@ -232,7 +232,9 @@ def test_old_recordings_without_statuses_still_read_and_export(tmp_path: Path,
             old_bytes = old_bytes.SerializeToString()
             batch = CalibratedBatch(t, a, q, d)  # no status: what an old node published
             assert messages.encode_calibrated(SID, batch) == old_bytes
-            w.write_calibrated(SID, batch, int(t[0]) * 1000)
+            # logged as an old writer logged it: those bytes, one message per batch
+            w.write_encoded(f"/{SID}/calibrated", old_bytes, int(t[0]) * 1000,
+                            schema=messages.CALIBRATED_SCHEMA)
             n += len(t)
     cal = [b for _, b, _ in rec.iter_calibrated(src, SID)]
     assert len(cal) == 3 and all(not b.recorded and np.isnan(b.sigma_mg).all() for b in cal)

@@ -38,10 +38,6 @@ from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
 __all__ = ["Corrected", "Source", "calibrate_file", "open_source", "summary_lines"]
 
-#: Samples per raw and calibrated message written from a CSV (as `recal import` writes them).
-MESSAGE_SAMPLES = 1000
-
-
 @dataclass(frozen=True)
 class Source:
     """Where the samples come from: ``batches()`` reads the input once more from its start;
@@ -193,7 +189,6 @@ def _write_csv(src: Source, corrected: Corrected, out: str | Path,
 
 def _write_mcap(src: Source, corrected: Corrected, out: str | Path, overwrite: bool,
                 progress: Callable[[int], None] | None) -> int:
-    from recal.io import recording as rec
     from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 
     fit = corrected.fit
@@ -205,28 +200,23 @@ def _write_mcap(src: Source, corrected: Corrected, out: str | Path, overwrite: b
     try:
         if src.logged is not None:
             for group in batch_groups(src.logged()):
-                # corrected together (fewer numpy calls), written message by message
-                cal = corrected(RawBatch.concat([b for b, _ in group]))
-                i = 0
-                for b, m in group:
-                    if progress is not None:
-                        progress(len(b))
-                    writer.write_encoded(m.topic, m.data, m.log_time_ns, m.publish_time_ns,
-                                         schema=rec.messages.RAW_SCHEMA)  # copied as logged
-                    writer.write_calibrated(src.sensor_id, cal[i:i + len(b)], m.log_time_ns)
-                    i += len(b)
-                    last_ns = max(last_ns, m.log_time_ns)
-                samples += i
-        else:  # a CSV: messages of MESSAGE_SAMPLES, each logged at its first sample's time
+                # corrected and logged together: the writer joins a topic's batches into
+                # messages anyway, each logged at its first batch's time
+                raw = RawBatch.concat([b for b, _ in group])
+                if progress is not None:
+                    progress(len(raw))
+                log_ns = group[0][1].log_time_ns
+                writer.log_raw(src.sensor_id, raw, log_ns)
+                writer.log_calibrated(src.sensor_id, corrected(raw), log_ns)
+                last_ns = max(last_ns, *(m.log_time_ns for _, m in group))
+                samples += len(raw)
+        else:  # a CSV: logged at each chunk's first sample's time
             for chunk in rebatch(_counted(src.batches(), progress)):
-                cal = corrected(chunk)
-                for i in range(0, len(chunk), MESSAGE_SAMPLES):
-                    b = chunk[i:i + MESSAGE_SAMPLES]
-                    t_ns = int(b.t_us[0]) * 1000
-                    writer.write_raw(src.sensor_id, b, t_ns)
-                    writer.write_calibrated(src.sensor_id, cal[i:i + MESSAGE_SAMPLES], t_ns)
-                    samples += len(b)
-                    last_ns = max(last_ns, t_ns)
+                t_ns = int(chunk.t_us[0]) * 1000
+                writer.log_raw(src.sensor_id, chunk, t_ns)
+                writer.log_calibrated(src.sensor_id, corrected(chunk), t_ns)
+                samples += len(chunk)
+                last_ns = max(last_ns, t_ns)
         writer.write_calibration(src.sensor_id, {"hindsight": True, **fit_summary(fit)},
                                  last_ns)
     finally:

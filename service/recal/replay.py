@@ -5,11 +5,13 @@ included), runs each sensor's :class:`recal.node.CalibrationNode` (the code path
 runs live) and writes raw + calibrated + body + calibration + plot + events + setup to a new
 recording, with the original log times.
 
-Speed: the raw messages are copied as logged (not encoded again); consecutive messages of a
-sensor go through the pipeline together (``JOIN_SAMPLES`` at a time, via
-``CalibrationNode.process_many``), which changes nothing in the output, still one of each per
-message (the pipeline is batch-size invariant and reports its state at each message's end);
-the output is written in 1 MiB chunks compressed on a second thread.
+Speed: consecutive arrivals of a sensor (the raw messages, or the arrivals a joined message
+keeps) go through the pipeline together (``JOIN_SAMPLES`` at a time, via
+``CalibrationNode.process_many``), which changes nothing in the output, still as of each
+arrival's end (the pipeline is batch-size invariant and reports its state at each arrival's
+end); the raw samples are logged again in the compact form and every batch topic is joined
+into messages of up to 8192 samples; the output is written in 1 MiB chunks compressed on a
+second thread.
 
 How each sensor's pipeline starts, first match wins:
 1. ``model`` or a ``config`` whose sensor entry has a prior: a fresh pipeline from them;
@@ -27,6 +29,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from recal.config import (
     AlignmentConfig,
@@ -74,6 +78,22 @@ class _SensorRun:
         if self.waiting:
             self.node.process_many(self.waiting)
         self.waiting, self.waiting_samples = [], 0
+
+
+def _arrivals(batch: RawBatch, logged: rec.LoggedMessage) -> list[tuple[RawBatch, int]]:
+    """The batches as they arrived live, with their log times: a joined message's arrivals
+    (the live node stepped once per arrival, and the calibration states fall at step ends),
+    or the message itself."""
+    found = rec.messages.raw_arrivals(logged.data)
+    if found is None:
+        return [(batch, logged.log_time_ns)]
+    sizes, log_us = found
+    ends = np.cumsum(sizes)
+    starts = ends - sizes
+    log_ns = (logged.log_time_ns + 1000 * log_us if log_us is not None
+              else np.full(len(sizes), logged.log_time_ns))
+    return [(batch[a:b], t) for a, b, t in zip(starts.tolist(), ends.tolist(),
+                                               log_ns.tolist(), strict=True)]
 
 
 def _raw_message_count(paths: list[Path]) -> int | None:
@@ -178,14 +198,14 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
             if run is None:
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
                 run = runs[sid] = _SensorRun(node, extra={"start": start})
-            log_ns = logged.log_time_ns
-            # the raw topic is copied as logged (same bytes, times), not encoded again
-            writer.write_encoded(logged.topic, logged.data, log_ns, logged.publish_time_ns,
-                                 schema=rec.messages.RAW_SCHEMA)
-            run.add(batch, log_ns)  # several messages per pipeline step, output per message
+            for piece, log_ns in _arrivals(batch, logged):
+                # the raw topic is logged again in the compact form (the same values; an
+                # older recording's float64 batches get joined and shrunk like a live log's)
+                writer.log_raw(sid, piece, log_ns)
+                run.add(piece, log_ns)  # several per pipeline step, output per arrival
+                run.batches += 1
+                run.last_log_ns = log_ns
             run.samples += len(batch)
-            run.batches += 1
-            run.last_log_ns = log_ns
         for run in runs.values():
             run.drain()
             run.node.flush(run.last_log_ns)

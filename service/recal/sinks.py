@@ -61,6 +61,11 @@ class Writer(Protocol):
     def write_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                          topic_suffix: str = "calibrated") -> bytes: ...
 
+    def log_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None: ...
+
+    def log_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                       topic_suffix: str = "calibrated") -> None: ...
+
     def write_plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    every_n: int = 10) -> int: ...
 
@@ -125,11 +130,11 @@ class RecordingSink:
         self.writer = writer
 
     def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        self.writer.write_raw(sensor_id, batch, log_time_ns)
+        self.writer.log_raw(sensor_id, batch, log_time_ns)  # (no bus: no per-batch encoding)
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
-        self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix)
+        self.writer.log_calibrated(sensor_id, batch, log_time_ns, suffix)
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
              every_n: int) -> None:

@@ -1,4 +1,5 @@
-"""Codecs shared by the bus and the log: the same bytes go on Zenoh and into MCAP.
+"""Codecs of the bus and the log: the bus carries each batch in the float64 fields, the log
+joins batches into compact messages of the same protobuf types.
 
 Bulk sample batches are protobuf, so Foxglove decodes them from the schema we store in the
 log (a serialized ``FileDescriptorSet``, schema encoding ``protobuf``):
@@ -14,7 +15,15 @@ message RawBatch {
   repeated double z = 5 [packed = true];
   repeated string aux_names = 6;                // K auxiliary channel names
   repeated double aux = 7 [packed = true];      // N x K, row-major
-}
+  // the compact form (the log's), instead of fields 2-5:
+  sfixed64 t0_us = 11;                          // first stamp
+  repeated sint64 dt_us = 12 [packed = true];   // N - 1 differences
+  repeated sint64 x_counts_delta = 13 [packed = true];  // integer readings: x[i] - x[i-1]
+  repeated sint64 y_counts_delta = 14 [packed = true];  // (x[-1] = 0); readings that are not
+  repeated sint64 z_counts_delta = 15 [packed = true];  // integers stay in fields 3-5
+  repeated sint64 arrival_samples = 20 [packed = true];   // a joined batch's arrivals:
+  repeated sint64 arrival_log_dt_us = 21 [packed = true]; // samples, log time deltas (us
+}                                               // after the message's log time, then apart)
 message CalibratedBatch {
   string sensor_id = 1;
   repeated sfixed64 t_us = 2 [packed = true];
@@ -26,6 +35,16 @@ message CalibratedBatch {
   repeated Status status = 8 [packed = true];   // per sample; absent in older recordings
   repeated double sigma_mg = 9 [packed = true]; // predicted 1-sigma error of the vector, mg
   repeated sfixed64 t_dev = 10 [packed = true]; // the device's own stamp, as the raw batch had
+  // the compact form (the log's), instead of fields 2-5, 7, 9, 10:
+  sfixed64 t0_us = 11;
+  repeated sint64 dt_us = 12 [packed = true];
+  repeated sint64 x_ug_delta = 13 [packed = true];        // micro-g, differences
+  repeated sint64 y_ug_delta = 14 [packed = true];
+  repeated sint64 z_ug_delta = 15 [packed = true];
+  repeated sint64 detector_ug_delta = 16 [packed = true];
+  repeated sint64 sigma_ug_delta = 17 [packed = true];
+  sfixed64 t_dev0 = 18;
+  repeated sint64 dt_dev = 19 [packed = true];
 }
 enum Status {                                   // recal.core.status.Status
   STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
@@ -37,14 +56,14 @@ enum Status {                                   // recal.core.status.Status
 }
 message PlotSample {                            // one decimated sample, for a Plot panel
   sfixed64 t_us = 1;
-  double x_g = 2;
-  double y_g = 3;
-  double z_g = 4;
-  double norm_g = 5;
+  float x_g = 2;                                // float32 (double in older recordings)
+  float y_g = 3;
+  float z_g = 4;
+  float norm_g = 5;
   bool quasi_static = 6;
-  double detector_g = 7;
+  float detector_g = 7;
   Status status = 8;
-  double sigma_mg = 9;
+  float sigma_mg = 9;
 }
 ```
 
@@ -55,10 +74,22 @@ as its ``RawBatch`` carried it, in the device's unit, so raw and calibrated join
 reboot too) is written when the batch has it; a message without it (an older recording)
 decodes with ``t_dev`` None.
 
+The compact form (`encode_raw_compact`, `encode_calibrated_compact`) is what the recording
+writer logs: a column is written either in its float64 field or in its compact one. Times are
+the first stamp and the differences; raw readings that are all integers (ADC counts) and
+calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g) are
+differences from the sample before (the first from 0), all as zigzag varints, which a few
+numpy passes write and read (`zigzag_varints`, `unzigzag_varints`); a column with a value
+that is not finite or beyond +-2147 g stays in float64. Differences make most varints one or
+two bytes, and zstd, restarted at every one-second chunk, finds little else to take. The bus
+keeps the float64 form: one sample is cheapest to encode that way, and subscribers read
+either. The decoders accept both forms (and older recordings, which have only the float64
+fields).
+
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
 directly (``protobuf``'s Python runtime is slow for large repeated fields). A ``PlotSample`` is
-written with every field present, so each one is the same 67 bytes and a whole batch of them is
+written with every field present, so each one is the same 43 bytes and a whole batch of them is
 one numpy structured array (formatting floats as JSON text cost more than the calibration).
 The decoder follows protobuf semantics (unknown fields and known fields with an unexpected
 wire type are skipped, packed and unpacked repeated encodings are both accepted, the last
@@ -76,7 +107,7 @@ import math
 import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from google.protobuf import descriptor_pb2
@@ -98,13 +129,16 @@ __all__ = [
     "decode_plot",
     "decode_raw",
     "encode_calibrated",
+    "encode_calibrated_compact",
     "encode_event",
     "encode_json",
     "encode_plot",
     "encode_raw",
+    "encode_raw_compact",
     "file_descriptor_set",
     "plot_payloads",
     "protobuf_message_class",
+    "raw_arrivals",
 ]
 
 PROTO_PACKAGE = "recal"
@@ -129,6 +163,18 @@ _F_CAL_DETECTOR = 7
 _F_CAL_STATUS = 8
 _F_CAL_SIGMA = 9
 _F_CAL_T_DEV = 10
+# The compact form (the log's): first stamp + int32 deltas, values as int32 fixed point.
+_F_T0_US = 11
+_F_DT_US = 12
+_F_X_FIX, _F_Y_FIX, _F_Z_FIX = 13, 14, 15
+_F_CAL_DETECTOR_UG = 16
+_F_CAL_SIGMA_UG = 17
+_F_CAL_T_DEV0 = 18
+_F_CAL_DT_DEV = 19
+# A joined raw message keeps its arrivals: samples per arrival and each one's log time (us
+# after the message's), so a replay hands the node the batches the live node had.
+_F_RAW_ARRIVAL_SAMPLES = 20
+_F_RAW_ARRIVAL_LOG_US = 21
 STATUS_ENUM_NAME = "Status"
 
 
@@ -166,14 +212,14 @@ def _add_field(msg: descriptor_pb2.DescriptorProto, name: str, number: int, ftyp
 
 
 _PLOT_FIELDS = (("t_us", 1, descriptor_pb2.FieldDescriptorProto.TYPE_SFIXED64),
-                ("x_g", 2, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
-                ("y_g", 3, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
-                ("z_g", 4, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
-                ("norm_g", 5, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
+                ("x_g", 2, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
+                ("y_g", 3, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
+                ("z_g", 4, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
+                ("norm_g", 5, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
                 ("quasi_static", 6, descriptor_pb2.FieldDescriptorProto.TYPE_BOOL),
-                ("detector_g", 7, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE),
+                ("detector_g", 7, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT),
                 ("status", 8, descriptor_pb2.FieldDescriptorProto.TYPE_ENUM),
-                ("sigma_mg", 9, descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE))
+                ("sigma_mg", 9, descriptor_pb2.FieldDescriptorProto.TYPE_FLOAT))
 
 
 def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
@@ -191,6 +237,12 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
         _add_field(raw, name, number, fd.TYPE_DOUBLE, True)
     _add_field(raw, "aux_names", _F_RAW_AUX_NAMES, fd.TYPE_STRING, True)
     _add_field(raw, "aux", _F_RAW_AUX, fd.TYPE_DOUBLE, True)
+    _add_field(raw, "t0_us", _F_T0_US, fd.TYPE_SFIXED64, False)
+    for name, number in (("dt_us", _F_DT_US), ("x_counts_delta", _F_X_FIX),
+                         ("y_counts_delta", _F_Y_FIX), ("z_counts_delta", _F_Z_FIX),
+                         ("arrival_samples", _F_RAW_ARRIVAL_SAMPLES),
+                         ("arrival_log_dt_us", _F_RAW_ARRIVAL_LOG_US)):
+        _add_field(raw, name, number, fd.TYPE_SINT64, True)
     cal = f.message_type.add(name="CalibratedBatch")
     _add_field(cal, "sensor_id", _F_SENSOR, fd.TYPE_STRING, False)
     _add_field(cal, "t_us", _F_T_US, fd.TYPE_SFIXED64, True)
@@ -201,6 +253,14 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(cal, "status", _F_CAL_STATUS, fd.TYPE_ENUM, True)
     _add_field(cal, "sigma_mg", _F_CAL_SIGMA, fd.TYPE_DOUBLE, True)
     _add_field(cal, "t_dev", _F_CAL_T_DEV, fd.TYPE_SFIXED64, True)
+    _add_field(cal, "t0_us", _F_T0_US, fd.TYPE_SFIXED64, False)
+    _add_field(cal, "dt_us", _F_DT_US, fd.TYPE_SINT64, True)
+    for name, number in (("x_ug_delta", _F_X_FIX), ("y_ug_delta", _F_Y_FIX),
+                         ("z_ug_delta", _F_Z_FIX), ("detector_ug_delta", _F_CAL_DETECTOR_UG),
+                         ("sigma_ug_delta", _F_CAL_SIGMA_UG)):
+        _add_field(cal, name, number, fd.TYPE_SINT64, True)
+    _add_field(cal, "t_dev0", _F_CAL_T_DEV0, fd.TYPE_SFIXED64, False)
+    _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SINT64, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -318,21 +378,28 @@ def _axes_bytes(v: np.ndarray) -> list[memoryview]:
 
 
 def encode_raw(sensor_id: str, batch: RawBatch) -> bytes:
-    """Serialize a raw batch as a ``recal.RawBatch`` protobuf message."""
+    """Serialize a raw batch as a ``recal.RawBatch`` protobuf message (float64 form: the bus's,
+    cheapest to make for a sample or two)."""
     x, y, z = _axes_bytes(batch.v)
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_packed(_F_T_US, _le_bytes(batch.t_us, "<i8")),
              *_packed(_F_X, x), *_packed(_F_Y, y), *_packed(_F_Z, z)]
+    return b"".join(parts + _aux_fields(batch))
+
+
+def _aux_fields(batch: RawBatch) -> list[bytes | memoryview]:
+    parts: list[bytes | memoryview] = []
     for name in batch.aux_names:
         # An empty name is still a list element, so it must be written (not omitted).
         parts += _len_prefixed(_F_RAW_AUX_NAMES, name.encode())
     if batch.aux.size:  # (an empty packed field is omitted)
         parts += _packed(_F_RAW_AUX, _le_bytes(batch.aux, "<f8"))
-    return b"".join(parts)
+    return parts
 
 
 def encode_calibrated(sensor_id: str, batch: CalibratedBatch) -> bytes:
-    """Serialize a calibrated batch as a ``recal.CalibratedBatch`` protobuf message."""
+    """Serialize a calibrated batch as a ``recal.CalibratedBatch`` protobuf message (float64
+    form: the bus's)."""
     x, y, z = _axes_bytes(batch.a_g)
     # Packed bools are varints; 0 and 1 are single bytes, so uint8 is the wire form.
     quasi = _le_bytes(batch.quasi_static, "|u1")
@@ -347,6 +414,208 @@ def encode_calibrated(sensor_id: str, batch: CalibratedBatch) -> bytes:
     if batch.t_dev is not None:
         parts += _packed(_F_CAL_T_DEV, _le_bytes(batch.t_dev, "<i8"))
     return b"".join(parts)
+
+
+# -- the compact form (the log's) -------------------------------------------------------------
+
+_I32_MAX = 2**31 - 1
+#: micro-g per g: calibrated values, the detector and sigma are logged as int32 micro-g
+#: (rounded: within 0.5 micro-g of the float64 value, range +-2147 g).
+UG_PER_G = 1e6
+
+
+def _time_fields(t: np.ndarray, f_first: int, f_delta: int) -> list[bytes | memoryview]:
+    """A stamp column as its first value (sfixed64) and the differences (sint64 varints: a
+    few bytes each at any rate)."""
+    if len(t) == 0:
+        return []
+    return [_key(f_first, _WT_I64), struct.pack("<q", int(t[0])),
+            *_varint_field(f_delta, np.diff(t))]
+
+
+def _fixed_point(values: np.ndarray, scale: float) -> np.ndarray | None:
+    """``values * scale`` rounded to int32, or None if one is not finite or out of range
+    (that column is then written as float64)."""
+    scaled = np.rint(values * scale) if scale != 1.0 else values
+    if scaled.size and not (np.abs(scaled).max() <= _I32_MAX):  # (NaN fails the test too)
+        return None
+    out = scaled.astype("<i4")
+    if scale == 1.0 and not np.array_equal(out, values):  # raw values that are not integers
+        return None
+    return out
+
+
+def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
+    """Each column of signed integers as protobuf ``sint64`` packed varints (zigzag, 7 bits
+    a byte): small magnitudes (deltas) take one or two bytes. All columns in one pass of a
+    few numpy calls per byte of the widest value, whatever their number (a message's columns
+    are encoded together)."""
+    v = np.concatenate([np.asarray(c, np.int64) for c in columns])
+    if len(v) == 0:
+        return [b"" for _ in columns]
+    z = ((v << 1) ^ (v >> 63)).view(np.uint64)
+    width = max(1, (int(z.max()).bit_length() + 6) // 7)
+    if width <= 4:  # (values below 2**28: 32-bit arithmetic is faster)
+        z = z.astype(np.uint32)
+    # byte j of every value in row j: numpy's loops run along the values, not along 2-3 bytes
+    nbytes = np.ones(len(z), np.uint8)
+    for j in range(1, width):
+        nbytes += z >= (1 << (7 * j))
+    table = np.empty((width, len(z)), np.uint8)
+    keep = np.empty((width, len(z)), bool)
+    for j in range(width):
+        table[j] = (z >> (7 * j)) & 0x7F
+        table[j] |= (nbytes > j + 1).view(np.uint8) << 7  # continuation bit
+        keep[j] = nbytes > j
+    flat = np.ascontiguousarray(table.T)[np.ascontiguousarray(keep.T)].tobytes()  # by value
+    ends = np.cumsum(nbytes)[np.cumsum([len(c) for c in columns]) - 1].tolist()
+    out, start = [], 0
+    for c, end in zip(columns, ends, strict=True):
+        if len(c) == 0:
+            out.append(b"")
+            continue
+        out.append(flat[start:end])
+        start = end
+    return out
+
+
+def zigzag_varints(values: np.ndarray) -> bytes:
+    """One column as `zigzag_varints_many` writes it."""
+    return zigzag_varints_many([values])[0]
+
+
+def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
+    """`zigzag_varints` back (a packed run of bytes) as int64; ValueError if it ends inside a
+    varint or a varint is longer than 10 bytes."""
+    if run.size == 0:
+        return np.zeros(0, np.int64)
+    last = run < 0x80
+    if not last[-1]:
+        raise ValueError(f"packed field {what} ends inside a varint")
+    ends = np.flatnonzero(last)
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    lengths = ends - starts + 1
+    if lengths.max() > 10:
+        raise ValueError(f"packed field {what} has a varint longer than 10 bytes")
+    z = np.zeros(len(ends), np.uint64)
+    for k in range(int(lengths.max())):
+        sel = lengths > k
+        z[sel] |= (run[starts[sel] + k] & 0x7F).astype(np.uint64) << np.uint64(7 * k)
+    return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+
+
+class _Ints(NamedTuple):
+    """A packed sint64 field waiting to be encoded with the message's others (`_join`)."""
+
+    field: int
+    values: np.ndarray
+
+
+def _varint_field(field: int, values: np.ndarray) -> list[Any]:
+    return [_Ints(field, values)] if len(values) else []
+
+
+def _join(parts: list[Any]) -> bytes:
+    """The message: its parts, with every sint64 field encoded in one pass."""
+    ints = [p for p in parts if isinstance(p, _Ints)]
+    if not ints:
+        return b"".join(parts)
+    encoded = iter(zigzag_varints_many([p.values for p in ints]))
+    out: list[bytes | memoryview] = []
+    for p in parts:
+        if isinstance(p, _Ints):
+            out += _len_prefixed(p.field, next(encoded))
+        else:
+            out.append(p)
+    return b"".join(out)
+
+
+def _deltas(values: np.ndarray) -> np.ndarray:
+    """Each value minus the one before (the first as it is): what a delta field holds."""
+    out = np.array(values, np.int64)
+    out[1:] -= out[:-1].copy()
+    return out
+
+
+def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: Sequence[int]
+                  ) -> list[bytes | memoryview]:
+    """The three axes as sint64 varint deltas of their fixed-point values, or as float64
+    columns if the fixed point cannot hold them."""
+    fixed = _fixed_point(v, scale)
+    if fixed is None:
+        return [p for f, col in zip(f_float, _axes_bytes(v), strict=True) for p in _packed(f, col)]
+    return [p for i, f in enumerate(f_fixed) for p in _varint_field(f, _deltas(fixed[:, i]))]
+
+
+def _compact_column(values: np.ndarray, scale: float, f_float: int, f_fixed: int
+                    ) -> list[bytes | memoryview]:
+    """A column as sint64 varint deltas of its fixed-point values, or float64."""
+    fixed = _fixed_point(values, scale)
+    if fixed is None:
+        return _packed(f_float, _le_bytes(values, "<f8"))
+    return _varint_field(f_fixed, _deltas(fixed))
+
+
+def encode_raw_compact(sensor_id: str, batch: RawBatch,
+                       arrivals: tuple[Sequence[int], Sequence[int]] | None = None) -> bytes:
+    """A ``recal.RawBatch`` in the log's compact form: ``t0_us`` + ``dt_us`` deltas, integer
+    readings (ADC counts) as deltas ``x_counts_delta`` ... (each value minus the one before;
+    readings that are not all integers stay float64 in ``x`` ...), all deltas zigzag varints.
+    `decode_raw` reads both forms.
+
+    ``arrivals``: (samples per arrival, log time of each in us after the message's) of a
+    batch joined from several arrivals (`raw_arrivals` reads them back)."""
+    parts = [*_string_fields(_F_SENSOR, sensor_id),
+             *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
+             *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
+    if arrivals is not None and len(arrivals[0]) > 1:
+        parts += _varint_field(_F_RAW_ARRIVAL_SAMPLES, np.asarray(arrivals[0], np.int64))
+        parts += _varint_field(_F_RAW_ARRIVAL_LOG_US, _deltas(np.asarray(arrivals[1])))
+    return _join(parts + _aux_fields(batch))
+
+
+def raw_arrivals(data: bytes | bytearray | memoryview
+                 ) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """(samples per arrival, log time of each in us after the message's, or None) of a
+    joined raw message; None for a message of one arrival (any message of an older
+    recording). ValueError if the sizes do not add up to the message's samples."""
+    buf = _as_bytes(data)
+    fields = _scan(buf, frozenset((_F_RAW_ARRIVAL_SAMPLES, _F_RAW_ARRIVAL_LOG_US)))
+    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _VARINT_WT):
+        return None
+    sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
+    log_us = None
+    if _F_RAW_ARRIVAL_LOG_US in fields:
+        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
+        if len(log_us) != len(sizes):
+            raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
+                             "arrivals")
+    if (sizes < 0).any() or sizes.sum() != batch_extent(buf)[0]:
+        raise ValueError("arrival_samples do not add up to the message's samples")
+    return sizes, log_us
+
+
+def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
+    """A ``recal.CalibratedBatch`` in the log's compact form: times as ``t0_us`` + ``dt_us``
+    deltas, values, detector and sigma as deltas of their micro-g values (``x_ug_delta`` ...,
+    ``detector_ug_delta``, ``sigma_ug_delta``: each value minus the one before, the first as
+    it is; Foxglove plots the ``plot`` topic, whose values are whole), the device stamps as
+    ``t_dev0`` + deltas, all deltas zigzag varints; a column with a value that is not finite
+    or beyond +-2147 g stays float64 in its old field. `decode_calibrated` reads both
+    forms."""
+    parts = [*_string_fields(_F_SENSOR, sensor_id),
+             *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
+             *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
+                            (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)),
+             *_packed(_F_CAL_QUASI_STATIC, _le_bytes(batch.quasi_static, "|u1")),
+             *_compact_column(batch.detector_g, UG_PER_G, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG)]
+    if batch.recorded:
+        parts += [*_packed(_F_CAL_STATUS, _le_bytes(batch.status, "|u1")),
+                  *_compact_column(batch.sigma_mg, UG_PER_G / 1e3, _F_CAL_SIGMA,
+                                   _F_CAL_SIGMA_UG)]
+    if batch.t_dev is not None:
+        parts += _time_fields(batch.t_dev, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
+    return _join(parts)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -497,12 +766,55 @@ def _same_length(t_us: np.ndarray, **columns: np.ndarray) -> None:
             raise ValueError(f"{name} has {len(column)} values but t_us has {len(t_us)}")
 
 
-def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """Time stamps and the (N, 3) axis block, with the lengths checked against each other."""
-    t_us = np.array(_fixed64(buf, fields.get(_F_T_US), "<i8", "t_us"), dtype=np.int64)
-    columns = [_fixed64(buf, fields.get(f), "<f8", name)
-               for f, name in zip((_F_X, _F_Y, _F_Z), names, strict=True)]
+def _present(fields: dict[int, list[_Occurrence]], field: int, wire_types: tuple[int, ...]
+             ) -> bool:
+    """Whether the field occurs with a wire type of its own (protobuf skips the others as
+    unknown fields)."""
+    return any(wt in wire_types for wt, _, _ in fields.get(field, ()))
+
+
+_VARINT_WT = (_WT_LEN, _WT_VARINT)
+
+
+def _sint_varints(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> np.ndarray:
+    """A repeated sint64 field (packed runs and/or single varints) as int64."""
+    runs = [unzigzag_varints(np.frombuffer(buf, np.uint8, end - start, start), what)
+            for wire_type, start, end in occurrences or () if wire_type in (_WT_LEN, _WT_VARINT)]
+    if not runs:
+        return np.zeros(0, np.int64)
+    return runs[0] if len(runs) == 1 else np.concatenate(runs)
+
+
+def _stamps(buf: bytes, fields: dict[int, list[_Occurrence]], f_abs: int, f_first: int,
+            f_delta: int, what: str) -> np.ndarray | None:
+    """A stamp column from its absolute field or from first value + deltas; None if the
+    message has neither."""
+    if _present(fields, f_first, (_WT_I64,)):
+        first = _fixed64(buf, fields[f_first], "<i8", what)
+        dt = _sint_varints(buf, fields.get(f_delta), what)
+        t = np.empty(len(dt) + 1, np.int64)
+        t[0] = first[-1]  # a singular field: the last occurrence wins
+        np.cumsum(dt, out=t[1:])
+        t[1:] += t[0]
+        return t
+    if f_abs in fields:
+        return np.array(_fixed64(buf, fields[f_abs], "<i8", what), dtype=np.int64)
+    return None
+
+
+def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str],
+          scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Time stamps and the (N, 3) axis block (float64 fields, or the fixed-point deltas summed
+    and divided by ``scale``), with the lengths checked against each other."""
+    t_us = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
+    if t_us is None:
+        t_us = np.zeros(0, np.int64)
+    if any(_present(fields, f, _VARINT_WT) for f in (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)):
+        columns = [np.cumsum(_sint_varints(buf, fields.get(f), name)) / scale
+                   for f, name in zip((_F_X_FIX, _F_Y_FIX, _F_Z_FIX), names, strict=True)]
+    else:
+        columns = [_fixed64(buf, fields.get(f), "<f8", name)
+                   for f, name in zip((_F_X, _F_Y, _F_Z), names, strict=True)]
     _same_length(t_us, **dict(zip(names, columns, strict=True)))
     v = np.empty((len(t_us), 3))
     for i, column in enumerate(columns):
@@ -510,9 +822,20 @@ def _axes(buf: bytes, fields: dict[int, list[_Occurrence]], names: Sequence[str]
     return t_us, v
 
 
-_RAW_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES, _F_RAW_AUX))
-_CAL_FIELDS = frozenset((_F_SENSOR, _F_T_US, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
-                         _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV))
+def _column(buf: bytes, fields: dict[int, list[_Occurrence]], f_float: int, f_fixed: int,
+            scale: float, what: str) -> np.ndarray:
+    if _present(fields, f_fixed, _VARINT_WT):
+        return np.cumsum(_sint_varints(buf, fields[f_fixed], what)) / scale
+    return np.array(_fixed64(buf, fields.get(f_float), "<f8", what), dtype=np.float64)
+
+
+_STAMP_FIELDS = (_F_T_US, _F_T0_US, _F_DT_US)
+_RAW_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES,
+                         _F_RAW_AUX, _F_X_FIX, _F_Y_FIX, _F_Z_FIX))
+_CAL_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
+                         _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV,
+                         _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_CAL_DETECTOR_UG, _F_CAL_SIGMA_UG,
+                         _F_CAL_T_DEV0, _F_CAL_DT_DEV))
 
 
 def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
@@ -520,10 +843,11 @@ def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
 
 
 def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
-    """Parse a ``recal.RawBatch`` message into (sensor_id, batch); ValueError if malformed."""
+    """Parse a ``recal.RawBatch`` message (either form) into (sensor_id, batch); ValueError if
+    malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _RAW_FIELDS)
-    t_us, v = _axes(buf, fields, ("x", "y", "z"))
+    t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0)
     names = tuple(_strings(buf, fields.get(_F_RAW_AUX_NAMES)))
     aux = np.array(_fixed64(buf, fields.get(_F_RAW_AUX), "<f8", "aux"), dtype=np.float64)
     if len(aux) != len(t_us) * len(names):
@@ -534,36 +858,43 @@ def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
 
 
 def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, CalibratedBatch]:
-    """Parse a ``recal.CalibratedBatch`` into (sensor_id, batch); ValueError if malformed."""
+    """Parse a ``recal.CalibratedBatch`` (either form) into (sensor_id, batch); ValueError if
+    malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _CAL_FIELDS)
-    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"))
+    t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G)
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
-    detector = np.array(_fixed64(buf, fields.get(_F_CAL_DETECTOR), "<f8", "detector_g"),
-                        dtype=np.float64)
+    detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
+                       "detector_g")
     _same_length(t_us, quasi_static=quasi, detector_g=detector)
     status = sigma = None  # absent: a recording from before statuses (not recorded, NaN)
-    if _F_CAL_STATUS in fields or _F_CAL_SIGMA in fields:
+    if (_F_CAL_STATUS in fields or _F_CAL_SIGMA in fields
+            or _present(fields, _F_CAL_SIGMA_UG, _VARINT_WT)):
         status = _small_varints(buf, fields.get(_F_CAL_STATUS), "status")
-        sigma = np.array(_fixed64(buf, fields.get(_F_CAL_SIGMA), "<f8", "sigma_mg"),
-                         dtype=np.float64)
+        sigma = _column(buf, fields, _F_CAL_SIGMA, _F_CAL_SIGMA_UG, UG_PER_G / 1e3, "sigma_mg")
         _same_length(t_us, status=status, sigma_mg=sigma)
-    t_dev = None  # absent: a recording from before device times were kept
-    if _F_CAL_T_DEV in fields:
-        t_dev = np.array(_fixed64(buf, fields.get(_F_CAL_T_DEV), "<i8", "t_dev"), np.int64)
+    # absent: a recording from before device times were kept
+    t_dev = _stamps(buf, fields, _F_CAL_T_DEV, _F_CAL_T_DEV0, _F_CAL_DT_DEV, "t_dev")
+    if t_dev is not None:
         _same_length(t_us, t_dev=t_dev)
     return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
                                                                       status, sigma, t_dev)
 
 
 def batch_extent(data: bytes | bytearray | memoryview) -> tuple[int, int | None, int | None]:
-    """(sample count, first t_us, last t_us) of a RawBatch or CalibratedBatch message.
+    """(sample count, first t_us, last t_us) of a RawBatch or CalibratedBatch message (either
+    form).
 
-    Reads only the time field (both messages keep it as field 2), so summaries of long
-    recordings need not decode the samples. Times are None for an empty batch.
+    Reads only the time fields (both messages keep them as fields 2, 11 and 12), so summaries
+    of long recordings need not decode the samples. Times are None for an empty batch.
     """
     buf = _as_bytes(data)
-    runs = [(s, e) for wt, s, e in _scan(buf, frozenset((_F_T_US,))).get(_F_T_US, ())
+    fields = _scan(buf, frozenset(_STAMP_FIELDS))
+    if _present(fields, _F_T0_US, (_WT_I64,)):
+        t = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
+        assert t is not None
+        return len(t), int(t[0]), int(t[-1])
+    runs = [(s, e) for wt, s, e in fields.get(_F_T_US, ())
             if wt in (_WT_LEN, _WT_I64) and e > s]
     if any((e - s) % 8 for s, e in runs):
         raise ValueError("packed field t_us is not a multiple of 8 bytes")
@@ -642,18 +973,21 @@ def encode_event(kind: str, *, t_us: int | None = None, sensor_id: str | None = 
 
 # One PlotSample with every field present: a tag byte before each value (field << 3 | wire
 # type), so numpy lays out a batch of them in one structured array.
+# The values are float32 (fields of type float): a plot needs no more, float32 keeps a value
+# below 16 g within 1 micro-g, and a message of doubles cost 24 bytes more (about 2.4 bytes
+# a logged sample at 100 Hz, plot_hz 10). Older recordings' doubles decode as well.
 PLOT_DTYPE = np.dtype([
-    ("k_t", "u1"), ("t_us", "<i8"), ("k_x", "u1"), ("x_g", "<f8"), ("k_y", "u1"),
-    ("y_g", "<f8"), ("k_z", "u1"), ("z_g", "<f8"), ("k_n", "u1"), ("norm_g", "<f8"),
-    ("k_q", "u1"), ("quasi_static", "u1"), ("k_d", "u1"), ("detector_g", "<f8"),
-    ("k_s", "u1"), ("status", "u1"), ("k_e", "u1"), ("sigma_mg", "<f8")])
-_PLOT_TAGS = {"k_t": 1 << 3 | _WT_I64, "k_x": 2 << 3 | _WT_I64, "k_y": 3 << 3 | _WT_I64,
-              "k_z": 4 << 3 | _WT_I64, "k_n": 5 << 3 | _WT_I64, "k_q": 6 << 3 | _WT_VARINT,
-              "k_d": 7 << 3 | _WT_I64, "k_s": 8 << 3 | _WT_VARINT, "k_e": 9 << 3 | _WT_I64}
+    ("k_t", "u1"), ("t_us", "<i8"), ("k_x", "u1"), ("x_g", "<f4"), ("k_y", "u1"),
+    ("y_g", "<f4"), ("k_z", "u1"), ("z_g", "<f4"), ("k_n", "u1"), ("norm_g", "<f4"),
+    ("k_q", "u1"), ("quasi_static", "u1"), ("k_d", "u1"), ("detector_g", "<f4"),
+    ("k_s", "u1"), ("status", "u1"), ("k_e", "u1"), ("sigma_mg", "<f4")])
+_PLOT_TAGS = {"k_t": 1 << 3 | _WT_I64, "k_x": 2 << 3 | _WT_I32, "k_y": 3 << 3 | _WT_I32,
+              "k_z": 4 << 3 | _WT_I32, "k_n": 5 << 3 | _WT_I32, "k_q": 6 << 3 | _WT_VARINT,
+              "k_d": 7 << 3 | _WT_I32, "k_s": 8 << 3 | _WT_VARINT, "k_e": 9 << 3 | _WT_I32}
 _PLOT_FIELD_NUMBERS = {name: number for name, number, _ in _PLOT_FIELDS}
 
 
-_PLOT_STRUCT = struct.Struct("<BqBdBdBdBdBBBdBBBd")  # one PlotSample, the layout of PLOT_DTYPE
+_PLOT_STRUCT = struct.Struct("<BqBfBfBfBfBBBfBBBf")  # one PlotSample, the layout of PLOT_DTYPE
 _PLOT_TAG_VALUES = tuple(_PLOT_TAGS.values())
 
 
@@ -666,8 +1000,9 @@ def _selection(indices: np.ndarray | Iterable[int] | slice | None) -> slice | np
 def plot_payloads(batch: CalibratedBatch,
                   indices: np.ndarray | Iterable[int] | slice | None = None) -> np.ndarray:
     """The selected samples (all when ``indices`` is None) as ``recal.PlotSample`` messages:
-    a structured array of PLOT_DTYPE, one 56-byte message per row (``.tobytes()`` of a row is
-    the message). Values are exact (doubles), NaN and inf included."""
+    a structured array of PLOT_DTYPE, one 43-byte message per row (``.tobytes()`` of a row is
+    the message). Values are the float32 nearest each double (the norm from the doubles), NaN
+    and inf included."""
     sel = _selection(indices)
     a_g = batch.a_g[sel]
     out = np.empty(len(a_g), PLOT_DTYPE)
@@ -719,6 +1054,22 @@ def decode_plot(data: bytes | bytearray | memoryview) -> dict[str, Any]:
             values = _small_varints(buf, fields.get(number), name)
             out[name] = int(values[-1]) if len(values) else 0
             continue
-        values = _fixed64(buf, fields.get(number), "<i8" if name == "t_us" else "<f8", name)
-        out[name] = values[-1].item() if len(values) else (0 if name == "t_us" else 0.0)
+        if name == "t_us":
+            values = _fixed64(buf, fields.get(number), "<i8", name)
+            out[name] = values[-1].item() if len(values) else 0
+            continue
+        out[name] = _last_real(buf, fields.get(number), name)
     return out
+
+
+def _last_real(buf: bytes, occurrences: list[_Occurrence] | None, what: str) -> float:
+    """A singular float or double field (the last occurrence wins, as in protobuf): float32
+    since the plot's values are floats, float64 in older recordings; 0.0 when absent; another
+    wire type is an unknown field to protobuf, so it is skipped."""
+    value = 0.0
+    for wire_type, start, _end in occurrences or ():
+        if wire_type == _WT_I32:
+            value = float(np.frombuffer(buf, "<f4", 1, start)[0])
+        elif wire_type == _WT_I64:
+            value = float(np.frombuffer(buf, "<f8", 1, start)[0])
+    return value

@@ -12,6 +12,15 @@ it written in the same file; past ``backlog_bytes`` the oldest waiting chunks ar
 counted (``RecordingWriter.health``). Tools that write a file (replay, import) keep the default:
 a refused write raises.
 
+Batches are logged in the compact form (`messages.encode_raw_compact`,
+`messages.encode_calibrated_compact`) and joined: the raw, calibrated and body batches of a topic
+wait in memory and go into the file as one message at the next flush (or once
+``log_batch_samples`` samples wait), so a sensor handled one sample per arrival costs one
+message per topic and flush interval, not one per sample. A crash loses exactly what it lost
+before (what arrived since the last flush, which was in the open chunk, in memory, anyway).
+``write_raw`` and ``write_calibrated`` still return each batch encoded on its own in the
+float64 form, for the bus.
+
 Memory: the writer holds the open chunk and a few counters; the chunk indexes the summary needs
 wait in a temporary file (a week flushed every second is ~600k chunks), so a recording of any
 length is written in constant memory.
@@ -60,6 +69,8 @@ _SUFFIX_SCHEMAS: dict[str, SchemaSpec] = {
     "events": messages.EVENT_SCHEMA,
 }
 _MAX_U64 = 2**64 - 1
+#: A batch longer than this (a file tool's) is logged in messages of this many samples.
+_MAX_MESSAGE_SAMPLES = 16384
 
 
 def _publish_ns(t_us: int | None, fallback_ns: int) -> int:
@@ -83,6 +94,19 @@ def _check_log_time(log_time_ns: int) -> int:
     if not 0 <= value <= _MAX_U64:
         raise ValueError(f"log_time_ns must be an unsigned 64-bit integer, got {log_time_ns}")
     return value
+
+
+@dataclass
+class _Pending:
+    """Batches of one topic waiting to be logged as one message."""
+
+    sensor_id: str
+    raw: bool  # RawBatch (else CalibratedBatch)
+    log_ns: int  # the first batch's log time: the message's
+    publish_ns: int
+    batches: list[Any]
+    samples: int
+    log_times: list[int]  # each batch's log time (raw: kept in the message)
 
 
 @dataclass(frozen=True)
@@ -152,6 +176,8 @@ class RecordingWriter:
             it refused waits in memory, compressed, and is written when the file takes it
             again (tried at every flush). Beyond this many bytes the oldest waiting chunks are
             dropped and counted; see :meth:`health`. Not with background_compression.
+        log_batch_samples: a topic's waiting batches are logged as one message once this many
+            samples wait (and at every flush and at close, whatever their number).
     """
 
     def __init__(self, path: PathLike, *, chunk_size: int = 32 * 1024,
@@ -160,7 +186,7 @@ class RecordingWriter:
                  clock: Callable[[], float] = time.monotonic, background_flush: bool = True,
                  fsync: bool = True, metadata: Mapping[str, str] | None = None,
                  overwrite: bool = False, background_compression: bool = False,
-                 backlog_bytes: int | None = None) -> None:
+                 backlog_bytes: int | None = None, log_batch_samples: int = 8192) -> None:
         if compression not in COMPRESSION_TYPES:
             raise UsageError(f"compression must be one of {sorted(COMPRESSION_TYPES)}")
         if chunk_size <= 0 or flush_interval_s <= 0:
@@ -168,6 +194,8 @@ class RecordingWriter:
         if (rotate_bytes is not None and rotate_bytes <= 0) or (rotate_s is not None
                                                                and rotate_s <= 0):
             raise UsageError("rotate_bytes and rotate_s must be positive (or None)")
+        if log_batch_samples < 1:
+            raise UsageError("log_batch_samples must be >= 1")
         if backlog_bytes is not None and (backlog_bytes < 0 or background_compression):
             raise UsageError("backlog_bytes must be >= 0, and not with background_compression")
         self._base = Path(path)
@@ -188,6 +216,8 @@ class RecordingWriter:
         self._topic_specs: dict[str, SchemaSpec] = {}
         self._sequence: dict[str, int] = {}
         self._plot_phase: dict[str, int] = {}
+        self._pending: dict[str, _Pending] = {}  # topic -> batches waiting for one message
+        self._log_batch_samples = log_batch_samples
         self._topics: dict[tuple[str, str], str] = {}  # (sensor, suffix) -> checked topic
         self._messages_written = 0
         self._messages_flushed = 0
@@ -236,27 +266,32 @@ class RecordingWriter:
         return self._backlog_bytes
 
     def write_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> bytes:
-        """Log a raw batch on ``/<sensor>/raw``; returns the encoded bytes (for the bus)."""
-        data = messages.encode_raw(sensor_id, batch)
-        first = int(batch.t_us[0]) if len(batch) else None
-        log_ns = _check_log_time(log_time_ns)
-        self._write_many(self._sensor_topic(sensor_id, "raw"), messages.RAW_SCHEMA,
-                         [(data, log_ns, _publish_ns(first, log_ns))], log_ns,
-                         samples=len(batch))
-        return data
+        """Log a raw batch on ``/<sensor>/raw`` (`log_raw`); returns the batch encoded on its
+        own, float64 form (for the bus)."""
+        self.log_raw(sensor_id, batch, log_time_ns)
+        return messages.encode_raw(sensor_id, batch)
+
+    def log_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        """Log a raw batch on ``/<sensor>/raw``: joined with the topic's next batches into one
+        compact message at the next flush."""
+        self._hold(self._sensor_topic(sensor_id, "raw"), sensor_id, batch,
+                   _check_log_time(log_time_ns), raw=True)
 
     def write_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                          topic_suffix: str = "calibrated") -> bytes:
-        """Log a calibrated batch on ``/<sensor>/<topic_suffix>``; returns the encoded bytes."""
+        """Log a calibrated batch (`log_calibrated`); returns it encoded on its own, float64
+        form (for the bus)."""
+        self.log_calibrated(sensor_id, batch, log_time_ns, topic_suffix)
+        return messages.encode_calibrated(sensor_id, batch)
+
+    def log_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                       topic_suffix: str = "calibrated") -> None:
+        """Log a calibrated batch on ``/<sensor>/<topic_suffix>``, joined like `log_raw`'s."""
         if _SUFFIX_SCHEMAS.get(topic_suffix, messages.CALIBRATED_SCHEMA) is not \
                 messages.CALIBRATED_SCHEMA:
             raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
-        data = messages.encode_calibrated(sensor_id, batch)
-        first = int(batch.t_us[0]) if len(batch) else None
-        self.write_encoded(self._sensor_topic(sensor_id, topic_suffix), data, log_time_ns,
-                           _publish_ns(first, int(log_time_ns)),
-                           schema=messages.CALIBRATED_SCHEMA)
-        return data
+        self._hold(self._sensor_topic(sensor_id, topic_suffix), sensor_id, batch,
+                   _check_log_time(log_time_ns), raw=False)
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes:
         """Log a JSON object; the schema follows the topic suffix (calibration, events,
@@ -354,6 +389,7 @@ class RecordingWriter:
         with self._lock:
             if self._closed:
                 return
+            self._emit_pending()
             self._closed = True
             self._finish_part()
         self._raise_background_error()
@@ -504,6 +540,55 @@ class RecordingWriter:
                 self._track_failure(self._clock())  # a chunk just ended was refused
             self._maybe_flush()
 
+    def _hold(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch, log_ns: int,
+              raw: bool) -> None:
+        """Add a batch to its topic's waiting message (a list append per arrival: the join
+        and the encoding happen once per message)."""
+        with self._lock:
+            self._raise_background_error()
+            if self._closed:
+                raise ValueError("recording writer is closed")
+            p = self._pending.get(topic)
+            if p is not None and _layout(p.batches[0], raw) != _layout(batch, raw):
+                self._emit(topic)  # one message holds one layout
+                p = None
+            if p is None:
+                first = int(batch.t_us[0]) if len(batch) else None
+                p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
+                                                    _publish_ns(first, log_ns), [], 0, [])
+            p.batches.append(batch)
+            p.log_times.append(log_ns)
+            p.samples += len(batch)
+            if p.samples >= self._log_batch_samples:
+                self._emit(topic)
+            self._maybe_flush()
+
+    def _emit(self, topic: str) -> None:
+        """Write a topic's waiting batches as one compact message (lock held)."""
+        p = self._pending.pop(topic)  # first: the write may flush, which emits the rest
+        if p.raw:
+            batch = p.batches[0] if len(p.batches) == 1 else RawBatch.concat(p.batches)
+            # the arrivals, so that a replay gives the node the batches the live node had
+            arrivals = ([len(b) for b in p.batches],
+                        [(t - p.log_ns) // 1000 for t in p.log_times])
+            data = messages.encode_raw_compact(p.sensor_id, batch, arrivals)
+            spec = messages.RAW_SCHEMA
+            self._write_many(topic, spec, [(data, p.log_ns, p.publish_ns)], p.log_ns,
+                             samples=len(batch))
+            return
+        batch = p.batches[0] if len(p.batches) == 1 else CalibratedBatch.concat(p.batches)
+        step = max(self._log_batch_samples, _MAX_MESSAGE_SAMPLES)  # (a file tool's batches)
+        for i in range(0, max(len(batch), 1), step):
+            part = batch if len(batch) <= step else batch[i:i + step]
+            self._write_many(topic, messages.CALIBRATED_SCHEMA,
+                             [(messages.encode_calibrated_compact(p.sensor_id, part), p.log_ns,
+                               p.publish_ns)], p.log_ns)
+
+    def _emit_pending(self) -> None:
+        for topic in list(self._pending):
+            if topic in self._pending:
+                self._emit(topic)
+
     def _track_failure(self, now_s: float) -> None:
         """Note when the file began or stopped refusing writes (lock held)."""
         failure = self._mcap.failure
@@ -521,6 +606,7 @@ class RecordingWriter:
 
     def _flush_locked(self) -> None:
         self._last_flush_s = now_s = self._clock()
+        self._emit_pending()  # (their writes see the flush just stamped, so do not recurse)
         m = self._mcap
         if self._messages_flushed == self._messages_written and not m.waiting_bytes:
             return  # nothing new: skip the fsync
@@ -578,6 +664,13 @@ class RecordingWriter:
         if self._background_error is not None:
             error, self._background_error = self._background_error, None
             raise RuntimeError("background flush of the recording failed") from error
+
+
+def _layout(batch: RawBatch | CalibratedBatch, raw: bool) -> Any:
+    """What batches must share to be joined: the channels, or which optional columns exist."""
+    if raw:
+        return batch.aux_names  # type: ignore[union-attr]
+    return (batch.t_dev is None, batch.recorded)  # type: ignore[union-attr]
 
 
 def _describe(exc: OSError) -> str:

@@ -1,0 +1,233 @@
+"""Bytes on disk per sample of a live log at 100 Hz, the first (float64, a message per arrival)
+form beside the compact, joined one; and what a sample's write costs the caller in each.
+
+    python bench/log_size.py                # 20 min of a simulated wearer, 5 timing runs
+    python bench/log_size.py --minutes 5    # shorter
+
+How: a simulated wearer at 100 Hz (recal.sim defaults, 1024 counts/g, no prior: the node
+bootstraps, then calibrates and aligns, so every topic is there) goes through the calibration
+node the gateway runs, one sample per arrival; the node's output (raw, calibrated, body, plot,
+calibration states, events, setup) is captured once and then written by two writers on the
+same injected clock (10 ms per arrival, a flush every second, 32 KiB zstd chunks: the daemon's
+settings):
+
+    first form   each batch encoded alone in float64 (`messages.encode_raw`,
+                 `encode_calibrated`, as the bus still carries it) and logged as one message
+                 (what the writer did before it joined batches)
+    compact      `RecordingWriter` as it is: batches joined per topic until the next flush,
+                 in the compact form
+
+Per topic: the same writes with only that topic's messages, each in a file of its own (the
+per-topic bytes do not add up to the whole exactly: zstd shares nothing across files).
+Timing: microseconds per arrival of write_raw + write_calibrated (calibrated and body) +
+write_plot, the log part of what the daemon does per sample, medians of --runs runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import struct
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from recal.config import SensorConfig, ServiceConfig
+from recal.io import messages
+from recal.io.recording_writer import RecordingWriter
+from recal.node import CalibrationNode, node_settings
+from recal.samples import CalibratedBatch, RawBatch
+from recal.sim import simulate
+
+RATE_HZ = 100.0
+SENSOR = "s1"
+T0_NS = 1_700_000_000_000_000_000
+
+
+class Capture:
+    """A node sink that keeps every call: (kind, suffix, payload, log time)."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, str, Any, int]] = []
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        self.calls.append(("raw", "raw", batch, log_time_ns))
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self.calls.append(("calibrated", suffix, batch, log_time_ns))
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        self.calls.append(("plot", "plot", (batch, every_n), log_time_ns))
+
+    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        self.calls.append(("json", suffix, obj, log_time_ns))
+
+
+def capture(minutes: float, seed: int) -> tuple[list[tuple[str, str, Any, int]], int]:
+    """The node's output for a simulated wearer, one sample per arrival; (calls, samples)."""
+    raw = simulate(minutes / 60.0, RATE_HZ, seed).raw
+    sink = Capture()
+    node = CalibrationNode(node_settings(SensorConfig(id=SENSOR, rate_hz=RATE_HZ),
+                                         ServiceConfig()), sink)
+    for i in range(len(raw)):
+        b = raw[i:i + 1]
+        log_ns = T0_NS + int(b.t_us[0]) * 1000
+        sink.raw(SENSOR, b, log_ns)  # the gateway logs the raw batch before the node runs
+        node.process(b, log_ns)
+    node.flush(T0_NS + int(raw.t_us[-1]) * 1000)
+    return sink.calls, len(raw)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now_s = 0.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+# The plot message as it was before its values became float32: every value a double.
+_PLOT_DOUBLES = struct.Struct("<BqBdBdBdBdBBBdBBBd")
+
+
+def _write_plot_doubles(w: RecordingWriter, batch: CalibratedBatch, log_ns: int, every_n: int,
+                        phase: int) -> int:
+    """The first form's plot: every ``every_n``-th sample as a message of doubles (the same
+    decimation, log and publish times as `RecordingWriter.write_plot`); returns the phase."""
+    first = (-phase) % every_n
+    last_us = int(batch.t_us[-1])
+    for i in range(first, len(batch), every_n):
+        x, y, z = (float(v) for v in batch.a_g[i])
+        t_us = int(batch.t_us[i])
+        data = _PLOT_DOUBLES.pack(1 << 3 | 1, t_us, 2 << 3 | 1, x, 3 << 3 | 1, y, 4 << 3 | 1, z,
+                                  5 << 3 | 1, math.sqrt(x * x + y * y + z * z), 6 << 3,
+                                  int(batch.quasi_static[i]), 7 << 3 | 1,
+                                  float(batch.detector_g[i]), 8 << 3, int(batch.status[i]),
+                                  9 << 3 | 1, float(batch.sigma_mg[i]))
+        w.write_encoded(f"/{SENSOR}/plot", data, max(log_ns - (last_us - t_us) * 1000, 0),
+                        t_us * 1000, schema=messages.PLOT_SCHEMA)
+    return (phase + len(batch)) % every_n
+
+
+def write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
+          topics: frozenset[str] | None = None) -> float:
+    """Write the captured calls (only ``topics``' when given); returns seconds spent in the
+    writer's calls for raw, calibrated, body and plot."""
+    clock = Clock()
+    w = RecordingWriter(path, clock=clock, background_flush=False, fsync=False,
+                        overwrite=True, log_batch_samples=1 if first_form else 8192)
+    spent = 0.0
+    plot_phase = 0
+    t_first = calls[0][3]
+    for kind, suffix, payload, log_ns in calls:
+        if topics is not None and suffix not in topics:
+            continue
+        clock.now_s = (log_ns - t_first) / 1e9
+        t = time.perf_counter()
+        if kind == "raw":
+            if first_form:
+                w.write_encoded(f"/{SENSOR}/raw", messages.encode_raw(SENSOR, payload), log_ns,
+                                int(payload.t_us[0]) * 1000)
+            else:
+                w.write_raw(SENSOR, payload, log_ns)
+        elif kind == "calibrated":
+            if first_form:
+                w.write_encoded(f"/{SENSOR}/{suffix}",
+                                messages.encode_calibrated(SENSOR, payload), log_ns,
+                                int(payload.t_us[0]) * 1000, schema=messages.CALIBRATED_SCHEMA)
+            else:
+                w.write_calibrated(SENSOR, payload, log_ns, suffix)
+        elif kind == "plot":
+            if first_form:
+                plot_phase = _write_plot_doubles(w, payload[0], log_ns, payload[1], plot_phase)
+            else:
+                w.write_plot(SENSOR, payload[0], log_ns, payload[1])
+        else:
+            w.write_json(f"/{SENSOR}/{suffix}", payload, log_ns)
+        if kind != "json":
+            spent += time.perf_counter() - t
+    w.close()
+    return spent
+
+
+def sizes(tmp: Path, calls: list, samples: int) -> list[tuple[str, float, float]]:
+    groups: list[tuple[str, frozenset[str] | None]] = [
+        ("everything", None), ("raw", frozenset({"raw"})),
+        ("calibrated", frozenset({"calibrated"})), ("body", frozenset({"body"})),
+        ("plot", frozenset({"plot"})),
+        ("states, events, setup", frozenset({"calibration", "events", "setup"}))]
+    rows = []
+    for name, topics in groups:
+        per = []
+        for first_form in (True, False):
+            path = tmp / f"{name.split(',')[0]}-{first_form}.mcap"
+            write(path, calls, first_form, topics)
+            per.append(path.stat().st_size / samples)
+        rows.append((name, per[0], per[1]))
+    return rows
+
+
+def timing(tmp: Path, calls: list, samples: int, runs: int) -> tuple[float, float]:
+    """Median microseconds per arrival in the writer (first form, compact)."""
+    times: dict[bool, list[float]] = {True: [], False: []}
+    for _ in range(runs):
+        for first_form in (True, False):  # side by side in every run
+            spent = write(tmp / "t.mcap", calls, first_form)
+            times[first_form].append(spent / samples * 1e6)
+    return statistics.median(times[True]), statistics.median(times[False])
+
+
+def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
+    """Microseconds to encode one 1-sample calibrated batch: float64 (the bus's) and compact."""
+    one = next(p for k, s, p, _ in calls if k == "calibrated" and s == "calibrated"
+               and len(p) == 1 and p.recorded)
+    out = []
+    fn: Callable[[str, CalibratedBatch], bytes]
+    for fn in (messages.encode_calibrated, messages.encode_calibrated_compact):
+        best = []
+        for _ in range(5):
+            t = time.perf_counter()
+            for _ in range(repeat):
+                fn(SENSOR, one)
+            best.append((time.perf_counter() - t) / repeat * 1e6)
+        out.append(statistics.median(best))
+    return out[0], out[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--minutes", type=float, default=20.0)
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=3)
+    a = ap.parse_args(argv)
+    import os
+    print(f"load average before: {os.getloadavg()[0]:.2f}", file=sys.stderr)
+    calls, samples = capture(a.minutes, a.seed)
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        rows = sizes(tmp, calls, samples)
+        first_us, compact_us = timing(tmp, calls, samples, a.runs)
+    enc_old, enc_new = encode_one_us(calls)
+    print(f"{a.minutes:g} min at {RATE_HZ:g} Hz, one sample per arrival ({samples} samples), "
+          "zstd, 32 KiB chunks, flush every 1 s\n")
+    print("| topics | first form, B/sample | compact, B/sample | ratio |")
+    print("|---|---:|---:|---:|")
+    for name, old, new in rows:
+        print(f"| {name} | {old:.2f} | {new:.2f} | {new / old:.3f} |")
+    print(f"\nwriter per arrival (raw, calibrated, body, plot): first form {first_us:.1f} us, "
+          f"compact {compact_us:.1f} us (ratio {compact_us / first_us:.2f}; medians of "
+          f"{a.runs})")
+    print(f"encoding one 1-sample CalibratedBatch: float64 (the bus's) {enc_old:.2f} us, "
+          f"compact {enc_new:.2f} us")
+    print(f"load average after: {os.getloadavg()[0]:.2f}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,189 @@
+"""The log's compact form: what it keeps, that the official protobuf runtime (Foxglove's view)
+reads it, that batches arriving one at a time are joined per flush, and that a recording in the
+first, float64 form (a fixture written by that release) still replays, exports and calibrates."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recal import cli
+from recal.io import messages as m
+from recal.io import recording as rec
+from recal.io.recording_writer import RecordingWriter
+from recal.replay import replay
+from recal.samples import CalibratedBatch, RawBatch
+
+FIXTURE = Path(__file__).parent / "fixtures" / "release_0_demo.mcap"
+SID = "demo"  # the fixture's sensor
+
+
+def _calibrated(n: int, seed: int = 0, t0: int = 1_700_000_000_000_000) -> CalibratedBatch:
+    rng = np.random.default_rng(seed)
+    t_us = t0 + np.cumsum(rng.integers(9_000, 11_000, n))
+    return CalibratedBatch(t_us, rng.normal(0.0, 1.5, (n, 3)), rng.random(n) < 0.5,
+                           rng.random(n) * 0.2, rng.integers(1, 6, n).astype(np.uint8),
+                           rng.random(n) * 50.0, t_us // 1000 - 7)
+
+
+def _raw(n: int, seed: int = 0) -> RawBatch:
+    rng = np.random.default_rng(seed)
+    t_us = np.arange(n, dtype=np.int64) * 10_000 - 5_000_000
+    return RawBatch(t_us, rng.integers(-32768, 32768, (n, 3)).astype(float),
+                    rng.normal(30.0, 1.0, (n, 1)), ("temp_c",))
+
+
+# ---------------------------------------------------------------------------------------------
+# The compact form
+# ---------------------------------------------------------------------------------------------
+
+def test_compact_calibrated_keeps_values_to_half_a_micro_g_and_integers_exactly() -> None:
+    batch = _calibrated(700)
+    sid, got = m.decode_calibrated(m.encode_calibrated_compact("s1", batch))
+    assert sid == "s1"
+    assert np.array_equal(got.t_us, batch.t_us) and np.array_equal(got.t_dev, batch.t_dev)
+    assert np.max(np.abs(got.a_g - batch.a_g)) <= 0.5e-6 + 1e-12
+    assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 0.5e-6 + 1e-12
+    assert np.max(np.abs(got.sigma_mg - batch.sigma_mg)) <= 0.5e-3 + 1e-12  # mg: 0.5 ug
+    assert np.array_equal(got.status, batch.status)
+    assert np.array_equal(got.quasi_static, batch.quasi_static)
+    assert len(m.encode_calibrated_compact("s1", batch)) < 0.6 * len(
+        m.encode_calibrated("s1", batch))
+    assert m.batch_extent(m.encode_calibrated_compact("s1", batch)) == (
+        700, int(batch.t_us[0]), int(batch.t_us[-1]))
+
+
+def test_compact_raw_keeps_integer_counts_and_falls_back_to_float64_otherwise() -> None:
+    batch = _raw(300)
+    _, got = m.decode_raw(m.encode_raw_compact("s1", batch))
+    assert np.array_equal(got.t_us, batch.t_us) and np.array_equal(got.v, batch.v)
+    assert got.aux_names == batch.aux_names and np.array_equal(got.aux, batch.aux)
+    floats = RawBatch(batch.t_us, batch.v / 1024.0, batch.aux, batch.aux_names)
+    _, got = m.decode_raw(m.encode_raw_compact("s1", floats))
+    assert np.array_equal(got.v, floats.v)  # not integers: float64 as before, exact
+
+
+def test_values_the_fixed_point_cannot_hold_stay_float64_per_column() -> None:
+    batch = _calibrated(50)
+    batch.a_g[3, 1] = np.nan
+    batch.sigma_mg[7] = np.inf  # a zeroed, non-finite sample's sigma
+    batch.t_us[20:] += 3_000_000_000  # a gap beyond int32 microseconds
+    _, got = m.decode_calibrated(m.encode_calibrated_compact("s1", batch))
+    assert np.array_equal(got.a_g, batch.a_g, equal_nan=True)
+    assert np.array_equal(got.sigma_mg, batch.sigma_mg)
+    assert np.array_equal(got.t_us, batch.t_us)
+    assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 0.5e-6 + 1e-12
+
+
+def test_the_official_protobuf_runtime_reads_the_compact_form() -> None:
+    batch = _calibrated(40)
+    official = m.protobuf_message_class("recal.CalibratedBatch").FromString(
+        m.encode_calibrated_compact("s1", batch))
+    assert official.sensor_id == "s1" and official.t0_us == batch.t_us[0]
+    assert list(official.dt_us) == np.diff(batch.t_us).tolist()
+    x_ug = np.rint(batch.a_g[:, 0] * 1e6).astype(int)
+    assert list(official.x_ug_delta) == np.diff(x_ug, prepend=0).tolist()
+    sigma_ug = np.rint(batch.sigma_mg * 1e3).astype(int)
+    assert list(official.sigma_ug_delta) == np.diff(sigma_ug, prepend=0).tolist()
+    assert official.t_dev0 == batch.t_dev[0] and len(official.dt_dev) == 39
+    raw = _raw(30)
+    data = m.encode_raw_compact("s1", raw, ([10, 20], [0, 999]))  # (log times: deltas)
+    official = m.protobuf_message_class("recal.RawBatch").FromString(data)
+    assert list(official.y_counts_delta) == np.diff(raw.v[:, 1], prepend=0).astype(int).tolist()
+    assert list(official.arrival_samples) == [10, 20]
+    assert list(official.arrival_log_dt_us) == [0, 999]
+    sizes, log_us = m.raw_arrivals(data)  # type: ignore[misc]
+    assert sizes.tolist() == [10, 20] and log_us is not None and log_us.tolist() == [0, 999]
+
+
+# ---------------------------------------------------------------------------------------------
+# Joining in the writer
+# ---------------------------------------------------------------------------------------------
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now_s = 0.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def test_single_sample_arrivals_are_joined_per_flush_with_their_arrivals(tmp_path: Path) -> None:
+    clock = _Clock()
+    raw, cal = _raw(250), _calibrated(250)
+    path = tmp_path / "joined.mcap"
+    with RecordingWriter(path, clock=clock, background_flush=False, fsync=False) as w:
+        for i in range(250):  # one sample per arrival, 100 Hz, a flush every second
+            clock.now_s = i / 100.0
+            log_ns = 10**18 + i * 10_000_000
+            bus = w.write_raw(SID, raw[i:i + 1], log_ns)
+            assert m.decode_raw(bus)[1].v.tolist() == raw.v[i:i + 1].tolist()  # float64 form
+            w.write_calibrated(SID, cal[i:i + 1], log_ns)
+    logged = list(rec.iter_raw_logged(path))
+    # one message per flush interval (a write that finds a flush due is in it)
+    assert [len(b) for _, b, _ in logged] == [101, 100, 49]
+    joined = RawBatch.concat([b for _, b, _ in logged])
+    assert np.array_equal(joined.v, raw.v) and np.array_equal(joined.t_us, raw.t_us)
+    sizes, log_us = m.raw_arrivals(logged[1][2].data)  # type: ignore[misc]
+    assert sizes.tolist() == [1] * 100 and log_us is not None
+    assert log_us.tolist() == list(range(0, 1_000_000, 10_000))
+    assert logged[1][2].log_time_ns == 10**18 + 101 * 10_000_000
+    got = rec.read_all_calibrated(path, SID)
+    assert np.array_equal(got.t_us, cal.t_us)
+    assert np.max(np.abs(got.a_g - cal.a_g)) <= 0.5e-6 + 1e-12
+
+
+# ---------------------------------------------------------------------------------------------
+# A recording in the first form (float64, a message per arrival) still works
+# ---------------------------------------------------------------------------------------------
+
+def test_fixture_of_the_first_form_reads_back() -> None:
+    raw = rec.read_all_raw(FIXTURE, SID)
+    cal = rec.read_all_calibrated(FIXTURE, SID)
+    body = rec.read_all_calibrated(FIXTURE, SID, "body")
+    assert len(raw) == len(cal) > 10_000 and 0 < len(body) < len(cal)
+    assert np.array_equal(raw.v, np.rint(raw.v))  # ADC counts
+    assert (cal.status == 3).any()  # calibrated by the end
+    assert rec.summary(FIXTURE).message_count > 2000
+
+
+def test_fixture_of_the_first_form_replays_to_what_its_live_run_logged(tmp_path: Path) -> None:
+    out = tmp_path / "again.mcap"
+    summary = replay(FIXTURE, out, progress=False)
+    assert summary["sensors"][SID]["start"] == "recording"
+    live = rec.read_all_calibrated(FIXTURE, SID)
+    again = rec.read_all_calibrated(out, SID)
+    assert np.array_equal(again.t_us, live.t_us)
+    assert np.array_equal(again.status, live.status)
+    assert np.array_equal(again.quasi_static, live.quasi_static)
+    assert np.max(np.abs(again.a_g - live.a_g)) <= 1e-6  # the log keeps 0.5 ug
+    assert np.array_equal(rec.read_all_raw(out, SID).v, rec.read_all_raw(FIXTURE, SID).v)
+    live_states = [o["params"] for _, o, _ in rec.iter_json(FIXTURE, f"/{SID}/calibration")]
+    again_states = [o["params"] for _, o, _ in rec.iter_json(out, f"/{SID}/calibration")]
+    assert again_states == live_states
+    assert FIXTURE.stat().st_size > 2 * out.stat().st_size  # (plot and setup as they were)
+
+
+def test_fixture_of_the_first_form_exports_and_calibrates(tmp_path: Path) -> None:
+    csv = tmp_path / "cal.csv"
+    assert cli.main(["export", str(FIXTURE), "--csv", str(csv)]) == 0
+    rows = np.loadtxt(csv, delimiter=",", skiprows=1)
+    live = rec.read_all_calibrated(FIXTURE, SID)
+    assert len(rows) == len(live)
+    assert np.allclose(rows[:, 1:4], live.a_g, rtol=0, atol=1e-6)
+    out = tmp_path / "hind.mcap"
+    assert cli.main(["hindsight", str(FIXTURE), "--out", str(out), "--quiet"]) in (0, 1)
+    if out.exists():
+        assert len(rec.read_all_calibrated(out, SID)) == len(live)
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_tiny_batches_round_trip(n: int) -> None:
+    cal = _calibrated(n)
+    _, got = m.decode_calibrated(m.encode_calibrated_compact("s", cal))
+    assert np.array_equal(got.t_us, cal.t_us) and len(got) == n
+    raw = _raw(n)
+    _, got_raw = m.decode_raw(m.encode_raw_compact("s", raw))
+    assert np.array_equal(got_raw.v, raw.v) and len(got_raw) == n
