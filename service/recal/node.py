@@ -437,7 +437,10 @@ class CalibrationNode(AlignmentRequests):
         cal = self._guard(out.calibrated.with_device_time(t_dev), log_ns)
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
-        self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
+        if len(cal) == 1:  # one sample per arrival: a scalar count, no histogram
+            self.status_counts[int(cal.status[0])] += 1
+        else:
+            self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
         self.sink.calibrated(self.sensor_id, cal, log_ns)
         self.sink.plot(self.sensor_id, cal, log_ns, self._plot_every())
         self._report_watch(out, log_ns)
