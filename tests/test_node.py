@@ -158,3 +158,15 @@ def test_a_stream_without_the_channel_the_model_needs_is_said_once_not_per_batch
     assert sink.kinds().count("missing_channel") == 1
     assert len(lines) == 1 and "cannot calibrate" in lines[0] and "'vdd'" in lines[0], lines
     assert node.samples_skipped == len(raw) and node.samples == 0
+
+
+def test_status_counts_one_sample_per_arrival_equal_those_of_large_batches() -> None:
+    raw, _ = worn_tilted(0.0, 0.0, seed=5, minutes=2.0)
+    counts = []
+    for batch in (1, 1000):
+        node = node_for(7.0, MemorySink())
+        feed(node, raw, batch)
+        counts.append(node.status_counts.copy())
+    assert counts[0].dtype == counts[1].dtype
+    assert np.array_equal(counts[0], counts[1])
+    assert counts[0].sum() == len(raw)  # every sample counted once
