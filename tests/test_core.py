@@ -97,6 +97,22 @@ def test_flat_runs_count_the_repeats_before_each_sample_across_batches():
         assert det._flat_runs(v, last, run0).tolist() == expect
 
 
+def test_flat_runs_one_sample_at_a_time_equal_the_whole_batch():
+    rng = np.random.default_rng(12)
+    v = rng.integers(0, 2, (300, 1)).repeat(3, axis=1).astype(float)  # long runs of repeats
+    v[rng.random(300) < 0.1, 2] = 7.0  # breaks in one axis only
+    v[::37, 1] = np.nan  # NaN never repeats
+    whole = det._flat_runs(v, np.full(3, np.nan), 3)
+    last, run, parts = np.full(3, np.nan), 3, []
+    for i in range(len(v)):
+        part = det._flat_runs(v[i:i + 1], last, run)
+        last, run = v[i], int(part[-1])
+        parts.append(part)
+    assert np.concatenate(parts).dtype == whole.dtype
+    assert np.array_equal(np.concatenate(parts), whole)
+    assert whole.max() > 5  # the data did have long runs
+
+
 def test_row_reductions_equal_numpys_to_the_bit():
     rng = np.random.default_rng(5)
     v = rng.normal(0, 1e3, (5000, 3)) * rng.choice([1e-300, 1.0, 1e200], (5000, 3))

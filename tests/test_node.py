@@ -158,3 +158,55 @@ def test_a_stream_without_the_channel_the_model_needs_is_said_once_not_per_batch
     assert sink.kinds().count("missing_channel") == 1
     assert len(lines) == 1 and "cannot calibrate" in lines[0] and "'vdd'" in lines[0], lines
     assert node.samples_skipped == len(raw) and node.samples == 0
+
+
+def test_status_counts_one_sample_per_arrival_equal_those_of_large_batches() -> None:
+    raw, _ = worn_tilted(0.0, 0.0, seed=5, minutes=2.0)
+    counts = []
+    for batch in (1, 1000):
+        node = node_for(7.0, MemorySink())
+        feed(node, raw, batch)
+        counts.append(node.status_counts.copy())
+    assert counts[0].dtype == counts[1].dtype
+    assert np.array_equal(counts[0], counts[1])
+    assert counts[0].sum() == len(raw)  # every sample counted once
+
+
+class KeepingSink(MemorySink):
+    """A MemorySink that also keeps every calibrated batch."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cal: list[CalibratedBatch] = []
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   topic: str = "calibrated") -> None:
+        super().calibrated(sensor_id, batch, log_time_ns, topic)
+        if topic == "calibrated":
+            self.cal.append(batch)
+
+
+def test_guard_and_status_events_one_sample_per_arrival_equal_those_of_large_batches() -> None:
+    """The scalar guard and status path of one-sample arrivals: the same published values,
+    statuses, sigma, not-finite count and events as 1000-sample batches, NaN and inf included."""
+    raw, _ = worn_tilted(0.0, 0.0, seed=5, minutes=2.0)
+    v = raw.v.copy()
+    v[300, 0], v[2000] = np.nan, np.inf
+    v[2001, 2], v[4000, 1] = -np.inf, np.nan
+    raw = RawBatch(raw.t_us, v, raw.aux, raw.aux_names)
+    runs = []
+    for batch in (1, 1000):
+        sink = KeepingSink()
+        node = node_for(7.0, sink)
+        feed(node, raw, batch)
+        a = np.concatenate([c.a_g for c in sink.cal])
+        st = np.concatenate([c.status for c in sink.cal])
+        sig = np.concatenate([c.sigma_mg for c in sink.cal])
+        runs.append((a, st, sig, node.samples_not_finite, sink.kinds()))
+    (a1, st1, sig1, n1, k1), (a2, st2, sig2, n2, k2) = runs
+    assert len(a1) == len(raw) and np.isfinite(a1).all()
+    assert np.array_equal(a1, a2) and np.array_equal(st1, st2)
+    assert np.array_equal(sig1, sig2)
+    assert n1 == n2 == 4 and np.isinf(sig1[[300, 2000, 2001, 4000]]).all()
+    assert [k for k in k1 if k != "not_finite"] == [k for k in k2 if k != "not_finite"]
+    assert len(np.unique(st1)) > 1  # the status changed within the run (the guard's at least)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import copy
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -167,6 +168,7 @@ class CalibrationNode(AlignmentRequests):
         self.status_counts = np.zeros(len(Status), np.int64)
         self.samples_not_finite = 0
         self._status: Status | None = None  # of the last sample published
+        self._tcfg: tb.TimebaseConfig | None = None  # the time base's, per rate
         self._calibrated_once = False
         self._unseen: tuple[tuple[str, ...], int, bool] = ((), 0, False)  # `_say_unseen`
         self.last_t_us: int | None = None
@@ -437,7 +439,10 @@ class CalibrationNode(AlignmentRequests):
         cal = self._guard(out.calibrated.with_device_time(t_dev), log_ns)
         self.samples += len(cal)
         self.last_t_us = int(cal.t_us[-1])
-        self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
+        if len(cal) == 1:  # one sample per arrival: a scalar count, no histogram
+            self.status_counts[int(cal.status[0])] += 1
+        else:
+            self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
         self.sink.calibrated(self.sensor_id, cal, log_ns)
         self.sink.plot(self.sensor_id, cal, log_ns, self._plot_every())
         self._report_watch(out, log_ns)
@@ -487,7 +492,7 @@ class CalibrationNode(AlignmentRequests):
     def _device_time(self, batch: RawBatch, log_ns: int) -> RawBatch:
         """The batch on the time base (recal.core.timebase), its events reported."""
         assert self.timebase is not None and self.pipeline is not None
-        tcfg = tb.TimebaseConfig(rate_hz=self.pipeline.cfg.rate_hz)
+        tcfg = self._timebase_config(self.pipeline.cfg.rate_hz)
         unit_events: list[dict[str, Any]] = []
         if self.timebase.last_dev is None:  # the stream's first batch: say how time is read
             first, unit_events = tb.start(batch.t_us, tcfg)
@@ -499,6 +504,14 @@ class CalibrationNode(AlignmentRequests):
         if t_us is batch.t_us:  # the device's own microseconds (the time base's usual case)
             return batch
         return RawBatch(t_us, batch.v, batch.aux, batch.aux_names)
+
+    def _timebase_config(self, rate_hz: float | None) -> tb.TimebaseConfig:
+        # made once per rate, not per arrival (a frozen dataclass: building it is most of
+        # what a one-sample batch costs the time base)
+        cached = self._tcfg
+        if cached is None or cached.rate_hz != rate_hz:
+            cached = self._tcfg = tb.TimebaseConfig(rate_hz=rate_hz)
+        return cached
 
     def _time_event(self, ev: dict[str, Any], t_us: int, log_ns: int) -> None:
         if ev["kind"] == "time_anomalies":
@@ -541,6 +554,8 @@ class CalibrationNode(AlignmentRequests):
         would be read by many as "missing", zeros alone as a vector). Counted, and said once
         per batch as an event. A non-finite sigma of a finite value is inf."""
         a = cal.a_g
+        if len(a) == 1 and _finite_one(a[0], cal.sigma_mg[0]):
+            return cal  # one sample per arrival, the usual case: scalar checks, no arrays
         bad = ~(np.isfinite(a[:, 0]) & np.isfinite(a[:, 1]) & np.isfinite(a[:, 2]))
         bad_sigma = ~np.isfinite(cal.sigma_mg) & ~np.isinf(cal.sigma_mg)
         if not bad.any() and not bad_sigma.any():
@@ -569,8 +584,12 @@ class CalibrationNode(AlignmentRequests):
         """One line (``on_note``) and an event ``status_changed`` when the status becomes or stops
         being suspect, and when the sensor is first calibrated."""
         st = cal.status
-        change = np.flatnonzero(st[1:] != st[:-1]) + 1
-        points = ([0] if int(st[0]) != self._status else []) + change.tolist()
+        first_new = int(st[0]) != self._status
+        if len(st) == 1:  # one sample per arrival: nothing within the batch to compare
+            points = [0] if first_new else []
+        else:
+            change = np.flatnonzero(st[1:] != st[:-1]) + 1
+            points = ([0] if first_new else []) + change.tolist()
         for i in points:
             old, new = self._status, Status(int(st[i]))
             self._status = new
@@ -842,3 +861,12 @@ def make_node(settings: NodeSettings, sink: Sink,
                        on_problem=on_problem)
     return node if node is not None else CalibrationNode(settings, sink)
 
+
+
+def _finite_one(a_g: np.ndarray, sigma_mg: float) -> bool:
+    """Whether one sample's three values are finite and its sigma finite or inf (what
+    `CalibrationNode._guard` lets through unchanged), with scalar checks."""
+    x, y, z = a_g.tolist()
+    s = float(sigma_mg)
+    return (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+            and not math.isnan(s))

@@ -122,6 +122,9 @@ def _flat_runs(v: np.ndarray, last_v: np.ndarray, run0: int) -> np.ndarray:
 
     Worked out only where a sample repeats its predecessor (rare in a noisy sensor, so this
     costs little beyond the comparison itself)."""
+    if len(v) == 1:  # one sample per arrival: the same count without the run bookkeeping
+        same0 = bool(v[0, 0] == last_v[0] and v[0, 1] == last_v[1] and v[0, 2] == last_v[2])
+        return np.array([run0 + 1 if same0 else 0], np.int64)
     same = np.empty(len(v), bool)
     same[0] = bool(np.all(v[0] == last_v))
     same[1:] = all3(v[1:] == v[:-1])
