@@ -213,7 +213,10 @@ class RunningMisfit:
     @property
     def q_g2(self) -> float:
         """The misfit variance of the norm (g^2)."""
-        return float(excess_g2(self.r2_g2, self.e2_g2, MISFIT_CHANCE))
+        # `misfit.excess_g2` in plain floats (it runs per window; numpy's per-call cost
+        # dominated): the same arithmetic, and np.maximum(x, 0.0)'s result for -0.0 and NaN
+        x = self.r2_g2 - MISFIT_CHANCE * self.e2_g2
+        return 0.0 if x <= 0.0 else float(x)
 
     @property
     def extra_mg2(self) -> float:
@@ -250,10 +253,11 @@ class RunningMisfit:
     def restate(self) -> bool:
         """The misfit in force takes the current one if that moved by more than MISFIT_STEP
         (relative, in sigma) or MISFIT_STEP_MG; True if it did."""
-        old, new = math.sqrt(self.said_mg2), math.sqrt(self.extra_mg2)
+        extra_mg2 = self.extra_mg2  # once: it is the same both times
+        old, new = math.sqrt(self.said_mg2), math.sqrt(extra_mg2)
         if abs(new - old) <= max(MISFIT_STEP * old, MISFIT_STEP_MG):
             return False
-        self.said_mg2 = self.extra_mg2
+        self.said_mg2 = extra_mg2
         return True
 
     def to_dict(self) -> dict:
