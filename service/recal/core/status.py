@@ -212,8 +212,10 @@ class RunningMisfit:
 
     @property
     def q_g2(self) -> float:
-        """The misfit variance of the norm (g^2)."""
-        return float(excess_g2(self.r2_g2, self.e2_g2, MISFIT_CHANCE))
+        """The misfit variance of the norm (g^2): `excess_g2` in plain floats (read twice per
+        still window, where numpy's per-call cost would dominate; max keeps a NaN as
+        np.maximum does)."""
+        return max(float(self.r2_g2) - MISFIT_CHANCE * float(self.e2_g2), 0.0)
 
     @property
     def extra_mg2(self) -> float:
