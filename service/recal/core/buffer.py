@@ -103,6 +103,9 @@ class Coverage:
                 "cells_total": self.cells_total, "windows": self.windows, "level_g": self.level_g}
 
 
+_NEXT2 = np.array([1, 2])
+
+
 def cell_of(u: np.ndarray, grid: int) -> np.ndarray:
     """Cube-face grid cell of each direction u (M,3): face = signed dominant axis, then an
     n x n grid over the other two coordinates divided by the dominant one."""
@@ -111,7 +114,7 @@ def cell_of(u: np.ndarray, grid: int) -> np.ndarray:
     rows = np.arange(len(u))
     dom = u[rows, ax]
     face = 2 * ax + (dom < 0)
-    others = np.stack([u[rows, (ax + 1) % 3], u[rows, (ax + 2) % 3]], axis=1)
+    others = u[rows[:, None], (ax[:, None] + _NEXT2) % 3]  # the two other axes, in order
     uv = others / np.maximum(np.abs(dom), 1e-12)[:, None]  # in [-1, 1]
     ij = np.clip(((uv + 1.0) * 0.5 * grid).astype(np.int64), 0, grid - 1)
     return face * grid * grid + ij[:, 0] * grid + ij[:, 1]

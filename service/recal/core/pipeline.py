@@ -484,8 +484,8 @@ class Pipeline:
             w = chunk.w
             chunk.sigma_mg = predicted_sigma_mg(self.model, p, cov, w.v,
                                                 self.covariates(w.t_us, w.aux), form)
-        r_g = float(chunk.norm[i]) - 1.0
-        sigma_c_mg = float(chunk.sigma_mg[i])
+        r_g = chunk.norm_at(i) - 1.0
+        sigma_c_mg = chunk.sigma_at(i)
         s0 = self.model.s0
         noise_g2 = var / max(n, 1) / (s0 * s0) if math.isfinite(var) else 0.0
         misfit = self.watch.misfit

@@ -116,6 +116,8 @@ class WindowChunk:
     norm: np.ndarray | None = None  # calibrated norms (g), for the self-watch
     sigma_mg: np.ndarray | None = None  # their predicted error, when the self-watch asks
     z: np.ndarray | None = None
+    _norm_l: list[float] | None = None
+    _sigma_l: list[float] | None = None
 
     @classmethod
     def of(cls, model: SensorModel, p: np.ndarray, covariates: CovariatesOf,
@@ -134,6 +136,19 @@ class WindowChunk:
 
     def __len__(self) -> int:
         return len(self.ok)
+
+    def norm_at(self, i: int) -> float:
+        """norm[i] as a Python float (lists made once per chunk: the self-watch reads one
+        window at a time, and indexing numpy per window costs more than the list)."""
+        if self._norm_l is None:
+            self._norm_l = self.norm.tolist()
+        return self._norm_l[i]
+
+    def sigma_at(self, i: int) -> float:
+        """sigma_mg[i] as a Python float (as `norm_at`)."""
+        if self._sigma_l is None:
+            self._sigma_l = self.sigma_mg.tolist()
+        return self._sigma_l[i]
 
     def rows(self, c0: int, c1: int) -> list[tuple]:
         """(ok, v, aux, t_us, n, var, dir, run, cell) of the batch's windows c0..c1."""
