@@ -163,7 +163,8 @@ _F_CAL_DETECTOR = 7
 _F_CAL_STATUS = 8
 _F_CAL_SIGMA = 9
 _F_CAL_T_DEV = 10
-# The compact form (the log's): first stamp + int32 deltas, values as int32 fixed point.
+# The compact form (the log's): a first stamp and differences, values as integers (counts,
+# micro-g) stored as differences from the sample before, as zigzag varints (sint64).
 _F_T0_US = 11
 _F_DT_US = 12
 _F_X_FIX, _F_Y_FIX, _F_Z_FIX = 13, 14, 15
