@@ -65,4 +65,4 @@ def test_two_sensors_two_wire_formats_each_exactly_once(tmp_path: Path) -> None:
                                       for i in range(0, len(raw), 1000)])
         cal = rec.read_all_calibrated(mcap, sid)
         np.testing.assert_array_equal(cal.t_us, ref.t_us)
-        assert np.max(np.abs(cal.a_g - ref.a_g)) <= 1e-9
+        assert np.max(np.abs(cal.a_g - ref.a_g)) <= 0.5e-6 + 1e-9  # (logged to the micro-g)
