@@ -149,6 +149,7 @@ def test_fixture_of_the_first_form_reads_back() -> None:
     assert rec.summary(FIXTURE).message_count > 2000
 
 
+@pytest.mark.float_sensitive
 def test_fixture_of_the_first_form_replays_to_what_its_live_run_logged(tmp_path: Path) -> None:
     out = tmp_path / "again.mcap"
     summary = replay(FIXTURE, out, progress=False)
@@ -162,7 +163,12 @@ def test_fixture_of_the_first_form_replays_to_what_its_live_run_logged(tmp_path:
     assert np.array_equal(rec.read_all_raw(out, SID).v, rec.read_all_raw(FIXTURE, SID).v)
     live_states = [o["params"] for _, o, _ in rec.iter_json(FIXTURE, f"/{SID}/calibration")]
     again_states = [o["params"] for _, o, _ in rec.iter_json(out, f"/{SID}/calibration")]
-    assert again_states == live_states
+    # the fixture was written on another CPU: the same parameters, to the last bits' worth
+    assert len(again_states) == len(live_states)
+    for a, b in zip(again_states, live_states, strict=True):
+        assert a.keys() == b.keys()
+        for name in a:
+            assert a[name] == pytest.approx(b[name], rel=1e-9, abs=1e-9), name
     assert FIXTURE.stat().st_size > 2 * out.stat().st_size  # (plot and setup as they were)
 
 
