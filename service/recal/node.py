@@ -862,7 +862,6 @@ def make_node(settings: NodeSettings, sink: Sink,
     return node if node is not None else CalibrationNode(settings, sink)
 
 
-
 def _finite_one(a_g: np.ndarray, sigma_mg: float) -> bool:
     """Whether one sample's three values are finite and its sigma finite or inf (what
     `CalibrationNode._guard` lets through unchanged), with scalar checks."""

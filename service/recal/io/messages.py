@@ -79,7 +79,7 @@ writer logs: a column is written either in its float64 field or in its compact o
 the first stamp and the differences; raw readings that are all integers (ADC counts) and
 calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g) are
 differences from the sample before (the first from 0), all as zigzag varints, which a few
-numpy passes write and read (`zigzag_varints`, `unzigzag_varints`); a column with a value
+numpy passes write and read (`zigzag_varints_many`, `unzigzag_varints`); a column with a value
 that is not finite or beyond +-2147 g stays in float64. Differences make most varints one or
 two bytes, and zstd, restarted at every one-second chunk, finds little else to take. The bus
 keeps the float64 form: one sample is cheapest to encode that way, and subscribers read
@@ -480,14 +480,9 @@ def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
     return out
 
 
-def zigzag_varints(values: np.ndarray) -> bytes:
-    """One column as `zigzag_varints_many` writes it."""
-    return zigzag_varints_many([values])[0]
-
-
 def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
-    """`zigzag_varints` back (a packed run of bytes) as int64; ValueError if it ends inside a
-    varint or a varint is longer than 10 bytes."""
+    """A column of `zigzag_varints_many` back (a packed run of bytes) as int64; ValueError
+    if it ends inside a varint or a varint is longer than 10 bytes."""
     if run.size == 0:
         return np.zeros(0, np.int64)
     last = run < 0x80
@@ -533,9 +528,7 @@ def _join(parts: list[Any]) -> bytes:
 
 def _deltas(values: np.ndarray) -> np.ndarray:
     """Each value minus the one before (the first as it is): what a delta field holds."""
-    out = np.array(values, np.int64)
-    out[1:] -= out[:-1].copy()
-    return out
+    return np.diff(np.asarray(values, np.int64), prepend=0)
 
 
 def _compact_axes(v: np.ndarray, scale: float, f_float: Sequence[int], f_fixed: Sequence[int]
