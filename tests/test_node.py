@@ -36,6 +36,7 @@ class MemorySink:
 
     def __init__(self) -> None:
         self.events: list[dict[str, Any]] = []
+        self.cal: list[CalibratedBatch] = []
         self.body: list[CalibratedBatch] = []
         self.states: list[dict[str, Any]] = []
 
@@ -44,7 +45,9 @@ class MemorySink:
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    topic: str = "calibrated") -> None:
-        if topic == "body":
+        if topic == "calibrated":
+            self.cal.append(batch)
+        elif topic == "body":
             self.body.append(batch)
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
@@ -172,20 +175,6 @@ def test_status_counts_one_sample_per_arrival_equal_those_of_large_batches() -> 
     assert counts[0].sum() == len(raw)  # every sample counted once
 
 
-class KeepingSink(MemorySink):
-    """A MemorySink that also keeps every calibrated batch."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.cal: list[CalibratedBatch] = []
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   topic: str = "calibrated") -> None:
-        super().calibrated(sensor_id, batch, log_time_ns, topic)
-        if topic == "calibrated":
-            self.cal.append(batch)
-
-
 def test_guard_and_status_events_one_sample_per_arrival_equal_those_of_large_batches() -> None:
     """The scalar guard and status path of one-sample arrivals: the same published values,
     statuses, sigma, not-finite count and events as 1000-sample batches, NaN and inf included."""
@@ -196,7 +185,7 @@ def test_guard_and_status_events_one_sample_per_arrival_equal_those_of_large_bat
     raw = RawBatch(raw.t_us, v, raw.aux, raw.aux_names)
     runs = []
     for batch in (1, 1000):
-        sink = KeepingSink()
+        sink = MemorySink()
         node = node_for(7.0, sink)
         feed(node, raw, batch)
         a = np.concatenate([c.a_g for c in sink.cal])
