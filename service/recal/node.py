@@ -169,7 +169,7 @@ class CalibrationNode(AlignmentRequests):
         self.samples_not_finite = 0
         self._status: Status | None = None  # of the last sample published
         self._tcfg: tb.TimebaseConfig | None = None  # the time base's, per rate
-        self._calibrated_once = False
+        self._said: Status | None = None  # the status the console last named
         self._unseen: tuple[tuple[str, ...], int, bool] = ((), 0, False)  # `_say_unseen`
         self.last_t_us: int | None = None
         self.last_state: dict[str, Any] | None = None
@@ -582,7 +582,8 @@ class CalibrationNode(AlignmentRequests):
 
     def _report_status(self, cal: CalibratedBatch, log_ns: int) -> None:
         """One line (``on_note``) and an event ``status_changed`` when the status becomes or stops
-        being suspect, and when the sensor is first calibrated."""
+        being suspect, and when the sensor is calibrated where the last line named another
+        status (first, or after a suspect status that cleared to held)."""
         st = cal.status
         first_new = int(st[0]) != self._status
         if len(st) == 1:  # one sample per arrival: nothing within the batch to compare
@@ -593,10 +594,10 @@ class CalibrationNode(AlignmentRequests):
         for i in points:
             old, new = self._status, Status(int(st[i]))
             self._status = new
-            first = new == Status.CALIBRATED and not self._calibrated_once
+            first = new == Status.CALIBRATED and self._said != Status.CALIBRATED
             if not (first or new == Status.SUSPECT or old == Status.SUSPECT):
                 continue
-            self._calibrated_once |= new == Status.CALIBRATED
+            self._said = new
             why = (" (the still windows contradict the calibration: re-fitting)"
                    if new == Status.SUSPECT else "")
             self._event("status_changed", int(cal.t_us[i]), log_ns, {

@@ -32,8 +32,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ACROSS_MAX", "ACROSS_SPHERE", "CHANCE_SDS", "across_factor", "chance",
-           "direction_features", "direction_sums", "excess_g2"]
+__all__ = ["ACROSS_MAX", "ACROSS_SPHERE", "CHANCE_SDS", "CROSS_AXIS_PRIOR_SD", "across_factor",
+           "chance", "direction_features", "direction_sums", "excess_g2", "unseen_cross_g2"]
 
 #: Most `across_factor` gives: directions so close to one plane or axis that the residual
 #: bounds nothing across it (sigma then ~10x the residual's excess).
@@ -44,6 +44,16 @@ ACROSS_SPHERE = 5.0
 _FEW = 3
 
 
+#: The sd of each symmetric cross-axis term (g at 1 g) a diagonal model is taken to leave
+#: unmodelled (`unseen_cross_g2`). Measured, not derived: of 0.2, 0.3 and 0.4 %, 0.3 % is the
+#: least that keeps sensors with +-1.5 deg of non-orthogonality within 1 % beyond 3 sigma at
+#: postures that do not show it, and the most that keeps sigma within 3x of the error on a
+#: sensor without it (bench/sigma_honesty.py, docs/performance.md). Datasheets' cross-axis
+#: sensitivity (+-1 % ADXL335 and ADXL345, +-2 % MPU-6050) also counts the die's rotation in
+#: its package, which gravity cannot see and no calibration error is; a sensor whose axes
+#: are further from orthogonal needs the cross-axis model (`recal discover` finds it where
+#: the postures show it).
+CROSS_AXIS_PRIOR_SD = 0.003
 #: How far above the noise a mean of squared residuals may lie by chance, in its sd (`chance`).
 CHANCE_SDS = 3.0
 
@@ -87,8 +97,7 @@ def across_factor(moments: np.ndarray, count: np.ndarray | float | None = None
         c = np.asarray(count, np.float64)
         g = g / np.maximum(c, 1.0)[..., None, None]
     s = g[..., :3, :3]
-    a_aa, a_af, a_ff = g[..., :6, :6], g[..., :6, 6:], g[..., 6:, 6:]
-    m = a_ff - np.swapaxes(a_af, -1, -2) @ np.linalg.pinv(a_aa, rcond=1e-10, hermitian=True) @ a_af
+    m = _cross_moment(g)
     lam_o = np.linalg.eigvalsh(s)[..., 0]
     lam_c = np.linalg.eigvalsh(0.5 * (m + np.swapaxes(m, -1, -2)))[..., 0]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -97,3 +106,38 @@ def across_factor(moments: np.ndarray, count: np.ndarray | float | None = None
     if count is not None:
         k = np.where(np.asarray(count) < _FEW, ACROSS_MAX, k)
     return float(k) if np.ndim(k) == 0 else k
+
+
+def _cross_moment(g: np.ndarray) -> np.ndarray:
+    """M (..., 3, 3): the second moment of the cross-axis features f after projecting out what
+    the diagonal model's own columns (u, u_k^2) explain of them (module doc), from mean
+    direction moments g (..., 9, 9)."""
+    a_aa, a_af, a_ff = g[..., :6, :6], g[..., :6, 6:], g[..., 6:, 6:]
+    left = np.swapaxes(a_af, -1, -2) @ np.linalg.pinv(a_aa, rcond=1e-10, hermitian=True)
+    return a_ff - left @ a_af  # the order of the products as before (the same bits)
+
+
+def unseen_cross_g2(moments: np.ndarray, count: float, detect_g2: float,
+                    prior_sd_g: float = CROSS_AXIS_PRIOR_SD) -> float:
+    """What a diagonal model's error across gravity may hide from the residual (g^2): the
+    vector error variance of symmetric cross-axis terms d (module doc) that a prior gives
+    (sd prior_sd_g each, `CROSS_AXIS_PRIOR_SD`) and the windows' directions do not rule out.
+
+    A residual within detect_g2 of the noise (what the misfit does not count) says
+    d^T M d <= detect_g2; taken as a Gaussian observation of M^(1/2) d with that variance, d's
+    covariance is P = (I / prior_sd^2 + M / detect_g2)^-1: the prior's where the directions
+    do not span the cross-axis features (postures near the axes), shrinking as they do. The
+    error D u at any orientation has |D u|^2 = |B(u) d|^2, B(u) linear in u with
+    trace(B^T B) = 2 and |B(u) e|^2 <= 4/3 for a unit e; so its mean square is at most
+    min(2 lambda_max(P), 4/3 trace(P)): 2 prior_sd^2 where nothing is seen. Moments: the sums
+    over `count` windows of `direction_features`' outer products (`direction_sums`)."""
+    if count < _FEW or not (detect_g2 > 0.0 and prior_sd_g > 0.0):
+        return 2.0 * prior_sd_g ** 2
+    g = np.asarray(moments, np.float64) / float(count)
+    m = _cross_moment(g)
+    info = np.eye(3) / prior_sd_g ** 2 + 0.5 * (m + m.T) / detect_g2
+    lam = np.linalg.eigvalsh(info)
+    if not np.all(np.isfinite(lam)) or lam[0] <= 0.0:
+        return 2.0 * prior_sd_g ** 2
+    p_eig = 1.0 / lam  # P's eigenvalues
+    return float(min(2.0 * p_eig.max(), 4.0 / 3.0 * p_eig.sum()))

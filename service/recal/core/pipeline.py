@@ -44,7 +44,7 @@ from recal.core.estimator import (
     innovations,
     update,
 )
-from recal.core.misfit import across_factor, direction_sums
+from recal.core.misfit import across_factor, direction_sums, unseen_cross_g2
 from recal.core.model import SensorModel
 from recal.core.outputs import JoinedStep, Marks, StepOutput, UpdateEvent, WatchEvent
 from recal.core.pipeline_config import PipelineConfig
@@ -59,6 +59,7 @@ from recal.core.refit import (
 )
 from recal.core.status import (
     MISFIT_MOVE_SDS,
+    RunningMisfit,
     Status,
     Watch,
     gross,
@@ -159,6 +160,7 @@ class Pipeline:
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
         self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
         self._finite_estimate: Estimate | None = None
+        self._converging_cache: tuple | None = None  # (estimate, model, `_converging`)
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -207,9 +209,21 @@ class Pipeline:
             return Status.BOOTSTRAPPING if len(self.buffer) else Status.UNCALIBRATED
         if life is _SUSPECT:
             return Status.SUSPECT
-        if not self.informed or self.watch.probation or self.unobserved:
+        if not self.informed or self.watch.probation or self.unobserved or self.converging:
             return Status.HELD
         return Status.CALIBRATED
+
+    @property
+    def converging(self) -> tuple[str, ...]:
+        """The offsets and scales the data observed but do not yet know to UNPINNED_MG at 1 g
+        (`_converging`): status held while any."""
+        est = self.estimate
+        if est is None:
+            return ()
+        cached = self._converging_cache
+        if cached is None or cached[0] is not est or cached[1] is not self.model:
+            cached = self._converging_cache = (est, self.model, _converging(self.model, est))
+        return tuple(n for n in cached[2] if n not in self.unobserved)
 
     def doubt(self) -> None:
         """A moment of doubt (the device's clock restarted, the state came from a checkpoint,
@@ -360,6 +374,8 @@ class Pipeline:
                       "probation": self.watch.probation},
             # parameters no data observed (status held), and sigma's share of misfit
             "unobserved": list(self.unobserved),
+            # parameters observed but not yet known to UNPINNED_MG (status held)
+            "converging": list(self.converging),
             "misfit_mg": math.sqrt(self.watch.misfit.said_mg2),
         }
 
@@ -492,7 +508,7 @@ class Pipeline:
         # a window that turned while taken (two poses in one mean: `bootstrap.TURN_SD_G`)
         # says nothing of the calibration, however far its norm
         turned = math.isfinite(var) and var > (TURN_SD_G * s0) ** 2
-        if not turned and gross(r_g, sigma_c_mg ** 2 + misfit.said_mg2 + 1e6 * noise_g2):
+        if not turned and gross(r_g, sigma_c_mg ** 2 + misfit.norm_mg2 + 1e6 * noise_g2):
             return True
         if ok and math.isfinite(sigma_c_mg):
             misfit.see(r_g, noise_g2 + (1e-3 * sigma_c_mg) ** 2 / 3.0)
@@ -663,8 +679,12 @@ class Pipeline:
             noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
             # how much more the vector can err than the buffer's norms show (`core.misfit`)
             a = self.model.correct(self.params, w.v, cov)
-            across = float(across_factor(direction_sums(a), len(a)))
-            self.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2, across)
+            sums = direction_sums(a)
+            across = float(across_factor(sums, len(a)))
+            # a diagonal model's cross-axis terms the postures leave unseen (`core.misfit`)
+            unseen = (0.0 if self.model.has("cross_axis") else
+                      unseen_cross_g2(sums, len(a), RunningMisfit.detect_g2(noise_g2)))
+            self.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2, across, unseen)
             # a fitted offset jump (a knock, a poisoned state) is an event, not a drift
             jumped = self.estimate is not None and self.estimate.step_us != before.step_us
             self.watch.misfit.moved(_moved_mg2(self.model, before, self.estimate)
@@ -810,6 +830,16 @@ def _unobserved(model: SensorModel, est: Estimate | None,
     sd_mg = 1e3 * np.sqrt(np.clip(np.diag(est.cov), 0, None)) / model.s0
     return tuple(model.names[i] for i in _offsets_and_scales(model)
                  if not observable[i] and sd_mg[i] > UNPINNED_MG)
+
+
+def _converging(model: SensorModel, est: Estimate) -> tuple[str, ...]:
+    """The offsets and scales whose sd (of the estimate) is worth more than UNPINNED_MG at 1 g:
+    the first updates of a bootstrap, or of a buffer of few postures, know them to tens of mg;
+    the output is held until the estimate is worth the word calibrated (sigma there is honest
+    but too wide to be of use, and far above the error it bounds)."""
+    sd_mg = 1e3 * np.sqrt(np.clip(np.diag(est.cov), 0, None)) / model.s0
+    return tuple(model.names[i] for i in _offsets_and_scales(model)
+                 if not sd_mg[i] <= UNPINNED_MG)
 
 
 def _offsets_and_scales(model: SensorModel) -> list[int]:

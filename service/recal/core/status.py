@@ -209,6 +209,7 @@ class RunningMisfit:
     moved_mg2: float = 0.0
     moved_at_us: int | None = None
     across: float = ACROSS_SPHERE
+    unseen_g2: float = 0.0
 
     @property
     def q_g2(self) -> float:
@@ -221,7 +222,21 @@ class RunningMisfit:
     @property
     def extra_mg2(self) -> float:
         """What the misfit adds to sigma^2 (mg^2): kappa (q + MISFIT_TRACK x q_f) + m."""
-        return 1e6 * self.across * (self.q_g2 + MISFIT_TRACK * self.fit_g2) + self.moved_mg2
+        return (1e6 * (self.across * (self.q_g2 + MISFIT_TRACK * self.fit_g2) + self.unseen_g2)
+                + self.moved_mg2)
+
+    @property
+    def norm_mg2(self) -> float:
+        """The misfit in force (mg^2) without what lies across gravity unseen (`unseen_g2`):
+        the norm of a still window shows none of that, so a gross contradiction is judged
+        without it (else the floor would hide another sensor's norm 24 mg off)."""
+        return max(self.said_mg2 - 1e6 * self.unseen_g2, 0.0)
+
+    @staticmethod
+    def detect_g2(noise_g2: float) -> float:
+        """The largest mean square a misfit can add to the buffer fit's residual unseen (g^2):
+        what `fitted` does not count beyond the windows' noise (noise_g2: their mean variance)."""
+        return (MISFIT_CHANCE - 1.0) * noise_g2 + (1e-3 * MISFIT_FIT_FLOOR_MG) ** 2
 
     def moved(self, excess_mg2: float, now_us: int) -> None:
         """An accepted update at now_us moved the offsets and scales by excess_mg2 (squared,
@@ -233,9 +248,12 @@ class RunningMisfit:
         self.moved_at_us = now_us
 
     def fitted(self, residual_rms_g: float, noise_g2: float,
-               across: float = ACROSS_SPHERE) -> None:
+               across: float = ACROSS_SPHERE, unseen_g2: float = 0.0) -> None:
         """An accepted update: its residual's rms over the buffer, the mean noise variance of
-        the buffer's window means (g^2) and kappa of their directions."""
+        the buffer's window means (g^2), kappa of their directions and what terms the model
+        lacks may err unseen at them (`misfit.unseen_cross_g2`, g^2; 0: none)."""
+        if math.isfinite(unseen_g2):
+            self.unseen_g2 = unseen_g2
         if math.isfinite(residual_rms_g) and math.isfinite(noise_g2):
             self.fit_g2 = float(excess_g2(residual_rms_g ** 2, MISFIT_CHANCE * noise_g2
                                           + (1e-3 * MISFIT_FIT_FLOOR_MG) ** 2))
@@ -263,7 +281,8 @@ class RunningMisfit:
     def to_dict(self) -> dict:
         return {"r2_g2": self.r2_g2, "e2_g2": self.e2_g2, "n": self.n,
                 "said_mg2": self.said_mg2, "fit_g2": self.fit_g2, "moved_mg2": self.moved_mg2,
-                "moved_at_us": self.moved_at_us, "across": self.across}
+                "moved_at_us": self.moved_at_us, "across": self.across,
+                "unseen_g2": self.unseen_g2}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> RunningMisfit:
@@ -273,7 +292,7 @@ class RunningMisfit:
                    float(d.get("said_mg2", 0.0)), float(d.get("fit_g2", 0.0)),
                    float(d.get("moved_mg2", 0.0)),
                    None if d.get("moved_at_us") is None else int(d["moved_at_us"]),
-                   float(d.get("across", ACROSS_SPHERE)))
+                   float(d.get("across", ACROSS_SPHERE)), float(d.get("unseen_g2", 0.0)))
 
 
 def gross(r_g: float, sigma2_mg2: float) -> bool:
