@@ -74,6 +74,11 @@ CASES: tuple[Case, ...] = (
          lambda rng: _digital(rng, cross_axis_deg=1.5), lacks="cross_axis"),
     Case("analog 12-bit, sagging supply", _analog_supply,
          wearer={"vdd_start_v": 3.3, "vdd_end_v": 2.9}, lacks="ratiometric[vdd]"),
+    # where the model describes the sensor, other kinds of sensor and wearer
+    Case("phone m/s2", lambda rng: sensor_type("phone-ms2", rng)),
+    Case("cross-axis 1.5 deg, full model", lambda rng: _digital(rng, cross_axis_deg=1.5),
+         model=SensorModel.full),
+    Case("upright only", _digital, wearer={"upright_only": True}),
 )
 
 

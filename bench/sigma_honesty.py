@@ -57,6 +57,7 @@ class Case:
     upright: bool = False
     event: str | None = None
     align: bool = False  # a cross-axis sensor: its frame's rotation is no calibration error
+    poses: bool = False  # a lab's six positions twice over, no prior (`_six_poses`)
 
 
 def _plain(rng: np.random.Generator) -> sim.SensorSpec:
@@ -79,7 +80,32 @@ CASES: dict[str, Case] = {
     "the same, its clock restarting (the node doubts)": Case(_plain, event="swap+doubt"),
     "poisoned checkpoint (offset x +0.39 g)": Case(_plain, event="poisoned"),
     "another sensor's checkpoint": Case(_plain, event="foreign"),
+    "six clean poses twice, no prior (lab)": Case(_plain, poses=True),
 }
+
+#: The lab stream (`_six_poses`): each pose held this long, a hand's turn between them.
+POSE_HOLD_S = 5.0
+POSE_TURN_S = 2.0
+_SIX = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+
+
+def _six_poses(spec: sim.SensorSpec, seed: int) -> tuple[RawBatch, np.ndarray]:
+    """The six positions held POSE_HOLD_S each, then again (the second round is what a lab
+    measures once calibrated), a hand's turn of POSE_TURN_S between poses; (raw, truth)."""
+    rng = np.random.default_rng(seed)
+    dirs = np.concatenate([_SIX, _SIX])
+    parts = []
+    for i, d in enumerate(dirs):
+        parts.append(np.tile(d, (int(POSE_HOLD_S * RATE_HZ), 1)))
+        if i + 1 < len(dirs):
+            s = np.linspace(0.0, 1.0, int(POSE_TURN_S * RATE_HZ))[:, None]
+            mid = (1 - s) * d + s * dirs[i + 1] + np.array([0.3, 0.2, 0.25])
+            mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+            parts.append(mid * (1 + 0.4 * np.sin(np.pi * s)))  # a hand's push and stop
+    a = np.concatenate(parts)
+    v = sim.forward_model(a, spec, rng=rng)
+    t = np.arange(len(v), dtype=np.int64) * round(1e6 / RATE_HZ)
+    return RawBatch(t, v, np.zeros((len(v), 0))), a
 
 
 def _pipe(spec: sim.SensorSpec, full: bool, aux: tuple[str, ...]) -> Pipeline:
@@ -113,6 +139,8 @@ def _seconds(out: CalibratedBatch, truth: np.ndarray) -> tuple[np.ndarray, ...]:
 def run(name: str, case: Case, minutes: float, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     spec = case.spec(rng)
+    if case.poses:
+        return _scored(name, seed, spec, *_six_poses(spec, seed), case)
     wearer = sim.WearerSpec(upright_only=case.upright, temp_excursion_every_h=0.5)
     res = sim.simulate(minutes / 60, RATE_HZ, seed, spec, wearer)
     truth, raw = res.truth.a_true_g, res.raw
@@ -152,6 +180,21 @@ def run(name: str, case: Case, minutes: float, seed: int) -> dict:
     if case.event == "swap+doubt":  # the whole recording in the table
         out = CalibratedBatch.concat([first, out])
         truth, event_s = res.truth.a_true_g, len(first) / RATE_HZ
+    return _row(name, seed, case, spec, pipe, out, truth, event_s, cpu)
+
+
+def _scored(name: str, seed: int, spec: sim.SensorSpec, raw: RawBatch, truth: np.ndarray,
+            case: Case) -> dict:
+    """A stream that is not a simulated wearer (the lab's poses) through a pipeline without
+    a prior, scored as any case."""
+    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), SensorModel.diagonal(), None)
+    t0 = time.process_time()
+    out = _stream(pipe, raw)
+    return _row(name, seed, case, spec, pipe, out, truth, None, time.process_time() - t0)
+
+
+def _row(name: str, seed: int, case: Case, spec: sim.SensorSpec, pipe: Pipeline,
+         out: CalibratedBatch, truth: np.ndarray, event_s: float | None, cpu: float) -> dict:
     if case.align:  # the best rotation (gravity cannot see one), fitted on the second half
         h = len(out) // 2
         rot, _ = Rotation.align_vectors(truth[h::10], out.a_g[h::10])

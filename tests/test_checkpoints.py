@@ -758,7 +758,10 @@ def test_checkpoint_from_the_old_code_restores_and_continues(case: str) -> None:
     old_status = _unruns(want["status_runs"])
     calibrated_now = got["status"] == Status.CALIBRATED
     assert np.all(old_status[calibrated_now] == Status.CALIBRATED)  # never less cautious
-    assert got["status"][-1] == old_status[-1]  # and it got there by the end
+    # and it got there by the end, unless an offset or scale is still known no better than
+    # 5 mg at 1 g (held: `Pipeline.converging`, a rule the old code did not have)
+    assert got["status"][-1] == old_status[-1] or (got["status"][-1] == Status.HELD
+                                                   and pipe.converging), pipe.converging
     end = _without_later_parts(json.loads(json.dumps(pipe.state_dict())))
     _assert_state_close(end["estimate"], fx["end_state"]["estimate"], "state.estimate")
     assert end["counts"] == fx["end_state"]["counts"]

@@ -25,7 +25,7 @@ from recal.samples import rebatch
 from recal.sim import error_1s_mg
 
 hc = load_bench("honesty_cases")
-CASE = {c.lacks or "clean": c for c in hc.CASES}
+CASE = {c.lacks: c for c in hc.CASES if c.lacks} | {"clean": hc.CASES[0]}  # clean digital
 
 
 @cache

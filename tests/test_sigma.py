@@ -83,8 +83,11 @@ def test_sigma_widens_where_the_model_lacks_an_effect_and_not_on_clean_data() ->
     effect sigma is what the covariance says."""
     res_c, out_c, pipe_c = _temperature_run(False)
     res_t, out_t, pipe_t = _temperature_run(True)
-    assert pipe_c.summary()["misfit_mg"] < 0.5, pipe_c.summary()["misfit_mg"]
-    assert pipe_t.summary()["misfit_mg"] > 1.0, pipe_t.summary()["misfit_mg"]
+    # what the residuals show (the misfit without the floor for unseen cross-axis terms,
+    # which the diagonal model carries on clean data too: at most 2 x 0.3 %^2)
+    assert np.sqrt(pipe_c.watch.misfit.norm_mg2) < 0.5, pipe_c.watch.misfit.norm_mg2
+    assert pipe_c.summary()["misfit_mg"] <= np.sqrt(2) * 3.0 + 0.5
+    assert np.sqrt(pipe_t.watch.misfit.norm_mg2) > 1.0, pipe_t.watch.misfit.norm_mg2
     e_t, s_t, cal_t = _err_1s(out_t, res_t.truth.a_true_g)
     late = np.arange(len(e_t)) >= 20 * 60
     assert np.count_nonzero(cal_t & late) > 0

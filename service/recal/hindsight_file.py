@@ -31,7 +31,7 @@ from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.pipeline_config import PipelineConfig
-from recal.core.status import Status, predicted_sigma_mg, sigma_form
+from recal.core.status import UNPINNED_MG, Status, predicted_sigma_mg, sigma_form, unsettled
 from recal.discovery_report import misfit_dict, misfit_words
 from recal.errors import RecordingError
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
@@ -108,7 +108,8 @@ def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
             "gain_reference": ref,
             "described": fit.model.describe(fit.p, ref["counts_per_g"]),
             "sd": dict(zip(fit.model.names, sd.tolist(), strict=True)),
-            "held": list(fit.held), "windows": fit.windows, "windows_dropped": fit.dropped,
+            "held": list(fit.held), "unsettled": list(unsettled(fit.model, fit.cov)),
+            "windows": fit.windows, "windows_dropped": fit.dropped,
             "residual_rms_mg": fit.residual_rms_mg, "misfit": misfit_dict(fit.misfit)}
 
 
@@ -127,6 +128,9 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
     if s["held"]:
         lines.append(f"  held at nominal (the recording's poses cannot determine them): "
                      f"{', '.join(s['held'])}")
+    if s.get("unsettled"):
+        lines.append(f"  every sample held, not calibrated: {', '.join(s['unsettled'])} known "
+                     f"no better than {UNPINNED_MG:g} mg at 1 g (sigma carries it)")
     mis = s.get("misfit")
     if mis and mis["well_above_noise"]:
         suspect = s.get("samples_suspect", 0)
@@ -157,10 +161,11 @@ class Corrected:
         self.fit = fit
         self.det_cfg = cfg.detector(fit.model.s0)
         self.state = det.init_state(self.det_cfg)
-        # one fit for the whole recording: calibrated where the poses determined a parameter,
-        # else the nominal values are all there is (held); the predicted error from its
-        # covariance, as the live node's
-        self.status = Status.CALIBRATED if fit.free.any() else Status.HELD
+        # one fit for the whole recording: calibrated where the poses determined a parameter
+        # and every offset and scale is known to UNPINNED_MG (`status.unsettled`, as live),
+        # else held; the predicted error from its covariance, as the live node's
+        self.status = (Status.CALIBRATED if fit.free.any() and not unsettled(fit.model, fit.cov)
+                       else Status.HELD)
         self.form = sigma_form(fit.model, fit.p, fit.cov)
         self.samples_suspect = 0
 

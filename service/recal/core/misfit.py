@@ -26,6 +26,10 @@ over the windows' directions u_i:
 kappa = max(kappa_o, kappa_c), at most ACROSS_MAX: directions that do not span (a wearer
 who never lies down) bound nothing across the unseen axis; the cap is where sigma stops
 growing with that ignorance.
+
+kappa multiplies a residual, and postures near the axes leave cross-axis terms none
+(f_i ~ 0): for a model without them `unseen_cross_g2` gives the floor a prior on d
+(CROSS_AXIS_PRIOR_SD) leaves where the directions do not rule d out.
 """
 
 from __future__ import annotations

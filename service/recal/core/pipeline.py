@@ -59,13 +59,16 @@ from recal.core.refit import (
 )
 from recal.core.status import (
     MISFIT_MOVE_SDS,
+    UNPINNED_MG,
     RunningMisfit,
     Status,
     Watch,
     gross,
+    offsets_and_scales,
     predicted_sigma_mg,
     refill,
     sigma_form,
+    unsettled,
 )
 from recal.core.triaxial import norm3
 from recal.core.windower import WindowerState, WindowSums, cut
@@ -216,13 +219,13 @@ class Pipeline:
     @property
     def converging(self) -> tuple[str, ...]:
         """The offsets and scales the data observed but do not yet know to UNPINNED_MG at 1 g
-        (`_converging`): status held while any."""
+        (`status.unsettled`): status held while any."""
         est = self.estimate
         if est is None:
             return ()
         cached = self._converging_cache
         if cached is None or cached[0] is not est or cached[1] is not self.model:
-            cached = self._converging_cache = (est, self.model, _converging(self.model, est))
+            cached = self._converging_cache = (est, self.model, unsettled(self.model, est.cov))
         return tuple(n for n in cached[2] if n not in self.unobserved)
 
     def doubt(self) -> None:
@@ -815,9 +818,6 @@ def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
     return {"source": "fit", "counts_per_g": float(np.mean(p[model.slice(Scale())]))}
 
 
-#: An offset or scale the data did not observe holds the status only if the estimate's sd of it
-#: is worth more than this at 1 g (a tight pre-calibration pins it without data).
-UNPINNED_MG = 5.0
 
 
 def _unobserved(model: SensorModel, est: Estimate | None,
@@ -828,24 +828,8 @@ def _unobserved(model: SensorModel, est: Estimate | None,
     if est is None or len(observable) != model.size:
         return ()
     sd_mg = 1e3 * np.sqrt(np.clip(np.diag(est.cov), 0, None)) / model.s0
-    return tuple(model.names[i] for i in _offsets_and_scales(model)
+    return tuple(model.names[i] for i in offsets_and_scales(model)
                  if not observable[i] and sd_mg[i] > UNPINNED_MG)
-
-
-def _converging(model: SensorModel, est: Estimate) -> tuple[str, ...]:
-    """The offsets and scales whose sd (of the estimate) is worth more than UNPINNED_MG at 1 g:
-    the first updates of a bootstrap, or of a buffer of few postures, know them to tens of mg;
-    the output is held until the estimate is worth the word calibrated (sigma there is honest
-    but too wide to be of use, and far above the error it bounds)."""
-    sd_mg = 1e3 * np.sqrt(np.clip(np.diag(est.cov), 0, None)) / model.s0
-    return tuple(model.names[i] for i in _offsets_and_scales(model)
-                 if not sd_mg[i] <= UNPINNED_MG)
-
-
-def _offsets_and_scales(model: SensorModel) -> list[int]:
-    """The indices of the model's offsets and scales in p."""
-    return [i for e in (Offset(), Scale()) if model.has(e.kind)
-            for i in range(model.slice(e).start, model.slice(e).stop)]
 
 
 def _moved_mg2(model: SensorModel, before: Estimate, after: Estimate | None) -> float:
@@ -855,7 +839,7 @@ def _moved_mg2(model: SensorModel, before: Estimate, after: Estimate | None) -> 
     Mahalanobis length under the covariance before, k the parameters."""
     if after is None:
         return 0.0
-    idx = _offsets_and_scales(model)
+    idx = offsets_and_scales(model)
     if not idx:
         return 0.0
     dp = (after.p - before.p)[idx]

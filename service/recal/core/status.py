@@ -8,11 +8,14 @@ Statuses (one per sample, `Status`; the numbers are the wire values of ``recal.S
 * ``bootstrapping`` (2): no estimate yet; quasi-static windows are being collected for the
   first fit. The output is the raw reading over a provisional scale.
 * ``calibrated`` (3): an estimate informed by data (an accepted update in which the windows,
-  not the prior, determined at least one parameter) and the self-watch has no objection.
+  not the prior, determined at least one parameter) whose offsets and scales are each known
+  to UNPINNED_MG at 1 g (`unsettled`), and the self-watch has no objection.
 * ``held`` (4): an estimate exists but no data informed it yet: the pre-calibration as given
   (a configured prior), or the prior again after a self-watch reset, until an accepted update
   observes a parameter; or data did not observe an offset or scale the prior does not pin
-  (`Pipeline.unobserved`); or a moment of doubt is not yet over (below).
+  (`Pipeline.unobserved`); or data observed one but do not know it to UNPINNED_MG yet
+  (`Pipeline.converging`: the first minutes after a bootstrap or a reset); or a moment of
+  doubt is not yet over (below).
 * ``suspect`` (5): the self-watch's alarm (`Watch`): the estimator fitted an offset jump (a
   knock, or another sensor now under this id: held for JUMP_REPEAT_S), or the still windows
   contradicted the estimate beyond its uncertainty for a sustained time (a second jump
@@ -45,7 +48,9 @@ calibrated vector that the parameters' uncertainty causes: the estimate's covari
 (Lötters eq. 11b) through the correction's Jacobian J = da/dp at each sample,
 sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`RunningMisfit`: the still
 windows' norm residual beyond what the sensor's noise and C_e explain, the buffer fit's
-residual, the estimate's excess movement). The sensor's own noise on the sample is not in it.
+residual, the estimate's excess movement, and for a model without cross-axis terms what such
+terms may err across gravity where the postures cannot show them, `misfit.unseen_cross_g2`).
+The sensor's own noise on the sample is not in it.
 """
 
 from __future__ import annotations
@@ -60,14 +65,15 @@ import numpy as np
 
 from recal.core.buffer import WindowBuffer, Windows, cell_of
 from recal.core.effects import Covariates
-from recal.core.misfit import ACROSS_SPHERE, excess_g2
+from recal.core.misfit import ACROSS_SPHERE, CHANCE_SDS, excess_g2
 from recal.core.model import SensorModel
 from recal.core.triaxial import norm3
 
 __all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "GROSS_MIN_MG", "GROSS_SIGMAS",
            "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG", "PROBATION_WINDOWS", "SUSPECT_AFTER_S",
-           "RunningMisfit", "Status", "Watch",
-           "correction_jacobian", "predicted_sigma_mg", "refill", "sigma_form", "status_line"]
+           "UNPINNED_MG", "RunningMisfit", "Status", "Watch",
+           "correction_jacobian", "offsets_and_scales", "predicted_sigma_mg", "refill",
+           "sigma_form", "status_line", "unsettled"]
 
 
 class Status(IntEnum):
@@ -184,8 +190,15 @@ class RunningMisfit:
     MISFIT_DRIFT_S (how long a direction may go unobserved: a wearer keeps postures for
     minutes), m (`moved`), is that lag's variance.
 
-    sigma^2 = sigma_C^2 + kappa (q + MISFIT_TRACK x q_f) + m. Where the model fits, q, q_f
-    and m stay at 0 (the residual within chance of the noise) and sigma is sigma_C.
+    And what no residual can show: a model without cross-axis terms at postures that do not
+    reveal them (near the axes) errs across gravity by as much as a prior on those terms
+    allows, u (`unseen_g2`, `misfit.unseen_cross_g2` of the buffer's directions at each
+    accepted update; 0 for a model with them).
+
+    sigma^2 = sigma_C^2 + kappa (q + MISFIT_TRACK x q_f) + m + u. Where the model fits, q,
+    q_f and m stay at 0 (the residual within chance of the noise); u shrinks as the postures
+    cover the sphere. u lies across gravity: the gross test on a window's norm leaves it out
+    (`norm_mg2`).
 
     Attributes:
         r2_g2: running mean of the clipped squared residuals (g^2).
@@ -199,6 +212,7 @@ class RunningMisfit:
         moved_mg2: how far the offsets and scales moved beyond what their covariance allows
             (mg at 1 g, squared), summed over the accepted updates with a decay of
             MISFIT_DRIFT_S of device time (`moved`); moved_at_us: the last accepted update.
+        unseen_g2: the floor for unseen cross-axis terms at the last accepted update (u).
     """
 
     r2_g2: float = 0.0
@@ -216,8 +230,18 @@ class RunningMisfit:
         """The misfit variance of the norm (g^2)."""
         # `misfit.excess_g2` in plain floats (it runs per window; numpy's per-call cost
         # dominated): the same arithmetic, and np.maximum(x, 0.0)'s result for -0.0 and NaN
-        x = self.r2_g2 - MISFIT_CHANCE * self.e2_g2
+        if self.n <= 0:
+            return 0.0  # nothing seen
+        x = self.r2_g2 - self.chance * self.e2_g2
         return 0.0 if x <= 0.0 else float(x)
+
+    @property
+    def chance(self) -> float:
+        """What chance allows the running mean of squares relative to the expected:
+        MISFIT_CHANCE, or over the first windows (a plain mean of n) more (`misfit.chance`:
+        one window 46 mg off at an expected 30 mg, right after a bootstrap, is no misfit)."""
+        few = 1.0 + CHANCE_SDS * math.sqrt(2.0 / max(self.n, 1))
+        return few if few > MISFIT_CHANCE else MISFIT_CHANCE
 
     @property
     def extra_mg2(self) -> float:
@@ -293,6 +317,27 @@ class RunningMisfit:
                    float(d.get("moved_mg2", 0.0)),
                    None if d.get("moved_at_us") is None else int(d["moved_at_us"]),
                    float(d.get("across", ACROSS_SPHERE)), float(d.get("unseen_g2", 0.0)))
+
+
+#: "calibrated" needs every offset and scale known to this at 1 g (sd of the estimate): one
+#: the data did not observe and the prior does not pin (`Pipeline.unobserved`), or one the
+#: data observed but not yet that well (`unsettled`), holds the status.
+UNPINNED_MG = 5.0
+
+
+def unsettled(model: SensorModel, cov: np.ndarray) -> tuple[str, ...]:
+    """The offsets and scales whose sd (cov: the parameters' covariance) is worth more than
+    UNPINNED_MG at 1 g (or is not finite): output is held, not calibrated, while any (the first
+    updates of a bootstrap know them to 20-30 mg: sigma honest but far above the error)."""
+    sd_mg = 1e3 * np.sqrt(np.clip(np.diag(cov), 0, None)) / model.s0
+    return tuple(model.names[i] for i in offsets_and_scales(model)
+                 if not sd_mg[i] <= UNPINNED_MG)
+
+
+def offsets_and_scales(model: SensorModel) -> list[int]:
+    """The indices of the model's offsets and scales in p."""
+    return [i for kind in ("offset", "scale") if model.has(kind)
+            for i in range(model.slice((kind, None)).start, model.slice((kind, None)).stop)]
 
 
 def gross(r_g: float, sigma2_mg2: float) -> bool:
