@@ -5,7 +5,8 @@
 
 Each case streams one simulated wearer through the core `Pipeline` in batches of 250 samples
 (what `recal run` does per message; `recal replay` joins messages and gives the same output
-bit for bit, tests/test_status.py), with the datasheet prior unless said. Per 1 s window whose
+bit for bit, tests/test_status.py), with the datasheet prior unless said; the lab case is six
+positions held POSE_HOLD_S each, twice over, without a prior (`_six_poses`). Per 1 s window whose
 samples are all marked calibrated: the error of the mean calibrated vector against the truth,
 against sigma_eff = sqrt(sigma^2 + n^2), sigma the mean predicted error of the second and n
 the sensor noise left in a 1 s mean (sigma speaks of the calibration only). Columns:
