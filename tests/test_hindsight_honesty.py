@@ -25,7 +25,8 @@ from recal.samples import rebatch
 from recal.sim import error_1s_mg
 
 hc = load_bench("honesty_cases")
-CASE = {c.lacks: c for c in hc.CASES if c.lacks} | {"clean": hc.CASES[0]}  # clean digital
+CASE = ({c.lacks: c for c in hc.CASES if c.lacks} | {"clean": hc.CASES[0]}  # clean digital
+        | {"upright": next(c for c in hc.CASES if c.wearer.get("upright_only"))})
 
 
 @cache
@@ -148,3 +149,18 @@ def test_the_honesty_metric_counts_calibrated_1s_windows_against_sigma_eff() -> 
     assert m["windows"] == 4 and m["calibrated"] == 3
     assert m["beyond_3"] == 2 / 3 and m["beyond_10"] == 1 / 3
     assert abs(m["error_rms_mg"] - np.sqrt((1 + 25 + 900) / 3)) < 1e-6
+
+
+def test_an_axis_the_recording_never_shows_from_both_sides_holds_every_sample() -> None:
+    """A wearer who never lies down: hindsight cannot determine s_z (held at nominal, the
+    prior's ~46 mg), so no sample is calibrated (7200 windows at sigma 53 mg were, before);
+    the summary and the console name it."""
+    _, fit, corrected, _, _, status, _ = _hindsight("upright")
+    assert corrected.status == Status.HELD and np.all(status == Status.HELD)
+    s = fit_summary(fit)
+    assert "s_z" in s["unsettled"]
+    lines = summary_lines({**s, "in": "x.mcap", "out": "y.mcap", "sensor_id": "hip",
+                           "samples": len(status), "seconds": 1.0, "samples_suspect": 0})
+    assert any("every sample held" in line and "s_z" in line for line in lines)
+    # the clean recording, every parameter known to 5 mg: calibrated as before
+    assert _hindsight("clean")[2].status == Status.CALIBRATED

@@ -529,3 +529,30 @@ def test_hindsight_output_says_calibrated_and_its_predicted_error(tmp_path: Path
     # a whole recording's fit: known to a few mg at most, and never nothing
     assert np.all(np.isfinite(cal.sigma_mg)) and 0 < cal.sigma_mg.min()
     assert cal.sigma_mg.max() < 5.0, cal.sigma_mg.max()
+
+
+def test_calibrated_needs_every_offset_and_scale_known_to_5_mg() -> None:
+    """`Pipeline.converging`: an estimate whose offsets and scales the data observed but know
+    no better than UNPINNED_MG at 1 g holds the status; the same parameters known well are
+    calibrated; the summary names them."""
+    from recal.core.status import UNPINNED_MG, unsettled
+
+    spec = _spec(3)
+    res = sim.simulate(40 / 60, RATE_HZ, 3, spec)
+    model = SensorModel.diagonal(S0)
+    p0 = model.nominal()
+    p0[model.slice(model.effects[0])] = spec.zero_g_counts  # offsets first: zero-g
+    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0))
+    for i in range(0, len(res.raw), 500):  # bounded: 40 min in batches
+        pipe.step(res.raw[i:i + 500])
+    assert pipe.status == Status.CALIBRATED and pipe.converging == ()
+    est = pipe.estimate
+    assert est is not None
+    # one scale's sd just past the limit: held, and named; just within it: calibrated
+    k = pipe.model.names.index("s_y")
+    for factor, status, names in ((1.01, Status.HELD, ("s_y",)), (0.99, Status.CALIBRATED, ())):
+        cov = est.cov.copy()
+        cov[k, k] = (factor * UNPINNED_MG * pipe.model.s0 / 1e3) ** 2
+        pipe.estimate = replace(est, cov=cov)
+        assert pipe.converging == names == unsettled(pipe.model, cov)
+        assert pipe.status == status and pipe.summary()["converging"] == list(names)
