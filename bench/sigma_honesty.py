@@ -2,11 +2,15 @@
 
     python bench/sigma_honesty.py           # 60 min per case at 25 Hz (a few minutes)
     python bench/sigma_honesty.py --quick   # 20 min per case
+    python bench/sigma_honesty.py --live    # through the live node (`CalibrationNode`)
 
 Each case streams one simulated wearer through the core `Pipeline` in batches of 250 samples
 (what `recal run` does per message; `recal replay` joins messages and gives the same output
 bit for bit, tests/test_status.py), with the datasheet prior unless said; the lab case is six
-positions held POSE_HOLD_S each, twice over, without a prior (`_six_poses`). Per 1 s window whose
+positions held POSE_HOLD_S each, twice over, without a prior (`_six_poses`). ``--live`` runs
+the cases without a checkpoint or lab stream through `CalibrationNode` (`run_live`: its time
+base, channel layout and console), a swap "with its clock restarting" as a device time that
+restarts at the swap, which the node's time base sees. Per 1 s window whose
 samples are all marked calibrated: the error of the mean calibrated vector against the truth,
 against sigma_eff = sqrt(sigma^2 + n^2), sigma the mean predicted error of the second and n
 the sensor noise left in a 1 s mean (sigma speaks of the calibration only). Columns:
@@ -36,11 +40,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from recal import sim
+from recal.config import PipelineSettings
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status
+from recal.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.simulated_sensor import sensor_type
 
@@ -109,12 +115,71 @@ def _six_poses(spec: sim.SensorSpec, seed: int) -> tuple[RawBatch, np.ndarray]:
     return RawBatch(t, v, np.zeros((len(v), 0))), a
 
 
-def _pipe(spec: sim.SensorSpec, full: bool, aux: tuple[str, ...]) -> Pipeline:
+def _model_prior(spec: sim.SensorSpec, full: bool) -> tuple[SensorModel, Prior]:
     s0 = float(spec.counts_per_g or 1.0)
     model = SensorModel.full(s0) if full else SensorModel.diagonal(s0)
     p0 = model.nominal()
     p0[model.slice(model.effects[0])] = spec.zero_g_counts  # offsets first: zero-g
-    return Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0), aux)
+    return model, Prior.default(model, p0)
+
+
+def _pipe(spec: sim.SensorSpec, full: bool, aux: tuple[str, ...]) -> Pipeline:
+    return Pipeline(PipelineConfig(rate_hz=RATE_HZ), *_model_prior(spec, full), aux)
+
+
+class _Kept:
+    """A real `sinks.Sink` that keeps the calibrated batches a node publishes."""
+
+    def __init__(self) -> None:
+        self.batches: list[CalibratedBatch] = []
+
+    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+        pass
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        if suffix == "calibrated":
+            self.batches.append(batch)
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        pass
+
+    def json(self, sensor_id: str, suffix: str, obj: dict, log_time_ns: int) -> None:
+        pass
+
+
+def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
+    """The case through the live node (`CalibrationNode`: time base, channel layout, the
+    pipeline), in messages of BATCH samples; a swap "with its clock restarting" restarts the
+    device time at the swap, and the node's own time base doubts there."""
+    if case.poses or case.event in ("poisoned", "foreign"):
+        raise ValueError(f"{name}: not a live case (no checkpoint or lab stream here)")
+    spec = case.spec(np.random.default_rng(seed))
+    wearer = sim.WearerSpec(upright_only=case.upright, temp_excursion_every_h=0.5)
+    res = sim.simulate(minutes / 60, RATE_HZ, seed, spec, wearer)
+    raw, event_s = res.raw, None
+    if case.event in ("swap", "swap+doubt"):
+        other = sim.with_sensor(res, case.spec(np.random.default_rng(seed + 100)))
+        k = len(raw) // 2
+        t_us = raw.t_us.copy()
+        if case.event == "swap+doubt":  # the other device's clock starts near 0
+            t_us[k:] = t_us[k:] - t_us[k] + 1000
+        raw = RawBatch(t_us, np.concatenate([raw.v[:k], other.raw.v[k:]]), raw.aux,
+                       raw.aux_names)
+        event_s = k / RATE_HZ
+    model, prior = _model_prior(spec, case.full)
+    sink = _Kept()
+    node = CalibrationNode(NodeSettings("bench", PipelineSettings(), model, prior, RATE_HZ),
+                           sink)
+    t0 = time.process_time()
+    for i in range(0, len(raw), BATCH):  # the log time: arrival, one batch after another
+        node.process(raw[i:i + BATCH], 1_000_000 * i)
+    node.flush(1_000_000 * len(raw))
+    cpu = time.process_time() - t0
+    out = CalibratedBatch.concat(sink.batches)
+    assert node.pipeline is not None and len(out) == len(raw)
+    return _row(name, seed, case, spec, node.pipeline, out, res.truth.a_true_g, event_s, cpu)
 
 
 def _doubt(pipe: Pipeline) -> None:
@@ -224,14 +289,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="20 min per case, one seed")
     ap.add_argument("--seeds", type=int, default=2, help="wearers per case (default 2)")
+    ap.add_argument("--live", action="store_true",
+                    help="through the live node (`CalibrationNode`), the cases it can run")
     args = ap.parse_args()
     minutes, seeds = (20.0, 1) if args.quick else (60.0, args.seeds)
     print("case | seed | cal % | >3 sigma_eff % | >10 sigma_eff % | real/pred | err mg "
           "(2nd half) | misfit mg | unobserved | to suspect s | cal. s > 20 mg")
     print("---|---|---|---|---|---|---|---|---|---|---")
     for name, case in CASES.items():
+        if args.live and (case.poses or case.event in ("poisoned", "foreign")):
+            continue
         for seed in range(1, seeds + 1):
-            r = run(name, case, minutes, seed)
+            r = (run_live if args.live else run)(name, case, minutes, seed)
             ev = (f"{r['to_suspect_s']:.0f} | {r['cal_over_20mg']}" if "to_suspect_s" in r
                   else "- | -")
             print(f"{name} | {seed} | {r['cal_pct']:.0f} | {r['beyond3_pct']:.1f} | "

@@ -11,7 +11,7 @@ import numpy as np
 
 from recal.core.buffer import Windows
 from recal.core.effects import Covariates
-from recal.core.misfit import excess_g2
+from recal.core.misfit import chance, excess_g2
 from recal.core.model import SensorModel
 from recal.core.refit import WindowChunk
 from recal.core.status import MISFIT_CHANCE, RunningMisfit
@@ -21,14 +21,17 @@ def test_q_g2_is_excess_g2_bit_for_bit() -> None:
     rng = np.random.default_rng(7)
     r2 = np.concatenate([rng.uniform(0, 1e-5, 200), [0.0, 1e-300, np.inf, np.nan, 1e-6]])
     e2 = np.concatenate([rng.uniform(0, 1e-5, 200), [0.0, 0.0, 1.0, 1e-6, np.nan]])
-    for a, b in zip(r2.tolist(), e2.tolist(), strict=True):
-        got = RunningMisfit(r2_g2=a, e2_g2=b).q_g2
-        want = float(excess_g2(a, b, MISFIT_CHANCE))
-        assert type(got) is float
-        if math.isnan(want):
-            assert math.isnan(got)
-        else:
-            assert got == want and math.copysign(1.0, got) == math.copysign(1.0, want)
+    # past the first windows chance is MISFIT_CHANCE; over them, what a mean of n allows
+    for n, chance_n in ((1000, MISFIT_CHANCE), (72, MISFIT_CHANCE), (1, float(chance(1))),
+                        (5, float(chance(5))), (0, float(chance(1)))):
+        for a, b in zip(r2.tolist(), e2.tolist(), strict=True):
+            got = RunningMisfit(r2_g2=a, e2_g2=b, n=n).q_g2
+            want = float(excess_g2(a, b, chance_n))
+            assert type(got) is float
+            if math.isnan(want):
+                assert math.isnan(got)
+            else:
+                assert got == want and math.copysign(1.0, got) == math.copysign(1.0, want)
 
 
 def test_chunk_reads_one_window_as_the_arrays_hold() -> None:

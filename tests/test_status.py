@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from bench_modules import load_bench
 from recal import sim
 from recal.checkpoints import CheckpointError
 from recal.cli import main as cli_main
@@ -556,3 +557,17 @@ def test_calibrated_needs_every_offset_and_scale_known_to_5_mg() -> None:
         pipe.estimate = replace(est, cov=cov)
         assert pipe.converging == names == unsettled(pipe.model, cov)
         assert pipe.status == status and pipe.summary()["converging"] == list(names)
+
+
+def test_the_live_node_doubts_at_another_device_whose_clock_restarts() -> None:
+    """The bench's swap through `CalibrationNode` with the other device's clock starting near
+    0 at the swap: the node's time base sees the restart and doubts, so no calibrated second
+    is more than 20 mg off after it, suspect at the first contradicting still window; and the
+    node gives the core pipeline's rows (the bench's core run calls `doubt` itself)."""
+    sh = load_bench("sigma_honesty")
+    name = "the same, its clock restarting (the node doubts)"
+    live = sh.run_live(name, sh.CASES[name], 60.0, 2)
+    core = sh.run(name, sh.CASES[name], 60.0, 2)
+    assert live["cal_over_20mg"] == 0 and live["to_suspect_s"] <= 9.0, live
+    assert {k: v for k, v in live.items() if k != "cpu_s"} == {
+        k: v for k, v in core.items() if k != "cpu_s"}

@@ -163,7 +163,7 @@ class Pipeline:
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
         self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
         self._finite_estimate: Estimate | None = None
-        self._converging_cache: tuple | None = None  # (estimate, model, `_converging`)
+        self._converging_cache: tuple | None = None  # (estimate, model, `status.unsettled`)
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -816,8 +816,6 @@ def gain_reference(model: SensorModel, p: np.ndarray, from_prior: bool) -> dict:
     if from_prior or not model.has("scale"):
         return {"source": "prior", "counts_per_g": float(model.s0)}
     return {"source": "fit", "counts_per_g": float(np.mean(p[model.slice(Scale())]))}
-
-
 
 
 def _unobserved(model: SensorModel, est: Estimate | None,

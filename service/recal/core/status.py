@@ -230,8 +230,6 @@ class RunningMisfit:
         """The misfit variance of the norm (g^2)."""
         # `misfit.excess_g2` in plain floats (it runs per window; numpy's per-call cost
         # dominated): the same arithmetic, and np.maximum(x, 0.0)'s result for -0.0 and NaN
-        if self.n <= 0:
-            return 0.0  # nothing seen
         x = self.r2_g2 - self.chance * self.e2_g2
         return 0.0 if x <= 0.0 else float(x)
 
@@ -245,7 +243,7 @@ class RunningMisfit:
 
     @property
     def extra_mg2(self) -> float:
-        """What the misfit adds to sigma^2 (mg^2): kappa (q + MISFIT_TRACK x q_f) + m."""
+        """What the misfit adds to sigma^2 (mg^2): kappa (q + MISFIT_TRACK x q_f) + m + u."""
         return (1e6 * (self.across * (self.q_g2 + MISFIT_TRACK * self.fit_g2) + self.unseen_g2)
                 + self.moved_mg2)
 
