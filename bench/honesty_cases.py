@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from recal.core.model import SensorModel
 from recal.core.status import Status
-from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
+from recal.sim import SensorSpec, SimResult, WearerSpec, simulate, with_sensor
 from recal.simulated_sensor import sensor_type
 
 __all__ = ["CASES", "Case", "honesty"]
@@ -49,10 +49,17 @@ class Case:
     model: Callable[[float], SensorModel] = SensorModel.diagonal
     wearer: dict = field(default_factory=dict)
     lacks: str = ""
+    swap: bool = False  # another sensor of the same kind from half time on, under the same id
 
     def simulate(self, seed: int, hours: float = 2.0, rate_hz: float = 50.0) -> SimResult:
-        return simulate(hours, rate_hz, seed, self.sensor(np.random.default_rng(seed)),
-                        WearerSpec(**self.wearer))
+        r = simulate(hours, rate_hz, seed, self.sensor(np.random.default_rng(seed)),
+                     WearerSpec(**self.wearer))
+        if not self.swap:
+            return r
+        other = with_sensor(r, self.sensor(np.random.default_rng(seed + 100)))
+        k = len(r.raw) // 2
+        v = np.concatenate([r.raw.v[:k], other.raw.v[k:]])
+        return SimResult(replace(r.raw, v=v), r.truth)
 
 
 def _digital(rng: np.random.Generator, **over: object) -> SensorSpec:
@@ -80,6 +87,8 @@ CASES: tuple[Case, ...] = (
     Case("cross-axis 1.5 deg, full model", lambda rng: _digital(rng, cross_axis_deg=1.5),
          model=SensorModel.full),
     Case("upright only", _digital, wearer={"upright_only": True}),
+    # two sensors in one recording: one fit cannot describe both (a poor fit)
+    Case("another sensor at half time", _digital, lacks="another sensor", swap=True),
 )
 
 
