@@ -427,15 +427,18 @@ class Pipeline:
         merges into the latest slot is the buffer's call, one window at a time)."""
         marks, ue, watch = self._marks, self.cfg.update_every, self.bootstrapped
         add, fresh, buf, counts = self.buffer.add, self.fresh, self.buffer, self.counts
+        lo = chunk.lo
         for c, row in zip(range(c0, c1), chunk.rows(c0, c1), strict=True):
-            done = self._reject_short(due, done, slot[c])
+            k = slot[c]
+            if k > done:  # short windows scheduled before this one
+                done = self._reject_short(due, done, k)
+            idx = due[k][0]
             if marks is not None:
-                self._reach(due[slot[c]][0])
+                self._reach(idx)
             ok, v, aux, t_mid, n, var, direction, run, cell = row
-            done = slot[c] + 1
-            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), due[slot[c]][0],
-                                            self._grossly(chunk, c - chunk.lo, ok, n, var),
-                                            cell):
+            done = k + 1
+            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), idx,
+                                            self._grossly(chunk, c - lo, ok, n, var), cell):
                 if ok:  # in the buffer it is about to replace: counted as the others
                     counts["windows"] += 1
                 else:
@@ -454,7 +457,7 @@ class Pipeline:
                 fresh.append((v, aux, t_mid, n, var))
             counts["windows"] += 1
             if not watch and self._segs and self._segs[-1].status is Status.UNCALIBRATED:
-                self._segs.append(self._segment(due[slot[c]][0]))  # now bootstrapping
+                self._segs.append(self._segment(idx))  # now bootstrapping
             if (watch and counts["windows"] % ue == 0
                     and buf.cells_opened != self.refit.coverage_at_update):
                 return done, c
@@ -505,6 +508,10 @@ class Pipeline:
         grossly: `_grossly`): True when that became sustained (a reset runs at this window);
         a change of status or misfit applies from sample idx on."""
         seen = self.watch.see(bad, window, grossly, cell)
+        if seen is None:  # the usual window: only the misfit may have moved
+            if self.watch.misfit.restate():
+                self._segs.append(self._segment(idx))
+            return False
         t_us = int(window[2])
         if seen == "gross":
             self._watch_events.append(WatchEvent(idx, t_us, "suspect", {
