@@ -234,9 +234,12 @@ class WindowBuffer:
         self._flush()
         base = cell * self.cfg.per_cell
         slots = slice(base, base + self.cfg.per_cell)
-        free = np.flatnonzero(~self.filled[slots])
-        self.cells_opened += len(free) == self.cfg.per_cell
-        slot = base + (int(free[0]) if len(free) else int(np.argmin(self._t_us[slots])))
+        filled = self.filled[slots].tolist()  # a few Python bools: cheaper than numpy calls
+        if False in filled:  # the first free slot; a cell with none filled is new coverage
+            slot = base + filled.index(False)
+            self.cells_opened += not any(filled)
+        else:  # the cell's oldest
+            slot = base + int(np.argmin(self._t_us[slots]))
         self._v[slot], self._aux[slot], self._t_us[slot] = v, aux, t_us
         self._n[slot], self._var[slot], self._dir[slot] = n, var, direction
         self.filled[slot] = True
@@ -341,11 +344,15 @@ class WindowBuffer:
         self._coverage[level_g] = cov
         return cov
 
-    def redirect(self, directions: np.ndarray) -> None:
-        """Replace the stored gravity directions (after a recalibration changed them)."""
+    def redirect(self, directions: np.ndarray, slots: np.ndarray | None = None) -> None:
+        """Replace the stored gravity directions (after a recalibration changed them), given
+        for the filled slots in slot order, or for ``slots`` in that order (`slots()`)."""
         self._flush()
         self._hot = None
-        self._dir[self.filled] = directions
+        if slots is None:
+            self._dir[self.filled] = directions
+        else:
+            self._dir[slots] = directions
         self._cell[self.filled] = cell_of(self._dir[self.filled], self.cfg.grid)
         self._coverage.clear()
 

@@ -681,7 +681,7 @@ class Pipeline:
         if not rep.accepted:
             self.counts["updates_rejected"] += 1
         else:
-            self._redirect()
+            self._redirect(a)
         self.last_report = rep
         return UpdateEvent(idx, now_us, rep)
 
@@ -760,10 +760,15 @@ class Pipeline:
                       for i in keep.tolist()], gate=False)
         self._restart_at = idx
 
-    def _redirect(self) -> None:
-        """Re-bin nothing, but refresh stored gravity directions with the new calibration."""
+    def _redirect(self, a_windows: np.ndarray | None = None) -> None:
+        """Re-bin nothing, but refresh stored gravity directions with the new calibration.
+        a_windows: the buffer's windows (`WindowBuffer.windows`, oldest first) corrected with
+        the parameters now, if the caller has them (an update: the same numbers row by row)."""
         m = self.buffer.filled
         if not m.any():
+            return
+        if a_windows is not None:
+            self.buffer.redirect(a_windows / norm3(a_windows)[:, None], self.buffer.slots())
             return
         cov = self.covariates(self.buffer.t_us[m], self.buffer.aux[m])
         a = self.model.correct(self.params, self.buffer.v[m], cov)
