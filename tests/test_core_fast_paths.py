@@ -82,3 +82,16 @@ def test_a_stage_that_mixes_axes_takes_the_chain_rule() -> None:
     ref = _chain_rule(model, p, v, cov)
     assert np.array_equal(correction_jacobian(model, p, v, cov).view(np.uint64),
                           ref.view(np.uint64))
+
+
+def test_the_estimators_median_is_numpys_to_the_bit() -> None:
+    """`estimator._median` (a partition) against np.median, odd and even counts, with ties."""
+    from recal.core.estimator import _median
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 7, 8, 31, 64, 257):
+        for _ in range(20):
+            x = np.round(rng.lognormal(size=n), 2) * 1e-7  # ties among the values
+            got, want = _median(x), float(np.median(x))
+            assert np.float64(got).view(np.uint64) == np.float64(want).view(np.uint64)
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
