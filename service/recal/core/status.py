@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from recal.core.buffer import WindowBuffer, Windows, cell_of
-from recal.core.effects import Covariates, Effect
+from recal.core.effects import Covariates
 from recal.core.misfit import ACROSS_SPHERE, excess_g2
 from recal.core.model import SensorModel
 from recal.core.triaxial import norm3
@@ -294,7 +294,7 @@ def correction_jacobian(model: SensorModel, p: np.ndarray, v: np.ndarray,
     for e, sl in stages:
         xs.append(e.apply(xs[-1], cov, p[sl]))
     n = len(xs[0])
-    if all(type(e).unit_vjp is not Effect.unit_vjp for e, _ in stages):
+    if model.axes_apart:
         return _unit_jacobian(stages, xs, cov, p, n, model.size)
     J = np.empty((n, 3, model.size))
     for j in range(3):
