@@ -234,9 +234,12 @@ class WindowBuffer:
         self._flush()
         base = cell * self.cfg.per_cell
         slots = slice(base, base + self.cfg.per_cell)
-        free = np.flatnonzero(~self.filled[slots])
-        self.cells_opened += len(free) == self.cfg.per_cell
-        slot = base + (int(free[0]) if len(free) else int(np.argmin(self._t_us[slots])))
+        filled = self.filled[slots].tolist()  # a few Python bools: cheaper than numpy calls
+        if False in filled:  # the first free slot; a cell with none filled is new coverage
+            slot = base + filled.index(False)
+            self.cells_opened += not any(filled)
+        else:  # the cell's oldest
+            slot = base + int(np.argmin(self._t_us[slots]))
         self._v[slot], self._aux[slot], self._t_us[slot] = v, aux, t_us
         self._n[slot], self._var[slot], self._dir[slot] = n, var, direction
         self.filled[slot] = True
@@ -252,8 +255,9 @@ class WindowBuffer:
     def _merge(self, v: Sequence[float], aux: Sequence[float], t_us: int, n: int, var: float,
                direction: Sequence[float], run: int, cell: int) -> bool:
         """Fold the window into the latest slot if it continues that slot's run, in the same
-        cell, within merge_deg of its direction and below merge_max windows. (In Python floats:
-        it runs for nearly every window, and numpy's per-call cost would dominate.)"""
+        cell, within merge_deg of its direction and below merge_max windows. (In Python floats,
+        written out: it runs for nearly every window, and numpy's per-call cost would
+        dominate; each norm is sqrt(x*x + y*y + z*z) as `_norm3` has it.)"""
         last = self.last
         if last is None or last[1] != run:
             return False
@@ -268,26 +272,28 @@ class WindowBuffer:
         if h.k >= self.cfg.merge_max:
             return False
         ox, oy, oz = h.dir
-        ex, ey, ez = _floats(direction)
+        ex, ey, ez = direction if type(direction) is list else _floats(direction)
         if ox * ex + oy * ey + oz * ez < self._cos_merge:
             return False
-        n0, n1 = h.n, int(n)
+        n0 = h.n
+        n1 = int(n)
         w0, w1 = n0 / (n0 + n1), n1 / (n0 + n1)
-        vx, vy, vz = _floats(v)
+        vx, vy, vz = v if type(v) is list else _floats(v)
         hx, hy, hz = h.v
         h.v = [w0 * hx + w1 * vx, w0 * hy + w1 * vy, w0 * hz + w1 * vz]
         if h.aux:
             h.aux = [w0 * a + w1 * b for a, b in zip(h.aux, _floats(aux), strict=True)]
         h.t_us = round(w0 * h.t_us + w1 * int(t_us))
         h.var = w0 * h.var + w1 * float(var)  # pooled within-window variance
-        d = [w0 * ox + w1 * ex, w0 * oy + w1 * ey, w0 * oz + w1 * ez]
-        nd = _norm3(d)
-        h.dir = [d[0] / nd, d[1] / nd, d[2] / nd]
+        dx, dy, dz = w0 * ox + w1 * ex, w0 * oy + w1 * ey, w0 * oz + w1 * ez
+        nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+        h.dir = [dx / nd, dy / nd, dz / nd]
         h.n = n0 + n1
-        h.k += 1
-        x = _norm3([vx, vy, vz])  # Welford: how much the windows' norms disagree
-        mean1 = h.nmean + (x - h.nmean) / h.k
-        h.nm2 += (x - h.nmean) * (x - mean1)
+        k = h.k = h.k + 1
+        x = math.sqrt(vx * vx + vy * vy + vz * vz)  # Welford: how much the windows' norms disagree
+        mean0 = h.nmean
+        mean1 = mean0 + (x - mean0) / k
+        h.nm2 += (x - mean0) * (x - mean1)
         h.nmean = mean1
         h.dirty = True
         self.added += 1
@@ -338,11 +344,15 @@ class WindowBuffer:
         self._coverage[level_g] = cov
         return cov
 
-    def redirect(self, directions: np.ndarray) -> None:
-        """Replace the stored gravity directions (after a recalibration changed them)."""
+    def redirect(self, directions: np.ndarray, slots: np.ndarray | None = None) -> None:
+        """Replace the stored gravity directions (after a recalibration changed them), given
+        for the filled slots in slot order, or for ``slots`` in that order (`slots()`)."""
         self._flush()
         self._hot = None
-        self._dir[self.filled] = directions
+        if slots is None:
+            self._dir[self.filled] = directions
+        else:
+            self._dir[slots] = directions
         self._cell[self.filled] = cell_of(self._dir[self.filled], self.cfg.grid)
         self._coverage.clear()
 

@@ -190,6 +190,18 @@ class Effect:
         b = np.einsum("ni,nip->np", g, self.d_theta(x, cov, theta))
         return b, np.einsum("ni,nij->nj", g, self.d_x(x, cov, theta)) if want_x else None
 
+    #: `unit_vjp` returns one column of d_theta per axis (None: a whole row of the block)
+    per_axis_params = False
+
+    def unit_vjp(self, j: int, s: float | np.ndarray, x: np.ndarray, cov: Covariates,
+                 theta: np.ndarray, want_x: bool = True
+                 ) -> tuple[np.ndarray, float | np.ndarray] | None:
+        """`vjp` for g = s e_j (s: a number or one per row, every other entry 0), the case of
+        `status.correction_jacobian` (da/dp, row j of it): the only nonzero part of b, and the
+        s of the next g = s' e_j (None where want_x is False). The same products as `vjp`, to
+        the bit, without the zero columns. None: this stage mixes the axes (the full `vjp`)."""
+        return None
+
     def describe(self, theta: np.ndarray, s0: float) -> dict:
         """Parameters in physical units for reports (g, mg per unit, %, deg)."""
         return dict(zip(self.param_names, map(float, theta), strict=True))
@@ -267,6 +279,14 @@ class Ratiometric(Effect):
     def d_x(self, x, cov, theta):
         return _eye(len(x)) / self._factor(cov, theta)[:, None, None]
 
+    def unit_vjp(self, j, s, x, cov, theta, want_x=True):
+        # d_theta's row j, -x_j (d / k^2), times s (einsum's sum over the axes adds zeros)
+        d = self._deltas(cov)
+        k = self._factor(cov, theta)
+        b = s * (-x[:, j, None] * (d / k[:, None] ** 2)) if np.ndim(s) == 0 else \
+            s[:, None] * (-x[:, j, None] * (d / k[:, None] ** 2))
+        return b, (s * (1.0 / k) if want_x else None)
+
     def describe(self, theta, s0):
         out = {"rho_per_unit": float(theta[0]), "pct_per_unit": 100 * float(theta[0])}
         if self.reference is not None:
@@ -320,6 +340,12 @@ class Offset(Effect):
         d = -1.0 if self.covariate is None else -self.delta(cov)[:, None]
         return g * d, g if want_x else None
 
+    per_axis_params = True
+
+    def unit_vjp(self, j, s, x, cov, theta, want_x=True):
+        d = -1.0 if self.covariate is None else -self.delta(cov)
+        return s * d, (s if want_x else None)
+
     def describe(self, theta, s0):
         unit = "mg" if self.covariate is None else f"mg_per_{self.covariate}"
         return {f"{ax}_{unit}": 1000 * float(t) / s0 for ax, t in zip(AXES, theta, strict=True)}
@@ -361,6 +387,12 @@ class Scale(Effect):
     def vjp(self, g, x, cov, theta, want_x=True):
         return g * (-x / theta**2), g * (1.0 / theta) if want_x else None
 
+    per_axis_params = True
+
+    def unit_vjp(self, j, s, x, cov, theta, want_x=True):
+        t = theta[j]
+        return s * (-x[:, j] / (t * t)), (s * (1.0 / t) if want_x else None)
+
     def describe(self, theta, s0):
         return {f"s_{ax}": float(t) for ax, t in zip(AXES, theta, strict=True)} | {
             f"gain_{ax}_pct": 100 * (float(t) / s0 - 1) for ax, t in zip(AXES, theta, strict=True)}
@@ -393,6 +425,13 @@ class Gain(Effect):
 
     def d_x(self, x, cov, theta):
         return _diag(1.0 / (1.0 + self.delta(cov)[:, None] * theta))
+
+    per_axis_params = True
+
+    def unit_vjp(self, j, s, x, cov, theta, want_x=True):
+        d = self.delta(cov)
+        f = 1.0 + d * theta[j]
+        return s * (-x[:, j] * d / f ** 2), (s * (1.0 / f) if want_x else None)
 
     def describe(self, theta, s0):
         return {f"{ax}_pct_per_{self.covariate}": 100 * float(t)

@@ -77,6 +77,9 @@ JUMP_LOOKBACK_S = 60.0
 CONSISTENT_ALPHA = 1e-3
 #: Slots of at least this many windows measure how much window means disagree (`_window_variance`).
 FLOOR_MIN_MERGED = 4
+#: The offsets' stage and key, asked at every residual (an `Offset()` made each time cost more)
+_OFFSET_STAGE = Offset.stage
+_OFFSET_KEY = ("offset", None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,12 +218,26 @@ def _window_variance(model: SensorModel, w: Windows, B: np.ndarray, now_us: int,
     slot alike, so the short ones (whose spread is unknown) do not outweigh the long ones."""
     k = w.merged
     spread = (w.norm_var / model.s0**2)[k >= FLOOR_MIN_MERGED]
-    floor2 = max(cfg.sigma_floor_g**2, float(np.median(spread)) if len(spread) else 0.0)
+    floor2 = max(cfg.sigma_floor_g**2, _median(spread) if len(spread) else 0.0)
     noise = w.var / np.maximum(w.n, 1) / model.s0**2 + floor2 / k
     age_h = np.maximum(now_us - w.t_us, 0) / 3.6e9
     q = (cfg.process_scale * model.process_sd_per_sqrt_h()) ** 2
     drift = age_h * np.einsum("np,p,np->n", B, q, B)  # a window seen earlier says less of now
     return noise + drift
+
+
+def _median(x: np.ndarray) -> float:
+    """float(np.median(x)) of a non-empty 1-d float array, to the bit (the middle value, or the
+    two middle ones' sum halved, as np.median's mean of them; NaN if any is), without
+    np.median's per-call machinery: it ran at every update."""
+    n = len(x)
+    if np.isnan(x).any():
+        return float("nan")
+    h = n // 2
+    if n % 2:
+        return float(np.partition(x, h)[h])
+    part = np.partition(x, (h - 1, h))
+    return (float(part[h - 1]) + float(part[h])) / 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -294,7 +311,7 @@ class _Problem:
             return self.windows.v
         shift = self.lag @ x[P:].reshape(nb, 3)
         for e in self.model.effects:
-            if e.stage >= Offset().stage:
+            if e.stage >= _OFFSET_STAGE:
                 break
             shift = shift / e.apply(np.ones_like(shift), self.cov, x[self.model.slice(e)])
         return self.windows.v + shift
@@ -305,9 +322,9 @@ class _Problem:
         if not jacobian:
             return self.model.residual(x[:P], v, self.cov)
         xi, B = self.model.residual_jacobian(x[:P], v, self.cov)
-        Bo = B[:, self.model.slice(Offset())] if nb else np.zeros((len(xi), 3))
+        Bo = B[:, self.model.slice(_OFFSET_KEY)] if nb else np.zeros((len(xi), 3))
         # o_i = o - lag_i u: d|a|/du = -lag_i B_o
-        return xi, np.hstack([B, *(-Bo * self.lag[:, [b]] for b in range(nb))])
+        return xi, np.hstack([B, *(-Bo * self.lag[:, b:b + 1] for b in range(nb))])
 
     def objective(self, xi: np.ndarray, x: np.ndarray) -> float:
         d = x - self.mean
@@ -365,15 +382,20 @@ def _fit(pb: _Problem, x: np.ndarray, xi: np.ndarray, B: np.ndarray, free_x: np.
     L0 = pb.info[np.ix_(fx, fx)]
     j_start = j = pb.objective(xi, x)
     xi_start, it = xi, 0
+    prior_a = D[:, None] * L0 * D[None, :]  # the same at every iteration
+    info_f, tol_d = pb.info[fx], cfg.tol * D
     for it in range(1, cfg.max_iter + 1 if fx.any() else 1):  # noqa: B007 - `it` is reported
         Bf = B[:, fx] * D
-        A = Bf.T @ (Bf / pb.c_mu[:, None]) + D[:, None] * L0 * D[None, :]
-        b = Bf.T @ (xi / pb.c_mu) + D * (pb.info[fx] @ (pb.mean - x))
+        A = Bf.T @ (Bf / pb.c_mu[:, None]) + prior_a
+        b = Bf.T @ (xi / pb.c_mu) + D * (info_f @ (pb.mean - x))
         step = D * np.linalg.lstsq(A, b, rcond=1e-12)[0]  # eq. 11a, scaled
         for _ in range(12):  # halve the step until the objective falls (nonlinear h)
             trial = x.copy()
             trial[fx] += step
-            xi_t = pb.residual(trial)  # the Jacobian only for the step taken
+            # the Jacobian only for a step taken that is not negligible (the next iteration's;
+            # xi is the same with or without it)
+            more = not np.all(np.abs(step) <= tol_d)
+            xi_t, B_t = pb.residual(trial, jacobian=True) if more else (pb.residual(trial), B)
             j_t = pb.objective(xi_t, trial)
             if np.isfinite(j_t) and j_t <= j:
                 break
@@ -381,9 +403,9 @@ def _fit(pb: _Problem, x: np.ndarray, xi: np.ndarray, B: np.ndarray, free_x: np.
         else:
             break
         x, j, xi = trial, j_t, xi_t
-        if np.all(np.abs(step) <= cfg.tol * D):
+        if not more:
             break  # B of the last point serves for C_e: the step is negligible
-        xi, B = pb.residual(x, jacobian=True)
+        B = B_t
     Bf = B[:, fx]
     data_info = Bf.T @ (Bf / pb.c_mu[:, None])
     cov_x = _inv(data_info + L0)  # eq. 11b with the prior's information
@@ -407,8 +429,8 @@ def _observability(sol: _Solution, prior: Prior, free: np.ndarray,
     condition number is that of the posterior information, scaled by the prior sd."""
     post_sd = np.sqrt(np.clip(np.diag(sol.cov_free), 0, None))
     observable = np.zeros(len(free), bool)
-    observable[free] = post_sd < cfg.observable_ratio * prior.sd[free]
     D = prior.sd[free]
+    observable[free] = post_sd < cfg.observable_ratio * D
     ev = np.linalg.eigvalsh(D[:, None] * _inv(sol.cov_free) * D[None, :])
     condition = float(ev[-1] / max(ev[0], 1e-300)) if len(ev) else 1.0  # nothing estimated
     return observable, condition

@@ -177,6 +177,12 @@ class SensorModel:
         return np.concatenate([np.full(e.size, e.kind in kinds) for e in self.effects])
 
     # --- the correction and its Jacobian -----------------------------------------------------
+    @functools.cached_property
+    def axes_apart(self) -> bool:
+        """Every stage keeps the axes apart (`Effect.unit_vjp`): the Jacobian of the correction
+        can be taken axis by axis (`status.correction_jacobian`)."""
+        return all(type(e).unit_vjp is not Effect.unit_vjp for e in self.effects)
+
     def correct(self, p: np.ndarray, v: np.ndarray, cov: Covariates) -> np.ndarray:
         """Raw readings (N,3) -> acceleration in g (N,3): the inverse of Lötters eq. 3."""
         x = np.asarray(v, np.float64)

@@ -446,15 +446,18 @@ class Pipeline:
         merges into the latest slot is the buffer's call, one window at a time)."""
         marks, ue, watch = self._marks, self.cfg.update_every, self.bootstrapped
         add, fresh, buf, counts = self.buffer.add, self.fresh, self.buffer, self.counts
+        lo = chunk.lo
         for c, row in zip(range(c0, c1), chunk.rows(c0, c1), strict=True):
-            done = self._reject_short(due, done, slot[c])
+            k = slot[c]
+            if k > done:  # short windows scheduled before this one
+                done = self._reject_short(due, done, k)
+            idx = due[k][0]
             if marks is not None:
-                self._reach(due[slot[c]][0])
+                self._reach(idx)
             ok, v, aux, t_mid, n, var, direction, run, cell = row
-            done = slot[c] + 1
-            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), due[slot[c]][0],
-                                            self._grossly(chunk, c - chunk.lo, ok, n, var),
-                                            cell):
+            done = k + 1
+            if watch and self._watch_window(not ok, (v, aux, t_mid, n, var), idx,
+                                            self._grossly(chunk, c - lo, ok, n, var), cell):
                 if ok:  # in the buffer it is about to replace: counted as the others
                     counts["windows"] += 1
                 else:
@@ -473,7 +476,7 @@ class Pipeline:
                 fresh.append((v, aux, t_mid, n, var))
             counts["windows"] += 1
             if not watch and self._segs and self._segs[-1].status is Status.UNCALIBRATED:
-                self._segs.append(self._segment(due[slot[c]][0]))  # now bootstrapping
+                self._segs.append(self._segment(idx))  # now bootstrapping
             if (watch and counts["windows"] % ue == 0
                     and buf.cells_opened != self.refit.coverage_at_update):
                 return done, c
@@ -524,6 +527,10 @@ class Pipeline:
         grossly: `_grossly`): True when that became sustained (a reset runs at this window);
         a change of status or misfit applies from sample idx on."""
         seen = self.watch.see(bad, window, grossly, cell)
+        if seen is None:  # the usual window: only the misfit may have moved
+            if self.watch.misfit.restate():
+                self._segs.append(self._segment(idx))
+            return False
         t_us = int(window[2])
         if seen == "gross":
             self._watch_events.append(WatchEvent(idx, t_us, "suspect", {
@@ -697,7 +704,7 @@ class Pipeline:
         if not rep.accepted:
             self.counts["updates_rejected"] += 1
         else:
-            self._redirect()
+            self._redirect(a)
         self.last_report = rep
         return UpdateEvent(idx, now_us, rep)
 
@@ -776,10 +783,15 @@ class Pipeline:
                       for i in keep.tolist()], gate=False)
         self._restart_at = idx
 
-    def _redirect(self) -> None:
-        """Re-bin nothing, but refresh stored gravity directions with the new calibration."""
+    def _redirect(self, a_windows: np.ndarray | None = None) -> None:
+        """Re-bin nothing, but refresh stored gravity directions with the new calibration.
+        a_windows: the buffer's windows (`WindowBuffer.windows`, oldest first) corrected with
+        the parameters now, if the caller has them (an update: the same numbers row by row)."""
         m = self.buffer.filled
         if not m.any():
+            return
+        if a_windows is not None:
+            self.buffer.redirect(a_windows / norm3(a_windows)[:, None], self.buffer.slots())
             return
         cov = self.covariates(self.buffer.t_us[m], self.buffer.aux[m])
         a = self.model.correct(self.params, self.buffer.v[m], cov)

@@ -13,6 +13,7 @@ where the batches end, except in the last bit of a float sum (see docs/design.md
 from __future__ import annotations
 
 import bisect
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import NamedTuple
@@ -492,9 +493,10 @@ def _run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_
     dt[0] = int(t_us[0]) - prev_t
     np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
     forward = dt > 0
-    ok_dt = forward & (dt <= 3.0e6 / rate_hz)
+    # integer steps against the gap's whole microseconds: the same test without a float copy
+    ok_dt = forward & (dt <= math.floor(3.0e6 / rate_hz))
     start = gate.copy()
-    start[1:] &= ~gate[:-1] | ~ok_dt[1:]
+    start[1:] &= ~(gate[:-1] & ok_dt[1:])
     start[0] &= not (prev_gate and ok_dt[0])
     return start, forward
 

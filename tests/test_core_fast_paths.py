@@ -1,0 +1,97 @@
+"""The streaming core's fast paths give what the general code gives, to the bit: the
+per-axis Jacobian of the correction (`status._unit_jacobian`) against the full chain rule."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recal.core.effects import Covariates, CrossAxis, Effect, Gain, Offset, Ratiometric
+from recal.core.model import SensorModel
+from recal.core.status import correction_jacobian, predicted_sigma_mg
+
+S0 = 1024.0
+CHANNELS = ("vdd", "temp", "vref")
+
+
+def _chain_rule(model: SensorModel, p: np.ndarray, v: np.ndarray,
+                cov: Covariates) -> np.ndarray:
+    """J = da/dp by every stage's full `vjp`, each unit row of da/da in turn."""
+    stages = [(e, model.slice(e)) for e in model.effects]
+    xs = [v]
+    for e, sl in stages:
+        xs.append(e.apply(xs[-1], cov, p[sl]))
+    J = np.empty((len(v), 3, model.size))
+    for j in range(3):
+        g = np.zeros((len(v), 3))
+        g[:, j] = 1.0
+        for k in range(len(stages) - 1, -1, -1):
+            e, sl = stages[k]
+            J[:, j, sl], g_in = e.vjp(g, xs[k], cov, p[sl], k > 0)
+            g = g_in if k else g
+    return J
+
+
+MODELS = {
+    "diagonal": lambda: SensorModel.diagonal(S0),
+    "ratiometric": lambda: SensorModel.diagonal(S0).with_effect(Ratiometric("vdd", 3.3), 0.5),
+    "ratiometric-ref": lambda: SensorModel.diagonal(S0).with_effect(
+        Ratiometric("vdd", 3.3, reference="vref", reference_ref=1.2), 0.5),
+    "temperature": lambda: SensorModel.diagonal(S0).with_effect(Gain("temp", 20.0), 10.0)
+    .with_effect(Offset("temp", 20.0), 10.0),
+    "all": lambda: SensorModel.diagonal(S0).with_effect(Ratiometric("vdd", 3.3), 0.5)
+    .with_effect(Gain("temp", 20.0), 10.0).with_effect(Offset("time"), 1.0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_per_axis_jacobian_is_the_chain_rule_to_the_bit(name: str) -> None:
+    model = MODELS[name]()
+    assert model.axes_apart  # the fast path
+    rng = np.random.default_rng(3)
+    n = 2000
+    v = rng.normal(0, S0, (n, 3))
+    aux = np.column_stack([3.3 + rng.normal(0, 0.3, n), 20 + rng.normal(0, 5, n),
+                           1.2 + rng.normal(0, 0.01, n)])
+    cov = Covariates.from_samples(np.arange(n) * 20_000, aux, CHANNELS, 0)
+    p = model.nominal() + rng.normal(size=model.size) * model.prior_sd() * 0.3
+    J = correction_jacobian(model, p, v, cov)
+    ref = _chain_rule(model, p, v, cov)
+    assert np.array_equal(J, ref)  # -0.0 == 0.0: the full rule's zero columns may be -0.0
+    nonzero = J != 0
+    assert np.array_equal(J[nonzero].view(np.uint64), ref[nonzero].view(np.uint64))
+    if not model.covariates:
+        return  # its sigma is a quadratic form (`status.sigma_form`), not J sample by sample
+    a = rng.normal(size=(model.size, model.size)) * model.prior_sd()
+    cov_p = a @ a.T / model.size
+    sigma = predicted_sigma_mg(model, p, cov_p, v, cov)
+    full = 1e3 * np.sqrt(np.einsum("nip,nip->n", np.matmul(ref, cov_p), ref))
+    assert np.array_equal(sigma.view(np.uint64), full.view(np.uint64))
+
+
+def test_a_stage_that_mixes_axes_takes_the_chain_rule() -> None:
+    model = SensorModel.diagonal(S0).with_effect(Ratiometric("vdd", 3.3), 0.5).with_effect(
+        CrossAxis(), 1.0)
+    assert type(model.effects[-1]).unit_vjp is Effect.unit_vjp and not model.axes_apart
+    rng = np.random.default_rng(4)
+    v = rng.normal(0, S0, (500, 3))
+    cov = Covariates.from_samples(np.arange(500) * 20_000,
+                                  np.column_stack([3.3 + rng.normal(0, 0.3, 500),
+                                                   np.zeros(500), np.zeros(500)]), CHANNELS, 0)
+    p = model.nominal() + rng.normal(size=model.size) * model.prior_sd() * 0.3
+    ref = _chain_rule(model, p, v, cov)
+    assert np.array_equal(correction_jacobian(model, p, v, cov).view(np.uint64),
+                          ref.view(np.uint64))
+
+
+def test_the_estimators_median_is_numpys_to_the_bit() -> None:
+    """`estimator._median` (a partition) against np.median, odd and even counts, with ties."""
+    from recal.core.estimator import _median
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 7, 8, 31, 64, 257):
+        for _ in range(20):
+            x = np.round(rng.lognormal(size=n), 2) * 1e-7  # ties among the values
+            got, want = _median(x), float(np.median(x))
+            assert np.float64(got).view(np.uint64) == np.float64(want).view(np.uint64)
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
