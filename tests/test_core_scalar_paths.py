@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from recal.core.buffer import Windows
+from recal.core.detector import DetectorConfig, detect, init_state
 from recal.core.effects import Covariates
 from recal.core.misfit import excess_g2
 from recal.core.model import SensorModel
@@ -45,3 +46,29 @@ def test_chunk_reads_one_window_as_the_arrays_hold() -> None:
     chunk.sigma_mg = rng.uniform(0, 5, m)
     assert [chunk.norm_at(i) for i in range(m)] == [float(x) for x in chunk.norm]
     assert [chunk.sigma_at(i) for i in range(m)] == [float(x) for x in chunk.sigma_mg]
+
+
+def test_detector_one_sample_at_a_time_is_the_batch_bit_for_bit() -> None:
+    """`detect` of one sample (Python floats) against one batch (arrays): outputs, gates and
+    the carried state, with a zero-g taken off, clipping, a flat-lined stretch, a NaN and an
+    inf among the samples."""
+    rng = np.random.default_rng(11)
+    n = 1500
+    raw = rng.normal(0.0, 10.0, (n, 3)) + np.array([2048.0, 2048.0, 3072.0])
+    raw[300:420] += rng.normal(0.0, 300.0, (120, 3))  # movement
+    raw[500:540] = raw[499]  # the device repeats itself: flat, not still
+    raw[700, 0] = 2048.0 + 2000.0  # near full scale: clipped
+    raw[800, 1], raw[900, 2] = np.nan, np.inf
+    cfg = DetectorConfig(rate_hz=100.0, s0=1024.0, clip_raw=1900.0, flat_s=0.2,
+                         zero_raw=(2048.0, 2048.0, 2048.0))
+    end, whole = detect(cfg, init_state(cfg), raw)
+    state, outs = init_state(cfg), []
+    for i in range(n):
+        state, out = detect(cfg, state, raw[i:i + 1])
+        outs.append(out)
+    for name in ("detector_g", "below_threshold", "clipped", "flat"):
+        got = np.concatenate([getattr(o, name) for o in outs])
+        assert np.array_equal(got, getattr(whole, name), equal_nan=name == "detector_g"), name
+    assert np.array_equal(state.zi_hp, end.zi_hp) and np.array_equal(state.zi_lp, end.zi_lp)
+    assert np.array_equal(state.last_v, end.last_v) and state.same_run == end.same_run
+    assert whole.flat.any() and whole.clipped.any() and whole.gate.any()

@@ -1,0 +1,189 @@
+"""One sample per call, in the process: CPU and Python calls per arrival of the daemon's work
+without its selector, pty and Zenoh.
+
+A node for one 100 Hz sensor (prior as `daemon_scale`'s sensors) is fed ``--minutes`` of
+simulated wear with the sensor mounted tilted (as `tests/test_node.py`'s ``worn_tilted``: the
+pipeline is tracking, the mounting aligned, so every output the daemon makes per sample is
+made) in 500-sample batches; then ``--samples`` further samples one per call, timed:
+
+* ``--part node``: ``CalibrationNode.process`` alone, with a sink that keeps nothing;
+* ``--part shell``: what the gateway's I/O thread does per arrival after its selector: parse
+  the sample's ASCII line, log it (raw), calibrate it and log every output to an MCAP file
+  (``RecordingSink``; the Zenoh puts aside).
+
+Reported: CPU per sample (process time, median of ``--runs``) and Python function calls per
+sample (cProfile, one more run). ``--old-src DIR`` runs the same in a child process with
+``DIR/service`` first on PYTHONPATH (``git archive <commit> service | tar -x -C DIR``), old and
+new alternated in every round::
+
+    python bench/node_arrival.py --part shell --runs 5 --old-src /tmp/recal-old
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+RATE_HZ = 100.0
+SID = "s0"
+WARM_BATCH = 500
+
+
+def _workload(minutes: float, samples: int) -> tuple[Any, Any]:
+    """(warm-up raw batch, the raw samples to time): a wearer, sensor mounted tilted."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from recal import sim
+    from recal.samples import RawBatch
+
+    seed = 3
+    wearer = sim.WearerSpec(upright_tilt_deg=1.0, still_s=(30.0, 90.0))
+    rng = np.random.default_rng(seed)
+    spec = replace(sim.SensorSpec.random(rng, offset_mg=40.0, gain_pct=2.0), noise_g=0.003)
+    res = sim.simulate(minutes / 60 + samples / RATE_HZ / 3600, RATE_HZ, seed, spec, wearer)
+    r_mount = Rotation.from_euler("xy", [3.0, -2.0], degrees=True).as_matrix()
+    v = sim.forward_model(res.truth.a_true_g @ r_mount.T, spec,
+                          rng=np.random.default_rng(seed + 100))
+    raw = RawBatch(res.raw.t_us, v, np.empty((len(v), 0)), ())
+    warm = len(raw) - samples
+    return raw[:warm], raw[warm:]
+
+
+def _node(sink: Any) -> Any:
+    from recal.config import (
+        AlignmentConfig,
+        PipelineSettings,
+        PriorConfig,
+        SensorConfig,
+        model_and_prior,
+    )
+    from recal.node import CalibrationNode, NodeSettings
+
+    sensor = SensorConfig(SID, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
+    settings = PipelineSettings()
+    model, prior = model_and_prior(sensor, settings)
+    ali = AlignmentConfig(min_still_s=10.0, tilt_limit_deg=7.0, upright_max_deg=30.0)
+    return CalibrationNode(NodeSettings(SID, settings, model, prior, RATE_HZ, None, ali), sink)
+
+
+def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, Any]:
+    """Set up, warm up, then time ``samples`` one-sample arrivals; the result as a dict."""
+    from recal.io.ascii_lines import encode_ascii
+    from recal.io.wire_formats import make_parser
+    from recal.sinks import NullSink, RecordingSink
+
+    warm, tail = _workload(minutes, samples)
+    tmp = Path(tempfile.mkdtemp(prefix="node-arrival-"))
+    writer = None
+    if part == "shell":
+        from recal.io.recording_writer import RecordingWriter
+
+        writer = RecordingWriter(tmp / "a.mcap", fsync=False)
+        sink: Any = RecordingSink(writer)
+    else:
+        sink = NullSink()
+    node = _node(sink)
+    t0 = int(warm.t_us[0])
+    for i in range(0, len(warm), WARM_BATCH):
+        b = warm[i:i + WARM_BATCH]
+        node.process(b, (int(b.t_us[0]) - t0) * 1000)
+    assert node.pipeline is not None and node.alignment is not None, "not aligned: longer warm-up"
+    if part == "shell":
+        parser = make_parser("ascii", (), rate_hz=RATE_HZ)
+        data = encode_ascii(tail)
+        lines = [ln + b"\n" for ln in data.split(b"\n")[:-1]]
+        assert writer is not None
+        write_raw = writer.write_raw
+
+        def run() -> None:
+            for k, line in enumerate(lines):
+                log_ns = k * 10_000_000
+                batch = parser.feed(line)
+                write_raw(SID, batch, log_ns)
+                node.process(batch, log_ns)
+    else:
+        ones = [tail[k:k + 1] for k in range(len(tail))]
+
+        def run() -> None:
+            for k, b in enumerate(ones):
+                node.process(b, k * 10_000_000)
+
+    c0 = time.process_time()
+    if profile:
+        prof = cProfile.Profile()
+        prof.runcall(run)
+    else:
+        run()
+    cpu = time.process_time() - c0
+    out: dict[str, Any] = {"src": str(Path(sys.modules["recal"].__file__).parent), "part": part,
+                           "samples": samples, "us_per_sample": cpu / samples * 1e6}
+    if profile:
+        st = pstats.Stats(prof)
+        out["calls_per_sample"] = st.total_calls / samples  # type: ignore[attr-defined]
+        st.sort_stats("tottime").print_stats(30)
+        st.sort_stats("cumulative").print_stats(40)
+    if writer is not None:
+        writer.close()
+    return out
+
+
+def _run_child(a: argparse.Namespace, src: str | None, profile: bool) -> dict[str, Any]:
+    env = dict(os.environ)
+    if src:
+        env["PYTHONPATH"] = str(Path(src) / "service") + (
+            os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    argv = [sys.executable, __file__, "--child", "--part", a.part, "--minutes", str(a.minutes),
+            "--samples", str(a.samples)] + (["--profile"] if profile else [])
+    res = subprocess.run(argv, env=env, capture_output=True, text=True, check=True)
+    if profile and a.show_profile:
+        print(res.stdout, file=sys.stderr)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--part", choices=("node", "shell"), default="node")
+    ap.add_argument("--minutes", type=float, default=23.0, help="simulated wear before timing")
+    ap.add_argument("--samples", type=int, default=6000, help="one-sample arrivals timed")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--old-src", help="also run from this source tree, alternated")
+    ap.add_argument("--show-profile", action="store_true", help="print the profiles too")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--profile", action="store_true", help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.child:
+        print(json.dumps(child(a.part, a.minutes, a.samples, a.profile)))
+        return 0
+    variants = [("new", None)] + ([("old", a.old_src)] if a.old_src else [])
+    rows: dict[str, list[float]] = {name: [] for name, _ in variants}
+    calls: dict[str, float] = {}
+    for r in range(a.runs):
+        for name, src in (variants if r % 2 == 0 else variants[::-1]):
+            rows[name].append(_run_child(a, src, False)["us_per_sample"])
+            print(name, f"{rows[name][-1]:.1f} us", file=sys.stderr, flush=True)
+    for name, src in variants:
+        calls[name] = _run_child(a, src, True)["calls_per_sample"]
+    print(f"# node_arrival --part {a.part}: {a.samples} one-sample arrivals after "
+          f"{a.minutes:g} min of wear, {a.runs} runs, load {os.getloadavg()[0]:.2f}")
+    print("| code | CPU us/sample (median) | rounds | Python calls/sample |")
+    print("|---|---|---|---|")
+    for name, _ in variants:
+        print(f"| {name} | {statistics.median(rows[name]):.0f} | "
+              f"{', '.join(f'{x:.0f}' for x in rows[name])} | {calls[name]:.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
