@@ -792,9 +792,11 @@ class CalibrationNode(AlignmentRequests):
 
     @staticmethod
     def _body(cal: CalibratedBatch, ali: al.Alignment) -> CalibratedBatch:
-        # a rotation keeps each sample's status and the length of its error (sigma_mg)
-        return CalibratedBatch(cal.t_us, al.to_body(ali.rotation, cal.a_g), cal.quasi_static,
-                               cal.detector_g, cal.status, cal.sigma_mg, cal.t_dev)
+        # a rotation keeps each sample's status and the length of its error (sigma_mg); the
+        # other arrays are the calibrated batch's, checked when it was made
+        return CalibratedBatch.of_checked(
+            cal.t_us, np.ascontiguousarray(al.to_body(ali.rotation, cal.a_g)), cal.quasi_static,
+            cal.detector_g, cal.status, cal.sigma_mg, cal.t_dev)
 
     # -- state and events ---------------------------------------------------------------------
 
