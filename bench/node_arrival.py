@@ -8,8 +8,9 @@ made) in 500-sample batches; then ``--samples`` further samples one per call, ti
 
 * ``--part node``: ``CalibrationNode.process`` alone, with a sink that keeps nothing;
 * ``--part shell``: what the gateway's I/O thread does per arrival after its selector: parse
-  the sample's ASCII line, log it (raw), calibrate it and log every output to an MCAP file
-  (``RecordingSink``; the Zenoh puts aside).
+  the sample's ASCII line, log it (raw), calibrate it, log every output to an MCAP file and
+  publish on a Zenoh session nobody subscribes to (the gateway's ``LoggedBusSink``: each put
+  is the check that nobody matches, not a put on the network).
 
 Reported: CPU per sample (process time, median of ``--runs``) and Python function calls per
 sample (cProfile, one more run). ``--old-src DIR`` runs the same in a child process with
@@ -82,7 +83,7 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
     """Set up, warm up, then time ``samples`` one-sample arrivals; the result as a dict."""
     from recal.io.ascii_lines import encode_ascii
     from recal.io.wire_formats import make_parser
-    from recal.sinks import NullSink, RecordingSink
+    from recal.sinks import NullSink
 
     warm, tail = _workload(minutes, samples)
     tmp = Path(tempfile.mkdtemp(prefix="node-arrival-"))
@@ -90,8 +91,13 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
     if part == "shell":
         from recal.io.recording_writer import RecordingWriter
 
+        from recal.io.bus import Bus, key, zenoh_config
+        from recal.sinks import LoggedBusSink
+
         writer = RecordingWriter(tmp / "a.mcap", fsync=False)
-        sink: Any = RecordingSink(writer)
+        bus = Bus(zenoh_config("peer", ["tcp/127.0.0.1:0"], []))
+        raw_pub = bus.publisher(key(SID, "raw"))
+        sink: Any = LoggedBusSink(writer, bus)
     else:
         sink = NullSink()
     node = _node(sink)
@@ -111,7 +117,7 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
             for k, line in enumerate(lines):
                 log_ns = k * 10_000_000
                 batch = parser.feed(line)
-                write_raw(SID, batch, log_ns)
+                raw_pub.put(write_raw(SID, batch, log_ns))
                 node.process(batch, log_ns)
     else:
         ones = [tail[k:k + 1] for k in range(len(tail))]
@@ -136,6 +142,7 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
         st.sort_stats("cumulative").print_stats(40)
     if writer is not None:
         writer.close()
+        bus.close()
     return out
 
 
