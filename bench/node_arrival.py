@@ -89,9 +89,8 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
     tmp = Path(tempfile.mkdtemp(prefix="node-arrival-"))
     writer = None
     if part == "shell":
-        from recal.io.recording_writer import RecordingWriter
-
         from recal.io.bus import Bus, key, zenoh_config
+        from recal.io.recording_writer import RecordingWriter
         from recal.sinks import LoggedBusSink
 
         writer = RecordingWriter(tmp / "a.mcap", fsync=False)
