@@ -367,7 +367,7 @@ class Gateway:
         for p in polled:
             if p.pending:
                 batches, p.pending = p.pending, []
-                for batch in join_by_layout(batches):
+                for batch in batches if len(batches) == 1 else join_by_layout(batches):
                     self._handle(p, batch, now_ns)
 
     def _sweep(self, sel: selectors.BaseSelector, now_s: float, skip: set[int],
