@@ -9,8 +9,8 @@ made) in 500-sample batches; then ``--samples`` further samples one per call, ti
 * ``--part node``: ``CalibrationNode.process`` alone, with a sink that keeps nothing;
 * ``--part shell``: what the gateway's I/O thread does per arrival after its selector: parse
   the sample's ASCII line, log it (raw), calibrate it, log every output to an MCAP file and
-  publish on a Zenoh session nobody subscribes to (the gateway's ``LoggedBusSink``: each put
-  is the check that nobody matches, not a put on the network).
+  publish through the gateway's ``LoggedBusSink`` on a Zenoh session whose only subscriber
+  (another process) takes the calibrated topic, as `daemon_scale`'s latency probe does.
 
 Reported: CPU per sample (process time, median of ``--runs``) and Python function calls per
 sample (cProfile, one more run). ``--old-src DIR`` runs the same in a child process with
@@ -37,6 +37,14 @@ from pathlib import Path
 from typing import Any
 
 RATE_HZ = 100.0
+SUBSCRIBER = """
+import sys
+from recal.io.bus import Bus, key, zenoh_config
+bus = Bus(zenoh_config("peer", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{sys.argv[1]}"]))
+bus.receiver(key("s0", "calibrated"))
+sys.stdin.read()
+bus.close()
+"""
 SID = "s0"
 WARM_BATCH = 500
 
@@ -62,6 +70,14 @@ def _workload(minutes: float, samples: int) -> tuple[Any, Any]:
     return raw[:warm], raw[warm:]
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
 def _node(sink: Any) -> Any:
     from recal.config import (
         AlignmentConfig,
@@ -82,7 +98,6 @@ def _node(sink: Any) -> Any:
 def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, Any]:
     """Set up, warm up, then time ``samples`` one-sample arrivals; the result as a dict."""
     from recal.io.ascii_lines import encode_ascii
-    from recal.io.wire_formats import make_parser
     from recal.sinks import NullSink
 
     warm, tail = _workload(minutes, samples)
@@ -94,9 +109,16 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
         from recal.sinks import LoggedBusSink
 
         writer = RecordingWriter(tmp / "a.mcap", fsync=False)
-        bus = Bus(zenoh_config("peer", ["tcp/127.0.0.1:0"], []))
+        port = _free_port()
+        bus = Bus(zenoh_config("peer", [f"tcp/127.0.0.1:{port}"], []))
         raw_pub = bus.publisher(key(SID, "raw"))
         sink: Any = LoggedBusSink(writer, bus)
+        # a subscriber to the calibrated topic in a process of its own, as the daemon's
+        # latency probe: the calibrated message is encoded and put, raw and body are not
+        listener = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(port)],
+                                    stdin=subprocess.PIPE)
+        if not bus.publisher(key(SID, "calibrated")).wait_for_subscribers(30.0):
+            raise RuntimeError("the subscriber did not come")
     else:
         sink = NullSink()
     node = _node(sink)
@@ -106,18 +128,25 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
         node.process(b, (int(b.t_us[0]) - t0) * 1000)
     assert node.pipeline is not None and node.alignment is not None, "not aligned: longer warm-up"
     if part == "shell":
-        parser = make_parser("ascii", (), rate_hz=RATE_HZ)
+        # the gateway's own per-port handling (log raw, publish raw, calibrate), on a
+        # Gateway whose port is never opened: its parser is fed the lines directly
+        from recal.config import CheckpointConfig, PriorConfig, SensorConfig, ServiceConfig
+        from recal.gateway import Gateway
+
+        sensor = SensorConfig(SID, port=str(tmp / "tty"), aux_names=(), rate_hz=RATE_HZ,
+                              prior=PriorConfig(counts_per_g=1024.0))
+        cfg = ServiceConfig(sensors=(sensor,), checkpoint=CheckpointConfig(dir=None))
+        gw = Gateway(cfg, writer, bus, {SID: node}, out=lambda _line: None)
+        port_ = gw.ports[SID]
+        port_.raw_publisher = raw_pub
+        parser = port_.source.parser
         data = encode_ascii(tail)
         lines = [ln + b"\n" for ln in data.split(b"\n")[:-1]]
-        assert writer is not None
-        write_raw = writer.write_raw
+        handle = gw._handle
 
         def run() -> None:
             for k, line in enumerate(lines):
-                log_ns = k * 10_000_000
-                batch = parser.feed(line)
-                raw_pub.put(write_raw(SID, batch, log_ns))
-                node.process(batch, log_ns)
+                handle(port_, parser.feed(line), k * 10_000_000)
     else:
         ones = [tail[k:k + 1] for k in range(len(tail))]
 
@@ -142,6 +171,9 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
     if writer is not None:
         writer.close()
         bus.close()
+        assert listener.stdin is not None
+        listener.stdin.close()
+        listener.wait(30)
     return out
 
 
