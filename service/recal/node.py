@@ -169,6 +169,7 @@ class CalibrationNode(AlignmentRequests):
         self.samples_not_finite = 0
         self._status: Status | None = None  # of the last sample published
         self._tcfg: tb.TimebaseConfig | None = None  # the time base's, per rate
+        self._plot_every_at: tuple[float, int] | None = None  # (rate, plot_every) of `_plot_every`
         self._calibrated_once = False
         self._unseen: tuple[tuple[str, ...], int, bool] = ((), 0, False)  # `_say_unseen`
         self.last_t_us: int | None = None
@@ -416,7 +417,11 @@ class CalibrationNode(AlignmentRequests):
             "model": model_name(self.pipeline.model), "aux_names": list(self.pipeline.aux_names)})
 
     def _plot_every(self) -> int:
-        return self.settings.pipeline.plot_every(self.rate_hz or DEFAULT_RATE_HZ)
+        rate = self.rate_hz or DEFAULT_RATE_HZ
+        cached = self._plot_every_at
+        if cached is None or cached[0] != rate:  # asked at every arrival: once per rate
+            cached = self._plot_every_at = (rate, self.settings.pipeline.plot_every(rate))
+        return cached[1]
 
     # -- one batch ----------------------------------------------------------------------------
 
@@ -465,10 +470,11 @@ class CalibrationNode(AlignmentRequests):
         when the model, estimate or prior changed (by identity), not per batch."""
         pipe = self.pipeline
         assert pipe is not None
+        vetted = self._vetted
+        if (vetted is not None and pipe.model is vetted[0] and pipe.estimate is vetted[1]
+                and pipe.prior is vetted[2]):
+            return  # (every arrival: three identity checks)
         now = (pipe.model, pipe.estimate, pipe.prior)
-        if self._vetted is not None and all(a is b for a, b in zip(now, self._vetted,
-                                                                   strict=True)):
-            return
         s = self.settings
         why = estimate_problem(pipe, (s.model, s.prior))
         if why is None:

@@ -55,6 +55,16 @@ class RawBatch:
         object.__setattr__(self, "aux_names", names)
 
     @classmethod
+    def of_checked(cls, t_us: np.ndarray, v: np.ndarray, aux: np.ndarray,
+                   aux_names: tuple[str, ...]) -> RawBatch:
+        """A batch of arrays that are already what the constructor would make of them
+        (contiguous int64 (N,), float64 (N, 3) and (N, K), K names as a tuple of str): taken
+        as they are, without conversion or check (a parser's one sample per arrival)."""
+        new = object.__new__(cls)
+        new.__dict__.update(t_us=t_us, v=v, aux=aux, aux_names=aux_names)
+        return new
+
+    @classmethod
     def empty(cls, aux_names: Sequence[str] = ()) -> RawBatch:
         return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, len(aux_names))),
                    tuple(aux_names))
