@@ -95,7 +95,8 @@ def _node(sink: Any) -> Any:
     return CalibrationNode(NodeSettings(SID, settings, model, prior, RATE_HZ, None, ali), sink)
 
 
-def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, Any]:
+def child(part: str, minutes: float, samples: int, profile: bool,
+          gap_s: float = 0.0) -> dict[str, Any]:
     """Set up, warm up, then time ``samples`` one-sample arrivals; the result as a dict."""
     from recal.io.ascii_lines import encode_ascii
     from recal.sinks import NullSink
@@ -146,23 +147,28 @@ def child(part: str, minutes: float, samples: int, profile: bool) -> dict[str, A
 
         def run() -> None:
             for k, line in enumerate(lines):
+                if gap_s:
+                    time.sleep(gap_s)
                 handle(port_, parser.feed(line), k * 10_000_000)
     else:
         ones = [tail[k:k + 1] for k in range(len(tail))]
 
         def run() -> None:
             for k, b in enumerate(ones):
+                if gap_s:
+                    time.sleep(gap_s)
                 node.process(b, k * 10_000_000)
 
-    c0 = time.process_time()
+    c0, th0 = time.process_time(), time.thread_time()
     if profile:
         prof = cProfile.Profile()
         prof.runcall(run)
     else:
         run()
-    cpu = time.process_time() - c0
+    cpu, thread = time.process_time() - c0, time.thread_time() - th0
     out: dict[str, Any] = {"src": str(Path(sys.modules["recal"].__file__).parent), "part": part,
-                           "samples": samples, "us_per_sample": cpu / samples * 1e6}
+                           "samples": samples, "us_per_sample": cpu / samples * 1e6,
+                           "thread_us_per_sample": thread / samples * 1e6}
     if profile:
         st = pstats.Stats(prof)
         out["calls_per_sample"] = st.total_calls / samples  # type: ignore[attr-defined]
@@ -183,7 +189,8 @@ def _run_child(a: argparse.Namespace, src: str | None, profile: bool) -> dict[st
         env["PYTHONPATH"] = str(Path(src) / "service") + (
             os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     argv = [sys.executable, __file__, "--child", "--part", a.part, "--minutes", str(a.minutes),
-            "--samples", str(a.samples)] + (["--profile"] if profile else [])
+            "--samples", str(a.samples), "--gap-ms", str(a.gap_ms)] + (
+                ["--profile"] if profile else [])
     res = subprocess.run(argv, env=env, capture_output=True, text=True, check=True)
     if profile and a.show_profile:
         print(res.stdout, file=sys.stderr)
@@ -196,13 +203,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=23.0, help="simulated wear before timing")
     ap.add_argument("--samples", type=int, default=6000, help="one-sample arrivals timed")
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--gap-ms", type=float, default=0.0,
+                    help="sleep before each arrival (10: a 100 Hz sensor's idle between them, "
+                         "so that each arrival finds cold caches, as the daemon's do)")
     ap.add_argument("--old-src", help="also run from this source tree, alternated")
     ap.add_argument("--show-profile", action="store_true", help="print the profiles too")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--profile", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.child:
-        print(json.dumps(child(a.part, a.minutes, a.samples, a.profile)))
+        print(json.dumps(child(a.part, a.minutes, a.samples, a.profile, a.gap_ms / 1e3)))
         return 0
     variants = [("new", None)] + ([("old", a.old_src)] if a.old_src else [])
     rows: dict[str, list[float]] = {name: [] for name, _ in variants}
