@@ -216,20 +216,27 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     variants = [("new", None)] + ([("old", a.old_src)] if a.old_src else [])
     rows: dict[str, list[float]] = {name: [] for name, _ in variants}
+    threads: dict[str, list[float]] = {name: [] for name, _ in variants}
     calls: dict[str, float] = {}
     for r in range(a.runs):
         for name, src in (variants if r % 2 == 0 else variants[::-1]):
-            rows[name].append(_run_child(a, src, False)["us_per_sample"])
-            print(name, f"{rows[name][-1]:.1f} us", file=sys.stderr, flush=True)
+            got = _run_child(a, src, False)
+            rows[name].append(got["us_per_sample"])
+            threads[name].append(got["thread_us_per_sample"])
+            print(name, f"{rows[name][-1]:.1f} us, thread {threads[name][-1]:.1f} us",
+                  file=sys.stderr, flush=True)
     for name, src in variants:
         calls[name] = _run_child(a, src, True)["calls_per_sample"]
     print(f"# node_arrival --part {a.part}: {a.samples} one-sample arrivals after "
-          f"{a.minutes:g} min of wear, {a.runs} runs, load {os.getloadavg()[0]:.2f}")
-    print("| code | CPU us/sample (median) | rounds | Python calls/sample |")
-    print("|---|---|---|---|")
+          f"{a.minutes:g} min of wear, {a.gap_ms:g} ms before each, {a.runs} runs, "
+          f"load {os.getloadavg()[0]:.2f}")
+    print("| code | process CPU us/sample (median) | rounds | thread CPU us/sample (median) "
+          "| Python calls/sample |")
+    print("|---|---|---|---|---|")
     for name, _ in variants:
         print(f"| {name} | {statistics.median(rows[name]):.0f} | "
-              f"{', '.join(f'{x:.0f}' for x in rows[name])} | {calls[name]:.0f} |")
+              f"{', '.join(f'{x:.0f}' for x in rows[name])} | "
+              f"{statistics.median(threads[name]):.0f} | {calls[name]:.0f} |")
     return 0
 
 

@@ -161,6 +161,7 @@ class CalibrationNode(AlignmentRequests):
         self._align_requested = False
         self._last_names: tuple[str, ...] | None = None
         self._started = False
+        self._plot_every_at: tuple[float, int] | None = None  # (rate, plot_every) of `_plot_every`
         self.accepted_updates = 0
         self.samples = 0
         self.samples_skipped = 0
@@ -169,7 +170,6 @@ class CalibrationNode(AlignmentRequests):
         self.samples_not_finite = 0
         self._status: Status | None = None  # of the last sample published
         self._tcfg: tb.TimebaseConfig | None = None  # the time base's, per rate
-        self._plot_every_at: tuple[float, int] | None = None  # (rate, plot_every) of `_plot_every`
         self._calibrated_once = False
         self._unseen: tuple[tuple[str, ...], int, bool] = ((), 0, False)  # `_say_unseen`
         self.last_t_us: int | None = None
