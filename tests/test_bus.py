@@ -336,6 +336,33 @@ def test_publish_after_peer_left_is_unmatched_not_an_error(
     assert pub.unmatched == 1 and pub.failed == 0
 
 
+def test_a_put_of_what_makes_the_bytes_makes_them_only_for_a_subscriber(
+    open_bus: Callable[[zenoh.Config], Bus],
+) -> None:
+    """The live path hands a publisher what encodes a message, not its bytes: nobody
+    subscribed, nothing is encoded (counted unmatched as a put of bytes is); a subscriber
+    gets exactly the bytes the encoder made."""
+    endpoint = loopback_endpoint(free_port())
+    a = open_bus(zenoh_config(listen=[endpoint]))
+    pub = a.publisher(key("s1", "calibrated"))
+    made: list[bytes] = []
+
+    def encode() -> bytes:
+        made.append(b"encoded-%d" % len(made))
+        return made[-1]
+
+    assert pub.put(encode)
+    assert made == [] and pub.unmatched == 1 and pub.sent == 1
+    b = open_bus(zenoh_config(connect=[endpoint]))
+    rx = b.receiver(key_pattern("calibrated"))
+    assert pub.wait_for_subscribers(5.0)
+    assert pub.put(encode) and pub.put(b"plain")
+    got = [rx.recv(timeout=5.0), rx.recv(timeout=5.0)]
+    assert None not in got
+    assert [m.payload for m in got if m is not None] == [b"encoded-0", b"plain"]
+    assert made == [b"encoded-0"] and pub.unmatched == 1 and pub.sent == 3
+
+
 # --------------------------------------------------------------------------- through a router
 
 

@@ -73,3 +73,29 @@ def test_the_state_restores_from_its_dict() -> None:
     c2, s2 = cut(CFG, back, t[2345:], v[2345:], aux[2345:], gate[2345:])
     assert c1.due == c2.due and _sums(c1.sums) == _sums(c2.sums)
     assert json.dumps(s1.to_dict()) == json.dumps(s2.to_dict())
+
+
+@pytest.mark.parametrize("seed, n_aux", [(5, 0), (6, 2)])
+def test_one_sample_per_call_cuts_the_windows_of_large_batches(seed: int, n_aux: int) -> None:
+    """A live sensor's one-sample batches (`windower._cut_one`, scalars) against batches of
+    up to 3000 samples (arrays): the same events, the same windows and the same state.
+    Integer readings (ADC counts), so that a window's sums do not depend on where batches
+    cut it (`core.windowing`)."""
+    t, v, aux, gate = _stream(seed, 12_000, n_aux)
+    v, aux = np.round(v * 1024.0), np.round(aux * 100.0)
+    rng = np.random.default_rng(seed + 10)
+    ends = np.cumsum(rng.integers(1, 3000, size=len(t)))
+    ends = [0, *ends[ends < len(t)].tolist(), len(t)]
+
+    def run(bounds: list[int]) -> tuple[list, list, str]:
+        state, due, sums = WindowerState(), [], []
+        for lo, hi in pairwise(bounds):
+            c, state = cut(CFG, state, t[lo:hi], v[lo:hi], aux[lo:hi], gate[lo:hi])
+            due += [(lo + i, commit) for i, commit in c.due]
+            if c.sums is not None:
+                sums += [_sums(c.sums.take(np.array([j]))) for j in range(c.committed)]
+        return due, sums, json.dumps(state.to_dict())
+
+    one = run(list(range(len(t) + 1)))
+    assert one == run(ends)
+    assert len(one[1]) > 10 and len(one[0]) > len(one[1])

@@ -42,6 +42,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -367,7 +368,7 @@ class Gateway:
         for p in polled:
             if p.pending:
                 batches, p.pending = p.pending, []
-                for batch in join_by_layout(batches):
+                for batch in batches if len(batches) == 1 else join_by_layout(batches):
                     self._handle(p, batch, now_ns)
 
     def _sweep(self, sel: selectors.BaseSelector, now_s: float, skip: set[int],
@@ -403,11 +404,12 @@ class Gateway:
 
     def _handle(self, p: _Port, batch: RawBatch, log_ns: int) -> None:
         """Log first (nothing lost), then publish the same bytes, then calibrate."""
-        data = self.writer.write_raw(p.sensor_id, batch, log_ns)
+        self.writer.log_raw(p.sensor_id, batch, log_ns)
         p.samples_logged += len(batch)
         p.batches_logged += 1
         if p.raw_publisher is not None and not self.bus.closed:
-            p.raw_publisher.put(data)  # a refusal is counted in the bus stats (reported)
+            # encoded only if someone subscribes; a refusal is counted in the bus stats
+            p.raw_publisher.put(partial(messages.encode_raw, p.sensor_id, batch))
         if p.node is None:
             return
         try:

@@ -161,6 +161,7 @@ class CalibrationNode(AlignmentRequests):
         self._align_requested = False
         self._last_names: tuple[str, ...] | None = None
         self._started = False
+        self._plot_every_at: tuple[float, int] | None = None  # (rate, plot_every) of `_plot_every`
         self.accepted_updates = 0
         self.samples = 0
         self.samples_skipped = 0
@@ -416,7 +417,11 @@ class CalibrationNode(AlignmentRequests):
             "model": model_name(self.pipeline.model), "aux_names": list(self.pipeline.aux_names)})
 
     def _plot_every(self) -> int:
-        return self.settings.pipeline.plot_every(self.rate_hz or DEFAULT_RATE_HZ)
+        rate = self.rate_hz or DEFAULT_RATE_HZ
+        cached = self._plot_every_at
+        if cached is None or cached[0] != rate:  # asked at every arrival: once per rate
+            cached = self._plot_every_at = (rate, self.settings.pipeline.plot_every(rate))
+        return cached[1]
 
     # -- one batch ----------------------------------------------------------------------------
 
@@ -465,10 +470,11 @@ class CalibrationNode(AlignmentRequests):
         when the model, estimate or prior changed (by identity), not per batch."""
         pipe = self.pipeline
         assert pipe is not None
+        vetted = self._vetted
+        if (vetted is not None and pipe.model is vetted[0] and pipe.estimate is vetted[1]
+                and pipe.prior is vetted[2]):
+            return  # (every arrival: three identity checks)
         now = (pipe.model, pipe.estimate, pipe.prior)
-        if self._vetted is not None and all(a is b for a, b in zip(now, self._vetted,
-                                                                   strict=True)):
-            return
         s = self.settings
         why = estimate_problem(pipe, (s.model, s.prior))
         if why is None:
@@ -793,9 +799,11 @@ class CalibrationNode(AlignmentRequests):
 
     @staticmethod
     def _body(cal: CalibratedBatch, ali: al.Alignment) -> CalibratedBatch:
-        # a rotation keeps each sample's status and the length of its error (sigma_mg)
-        return CalibratedBatch(cal.t_us, al.to_body(ali.rotation, cal.a_g), cal.quasi_static,
-                               cal.detector_g, cal.status, cal.sigma_mg, cal.t_dev)
+        # a rotation keeps each sample's status and the length of its error (sigma_mg); the
+        # other arrays are the calibrated batch's, checked when it was made
+        return CalibratedBatch.of_checked(
+            cal.t_us, np.ascontiguousarray(al.to_body(ali.rotation, cal.a_g)), cal.quasi_static,
+            cal.detector_g, cal.status, cal.sigma_mg, cal.t_dev)
 
     # -- state and events ---------------------------------------------------------------------
 

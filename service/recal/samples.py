@@ -6,7 +6,6 @@ Plain frozen dataclasses over numpy arrays, no I/O. The core computes on them, t
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
@@ -54,6 +53,16 @@ class RawBatch:
         object.__setattr__(self, "v", v)
         object.__setattr__(self, "aux", aux)
         object.__setattr__(self, "aux_names", names)
+
+    @classmethod
+    def of_checked(cls, t_us: np.ndarray, v: np.ndarray, aux: np.ndarray,
+                   aux_names: tuple[str, ...]) -> RawBatch:
+        """A batch of arrays that are already what the constructor would make of them
+        (contiguous int64 (N,), float64 (N, 3) and (N, K), K names as a tuple of str): taken
+        as they are, without conversion or check (a parser's one sample per arrival)."""
+        new = object.__new__(cls)
+        new.__dict__.update(t_us=t_us, v=v, aux=aux, aux_names=aux_names)
+        return new
 
     @classmethod
     def empty(cls, aux_names: Sequence[str] = ()) -> RawBatch:
@@ -142,6 +151,19 @@ class CalibratedBatch:
         return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0))
 
     @classmethod
+    def of_checked(cls, t_us: np.ndarray, a_g: np.ndarray, quasi_static: np.ndarray,
+                   detector_g: np.ndarray, status: np.ndarray, sigma_mg: np.ndarray,
+                   t_dev: np.ndarray | None = None) -> CalibratedBatch:
+        """A batch of arrays that are already what the constructor would make of them
+        (contiguous, of the documented dtypes and shapes, one length): taken as they are,
+        without conversion or check. For the live path, which builds a batch or two from
+        checked ones at every arrival, where the seven conversions cost more than the rest."""
+        new = object.__new__(cls)
+        new.__dict__.update(t_us=t_us, a_g=a_g, quasi_static=quasi_static,
+                            detector_g=detector_g, status=status, sigma_mg=sigma_mg, t_dev=t_dev)
+        return new
+
+    @classmethod
     def concat(cls, batches: Sequence[CalibratedBatch]) -> CalibratedBatch:
         if not batches:
             return cls.empty()
@@ -169,9 +191,8 @@ class CalibratedBatch:
         t = _as_time_us(t_dev)
         if len(t) != len(self.t_us):
             raise ValueError("calibrated batch fields differ in length")
-        new = copy.copy(self)
-        object.__setattr__(new, "t_dev", t)
-        return new
+        return CalibratedBatch.of_checked(self.t_us, self.a_g, self.quasi_static,
+                                          self.detector_g, self.status, self.sigma_mg, t)
 
     def __getitem__(self, index: slice | np.ndarray) -> CalibratedBatch:
         return CalibratedBatch(self.t_us[index], self.a_g[index], self.quasi_static[index],

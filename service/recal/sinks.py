@@ -28,6 +28,8 @@ Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from typing import Any, Protocol
 
 from recal.io import messages
@@ -75,7 +77,7 @@ class Writer(Protocol):
 class Publisher(Protocol):
     """What a sink uses of a :class:`recal.io.bus.Publisher`."""
 
-    def put(self, payload: bytes) -> bool: ...
+    def put(self, payload: bytes | Callable[[], bytes]) -> bool: ...
 
 
 class Bus(Protocol):
@@ -162,7 +164,7 @@ class BusSink:
         self.topics = frozenset(_bus.TOPICS)
         self.dropped = 0
 
-    def put(self, sensor_id: str, suffix: str, data: bytes) -> None:
+    def put(self, sensor_id: str, suffix: str, data: bytes | Callable[[], bytes]) -> None:
         """Publish encoded bytes on ``recal/<sensor>/<suffix>`` (counted in ``dropped`` if
         refused). The key is validated and the publisher looked up once per (sensor, suffix),
         not per message: with samples handled as they arrive, that is per sample."""
@@ -209,12 +211,15 @@ class LoggedBusSink:
         return self.bus.dropped
 
     def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        self.bus.put(sensor_id, "raw", self.writer.write_raw(sensor_id, batch, log_time_ns))
+        self.writer.log_raw(sensor_id, batch, log_time_ns)
+        self.bus.put(sensor_id, "raw", partial(messages.encode_raw, sensor_id, batch))
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
-        self.bus.put(sensor_id, suffix,
-                     self.writer.write_calibrated(sensor_id, batch, log_time_ns, suffix))
+        # the log keeps the batch (encoded at its flush); the bus's bytes are made only if
+        # someone subscribes to the topic (a body nobody watches costs no encoding)
+        self.writer.log_calibrated(sensor_id, batch, log_time_ns, suffix)
+        self.bus.put(sensor_id, suffix, partial(messages.encode_calibrated, sensor_id, batch))
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
              every_n: int) -> None:

@@ -38,6 +38,8 @@ def calibrate(segs: list[Segment], b: RawBatch,
     """Each sample corrected with the segment in force when it arrived (segs: in index order,
     the first at 0); its status and predicted error (`status.predicted_sigma_mg`, widened by
     the misfit then) as they were then."""
+    if len(b) == 1:  # one sample per arrival: the last segment is in force (all start at 0)
+        return _calibrate_one(segs[-1], b, covariates)
     out = np.empty_like(b.v)
     status = np.empty(len(b), np.uint8)
     sigma = np.empty(len(b))
@@ -51,3 +53,18 @@ def calibrate(segs: list[Segment], b: RawBatch,
             if g.extra_mg2 > 0:
                 sigma[s:e] = np.sqrt(sigma[s:e] ** 2 + g.extra_mg2)
     return out, status, sigma
+
+
+def _calibrate_one(g: Segment, b: RawBatch,
+                   covariates: Callable[[np.ndarray, np.ndarray], Covariates]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`calibrate` of a one-sample batch: the same calls on the same arrays, without the
+    segment bookkeeping."""
+    cov = covariates(b.t_us, b.aux)
+    out = g.model.correct(g.p, b.v, cov)
+    if out is b.v:  # a model without stages hands the reading back: never share it
+        out = out.copy()
+    sigma = predicted_sigma_mg(g.model, g.p, g.cov, b.v, cov, g.form)
+    if g.extra_mg2 > 0:
+        sigma = np.sqrt(sigma ** 2 + g.extra_mg2)
+    return out, np.array([g.status], np.uint8), sigma

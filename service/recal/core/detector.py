@@ -16,11 +16,12 @@ The threshold and why: docs/design.md ("The detector threshold").
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from recal.core.sos_filter import butter_sos, sos_zi, sosfilt
+from recal.core.sos_filter import butter_sos, sos_rows, sos_zi, sosfilt, sosfilt_one
 from recal.core.triaxial import all3, any3, norm3
 
 __all__ = ["DetectorConfig", "DetectorOutput", "DetectorState", "detect", "init_state"]
@@ -142,6 +143,10 @@ def detect(cfg: DetectorConfig, state: DetectorState,
            v: np.ndarray) -> tuple[DetectorState, DetectorOutput]:
     """Run the detector on raw samples v (N,3); returns the new state and per-sample output."""
     v = np.asarray(v, np.float64).reshape(-1, 3)
+    if len(v) == 1 and state.started:
+        one = _detect_one(cfg, state, v)
+        if one is not None:
+            return one
     if len(v) == 0:
         empty = np.zeros(0, bool)
         return state, DetectorOutput(np.zeros(0), empty, empty, empty)
@@ -160,6 +165,40 @@ def detect(cfg: DetectorConfig, state: DetectorState,
                else np.zeros(len(v), bool))
     out = DetectorOutput(v_out, v_out < cfg.threshold_g, clipped, runs >= cfg.flat_n - 1)
     return DetectorState(zi_hp, zi_lp, v[-1].copy(), int(runs[-1]), True), out
+
+
+def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray
+                ) -> tuple[DetectorState, DetectorOutput] | None:
+    """`detect` for one sample (a live sensor's arrival) on Python floats: the same operations
+    in the same order as the array path (`norm3`'s (x^2 + y^2) + z^2, `sosfilt`'s scalar
+    loop), so the same bits, with a handful of numpy calls instead of dozens. None for a
+    sample the array path must take (not finite)."""
+    x, y, z = v[0].tolist()
+    zx, zy, zz = cfg.zero_raw
+    if zx or zy or zz:
+        x, y, z = x - zx, y - zy, z - zz
+    v_in = math.sqrt(x * x + y * y + z * z) / cfg.s0  # eq. 1
+    if not math.isfinite(v_in):
+        return None
+    hp, lp = _sos_rows(cfg.order, cfg.hp_hz, cfg.lp_hz, cfg.rate_hz)
+    y_hp, zi_hp = sosfilt_one(hp, v_in, state.zi_hp.tolist())
+    v_out, zi_lp = sosfilt_one(lp, abs(y_hp), state.zi_lp.tolist())  # eq. 2
+    lx, ly, lz = state.last_v.tolist()
+    vx, vy, vz = v[0].tolist()
+    run = state.same_run + 1 if (vx == lx and vy == ly and vz == lz) else 0
+    clip = cfg.clip_raw
+    clipped = clip is not None and (abs(x) >= clip or abs(y) >= clip or abs(z) >= clip)
+    out = DetectorOutput(np.array([v_out]), np.array([v_out < cfg.threshold_g]),
+                         np.array([clipped]), np.array([run >= cfg.flat_n - 1]))
+    return DetectorState(np.array(zi_hp), np.array(zi_lp), v[0].copy(), run, True), out
+
+
+@functools.lru_cache(maxsize=64)
+def _sos_rows(order: int, hp_hz: float, lp_hz: float, rate_hz: float
+              ) -> tuple[tuple[tuple[float, ...], ...], tuple[tuple[float, ...], ...]]:
+    """`_butter_pair` as Python floats, for `_detect_one`."""
+    hp, lp = _butter_pair(order, hp_hz, lp_hz, rate_hz)
+    return sos_rows(hp), sos_rows(lp)
 
 
 def _detect_finite(cfg: DetectorConfig, state: DetectorState, v: np.ndarray,

@@ -316,10 +316,14 @@ class Pipeline:
         cal, status, sigma = calibrate(self._segs, batch, self.covariates)
         self._segs = []
         self.counts["samples"] += n
-        self.counts["quasi_static"] += int(gate.sum())
-        return JoinedStep(CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma),
-                        tuple(events), commits, tuple(self._watch_events),
-                        done.at if done is not None else {})
+        if n == 1:  # one sample per arrival: the arrays are made here, as the batch keeps them
+            self.counts["quasi_static"] += int(gate[0])
+            out = CalibratedBatch.of_checked(batch.t_us, cal, gate, d.detector_g, status, sigma)
+        else:
+            self.counts["quasi_static"] += int(gate.sum())
+            out = CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma)
+        return JoinedStep(out, tuple(events), commits, tuple(self._watch_events),
+                          done.at if done is not None else {})
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""

@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-__all__ = ["SCALAR_MAX_N", "butter_sos", "sos_zi", "sosfilt"]
+__all__ = ["SCALAR_MAX_N", "butter_sos", "sos_rows", "sos_zi", "sosfilt", "sosfilt_one"]
 
 #: Batches up to this many samples are filtered by the scalar loop; longer ones by scipy's
 #: compiled kernel (about 1 ms of scalar loop per section at this length on this machine:
@@ -106,3 +106,20 @@ def _scalar(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray,
             y[n] = yn
         z[s] = [z0, z1]
     return np.array(y), np.array(z)
+
+
+def sos_rows(sos: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    """The sections as Python floats, for `sosfilt_one` (make it once per design)."""
+    return tuple(tuple(row) for row in np.asarray(sos, np.float64).tolist())
+
+
+def sosfilt_one(rows: tuple[tuple[float, ...], ...], x: float, zi: list[list[float]]
+                ) -> tuple[float, list[list[float]]]:
+    """`sosfilt` of one sample on Python floats (``rows``: `sos_rows`; ``zi`` as nested lists):
+    (y, final state), the operations of `_scalar` in its order, so the same bits."""
+    z = []
+    for (b0, b1, b2, _a0, a1, a2), (z0, z1) in zip(rows, zi, strict=True):
+        y = b0 * x + z0
+        z.append([b1 * x - a1 * y + z1, b2 * x - a2 * y])
+        x = y
+    return x, z

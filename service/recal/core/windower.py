@@ -252,6 +252,8 @@ def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray
         ) -> tuple[Cut, WindowerState]:
     """The batch's windows (samples t_us, v, aux; `gate`: which may enter one), and the state
     for the next batch. Pure: ``state`` is not changed."""
+    if len(t_us) == 1:
+        return _cut_one(cfg, state, t_us, v, aux, gate)
     start, forward = _run_starts(t_us, gate, state.last_t_us, state.last_gate, cfg.rate_hz)
     continues = (bool(gate[0]) and not start[0]
                  and (state.open is not None or state.pending is not None))
@@ -269,6 +271,24 @@ def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray
                list(zip(s_idx.tolist(), ends.tolist(), strict=True)), continues)
     table = WindowSums.gather(c.table, aux.shape[1]) if c.table else None
     return Cut(table, c.due), WindowerState(c.open, c.pending, *new_last)
+
+
+def _cut_one(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray,
+             aux: np.ndarray, gate: np.ndarray) -> tuple[Cut, WindowerState]:
+    """`cut` of one sample (a live sensor's arrival): `_run_starts` and the run bookkeeping
+    worked out on Python scalars, the window itself by `_Cutter` as for any batch, so the
+    same windows and state."""
+    t0 = int(t_us[0])
+    if not gate[0]:  # no run: whatever was open or pending is dropped
+        return Cut(None, []), WindowerState(None, None, t0, False)
+    dt = 1 if state.last_t_us is None else t0 - state.last_t_us
+    if state.last_gate and 0 < dt <= 3.0e6 / cfg.rate_hz:  # the run goes on
+        c = _Cutter(cfg, state.open, state.pending, [], [])
+    else:
+        c = _Cutter(cfg, None, None, [], [])
+    c.schedule_run(t_us, v, aux, 0, 1)
+    table = WindowSums.gather(c.table, aux.shape[1]) if c.table else None
+    return Cut(table, c.due), WindowerState(c.open, c.pending, t0, True)
 
 
 def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarray,

@@ -46,6 +46,9 @@ _CONTROL_RE = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")
 # Bytes the vectorized ASCII path lets through to np.fromstring; a line with any other byte
 # (letters, spaces, '#', non-ASCII, control characters) takes the per-line path.
 _FAST_BYTES = b"0123456789.+-eE,\r\n"
+# Bytes of a line `AsciiLineParser._one_settled` reads (a plain data line: no spaces, letters,
+# control characters or '#'; a field float() takes is then one _FLOAT_RE matches)
+_PLAIN_BYTES = b"0123456789.+-eE,"
 _FAST_TABLE = np.ones(256, bool)
 _FAST_TABLE[list(_FAST_BYTES)] = False  # True marks a byte the fast path does not take
 
@@ -165,6 +168,8 @@ class AsciiLineParser(DelimitedParser):
 
     def _parse_records(self, buf: bytes, last: int, rows: Rows) -> None:
         """Parse the complete lines of ``buf``, up to and with its newline at ``last``."""
+        if last == len(buf) - 1 and buf.find(b"\n") == last and self._one_settled(buf, rows):
+            return  # one whole line (a sensor handled as it sends), read the short way
         chunk = buf[:last + 1]
         if not self.vectorized or chunk.count(b"\n") < self.vectorize_min_lines:
             # Also for a sensor handled as its samples arrive (one line per call): setting up
@@ -186,6 +191,37 @@ class AsciiLineParser(DelimitedParser):
             first += 1
         if first < len(ends):
             self._fast_lines(chunk, arr, starts[first:], ends[first:], rows)
+
+    def _one_settled(self, buf: bytes, rows: Rows) -> bool:
+        """``buf``, one line and its newline, read as `_one_line` would read it, when that is
+        plain: the layout settled with a time column, no resync, nothing but digits, signs,
+        points, exponents and commas in it, the right number of fields, an unsigned integer
+        time and numbers `float` takes (each such field is one `_FLOAT_RE` matches). Then
+        the sample is added (or its error counted) and True returned; else nothing is done
+        and False returned (the general path decides)."""
+        layout = self._layout
+        if (self._resync or layout.timeless is not False or not layout.settled
+                or len(buf) > self.max_record_bytes):
+            return False
+        line = buf[:-2] if buf.endswith(b"\r\n") else buf[:-1]
+        if line.translate(None, _PLAIN_BYTES):
+            return False
+        tokens = line.split(b",")
+        if len(tokens) != 4 + (layout.n_aux or 0) or not tokens[0].isdigit():
+            return False
+        try:
+            vals = [float(tok) for tok in tokens[1:]]
+        except ValueError:
+            return False
+        t_us = int(tokens[0])
+        error = check_values(t_us, vals, self.max_abs_xyz)
+        if error is not None:
+            self.errors.add(error)
+        elif layout.accept(len(tokens) - 4, False):
+            rows.add_one(t_us, vals)
+        else:  # (cannot be: the field count fits the settled layout)
+            self.errors.add("wrong_columns")
+        return True
 
     def _one_line(self, line: bytes, rows: Rows) -> None:
         if self._resync and len(line) <= self.max_record_bytes and line.strip():

@@ -267,9 +267,11 @@ class Publisher:
             time.sleep(0.005)
         return True
 
-    def put(self, payload: bytes, attachment: bytes | None = None) -> bool:
+    def put(self, payload: bytes | Callable[[], bytes], attachment: bytes | None = None) -> bool:
         """Publish ``payload``; return False (and count it) if Zenoh refused it.
 
+        ``payload`` may be what makes the bytes (called only when a subscriber matches: a
+        live topic nobody listens to then costs no encoding at each arrival).
         May block while the transmission queue is full (congestion control BLOCK).
         """
         try:
@@ -280,6 +282,8 @@ class Publisher:
                 self._sent.add()
                 self._unmatched.add()
                 return True
+            if callable(payload):
+                payload = payload()
             self._publisher.put(payload, attachment=attachment)
         except zenoh.ZError as exc:  # e.g. undeclared (the bus closed)
             self._failed.add()

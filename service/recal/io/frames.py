@@ -215,6 +215,11 @@ class Rows:
             self._one_t, self._one_vals = [], []
 
     def batch(self, aux_names: tuple[str, ...]) -> RawBatch:
+        if not self.t and len(self._one_t) == 1 and len(self._one_vals[0]) == 3 + len(aux_names):
+            # one sample (a sensor handled as it sends): its arrays made as the batch keeps them
+            vals = self._one_vals[0]
+            return RawBatch.of_checked(np.array(self._one_t, np.int64), np.array([vals[:3]]),
+                                       np.array([vals[3:]]).reshape(1, -1), aux_names)
         self._settle()
         if not self.t:
             return RawBatch.empty(aux_names)

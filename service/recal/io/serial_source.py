@@ -361,10 +361,13 @@ class SerialSource:
                 if readable and not parts:
                     raise _PortGone(f"{self.port} reports data but returns none (hung up)")
                 break
+            if len(part) < self.max_read_bytes:  # drained: a further read would say EAGAIN
+                if not parts:
+                    return part  # the usual case (a line or a few per wake-up): no join
+                parts.append(part)
+                break
             parts.append(part)
             total += len(part)
-            if len(part) < self.max_read_bytes:
-                break  # drained: a further read would only say EAGAIN
         return b"".join(parts)
 
     def _feed(self, data: bytes) -> RawBatch:
