@@ -22,8 +22,10 @@ the sensor noise left in a 1 s mean (sigma speaks of the calibration only). Colu
   (a rotation of the sensor's frame is not observable from gravity; bench/in_use_accuracy.py);
 * err mg: RMS error of every second of the second half, whatever its status (the
   calibration's accuracy: the parameters' path does not read the misfit or the statuses);
-* after event: for a swap or a restored checkpoint, seconds to the first suspect sample,
-  and how many calibrated seconds were more than 20 mg off after it.
+* after event: for a swap, a port reopen or a restored checkpoint, seconds to the first
+  suspect sample, how many calibrated seconds were more than 20 mg off after it, and seconds
+  to the first calibrated second after it (what a check after the event costs when the
+  sensor is the same one).
 
 Hindsight columns: not here (the hindsight console's sigma is its own module's).
 """
@@ -41,6 +43,7 @@ from scipy.spatial.transform import Rotation
 
 from recal import sim
 from recal.config import PipelineSettings
+from recal.core import status
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
@@ -57,7 +60,7 @@ BATCH = 250
 @dataclass
 class Case:
     """One wearer: its sensor, the model, and what happens (event: None, "swap",
-    "swap+doubt", "poisoned", "foreign")."""
+    "swap+doubt", "swap+reopen", "reopen", "poisoned", "foreign")."""
 
     spec: Callable[[np.random.Generator], sim.SensorSpec]
     full: bool = False
@@ -85,6 +88,8 @@ CASES: dict[str, Case] = {
     "upright only, diagonal": Case(_plain, upright=True),
     "another sensor under the id at half time": Case(_plain, event="swap"),
     "the same, its clock restarting (the node doubts)": Case(_plain, event="swap+doubt"),
+    "the same, after a port reopen (its clock runs on)": Case(_plain, event="swap+reopen"),
+    "the same sensor after a port reopen (the check's cost)": Case(_plain, event="reopen"),
     "poisoned checkpoint (offset x +0.39 g)": Case(_plain, event="poisoned"),
     "another sensor's checkpoint": Case(_plain, event="foreign"),
     "six clean poses twice, no prior (lab)": Case(_plain, poses=True),
@@ -159,7 +164,9 @@ def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
     wearer = sim.WearerSpec(upright_only=case.upright, temp_excursion_every_h=0.5)
     res = sim.simulate(minutes / 60, RATE_HZ, seed, spec, wearer)
     raw, event_s = res.raw, None
-    if case.event in ("swap", "swap+doubt"):
+    if case.event == "reopen":
+        event_s = len(raw) // 2 / RATE_HZ
+    if case.event in SWAPS:
         other = sim.with_sensor(res, case.spec(np.random.default_rng(seed + 100)))
         k = len(raw) // 2
         t_us = raw.t_us.copy()
@@ -173,8 +180,12 @@ def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
     node = CalibrationNode(NodeSettings("bench", PipelineSettings(), model, prior, RATE_HZ),
                            sink)
     t0 = time.process_time()
-    for i in range(0, len(raw), BATCH):  # the log time: arrival, one batch after another
-        node.process(raw[i:i + BATCH], 1_000_000 * i)
+    reopen = len(raw) // 2 if case.event in ("swap+reopen", "reopen") else None
+    cuts = sorted({*range(0, len(raw), BATCH), *([reopen] if reopen else [])})
+    for i, j in zip(cuts, [*cuts[1:], len(raw)], strict=True):  # log time: the arrival
+        if i == reopen and hasattr(node, "port_reopened"):  # absent from the code before
+            node.port_reopened()  # what the gateway calls when the port opens again
+        node.process(raw[i:j], 1_000_000 * i)
     node.flush(1_000_000 * len(raw))
     cpu = time.process_time() - t0
     out = CalibratedBatch.concat(sink.batches)
@@ -182,9 +193,22 @@ def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
     return _row(name, seed, case, spec, node.pipeline, out, res.truth.a_true_g, event_s, cpu)
 
 
-def _doubt(pipe: Pipeline) -> None:
-    """`Pipeline.doubt` (absent from the code before it: `--before` runs that code)."""
-    if hasattr(pipe, "doubt"):
+#: The events that put another sensor under the id at half time.
+SWAPS = ("swap", "swap+doubt", "swap+reopen")
+
+
+#: Still windows that must agree after a port reopen (None in the code before that check:
+#: its gateway did not doubt there).
+REOPEN_CELLS = getattr(status, "REOPEN_PROBATION_WINDOWS", None)
+
+
+def _doubt(pipe: Pipeline, reopen: bool = False) -> None:
+    """`Pipeline.doubt` as the node calls it (absent from the code before it: `--before`
+    runs that code); at a port reopen, for REOPEN_CELLS windows."""
+    if reopen:
+        if REOPEN_CELLS is not None:
+            pipe.doubt(REOPEN_CELLS)
+    elif hasattr(pipe, "doubt"):
         pipe.doubt()
 
 
@@ -212,16 +236,18 @@ def run(name: str, case: Case, minutes: float, seed: int) -> dict:
     truth, raw = res.truth.a_true_g, res.raw
     event_s = None
     pipe = _pipe(spec, case.full, raw.aux_names)
-    if case.event in ("swap", "swap+doubt"):
-        other = sim.with_sensor(res, case.spec(np.random.default_rng(seed + 100)))
+    first = None
+    if case.event in (*SWAPS, "reopen"):
         k = len(raw) // 2
-        raw = RawBatch(raw.t_us, np.concatenate([raw.v[:k], other.raw.v[k:]]), raw.aux,
-                       raw.aux_names)
-        truth = res.truth.a_true_g
+        if case.event != "reopen":
+            other = sim.with_sensor(res, case.spec(np.random.default_rng(seed + 100)))
+            raw = RawBatch(raw.t_us, np.concatenate([raw.v[:k], other.raw.v[k:]]), raw.aux,
+                           raw.aux_names)
         event_s = k / RATE_HZ
-        if case.event == "swap+doubt":  # the node's time_reboot: doubt at the swap
+        if case.event in ("swap+doubt", "swap+reopen", "reopen"):
+            # the node's time_reboot doubts at the swap; the gateway's reopened port, once
             first = _stream(pipe, raw[:k])
-            _doubt(pipe)
+            _doubt(pipe, reopen=case.event != "swap+doubt")
             raw, truth = raw[k:], truth[k:]
             event_s = 0.0
     elif case.event in ("poisoned", "foreign"):
@@ -243,7 +269,7 @@ def run(name: str, case: Case, minutes: float, seed: int) -> dict:
     t0 = time.process_time()
     out = _stream(pipe, raw)
     cpu = time.process_time() - t0
-    if case.event == "swap+doubt":  # the whole recording in the table
+    if first is not None:  # the whole recording in the table
         out = CalibratedBatch.concat([first, out])
         truth, event_s = res.truth.a_true_g, len(first) / RATE_HZ
     return _row(name, seed, case, spec, pipe, out, truth, event_s, cpu)
@@ -282,6 +308,8 @@ def _row(name: str, seed: int, case: Case, spec: sim.SensorSpec, pipe: Pipeline,
         first = np.flatnonzero(sus & after)
         row["to_suspect_s"] = float(first[0] - event_s) if len(first) else float("nan")
         row["cal_over_20mg"] = int(np.count_nonzero(cal & after & (e > 20.0)))
+        back = np.flatnonzero(cal & after)
+        row["to_calibrated_s"] = float(back[0] - event_s) if len(back) else float("nan")
     return row
 
 
@@ -294,15 +322,16 @@ def main() -> None:
     args = ap.parse_args()
     minutes, seeds = (20.0, 1) if args.quick else (60.0, args.seeds)
     print("case | seed | cal % | >3 sigma_eff % | >10 sigma_eff % | real/pred | err mg "
-          "(2nd half) | misfit mg | unobserved | to suspect s | cal. s > 20 mg")
-    print("---|---|---|---|---|---|---|---|---|---|---")
+          "(2nd half) | misfit mg | unobserved | to suspect s | cal. s > 20 mg | "
+          "to calibrated s")
+    print("---|---|---|---|---|---|---|---|---|---|---|---")
     for name, case in CASES.items():
         if args.live and (case.poses or case.event in ("poisoned", "foreign")):
             continue
         for seed in range(1, seeds + 1):
             r = (run_live if args.live else run)(name, case, minutes, seed)
-            ev = (f"{r['to_suspect_s']:.0f} | {r['cal_over_20mg']}" if "to_suspect_s" in r
-                  else "- | -")
+            ev = (f"{r['to_suspect_s']:.0f} | {r['cal_over_20mg']} | "
+                  f"{r['to_calibrated_s']:.0f}" if "to_suspect_s" in r else "- | - | -")
             print(f"{name} | {seed} | {r['cal_pct']:.0f} | {r['beyond3_pct']:.1f} | "
                   f"{r['beyond10_pct']:.1f} | {r['real_pred']:.2f} | {r['err_mg']:.2f} | "
                   f"{r['misfit_mg']:.1f} | {','.join(r['unobserved']) or '-'} | {ev}",

@@ -20,6 +20,7 @@ from polling import wait_for
 from recal.checkpoints import load_checkpoint
 from recal.config import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
+from recal.core.status import REOPEN_PROBATION_WINDOWS
 from recal.demo import free_port
 from recal.gateway import NOTE_PREFIX, Gateway, run_gateway
 from recal.io import recording as rec
@@ -227,11 +228,15 @@ def test_unplug_and_replug_reconnects(tmp_path: Path) -> None:
         try:
             stream(dev, raw[:half], 3000.0)
             assert wait_for(lambda: p.samples_logged == half, 10)
+            assert p.node is not None and p.node.pipeline is not None
+            assert p.node.pipeline.watch.probation == 0  # no doubt so far
             dev.unplug()
             assert wait_for(lambda: not p.is_open, 10), "unplug not noticed"
             time.sleep(0.2)  # stays away a little while
             dev.replug()
             assert wait_for(lambda: p.is_open, 10), "replug not noticed"
+            # another device may be plugged in now: its first still window must agree
+            assert p.node.pipeline.watch.probation == REOPEN_PROBATION_WINDOWS
             stream(dev, raw[half:], 3000.0)
             assert wait_for(lambda: p.samples_logged == len(raw), 10), p.samples_logged
             assert live.gw.status(SID)["gateway"]["lost_count"] == 1

@@ -571,3 +571,45 @@ def test_the_live_node_doubts_at_another_device_whose_clock_restarts() -> None:
     assert live["cal_over_20mg"] == 0 and live["to_suspect_s"] <= 9.0, live
     assert {k: v for k, v in live.items() if k != "cpu_s"} == {
         k: v for k, v in core.items() if k != "cpu_s"}
+
+
+# ------------------------------------------------------------ a check after a port reopen
+
+def _reopened(raw: RawBatch, k: int) -> CalibratedBatch:
+    """raw through the node, the port reopening (`port_reopened`, as the gateway calls it)
+    before sample k."""
+    sink = MemorySink()
+    node = _node(sink)
+    _feed(node, raw[:k])
+    node.port_reopened()
+    _feed(node, raw[k:])
+    return sink.all()
+
+
+def test_another_sensor_after_a_port_reopen_is_not_calibrated_before_a_still_window_agrees(
+) -> None:
+    """Without a clock restart nothing in B's movement tells it from A; the reopened port
+    does: from it, output is held until a still window agrees, and B's first still window
+    contradicts, so no sample of B is marked calibrated before suspect (before the check: B's
+    moving seconds marked calibrated, 7-15 of them more than 20 mg off; bench/sigma_honesty.py)."""
+    _, raw, k = swapped()
+    out = _reopened(raw, k)
+    assert np.all(out.status[k - 1000:k] == Status.CALIBRATED)  # A was calibrated
+    suspect = np.flatnonzero(out.status[k:] == Status.SUSPECT)
+    assert len(suspect) and suspect[0] / RATE_HZ < 5 * 60, suspect[:1]
+    assert not np.any(out.status[k:k + suspect[0]] == Status.CALIBRATED)
+
+
+def test_the_same_sensor_after_a_port_reopen_is_calibrated_again_at_its_first_still_window(
+) -> None:
+    """The check costs the time to the first still window that agrees, and nothing else:
+    no suspect sample, calibrated again within a minute here, then as before."""
+    res = sim.simulate(50 / 60, RATE_HZ, 1, _spec(1))
+    k = int(40 * 60 * RATE_HZ)
+    out = _reopened(res.raw, k)
+    assert np.all(out.status[k - 1000:k] == Status.CALIBRATED)
+    after = out.status[k:]
+    assert after[0] == Status.HELD and not np.any(after == Status.SUSPECT)
+    back = np.flatnonzero(after == Status.CALIBRATED)
+    assert len(back) and back[0] / RATE_HZ < 60, back[:1]
+    assert np.all(after[back[0]:] == Status.CALIBRATED)

@@ -449,6 +449,8 @@ class Gateway:
                 self._sensor_event(p.sensor_id, kind, now, ev.detail)
             return
         if ev.kind in ("port_opened", "port_found"):
+            if p.ever_opened and p.node is not None:  # unplugged and back: another device?
+                p.node.port_reopened()
             p.is_open, p.ever_opened, p.open_failures = True, True, 0
         elif ev.kind == "port_lost":
             p.is_open = False

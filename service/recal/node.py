@@ -52,7 +52,7 @@ from recal.core.model import SensorModel
 from recal.core.outputs import StepOutput
 from recal.core.pipeline import Pipeline
 from recal.core.rate import infer_rate_hz
-from recal.core.status import NOT_FINITE_SIGMA_MG, Status
+from recal.core.status import NOT_FINITE_SIGMA_MG, REOPEN_PROBATION_WINDOWS, Status
 from recal.rediscovery import Rediscovery as _Rediscovery
 from recal.samples import CalibratedBatch, RawBatch, conform_channels
 from recal.sinks import Sink
@@ -265,6 +265,15 @@ class CalibrationNode(AlignmentRequests):
                 if len(batch):
                     self._announce(int(batch.t_us[0]), log_time_ns)
                     self._step(batch, log_time_ns)
+
+    def port_reopened(self) -> None:
+        """The device's port closed and opened again (unplugged and plugged in: perhaps
+        another device under this id, whose clock need not restart): output is held until the
+        first still window after it agrees with the calibration, suspect if it contradicts
+        (`status.REOPEN_PROBATION_WINDOWS`)."""
+        with self._lock:
+            if self.pipeline is not None:  # still measuring the rate: nothing to doubt yet
+                self.pipeline.doubt(REOPEN_PROBATION_WINDOWS)
 
     def status(self) -> dict[str, Any]:
         """The current calibration state (as published) plus node counters."""

@@ -59,6 +59,7 @@ from recal.core.refit import (
 )
 from recal.core.status import (
     MISFIT_MOVE_SDS,
+    PROBATION_WINDOWS,
     UNPINNED_MG,
     RunningMisfit,
     Status,
@@ -228,12 +229,13 @@ class Pipeline:
             cached = self._converging_cache = (est, self.model, unsettled(self.model, est.cov))
         return tuple(n for n in cached[2] if n not in self.unobserved)
 
-    def doubt(self) -> None:
+    def doubt(self, cells: int = PROBATION_WINDOWS) -> None:
         """A moment of doubt (the device's clock restarted, the state came from a checkpoint,
-        another device may be under this id): output is held until the next still windows
-        agree with the estimate (`core.status`: probation), suspect at the first that
-        contradicts it grossly."""
-        self.watch.doubt()
+        another device may be under this id): output is held until still windows in ``cells``
+        orientation cells agree with the estimate (`core.status`: probation; one after a port
+        reopen, `status.REOPEN_PROBATION_WINDOWS`), suspect at the first that contradicts it
+        grossly."""
+        self.watch.doubt(cells)
 
     def step(self, batch: RawBatch) -> StepOutput:
         """Process one batch of raw samples (any size, in time order)."""

@@ -129,6 +129,12 @@ GROSS_HOLD_S = 0.0
 #: output is calibrated: the norm at one posture sees one direction of the offsets' error
 #: (another sensor's offsets can be 100 mg off across gravity and agree in the norm).
 PROBATION_WINDOWS = 3
+#: After the device's data came back through a reopened port (unplugged and plugged in again:
+#: perhaps another device under the id, with a clock of its own that need not restart), the
+#: first still window must agree before output is calibrated again. One window, not
+#: PROBATION_WINDOWS: a loose USB lead reopens many times a day, and three orientations cost
+#: minutes of held output each time (docs/design.md, "a check after a port reopen").
+REOPEN_PROBATION_WINDOWS = 1
 #: The misfit's running means weigh each still window by this (a memory of ~32 windows).
 MISFIT_WEIGHT = 1.0 / 32.0
 #: A window's squared residual enters the misfit's mean clipped at this many times the
@@ -488,9 +494,11 @@ class Watch:
     agreed: list[int] = field(default_factory=list)
     calm_run: int = 0
 
-    def doubt(self) -> None:
-        """A moment of doubt: still windows in PROBATION_WINDOWS cells must agree."""
-        self.probation, self.agreed = PROBATION_WINDOWS, []
+    def doubt(self, cells: int = PROBATION_WINDOWS) -> None:
+        """A moment of doubt: still windows in ``cells`` orientation cells must agree (a
+        probation already asking for more is kept as it is)."""
+        if cells > self.probation:
+            self.probation, self.agreed = cells, []
 
     def see(self, bad: bool, window: tuple, grossly: bool = False,
             cell: int = -1) -> str | None:
