@@ -1,5 +1,6 @@
 """Bytes on disk per sample of a live log at 100 Hz, the first (float64, a message per arrival)
-form beside the compact, joined one; and what a sample's write costs the caller in each.
+form beside the compact, joined one (as it was, and as it is); and what a sample's write costs
+the caller in each.
 
     python bench/log_size.py                # 20 min of a simulated wearer, 5 timing runs
     python bench/log_size.py --minutes 5    # shorter
@@ -14,8 +15,12 @@ settings):
     first form   each batch encoded alone in float64 (`messages.encode_raw`,
                  `encode_calibrated`, as the bus still carries it) and logged as one message
                  (what the writer did before it joined batches)
-    compact      `RecordingWriter` as it is: batches joined per topic until the next flush,
-                 in the compact form
+    compact 10 Hz `RecordingWriter` with batches joined per topic until the next flush, in
+                 the compact form, as it was before the plot's default rate went from 10 Hz
+                 to 2 Hz and sigma to 1 % steps: the plot every 10th sample, sigma kept to
+                 the micro-g (`messages.sigma_steps` bypassed)
+    compact      `RecordingWriter` as it is (the plot at the node's default rate, sigma in
+                 1 % steps)
 
 Per topic: the same writes with only that topic's messages, each in a file of its own (the
 per-topic bytes do not add up to the whole exactly: zstd shares nothing across files).
@@ -115,10 +120,23 @@ def _write_plot_doubles(w: RecordingWriter, batch: CalibratedBatch, log_ns: int,
     return (phase + len(batch)) % every_n
 
 
-def write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
+FORMS = ("first form", "compact 10 Hz", "compact")
+
+
+def write(path: Path, calls: list[tuple[str, str, Any, int]], form: str,
           topics: frozenset[str] | None = None) -> float:
-    """Write the captured calls (only ``topics``' when given); returns seconds spent in the
-    writer's calls for raw, calibrated, body and plot."""
+    """Write the captured calls in one of FORMS (only ``topics``' when given); returns
+    seconds spent in the writer's calls for raw, calibrated, body and plot."""
+    first_form = form == "first form"
+    if form != "compact":  # the plot at 10 Hz, as it was
+        calls = [(k, s, (p[0], round(RATE_HZ / 10.0)) if k == "plot" else p, t)
+                 for k, s, p, t in calls]
+    if form == "compact 10 Hz":  # as before: sigma to the micro-g too
+        steps, messages.sigma_steps = messages.sigma_steps, lambda s: s
+        try:
+            return write(path, calls, "compact", topics)
+        finally:
+            messages.sigma_steps = steps
     clock = Clock()
     w = RecordingWriter(path, clock=clock, background_flush=False, fsync=False,
                         overwrite=True, log_batch_samples=1 if first_form else 8192)
@@ -165,22 +183,22 @@ def sizes(tmp: Path, calls: list, samples: int) -> list[tuple[str, float, float]
     rows = []
     for name, topics in groups:
         per = []
-        for first_form in (True, False):
-            path = tmp / f"{name.split(',')[0]}-{first_form}.mcap"
-            write(path, calls, first_form, topics)
+        for form in FORMS:
+            path = tmp / f"{name.split(',')[0]}-{form}.mcap"
+            write(path, calls, form, topics)
             per.append(path.stat().st_size / samples)
-        rows.append((name, per[0], per[1]))
+        rows.append((name, *per))
     return rows
 
 
-def timing(tmp: Path, calls: list, samples: int, runs: int) -> tuple[float, float]:
-    """Median microseconds per arrival in the writer (first form, compact)."""
-    times: dict[bool, list[float]] = {True: [], False: []}
+def timing(tmp: Path, calls: list, samples: int, runs: int) -> list[float]:
+    """Median microseconds per arrival in the writer, per form of FORMS."""
+    times: dict[str, list[float]] = {form: [] for form in FORMS}
     for _ in range(runs):
-        for first_form in (True, False):  # side by side in every run
-            spent = write(tmp / "t.mcap", calls, first_form)
-            times[first_form].append(spent / samples * 1e6)
-    return statistics.median(times[True]), statistics.median(times[False])
+        for form in FORMS:  # side by side in every run
+            spent = write(tmp / "t.mcap", calls, form)
+            times[form].append(spent / samples * 1e6)
+    return [statistics.median(times[form]) for form in FORMS]
 
 
 def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
@@ -212,16 +230,17 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         rows = sizes(tmp, calls, samples)
-        first_us, compact_us = timing(tmp, calls, samples, a.runs)
+        first_us, before_us, compact_us = timing(tmp, calls, samples, a.runs)
     enc_old, enc_new = encode_one_us(calls)
     print(f"{a.minutes:g} min at {RATE_HZ:g} Hz, one sample per arrival ({samples} samples), "
           "zstd, 32 KiB chunks, flush every 1 s\n")
-    print("| topics | first form, B/sample | compact, B/sample | ratio |")
-    print("|---|---:|---:|---:|")
-    for name, old, new in rows:
-        print(f"| {name} | {old:.2f} | {new:.2f} | {new / old:.3f} |")
+    print("| topics | first form, B/sample | compact 10 Hz, B/sample | compact, B/sample | "
+          "compact / compact 10 Hz |")
+    print("|---|---:|---:|---:|---:|")
+    for name, old, before, new in rows:
+        print(f"| {name} | {old:.2f} | {before:.2f} | {new:.2f} | {new / before:.3f} |")
     print(f"\nwriter per arrival (raw, calibrated, body, plot): first form {first_us:.1f} us, "
-          f"compact {compact_us:.1f} us (ratio {compact_us / first_us:.2f}; medians of "
+          f"compact 10 Hz {before_us:.1f} us, compact {compact_us:.1f} us (medians of "
           f"{a.runs})")
     print(f"encoding one 1-sample CalibratedBatch: float64 (the bus's) {enc_old:.2f} us, "
           f"compact {enc_new:.2f} us")

@@ -45,6 +45,7 @@ from recal.core.pipeline import Pipeline
 from recal.core.status import status_line
 from recal.core.timebase import TimebaseState
 from recal.io import recording as rec
+from recal.io.messages import Arrivals
 from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 from recal.node import CalibrationNode, NodeSettings, model_name, node_settings
 from recal.samples import RawBatch
@@ -80,11 +81,11 @@ class _SensorRun:
         self.waiting, self.waiting_samples = [], 0
 
 
-def _arrivals(batch: RawBatch, logged: rec.LoggedMessage) -> list[tuple[RawBatch, int]]:
+def _arrivals(batch: RawBatch, logged: rec.LoggedMessage, found: Arrivals | None
+              ) -> list[tuple[RawBatch, int]]:
     """The batches as they arrived live, with their log times: a joined message's arrivals
     (the live node stepped once per arrival, and the calibration states fall at step ends),
     or the message itself."""
-    found = rec.messages.raw_arrivals(logged.data)
     if found is None:
         return [(batch, logged.log_time_ns)]
     sizes, log_us = found
@@ -190,7 +191,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
                disable=not progress, leave=False)
     try:
-        for sid, batch, logged in rec.iter_raw_logged(paths):
+        for sid, batch, logged, found in rec.iter_raw_logged(paths):
             bar.update(1)
             if sensor_ids is not None and sid not in sensor_ids:
                 continue
@@ -198,10 +199,11 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
             if run is None:
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
                 run = runs[sid] = _SensorRun(node, extra={"start": start})
-            for piece, log_ns in _arrivals(batch, logged):
-                # the raw topic is logged again in the compact form (the same values; an
-                # older recording's float64 batches get joined and shrunk like a live log's)
-                writer.log_raw(sid, piece, log_ns)
+            # the raw topic is logged again in the compact form, the message at once with its
+            # arrivals (the same values; an older recording's float64 batches get joined and
+            # shrunk like a live log's)
+            writer.log_raw(sid, batch, logged.log_time_ns, found)
+            for piece, log_ns in _arrivals(batch, logged, found):
                 run.add(piece, log_ns)  # several per pipeline step, output per arrival
                 run.batches += 1
                 run.last_log_ns = log_ns

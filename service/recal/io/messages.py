@@ -128,6 +128,7 @@ __all__ = [
     "decode_json",
     "decode_plot",
     "decode_raw",
+    "decode_raw_arrivals",
     "encode_calibrated",
     "encode_calibrated_compact",
     "encode_event",
@@ -138,7 +139,7 @@ __all__ = [
     "file_descriptor_set",
     "plot_payloads",
     "protobuf_message_class",
-    "raw_arrivals",
+    "sigma_steps",
 ]
 
 PROTO_PACKAGE = "recal"
@@ -558,7 +559,7 @@ def encode_raw_compact(sensor_id: str, batch: RawBatch,
     `decode_raw` reads both forms.
 
     ``arrivals``: (samples per arrival, log time of each in us after the message's) of a
-    batch joined from several arrivals (`raw_arrivals` reads them back)."""
+    batch joined from several arrivals (`decode_raw_arrivals` reads them back)."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
@@ -566,27 +567,6 @@ def encode_raw_compact(sensor_id: str, batch: RawBatch,
         parts += _varint_field(_F_RAW_ARRIVAL_SAMPLES, np.asarray(arrivals[0], np.int64))
         parts += _varint_field(_F_RAW_ARRIVAL_LOG_US, _deltas(np.asarray(arrivals[1])))
     return _join(parts + _aux_fields(batch))
-
-
-def raw_arrivals(data: bytes | bytearray | memoryview
-                 ) -> tuple[np.ndarray, np.ndarray | None] | None:
-    """(samples per arrival, log time of each in us after the message's, or None) of a
-    joined raw message; None for a message of one arrival (any message of an older
-    recording). ValueError if the sizes do not add up to the message's samples."""
-    buf = _as_bytes(data)
-    fields = _scan(buf, frozenset((_F_RAW_ARRIVAL_SAMPLES, _F_RAW_ARRIVAL_LOG_US)))
-    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _VARINT_WT):
-        return None
-    sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
-    log_us = None
-    if _F_RAW_ARRIVAL_LOG_US in fields:
-        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
-        if len(log_us) != len(sizes):
-            raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
-                             "arrivals")
-    if (sizes < 0).any() or sizes.sum() != batch_extent(buf)[0]:
-        raise ValueError("arrival_samples do not add up to the message's samples")
-    return sizes, log_us
 
 
 def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
@@ -605,11 +585,33 @@ def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
              *_compact_column(batch.detector_g, UG_PER_G, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG)]
     if batch.recorded:
         parts += [*_packed(_F_CAL_STATUS, _le_bytes(batch.status, "|u1")),
-                  *_compact_column(batch.sigma_mg, UG_PER_G / 1e3, _F_CAL_SIGMA,
+                  *_compact_column(sigma_steps(batch.sigma_mg), UG_PER_G / 1e3, _F_CAL_SIGMA,
                                    _F_CAL_SIGMA_UG)]
     if batch.t_dev is not None:
         parts += _time_fields(batch.t_dev, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
     return _join(parts)
+
+
+#: Relative step of the sigma the log keeps: sigma is itself an estimate (its own relative
+#: uncertainty is several percent), so 1 % steps say all it means; between updates it then
+#: stays on one step for long runs, which the delta field and zstd store in next to nothing
+#: (the raw value wanders by parts per thousand from sample to sample).
+SIGMA_STEP = 0.01
+_LOG_SIGMA_STEP = math.log1p(SIGMA_STEP)
+
+
+def sigma_steps(sigma_mg: np.ndarray) -> np.ndarray:
+    """Each positive finite sigma on the nearest step of a geometric ladder of ratio
+    1 + ``SIGMA_STEP`` (the steps are ``(1 + SIGMA_STEP) ** k`` mg, k an integer: within half
+    a step, 0.5 %, of the value); zero, negative and non-finite values as they are. What the
+    log's compact form keeps of sigma."""
+    s = np.asarray(sigma_mg, np.float64)
+    ok = np.isfinite(s) & (s > 0)
+    if not ok.any():
+        return s
+    out = s.copy()
+    out[ok] = np.exp(np.rint(np.log(s[ok]) / _LOG_SIGMA_STEP) * _LOG_SIGMA_STEP)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -825,7 +827,8 @@ def _column(buf: bytes, fields: dict[int, list[_Occurrence]], f_float: int, f_fi
 
 _STAMP_FIELDS = (_F_T_US, _F_T0_US, _F_DT_US)
 _RAW_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES,
-                         _F_RAW_AUX, _F_X_FIX, _F_Y_FIX, _F_Z_FIX))
+                         _F_RAW_AUX, _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_RAW_ARRIVAL_SAMPLES,
+                         _F_RAW_ARRIVAL_LOG_US))
 _CAL_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
                          _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV,
                          _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_CAL_DETECTOR_UG, _F_CAL_SIGMA_UG,
@@ -839,6 +842,21 @@ def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
 def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
     """Parse a ``recal.RawBatch`` message (either form) into (sensor_id, batch); ValueError if
     malformed."""
+    sensor_id, batch, _ = decode_raw_arrivals(data)
+    return sensor_id, batch
+
+
+#: A joined raw message's arrivals: samples per arrival, and the log time of each in us after
+#: the message's (None if the message has no log times).
+Arrivals = tuple[np.ndarray, np.ndarray | None]
+
+
+def decode_raw_arrivals(data: bytes | bytearray | memoryview
+                        ) -> tuple[str, RawBatch, Arrivals | None]:
+    """`decode_raw` and the message's arrivals in one reading of it: (sensor_id, batch,
+    arrivals), arrivals None for a message of one arrival (any message of an older
+    recording). ValueError if malformed, or if the arrival sizes do not add up to the
+    message's samples."""
     buf = _as_bytes(data)
     fields = _scan(buf, _RAW_FIELDS)
     t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0)
@@ -848,7 +866,24 @@ def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
         raise ValueError(f"aux has {len(aux)} values, expected {len(t_us)} samples x "
                          f"{len(names)} channels")
     batch = RawBatch(t_us, v, aux.reshape(len(t_us), len(names)), names)
-    return _last_string(buf, fields.get(_F_SENSOR)), batch
+    return _last_string(buf, fields.get(_F_SENSOR)), batch, _arrivals(buf, fields, len(t_us))
+
+
+def _arrivals(buf: bytes, fields: dict[int, list[_Occurrence]], samples: int
+              ) -> Arrivals | None:
+    """The arrival fields of a raw message already scanned (None if it has none)."""
+    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _VARINT_WT):
+        return None
+    sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
+    log_us = None
+    if _F_RAW_ARRIVAL_LOG_US in fields:
+        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
+        if len(log_us) != len(sizes):
+            raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
+                             "arrivals")
+    if (sizes < 0).any() or sizes.sum() != samples:
+        raise ValueError("arrival_samples do not add up to the message's samples")
+    return sizes, log_us
 
 
 def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, CalibratedBatch]:

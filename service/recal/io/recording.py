@@ -295,11 +295,14 @@ def iter_raw(path: Paths, sensor_id: str | None = None
 
 
 def iter_raw_logged(path: Paths, sensor_id: str | None = None
-                    ) -> Iterator[tuple[str, RawBatch, LoggedMessage]]:
-    """(sensor_id, batch, message as logged) of every raw batch, in file order: for copying
-    the raw topic into another recording byte for byte (replay)."""
+                    ) -> Iterator[tuple[str, RawBatch, LoggedMessage, messages.Arrivals | None]]:
+    """(sensor_id, batch, message as logged, its arrivals) of every raw batch, in file order,
+    each message read once (`messages.decode_raw_arrivals`; arrivals None for a message of
+    one arrival): what replay and hindsight need to hand the node the batches the live node
+    had."""
     for m in _iter(path, _batch_filter("raw", messages.RAW_MESSAGE_NAME, sensor_id)):
-        yield split_topic(m.topic)[0], messages.decode_raw(m.data)[1], m
+        _, batch, arrivals = messages.decode_raw_arrivals(m.data)
+        yield split_topic(m.topic)[0], batch, m, arrivals
 
 
 def iter_calibrated(path: Paths, sensor_id: str | None = None,

@@ -106,7 +106,8 @@ class _Pending:
     publish_ns: int
     batches: list[Any]
     samples: int
-    log_times: list[int]  # each batch's log time (raw: kept in the message)
+    sizes: list[int]  # raw: samples of each arrival (a batch may hold several)
+    log_times: list[int]  # raw: each arrival's log time (both kept in the message)
 
 
 @dataclass(frozen=True)
@@ -271,11 +272,15 @@ class RecordingWriter:
         self.log_raw(sensor_id, batch, log_time_ns)
         return messages.encode_raw(sensor_id, batch)
 
-    def log_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+    def log_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int,
+                arrivals: messages.Arrivals | None = None) -> None:
         """Log a raw batch on ``/<sensor>/raw``: joined with the topic's next batches into one
-        compact message at the next flush."""
+        compact message at the next flush. ``arrivals``: the batch is several arrivals
+        already joined, as `messages.decode_raw_arrivals` gives them (samples of each, log
+        time of each in us after ``log_time_ns``); kept in the message as the writer keeps
+        those it joins itself (replay logs a message's arrivals in one call)."""
         self._hold(self._sensor_topic(sensor_id, "raw"), sensor_id, batch,
-                   _check_log_time(log_time_ns), raw=True)
+                   _check_log_time(log_time_ns), raw=True, arrivals=arrivals)
 
     def write_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                          topic_suffix: str = "calibrated") -> bytes:
@@ -541,7 +546,7 @@ class RecordingWriter:
             self._maybe_flush()
 
     def _hold(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch, log_ns: int,
-              raw: bool) -> None:
+              raw: bool, arrivals: messages.Arrivals | None = None) -> None:
         """Add a batch to its topic's waiting message (a list append per arrival: the join
         and the encoding happen once per message)."""
         with self._lock:
@@ -555,10 +560,17 @@ class RecordingWriter:
             if p is None:
                 first = int(batch.t_us[0]) if len(batch) else None
                 p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
-                                                    _publish_ns(first, log_ns), [], 0, [])
+                                                    _publish_ns(first, log_ns), [], 0, [], [])
             p.batches.append(batch)
-            p.log_times.append(log_ns)
             p.samples += len(batch)
+            if raw and arrivals is None:  # (a calibrated message keeps no arrivals)
+                p.sizes.append(len(batch))
+                p.log_times.append(log_ns)
+            elif raw and arrivals is not None:
+                sizes, log_us = arrivals
+                p.sizes += sizes.tolist()
+                p.log_times += ([log_ns] * len(sizes) if log_us is None
+                                else (log_ns + 1000 * log_us).tolist())
             if p.samples >= self._log_batch_samples:
                 self._emit(topic)
             self._maybe_flush()
@@ -569,8 +581,7 @@ class RecordingWriter:
         if p.raw:
             batch = p.batches[0] if len(p.batches) == 1 else RawBatch.concat(p.batches)
             # the arrivals, so that a replay gives the node the batches the live node had
-            arrivals = ([len(b) for b in p.batches],
-                        [(t - p.log_ns) // 1000 for t in p.log_times])
+            arrivals = (p.sizes, [(t - p.log_ns) // 1000 for t in p.log_times])
             data = messages.encode_raw_compact(p.sensor_id, batch, arrivals)
             spec = messages.RAW_SCHEMA
             self._write_many(topic, spec, [(data, p.log_ns, p.publish_ns)], p.log_ns,
