@@ -48,7 +48,7 @@ from recal.io import recording as rec
 from recal.io.messages import Arrivals
 from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 from recal.node import CalibrationNode, NodeSettings, model_name, node_settings
-from recal.samples import RawBatch
+from recal.samples import CalibratedBatch, RawBatch
 from recal.sinks import RecordingSink
 
 __all__ = ["replay", "replay_lines"]
@@ -59,9 +59,51 @@ __all__ = ["replay", "replay_lines"]
 JOIN_SAMPLES = 8192
 
 
+class _JoiningSink(RecordingSink):
+    """A RecordingSink that holds a step's calibrated, body and plot batches (one per
+    arrival) and hands them to the writer at `flush` (after each pipeline step) in a call
+    per topic instead of one per arrival: the same messages (the calibrated batches still
+    join into messages arrival by arrival; the plot's log times stay per arrival)."""
+
+    def __init__(self, writer: RecordingWriter) -> None:
+        super().__init__(writer)
+        self.writer: RecordingWriter = writer
+        self._batches: dict[tuple[str, str], list[tuple[CalibratedBatch, int]]] = {}
+        self._plots: dict[str, list[tuple[CalibratedBatch, int, int]]] = {}
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        self._batches.setdefault((sensor_id, suffix), []).append((batch, log_time_ns))
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        self._plots.setdefault(sensor_id, []).append((batch, log_time_ns, every_n))
+
+    def flush(self) -> None:
+        for (sid, suffix), held in self._batches.items():
+            self.writer.log_calibrated_many(sid, [b for b, _ in held], [t for _, t in held],
+                                            suffix)
+        for sid, plots in self._plots.items():
+            start = 0
+            for i in range(1, len(plots) + 1):  # runs of one decimation
+                if i == len(plots) or plots[i][2] != plots[start][2]:
+                    run = plots[start:i]
+                    self.writer.write_plot(
+                        sid, _joined(run), run[-1][1], run[0][2],
+                        arrivals=(np.array([len(b) for b, *_ in run], np.int64),
+                                  np.array([t for _, t, _ in run], np.int64)))
+                    start = i
+        self._batches, self._plots = {}, {}
+
+
+def _joined(items: list[Any]) -> CalibratedBatch:
+    return items[0][0] if len(items) == 1 else CalibratedBatch.concat([it[0] for it in items])
+
+
 @dataclass
 class _SensorRun:
     node: CalibrationNode
+    sink: _JoiningSink
     samples: int = 0
     batches: int = 0
     last_log_ns: int = 0
@@ -78,6 +120,7 @@ class _SensorRun:
     def drain(self) -> None:
         if self.waiting:
             self.node.process_many(self.waiting)
+            self.sink.flush()
         self.waiting, self.waiting_samples = [], 0
 
 
@@ -187,7 +230,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
                              flush_interval_s=FILE_TO_FILE_FLUSH_S, fsync=False,
                              overwrite=overwrite, background_compression=True,
                              metadata={"replay_of": str(Path(in_mcap).name)})
-    sink = RecordingSink(writer)
+    sink = _JoiningSink(writer)
     bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
                disable=not progress, leave=False)
     try:
@@ -198,7 +241,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
             run = runs.get(sid)
             if run is None:
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
-                run = runs[sid] = _SensorRun(node, extra={"start": start})
+                run = runs[sid] = _SensorRun(node, sink, extra={"start": start})
             # the raw topic is logged again in the compact form, the message at once with its
             # arrivals (the same values; an older recording's float64 batches get joined and
             # shrunk like a live log's)
@@ -211,6 +254,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
         for run in runs.values():
             run.drain()
             run.node.flush(run.last_log_ns)
+            sink.flush()
     finally:
         bar.close()
         writer.close()

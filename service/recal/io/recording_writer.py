@@ -298,6 +298,23 @@ class RecordingWriter:
         self._hold(self._sensor_topic(sensor_id, topic_suffix), sensor_id, batch,
                    _check_log_time(log_time_ns), raw=False)
 
+    def log_calibrated_many(self, sensor_id: str, batches: Sequence[CalibratedBatch],
+                            log_times_ns: Sequence[int], topic_suffix: str = "calibrated"
+                            ) -> None:
+        """`log_calibrated` of each batch in turn, in one call (replay hands a pipeline
+        step's batches over at once): the same messages, for a list append per batch."""
+        if _SUFFIX_SCHEMAS.get(topic_suffix, messages.CALIBRATED_SCHEMA) is not \
+                messages.CALIBRATED_SCHEMA:
+            raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
+        topic = self._sensor_topic(sensor_id, topic_suffix)
+        with self._lock:
+            self._raise_background_error()
+            if self._closed:
+                raise ValueError("recording writer is closed")
+            for batch, log_ns in zip(batches, log_times_ns, strict=True):
+                self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False)
+            self._maybe_flush()
+
     def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes:
         """Log a JSON object; the schema follows the topic suffix (calibration, events,
         anything else a permissive object schema). Returns the encoded bytes."""
@@ -326,11 +343,15 @@ class RecordingWriter:
         return data
 
     def write_plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   every_n: int = 10) -> int:
+                   every_n: int = 10, arrivals: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> int:
         """Log every ``every_n``-th sample as a plot message; returns how many were written.
 
         Decimation continues across batches (a per-sensor phase), so the plot rate is steady
-        whatever the batch sizes.
+        whatever the batch sizes. A sample's log time is its batch's, less its device-time
+        distance to the batch's last sample. ``arrivals``: the batch is several batches
+        joined (samples of each, log time of each in ns; ``log_time_ns`` is then unused):
+        the same messages as one call per batch, in one (replay).
         """
         if every_n < 1:
             raise ValueError("every_n must be >= 1")
@@ -344,6 +365,8 @@ class RecordingWriter:
             return 0  # most calls when samples are handled as they arrive: no numpy at all
         indices = np.arange(first, len(batch), every_n)
         t_us = batch.t_us[indices]
+        if arrivals is not None:
+            return self._write_plot_arrivals(topic, batch, indices, arrivals)
         # Spread the samples back from the log time by their device-time distance to the end.
         last_us = int(batch.t_us[-1])
         if len(indices) <= 16:  # a few samples: packed one by one (no array set-up)
@@ -355,6 +378,25 @@ class RecordingWriter:
         log_times = np.clip(log_ns - (last_us - t_us) * 1000, 0, None)
         self._write_fixed(topic, messages.PLOT_SCHEMA, messages.plot_payloads(batch, indices),
                           log_times, _publish_ns_array(t_us), log_ns)
+        return len(indices)
+
+    def _write_plot_arrivals(self, topic: str, batch: CalibratedBatch, indices: np.ndarray,
+                             arrivals: tuple[np.ndarray, np.ndarray]) -> int:
+        """`write_plot`'s messages for a batch of several arrivals: each sample's log time
+        from its own arrival's log time and last device time."""
+        sizes = np.asarray(arrivals[0], np.int64)
+        log_ns = np.asarray(arrivals[1], np.int64)
+        if sizes.sum() != len(batch) or len(log_ns) != len(sizes) or (sizes < 0).any():
+            raise ValueError("arrivals do not describe the batch")
+        if len(log_ns) and not (log_ns.min() >= 0 and log_ns.max() <= _MAX_U64):
+            raise ValueError("an arrival's log time is not an unsigned 64-bit integer")
+        ends = np.cumsum(sizes)
+        arrival = np.searchsorted(ends, indices, side="right")  # the arrival of each sample
+        t_us = batch.t_us[indices]
+        last_us = batch.t_us[ends[arrival] - 1]
+        log_times = np.clip(log_ns[arrival] - (last_us - t_us) * 1000, 0, None)
+        self._write_fixed(topic, messages.PLOT_SCHEMA, messages.plot_payloads(batch, indices),
+                          log_times, _publish_ns_array(t_us), int(log_ns[arrival[0]]))
         return len(indices)
 
     def write_encoded(self, topic: str, data: bytes, log_time_ns: int,
@@ -553,27 +595,32 @@ class RecordingWriter:
             self._raise_background_error()
             if self._closed:
                 raise ValueError("recording writer is closed")
-            p = self._pending.get(topic)
-            if p is not None and _layout(p.batches[0], raw) != _layout(batch, raw):
-                self._emit(topic)  # one message holds one layout
-                p = None
-            if p is None:
-                first = int(batch.t_us[0]) if len(batch) else None
-                p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
-                                                    _publish_ns(first, log_ns), [], 0, [], [])
-            p.batches.append(batch)
-            p.samples += len(batch)
-            if raw and arrivals is None:  # (a calibrated message keeps no arrivals)
-                p.sizes.append(len(batch))
-                p.log_times.append(log_ns)
-            elif raw and arrivals is not None:
-                sizes, log_us = arrivals
-                p.sizes += sizes.tolist()
-                p.log_times += ([log_ns] * len(sizes) if log_us is None
-                                else (log_ns + 1000 * log_us).tolist())
-            if p.samples >= self._log_batch_samples:
-                self._emit(topic)
+            self._hold_locked(topic, sensor_id, batch, log_ns, raw, arrivals)
             self._maybe_flush()
+
+    def _hold_locked(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch,
+                     log_ns: int, raw: bool, arrivals: messages.Arrivals | None = None) -> None:
+        """`_hold` without the checks and the flush (lock held)."""
+        p = self._pending.get(topic)
+        if p is not None and _layout(p.batches[0], raw) != _layout(batch, raw):
+            self._emit(topic)  # one message holds one layout
+            p = None
+        if p is None:
+            first = int(batch.t_us[0]) if len(batch) else None
+            p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
+                                                _publish_ns(first, log_ns), [], 0, [], [])
+        p.batches.append(batch)
+        p.samples += len(batch)
+        if raw and arrivals is None:  # (a calibrated message keeps no arrivals)
+            p.sizes.append(len(batch))
+            p.log_times.append(log_ns)
+        elif raw and arrivals is not None:
+            sizes, log_us = arrivals
+            p.sizes += sizes.tolist()
+            p.log_times += ([log_ns] * len(sizes) if log_us is None
+                            else (log_ns + 1000 * log_us).tolist())
+        if p.samples >= self._log_batch_samples:
+            self._emit(topic)
 
     def _emit(self, topic: str) -> None:
         """Write a topic's waiting batches as one compact message (lock held)."""
