@@ -218,3 +218,20 @@ def test_tiny_batches_round_trip(n: int) -> None:
     raw = _raw(n)
     _, got_raw = m.decode_raw(m.encode_raw_compact("s", raw))
     assert np.array_equal(got_raw.v, raw.v) and len(got_raw) == n
+
+
+def test_zigzag_varints_of_every_width_read_back_by_the_official_runtime() -> None:
+    rng = np.random.default_rng(5)
+    widths = [rng.integers(-(2**k), 2**k, 50) for k in range(0, 63, 7)]
+    extremes = np.array([np.iinfo(np.int64).min, -1, 0, 1, np.iinfo(np.int64).max])
+    columns = [np.concatenate(widths), np.zeros(0, np.int64), extremes, np.array([-64, 63, 64])]
+    encoded = m.zigzag_varints_many(columns)
+    assert encoded[1] == b""
+    official = m.protobuf_message_class("recal.RawBatch")
+    for column, data in zip(columns, encoded, strict=True):
+        if not len(column):
+            continue
+        msg = official.FromString(bytes([12 << 3 | 2]) + m._varint(len(data)) + data)
+        assert list(msg.dt_us) == column.tolist()  # (field 12, sint64)
+        assert m.unzigzag_varints(np.frombuffer(data, np.uint8), "t").tolist() == column.tolist()
+    assert len(encoded[3]) == 1 + 1 + 2  # 127 and 126 fit one byte, 128 takes two

@@ -456,27 +456,35 @@ def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
     if len(v) == 0:
         return [b"" for _ in columns]
     z = ((v << 1) ^ (v >> 63)).view(np.uint64)
-    width = max(1, (int(z.max()).bit_length() + 6) // 7)
-    if width <= 4:  # (values below 2**28: 32-bit arithmetic is faster)
+    if int(z.max()) < 1 << 32:  # (32-bit arithmetic is faster)
         z = z.astype(np.uint32)
-    # byte j of every value in row j: numpy's loops run along the values, not along 2-3 bytes
-    nbytes = np.ones(len(z), np.uint8)
-    for j in range(1, width):
-        nbytes += z >= (1 << (7 * j))
-    table = np.empty((width, len(z)), np.uint8)
-    keep = np.empty((width, len(z)), bool)
-    for j in range(width):
-        table[j] = (z >> (7 * j)) & 0x7F
-        table[j] |= (nbytes > j + 1).view(np.uint8) << 7  # continuation bit
-        keep[j] = nbytes > j
-    flat = np.ascontiguousarray(table.T)[np.ascontiguousarray(keep.T)].tobytes()  # by value
-    ends = np.cumsum(nbytes)[np.cumsum([len(c) for c in columns]) - 1].tolist()
+    nbytes = np.ones(len(z), np.int64)
+    rest = z >> 7
+    for _ in range(9):  # a uint64 takes at most 10 bytes
+        more = rest != 0
+        if not more.any():
+            break
+        nbytes += more
+        rest >>= 7
+    ends = np.cumsum(nbytes)
+    flat = np.empty(int(ends[-1]), np.uint8)
+    # byte j of every value at once, then only the values that have a byte j + 1 (deltas:
+    # most values end at the first or second byte, so the later passes are short)
+    pos, zz = ends - nbytes, z
+    for _ in range(10):
+        more = zz >= 0x80
+        flat[pos] = (zz & 0x7F).astype(np.uint8) | (more.view(np.uint8) << 7)
+        if not more.any():
+            break
+        pos, zz = pos[more] + 1, zz[more] >> 7
+    blob = flat.tobytes()
     out, start = [], 0
-    for c, end in zip(columns, ends, strict=True):
+    for c, end in zip(columns, ends[np.cumsum([len(c) for c in columns]) - 1].tolist(),
+                      strict=True):
         if len(c) == 0:
             out.append(b"")
             continue
-        out.append(flat[start:end])
+        out.append(blob[start:end])
         start = end
     return out
 
@@ -484,8 +492,16 @@ def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
 def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
     """A column of `zigzag_varints_many` back (a packed run of bytes) as int64; ValueError
     if it ends inside a varint or a varint is longer than 10 bytes."""
+    z = _unsigned_varints(run, what)
+    return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+
+
+def _unsigned_varints(run: np.ndarray, what: str) -> np.ndarray:
+    """A packed run of varints (bytes) as uint64, a few numpy calls per byte of the longest
+    value; ValueError if it ends inside a varint or a varint is longer than 10 bytes (bits
+    beyond 64 are dropped, as protobuf does)."""
     if run.size == 0:
-        return np.zeros(0, np.int64)
+        return np.zeros(0, np.uint64)
     last = run < 0x80
     if not last[-1]:
         raise ValueError(f"packed field {what} ends inside a varint")
@@ -498,7 +514,7 @@ def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
     for k in range(int(lengths.max())):
         sel = lengths > k
         z[sel] |= (run[starts[sel] + k] & 0x7F).astype(np.uint64) << np.uint64(7 * k)
-    return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+    return z
 
 
 class _Ints(NamedTuple):
@@ -730,16 +746,9 @@ def _small_varints(buf: bytes, occurrences: list[_Occurrence] | None, what: str)
         if wire_type not in (_WT_LEN, _WT_VARINT):
             continue
         run = np.frombuffer(buf, dtype=np.uint8, count=end - start, offset=start)
-        if run.size and run.max() >= 0x80:  # multi-byte varints: the rare slow path
-            values, pos = [], start
-            for _ in range(end - start):
-                if pos >= end:
-                    break
-                value, pos = _read_varint(buf, pos)
-                values.append(value if value <= 0xFF else 0)
-            if pos != end:
-                raise ValueError(f"packed field {what} ends inside a varint")
-            run = np.array(values, np.uint8)
+        if run.size and run.max() >= 0x80:  # multi-byte varints (a non-canonical writer)
+            values = _unsigned_varints(run, what)
+            run = np.where(values <= 0xFF, values, 0).astype(np.uint8)
         runs.append(run)
     if not runs:
         return np.zeros(0, np.uint8)
