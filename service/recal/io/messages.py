@@ -42,7 +42,7 @@ message CalibratedBatch {
   repeated sint64 y_ug_delta = 14 [packed = true];
   repeated sint64 z_ug_delta = 15 [packed = true];
   repeated sint64 detector_ug_delta = 16 [packed = true];
-  repeated sint64 sigma_ug_delta = 17 [packed = true];
+  repeated sint64 sigma_ug_delta = 17 [packed = true];    // on 1 % steps (sigma_steps)
   sfixed64 t_dev0 = 18;
   repeated sint64 dt_dev = 19 [packed = true];
 }
@@ -77,8 +77,9 @@ decodes with ``t_dev`` None.
 The compact form (`encode_raw_compact`, `encode_calibrated_compact`) is what the recording
 writer logs: a column is written either in its float64 field or in its compact one. Times are
 the first stamp and the differences; raw readings that are all integers (ADC counts) and
-calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g) are
-differences from the sample before (the first from 0), all as zigzag varints, which a few
+calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g; sigma
+first on its ladder of 1 % steps, `sigma_steps`) are differences from the sample before (the
+first from 0), all as zigzag varints, which a few
 numpy passes write and read (`zigzag_varints_many`, `unzigzag_varints`); a column with a value
 that is not finite or beyond +-2147 g stays in float64. Differences make most varints one or
 two bytes, and zstd, restarted at every one-second chunk, finds little else to take. The bus
@@ -590,9 +591,9 @@ def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
     deltas, values, detector and sigma as deltas of their micro-g values (``x_ug_delta`` ...,
     ``detector_ug_delta``, ``sigma_ug_delta``: each value minus the one before, the first as
     it is; Foxglove plots the ``plot`` topic, whose values are whole), the device stamps as
-    ``t_dev0`` + deltas, all deltas zigzag varints; a column with a value that is not finite
-    or beyond +-2147 g stays float64 in its old field. `decode_calibrated` reads both
-    forms."""
+    ``t_dev0`` + deltas, all deltas zigzag varints; sigma on its 1 % steps first
+    (`sigma_steps`); a column with a value that is not finite or beyond +-2147 g stays float64
+    in its old field. `decode_calibrated` reads both forms."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
@@ -1013,7 +1014,8 @@ def encode_event(kind: str, *, t_us: int | None = None, sensor_id: str | None = 
 # type), so numpy lays out a batch of them in one structured array.
 # The values are float32 (fields of type float): a plot needs no more, float32 keeps a value
 # below 16 g within 1 micro-g, and a message of doubles cost 24 bytes more (about 2.4 bytes
-# a logged sample at 100 Hz, plot_hz 10). Older recordings' doubles decode as well.
+# a logged sample at 100 Hz and 10 plot messages a second). Older recordings' doubles decode
+# as well.
 PLOT_DTYPE = np.dtype([
     ("k_t", "u1"), ("t_us", "<i8"), ("k_x", "u1"), ("x_g", "<f4"), ("k_y", "u1"),
     ("y_g", "<f4"), ("k_z", "u1"), ("z_g", "<f4"), ("k_n", "u1"), ("norm_g", "<f4"),
