@@ -17,10 +17,11 @@ settings):
                  (what the writer did before it joined batches)
     compact 10 Hz `RecordingWriter` with batches joined per topic until the next flush, in
                  the compact form, as it was before the plot's default rate went from 10 Hz
-                 to 2 Hz and sigma to 1 % steps: the plot every 10th sample, sigma kept to
-                 the micro-g (`messages.sigma_steps` bypassed)
-    compact      `RecordingWriter` as it is (the plot at the node's default rate, sigma in
-                 1 % steps)
+                 to 2 Hz, sigma to 1 % steps and the body to times and a rotation: the plot
+                 every 10th sample, sigma kept to the micro-g (`messages.sigma_steps`
+                 bypassed), the body's values logged
+    compact      as `recal.sinks.LoggedBusSink` logs now (the plot at the node's default
+                 rate, sigma in 1 % steps, the body as times and a rotation)
 
 Per topic: the same writes with only that topic's messages, each in a file of its own (the
 per-topic bytes do not add up to the whole exactly: zstd shares nothing across files).
@@ -47,6 +48,7 @@ from recal.io.recording_writer import RecordingWriter
 from recal.node import CalibrationNode, node_settings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import simulate
+from recal.sinks import BodyRotations
 
 RATE_HZ = 100.0
 SENSOR = "s1"
@@ -127,23 +129,35 @@ def write(path: Path, calls: list[tuple[str, str, Any, int]], form: str,
           topics: frozenset[str] | None = None) -> float:
     """Write the captured calls in one of FORMS (only ``topics``' when given); returns
     seconds spent in the writer's calls for raw, calibrated, body and plot."""
-    first_form = form == "first form"
     if form != "compact":  # the plot at 10 Hz, as it was
         calls = [(k, s, (p[0], round(RATE_HZ / 10.0)) if k == "plot" else p, t)
                  for k, s, p, t in calls]
-    if form == "compact 10 Hz":  # as before: sigma to the micro-g too
-        steps, messages.sigma_steps = messages.sigma_steps, lambda s: s
-        try:
-            return write(path, calls, "compact", topics)
-        finally:
-            messages.sigma_steps = steps
+    if form != "compact 10 Hz":
+        return _write(path, calls, form == "first form", topics)
+    steps, messages.sigma_steps = messages.sigma_steps, lambda s: s  # sigma to the micro-g
+    try:
+        return _write(path, calls, False, topics, body_rotation=False)
+    finally:
+        messages.sigma_steps = steps
+
+
+def _write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
+           topics: frozenset[str] | None, body_rotation: bool = True) -> float:
+    """`write`: the first form, or the compact one as `recal.sinks.LoggedBusSink` writes it
+    (``body_rotation``: the body as times and a rotation when the calibrated batch and the
+    alignment give it, else as its values)."""
     clock = Clock()
     w = RecordingWriter(path, clock=clock, background_flush=False, fsync=False,
                         overwrite=True, log_batch_samples=1 if first_form else 8192)
+    rotations = BodyRotations() if body_rotation and not first_form else None
     spent = 0.0
     plot_phase = 0
     t_first = calls[0][3]
     for kind, suffix, payload, log_ns in calls:
+        if rotations is not None and kind == "json":  # (seen whatever the topics written)
+            rotations.note_json(SENSOR, suffix, payload)
+        elif rotations is not None and (kind, suffix) == ("calibrated", "calibrated"):
+            rotations.note_calibrated(SENSOR, payload)
         if topics is not None and suffix not in topics:
             continue
         clock.now_s = (log_ns - t_first) / 1e9
@@ -155,10 +169,15 @@ def write(path: Path, calls: list[tuple[str, str, Any, int]], form: str,
             else:
                 w.write_raw(SENSOR, payload, log_ns)
         elif kind == "calibrated":
+            found = (rotations.of(SENSOR, payload) if rotations is not None
+                     and suffix == "body" else None)
             if first_form:
                 w.write_encoded(f"/{SENSOR}/{suffix}",
                                 messages.encode_calibrated(SENSOR, payload), log_ns,
                                 int(payload.t_us[0]) * 1000, schema=messages.CALIBRATED_SCHEMA)
+            elif found is not None:  # as LoggedBusSink: the log the rotation, the bus values
+                w.log_body(SENSOR, found[0], found[1], log_ns)
+                messages.encode_calibrated(SENSOR, payload)
             else:
                 w.write_calibrated(SENSOR, payload, log_ns, suffix)
         elif kind == "plot":

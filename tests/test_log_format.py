@@ -235,3 +235,47 @@ def test_zigzag_varints_of_every_width_read_back_by_the_official_runtime() -> No
         assert list(msg.dt_us) == column.tolist()  # (field 12, sint64)
         assert m.unzigzag_varints(np.frombuffer(data, np.uint8), "t").tolist() == column.tolist()
     assert len(encoded[3]) == 1 + 1 + 2  # 127 and 126 fit one byte, 128 takes two
+
+
+def test_the_log_keeps_the_body_as_times_and_a_rotation_and_reads_it_back(tmp_path: Path
+                                                                          ) -> None:
+    from recal.core.alignment import to_body
+    from recal.sinks import RecordingSink
+
+    r = np.array([[0.99, -0.1, 0.0], [0.1, 0.99, 0.0], [0.0, 0.0, 1.0]])
+    r2 = r.T.copy()  # a second mounting, from a later alignment
+    cal = _calibrated(300)
+    path = tmp_path / "body.mcap"
+    with RecordingWriter(path, background_flush=False, fsync=False) as w:
+        sink = RecordingSink(w)
+        sink.json(SID, "events", {"kind": "alignment", "detail": {"rotation": r.tolist()}}, 1)
+        for i in range(300):  # one sample per arrival: calibrated, then rotated (as a node)
+            if i == 200:
+                sink.json(SID, "calibration", {"alignment": {"rotation": r2.tolist()}}, 1)
+            one = cal[i:i + 1]
+            sink.calibrated(SID, one, 10**18 + i)
+            rot = r if i < 200 else r2
+            body = CalibratedBatch(one.t_us, to_body(rot, one.a_g), one.quasi_static,
+                                   one.detector_g, one.status, one.sigma_mg, one.t_dev)
+            if i == 250:  # not what the rotation gives: logged as the values it has
+                body.a_g[0, 0] += 1e-3
+            sink.calibrated(SID, body, 10**18 + i, "body")
+    data = [mm.data for mm in rec.iter_messages(path, f"/{SID}/body")]
+    forms = [m.decode_body_rotation(d) is not None for d in data]
+    assert forms == [True, True, False, True]  # r, r2, the odd one, r2 again
+    official = m.protobuf_message_class("recal.CalibratedBatch").FromString(data[0])
+    assert list(official.body_rotation) == r.reshape(9).tolist() and len(official.dt_us) == 199
+    # 200 samples as their times and 9 doubles, against their values
+    assert len(data[0]) < 0.25 * len(m.encode_calibrated_compact(SID, cal[:200]))
+    with pytest.raises(ValueError, match="rotation"):
+        m.decode_calibrated(data[0])
+    got = rec.read_all_calibrated(path, SID, "body")
+    logged = rec.read_all_calibrated(path, SID)
+    want = np.concatenate([to_body(r, logged.a_g[:200]), to_body(r2, logged.a_g[200:])])
+    want[250, 0] = cal.a_g[250] @ r2[0] + 1e-3
+    assert np.array_equal(got.t_us, cal.t_us) and np.array_equal(got.status, cal.status)
+    assert np.max(np.abs(got.a_g - want)) <= 1e-6  # (the odd sample: its own micro-g)
+    # within a micro-g of the body the node computed (the calibrated values' micro-g, turned)
+    exact = np.concatenate([to_body(r, cal.a_g[:200]), to_body(r2, cal.a_g[200:])])
+    exact[250, 0] += 1e-3
+    assert np.max(np.abs(got.a_g - exact)) <= 0.87e-6

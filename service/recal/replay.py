@@ -60,10 +60,10 @@ JOIN_SAMPLES = 8192
 
 
 class _JoiningSink(RecordingSink):
-    """A RecordingSink that holds a step's calibrated, body and plot batches (one per
-    arrival) and hands them to the writer at `flush` (after each pipeline step) in a call
-    per topic instead of one per arrival: the same messages (the calibrated batches still
-    join into messages arrival by arrival; the plot's log times stay per arrival)."""
+    """A RecordingSink that holds a step's calibrated and plot batches (one per arrival) and
+    hands them to the writer at `flush` (after each pipeline step) in a call per topic
+    instead of one per arrival: the same messages (the calibrated batches still join into
+    messages arrival by arrival; the plot's log times stay per arrival)."""
 
     def __init__(self, writer: RecordingWriter) -> None:
         super().__init__(writer)
@@ -73,6 +73,11 @@ class _JoiningSink(RecordingSink):
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
+        if suffix == "body":  # (times and a rotation: a list append in the writer)
+            super().calibrated(sensor_id, batch, log_time_ns, suffix)
+            return
+        if suffix == "calibrated":
+            self.body.note_calibrated(sensor_id, batch)
         self._batches.setdefault((sensor_id, suffix), []).append((batch, log_time_ns))
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,

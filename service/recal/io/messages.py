@@ -45,6 +45,9 @@ message CalibratedBatch {
   repeated sint64 sigma_ug_delta = 17 [packed = true];    // on 1 % steps (sigma_steps)
   sfixed64 t_dev0 = 18;
   repeated sint64 dt_dev = 19 [packed = true];
+  // the log's body topic, instead of every field but 1, 11, 12: the rotation R (row-major)
+  // that turns the calibrated topic's samples at these times into the body frame (R @ a)
+  repeated double body_rotation = 22 [packed = true];
 }
 enum Status {                                   // recal.core.status.Status
   STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
@@ -125,11 +128,13 @@ __all__ = [
     "RAW_SCHEMA",
     "SchemaSpec",
     "batch_extent",
+    "decode_body_rotation",
     "decode_calibrated",
     "decode_json",
     "decode_plot",
     "decode_raw",
     "decode_raw_arrivals",
+    "encode_body_rotation",
     "encode_calibrated",
     "encode_calibrated_compact",
     "encode_event",
@@ -174,6 +179,9 @@ _F_CAL_DETECTOR_UG = 16
 _F_CAL_SIGMA_UG = 17
 _F_CAL_T_DEV0 = 18
 _F_CAL_DT_DEV = 19
+# The log's body topic: the samples' times and the rotation that turns the calibrated
+# topic's samples at those times into the body frame (nothing the calibrated topic says).
+_F_CAL_BODY_ROTATION = 22
 # A joined raw message keeps its arrivals: samples per arrival and each one's log time (us
 # after the message's), so a replay hands the node the batches the live node had.
 _F_RAW_ARRIVAL_SAMPLES = 20
@@ -264,6 +272,7 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
         _add_field(cal, name, number, fd.TYPE_SINT64, True)
     _add_field(cal, "t_dev0", _F_CAL_T_DEV0, fd.TYPE_SFIXED64, False)
     _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SINT64, True)
+    _add_field(cal, "body_rotation", _F_CAL_BODY_ROTATION, fd.TYPE_DOUBLE, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -842,7 +851,7 @@ _RAW_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_RAW_AUX
 _CAL_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
                          _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV,
                          _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_CAL_DETECTOR_UG, _F_CAL_SIGMA_UG,
-                         _F_CAL_T_DEV0, _F_CAL_DT_DEV))
+                         _F_CAL_T_DEV0, _F_CAL_DT_DEV, _F_CAL_BODY_ROTATION))
 
 
 def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
@@ -901,6 +910,10 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _CAL_FIELDS)
+    if _present(fields, _F_CAL_BODY_ROTATION, (_WT_LEN, _WT_I64)):
+        raise ValueError("a body message of the log's form holds a rotation, not samples: "
+                         "its samples are the calibrated topic's rotated (decode_body_rotation, "
+                         "recording.read_all_calibrated)")
     t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G)
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
     detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
@@ -918,6 +931,36 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
         _same_length(t_us, t_dev=t_dev)
     return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
                                                                       status, sigma, t_dev)
+
+
+def encode_body_rotation(sensor_id: str, t_us: np.ndarray, rotation: np.ndarray) -> bytes:
+    """The log's body message: the times of its samples (``t0_us`` + ``dt_us``) and the
+    rotation ``body_rotation`` (3 x 3, row-major) that turns the calibrated topic's samples at
+    those times into the body frame (``R @ a``, `recal.core.alignment.to_body`); no value the
+    calibrated topic and the alignment already say. `decode_body_rotation` reads it back."""
+    r = np.asarray(rotation, np.float64)
+    if r.shape != (3, 3):
+        raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+    return _join([*_string_fields(_F_SENSOR, sensor_id),
+                  *_time_fields(np.asarray(t_us, np.int64), _F_T0_US, _F_DT_US),
+                  *_packed(_F_CAL_BODY_ROTATION, _le_bytes(r.reshape(9), "<f8"))])
+
+
+def decode_body_rotation(data: bytes | bytearray | memoryview
+                         ) -> tuple[str, np.ndarray, np.ndarray] | None:
+    """(sensor_id, t_us, rotation 3 x 3) of a body message in the log's form
+    (`encode_body_rotation`), None for a message of samples (`decode_calibrated` reads it);
+    ValueError if malformed."""
+    buf = _as_bytes(data)
+    fields = _scan(buf, frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_CAL_BODY_ROTATION)))
+    if not _present(fields, _F_CAL_BODY_ROTATION, (_WT_LEN, _WT_I64)):
+        return None
+    r = _fixed64(buf, fields[_F_CAL_BODY_ROTATION], "<f8", "body_rotation")
+    if len(r) != 9:
+        raise ValueError(f"body_rotation has {len(r)} values, not 9")
+    t_us = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
+    return (_last_string(buf, fields.get(_F_SENSOR)),
+            np.zeros(0, np.int64) if t_us is None else t_us, r.reshape(3, 3).copy())
 
 
 def batch_extent(data: bytes | bytearray | memoryview) -> tuple[int, int | None, int | None]:

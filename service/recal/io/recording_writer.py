@@ -108,6 +108,7 @@ class _Pending:
     samples: int
     sizes: list[int]  # raw: samples of each arrival (a batch may hold several)
     log_times: list[int]  # raw: each arrival's log time (both kept in the message)
+    rotation: bytes | None = None  # body in the log's form: the rotation (float64 bytes)
 
 
 @dataclass(frozen=True)
@@ -297,6 +298,19 @@ class RecordingWriter:
             raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
         self._hold(self._sensor_topic(sensor_id, topic_suffix), sensor_id, batch,
                    _check_log_time(log_time_ns), raw=False)
+
+    def log_body(self, sensor_id: str, calibrated: CalibratedBatch, rotation: np.ndarray,
+                 log_time_ns: int) -> None:
+        """Log on ``/<sensor>/body`` that these calibrated samples (as logged on
+        ``/<sensor>/calibrated``) rotated by ``rotation`` (3 x 3: ``R @ a``) are the body
+        frame's: the samples' times and the rotation, joined like `log_calibrated`'s batches
+        while the rotation stays (`messages.encode_body_rotation`). The body stream without
+        a value the calibrated stream and the alignment already say."""
+        r = np.ascontiguousarray(rotation, np.float64)
+        if r.shape != (3, 3):
+            raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+        self._hold(self._sensor_topic(sensor_id, "body"), sensor_id, calibrated,
+                   _check_log_time(log_time_ns), raw=False, rotation=r.tobytes())
 
     def log_calibrated_many(self, sensor_id: str, batches: Sequence[CalibratedBatch],
                             log_times_ns: Sequence[int], topic_suffix: str = "calibrated"
@@ -588,27 +602,31 @@ class RecordingWriter:
             self._maybe_flush()
 
     def _hold(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch, log_ns: int,
-              raw: bool, arrivals: messages.Arrivals | None = None) -> None:
+              raw: bool, arrivals: messages.Arrivals | None = None,
+              rotation: bytes | None = None) -> None:
         """Add a batch to its topic's waiting message (a list append per arrival: the join
         and the encoding happen once per message)."""
         with self._lock:
             self._raise_background_error()
             if self._closed:
                 raise ValueError("recording writer is closed")
-            self._hold_locked(topic, sensor_id, batch, log_ns, raw, arrivals)
+            self._hold_locked(topic, sensor_id, batch, log_ns, raw, arrivals, rotation)
             self._maybe_flush()
 
     def _hold_locked(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch,
-                     log_ns: int, raw: bool, arrivals: messages.Arrivals | None = None) -> None:
+                     log_ns: int, raw: bool, arrivals: messages.Arrivals | None = None,
+                     rotation: bytes | None = None) -> None:
         """`_hold` without the checks and the flush (lock held)."""
         p = self._pending.get(topic)
-        if p is not None and _layout(p.batches[0], raw) != _layout(batch, raw):
-            self._emit(topic)  # one message holds one layout
+        if p is not None and (p.rotation != rotation
+                              or _layout(p.batches[0], raw) != _layout(batch, raw)):
+            self._emit(topic)  # one message holds one layout (and one rotation)
             p = None
         if p is None:
             first = int(batch.t_us[0]) if len(batch) else None
             p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
-                                                _publish_ns(first, log_ns), [], 0, [], [])
+                                                _publish_ns(first, log_ns), [], 0, [], [],
+                                                rotation)
         p.batches.append(batch)
         p.samples += len(batch)
         if raw and arrivals is None:  # (a calibrated message keeps no arrivals)
@@ -633,6 +651,13 @@ class RecordingWriter:
             spec = messages.RAW_SCHEMA
             self._write_many(topic, spec, [(data, p.log_ns, p.publish_ns)], p.log_ns,
                              samples=len(batch))
+            return
+        if p.rotation is not None:  # the body in the log's form: times and the rotation
+            t_us = np.concatenate([b.t_us for b in p.batches])
+            r = np.frombuffer(p.rotation, np.float64).reshape(3, 3)
+            self._write_many(topic, messages.CALIBRATED_SCHEMA,
+                             [(messages.encode_body_rotation(p.sensor_id, t_us, r), p.log_ns,
+                               p.publish_ns)], p.log_ns)
             return
         batch = p.batches[0] if len(p.batches) == 1 else CalibratedBatch.concat(p.batches)
         step = max(self._log_batch_samples, _MAX_MESSAGE_SAMPLES)  # (a file tool's batches)
