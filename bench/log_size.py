@@ -4,6 +4,8 @@ the caller in each.
 
     python bench/log_size.py                # 20 min of a simulated wearer, 5 timing runs
     python bench/log_size.py --minutes 5    # shorter
+    python bench/log_size.py --aligned      # from 60 s after the alignment: every topic logged
+    python bench/log_size.py --flush-s 2    # the writers flushed every 2 s
 
 How: a simulated wearer at 100 Hz (recal.sim defaults, 1024 counts/g, no prior: the node
 bootstraps, then calibrates and aligns, so every topic is there) goes through the calibration
@@ -123,6 +125,8 @@ def _write_plot_doubles(w: RecordingWriter, batch: CalibratedBatch, log_ns: int,
 
 
 FORMS = ("first form", "compact 10 Hz", "compact")
+#: The writers' flush interval, s (the daemon's default: 1; --flush-s).
+FLUSH_S = 1.0
 
 
 def write(path: Path, calls: list[tuple[str, str, Any, int]], form: str,
@@ -160,7 +164,7 @@ def _write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
             rotations.note_calibrated(SENSOR, payload)
         if topics is not None and suffix not in topics:
             continue
-        clock.now_s = (log_ns - t_first) / 1e9
+        clock.now_s = (log_ns - t_first) / 1e9 / FLUSH_S
         t = time.perf_counter()
         if kind == "raw":
             if first_form:
@@ -237,22 +241,43 @@ def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
     return out[0], out[1]
 
 
+def aligned(calls: list[tuple[str, str, Any, int]]) -> tuple[list[tuple[str, str, Any, int]],
+                                                               int]:
+    """The calls from 60 s after the node's first body batch on, and their raw samples (the
+    setup and any state before are left out: a few bytes)."""
+    first = next(t for k, s, _, t in calls if (k, s) == ("calibrated", "body"))
+    kept = [c for c in calls if c[3] >= first + 60 * 10**9]
+    if not kept:
+        raise SystemExit("no body batch 60 s before the end: run longer (--minutes)")
+    return kept, sum(len(p) for k, _, p, _ in kept if k == "raw")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=20.0)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--aligned", action="store_true",
+                    help="write only what the node gave from 60 s after its first body batch "
+                         "on (every topic present: the steady state)")
+    ap.add_argument("--flush-s", type=float, default=1.0,
+                    help="the writers' flush interval, s (default 1, the daemon's)")
     a = ap.parse_args(argv)
+    global FLUSH_S
+    FLUSH_S = a.flush_s
     import os
     print(f"load average before: {os.getloadavg()[0]:.2f}", file=sys.stderr)
     calls, samples = capture(a.minutes, a.seed)
+    if a.aligned:
+        calls, samples = aligned(calls)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         rows = sizes(tmp, calls, samples)
         first_us, before_us, compact_us = timing(tmp, calls, samples, a.runs)
     enc_old, enc_new = encode_one_us(calls)
-    print(f"{a.minutes:g} min at {RATE_HZ:g} Hz, one sample per arrival ({samples} samples), "
-          "zstd, 32 KiB chunks, flush every 1 s\n")
+    part = " (from 60 s after the alignment)" if a.aligned else ""
+    print(f"{a.minutes:g} min at {RATE_HZ:g} Hz{part}, one sample per arrival ({samples} "
+          f"samples), zstd, 32 KiB chunks, flush every {a.flush_s:g} s\n")
     print("| topics | first form, B/sample | compact 10 Hz, B/sample | compact, B/sample | "
           "compact / compact 10 Hz |")
     print("|---|---:|---:|---:|---:|")

@@ -233,3 +233,22 @@ def test_batch_topics_compare_as_samples_within_the_log_micro_g_and_no_further(
     raw2 = RawBatch(t, raw.v + (np.arange(n) == 7)[:, None], raw.aux)
     verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "e.mcap", cal, raw2, True))
     assert verdict.startswith("/s/raw v: max |diff| 1")
+    # sigma: within its 1 % steps (half a percent) and a micro-g, and no further
+    sigma_off = cal.sigma_mg * np.where(np.arange(n) == 12, 1.02, 1.0)
+    off = CalibratedBatch(t, cal.a_g, cal.quasi_static, cal.detector_g, cal.status, sigma_off, t)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "f.mcap", off, raw, True))
+    assert verdict.startswith("/s/calibrated sigma_mg: max |diff|")
+
+
+def test_other_topics_compare_topic_by_topic_whatever_their_interleaving(tmp_path: Path
+                                                                         ) -> None:
+    def write(path: Path, order: list[tuple[str, int]]) -> Path:
+        with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
+            for topic, i in order:
+                w.write_json(f"/s/{topic}", {"i": i}, 10**18)
+        return path
+    a = write(tmp_path / "a.mcap", [("events", 1), ("calibration", 0), ("events", 2)])
+    b = write(tmp_path / "b.mcap", [("calibration", 0), ("events", 1), ("events", 2)])
+    assert rc.mcap_verdict(a, b)[0] == "identical"  # each topic's messages in their order
+    c = write(tmp_path / "c.mcap", [("calibration", 0), ("events", 2), ("events", 1)])
+    assert rc.mcap_verdict(a, c)[0] != "identical"  # within a topic, order still counts
