@@ -166,15 +166,26 @@ class BodyRotations:
         cal, r = self._last.get(sensor_id), self._rotation.get(sensor_id)
         if cal is None or r is None or len(cal) != len(body):
             return None
-        same = all(u is v or (u is not None and v is not None and np.array_equal(u, v))
-                   for u, v in ((cal.t_us, body.t_us), (cal.quasi_static, body.quasi_static),
-                                (cal.detector_g, body.detector_g), (cal.status, body.status),
-                                (cal.sigma_mg, body.sigma_mg), (cal.t_dev, body.t_dev)))
-        if not same or (cal.t_dev is None) != (body.t_dev is None):
-            return None
-        if not np.array_equal(to_body(r, cal.a_g), body.a_g, equal_nan=True):
+        if (cal.t_dev is None) != (body.t_dev is None) or not all(
+                _same(u, v) for u, v in ((cal.t_us, body.t_us), (cal.status, body.status),
+                                         (cal.quasi_static, body.quasi_static),
+                                         (cal.detector_g, body.detector_g),
+                                         (cal.sigma_mg, body.sigma_mg), (cal.t_dev, body.t_dev),
+                                         (to_body(r, cal.a_g), body.a_g))):
             return None
         return cal, r
+
+
+def _same(u: np.ndarray | None, v: np.ndarray | None) -> bool:
+    """Equal arrays (NaN equal to NaN); a few values compared as Python numbers (a batch of
+    one sample per arrival: cheaper than numpy's comparison)."""
+    if u is v:
+        return True
+    if u is None or v is None:
+        return False
+    if u.size <= 16 and u.tolist() == v.tolist():
+        return True
+    return bool(np.array_equal(u, v, equal_nan=u.dtype.kind == "f"))
 
 
 class RecordingSink:
