@@ -28,6 +28,10 @@ move their last bits (say so with the result):
         --tolerate zi_lp=1e-12     # a new filter design: the detector's output may move
 
 
+A body topic in the log's form (the samples' times and a rotation) is compared as the
+calibrated samples at those times turned by it, within 1.37 micro-g of an older tree's body
+(its values rounded to the micro-g, the new ones the calibrated micro-g turned).
+
 The default plot rate went from 10 Hz to 2 Hz: against a tree from before, pass
 ``--plot-hz 2`` (each tree's replay then reads a config that sets it) so that the plot topics
 can be compared message for message.
@@ -301,10 +305,15 @@ def read_mcap(path: Path) -> McapContent:
 
 #: The log's batch topics are compared as decoded samples, not as messages: the compact form
 #: joins a flush interval's batches into one message and keeps calibrated values, the detector
-#: and sigma to the micro-g (rounded: half a micro-g at most). Everything else stays exact.
+#: and sigma to the micro-g (rounded: half a micro-g at most); its body messages are the
+#: calibrated samples turned (times and a rotation), compared as those samples. Everything
+#: else stays exact.
 BATCH_SCHEMAS = ("recal.RawBatch", "recal.CalibratedBatch")
 FORMAT_TOL = {"a_g": 0.5e-6 + 1e-12, "detector_g": 0.5e-6 + 1e-12,
               "sigma_mg": 1e-3 + 1e-12}  # sigma is in mg (each tree rounds it to the micro-g)
+#: The body's values: the calibrated micro-g turned (0.87 micro-g at most from the exact
+#: body) against an older tree's body rounded to the micro-g (0.5).
+FORMAT_TOL_BODY = {"a_g": 1.37e-6 + 1e-12}
 #: ... plus this fraction of the larger value: the log keeps sigma in 1 % steps (half a step
 #: off at most, `messages.sigma_steps`), where an older tree kept it to the micro-g.
 FORMAT_REL = {"sigma_mg": 0.005 + 1e-12}
@@ -317,16 +326,37 @@ def _joined_batches(content: McapContent, topic: str) -> dict[str, np.ndarray]:
     and joined across messages."""
     from recal.io import messages
     batches = []
+    calibrated = None
     for m in content.messages:
-        if m[0] == topic:
-            decode = messages.decode_calibrated if "alibrated" in m[3] else messages.decode_raw
-            batches.append(decode(m[6])[1])
+        if m[0] != topic:
+            continue
+        rotated = (getattr(messages, "decode_body_rotation", lambda _: None)(m[6])
+                   if "alibrated" in m[3] else None)
+        if rotated is not None:  # the log's body: the calibrated topic's samples, turned
+            if calibrated is None:
+                calibrated = _joined_batches(content, topic.rsplit("/", 1)[0] + "/calibrated")
+            batches.append(_rotated(calibrated, rotated[1], rotated[2]))
+            continue
+        decode = messages.decode_calibrated if "alibrated" in m[3] else messages.decode_raw
+        batches.append(decode(m[6])[1])
     cols: dict[str, np.ndarray] = {}
     for name in BATCH_COLUMNS:
         parts = [getattr(b, name) for b in batches if getattr(b, name, None) is not None]
         if parts and len(parts) == len(batches):
             cols[name] = np.concatenate(parts)
     return cols
+
+
+def _rotated(cal: dict[str, np.ndarray], t_us: np.ndarray, rotation: np.ndarray) -> Any:
+    """A body message of the log's form as a batch: the calibrated columns at its times, the
+    values turned by its rotation (R @ a)."""
+    from types import SimpleNamespace
+    i = np.searchsorted(cal["t_us"], t_us)
+    if len(t_us) and (i[-1] >= len(cal["t_us"]) or not np.array_equal(cal["t_us"][i], t_us)):
+        raise ValueError("a body message names samples the calibrated topic does not have")
+    cols = {name: (v[i] if v is not None else None) for name, v in cal.items()}
+    cols["a_g"] = cols["a_g"] @ np.asarray(rotation).T
+    return SimpleNamespace(**{name: cols.get(name) for name in BATCH_COLUMNS})
 
 
 def batch_topics_verdict(ca: McapContent, cb: McapContent) -> str:
@@ -342,7 +372,8 @@ def batch_topics_verdict(ca: McapContent, cb: McapContent) -> str:
                 return f"{topic} {name}: shape {xa[name].shape} vs {xb[name].shape}"
             if np.array_equal(xa[name], xb[name], equal_nan=xa[name].dtype.kind == "f"):
                 continue
-            tol = FORMAT_TOL.get(name)
+            tol = (FORMAT_TOL_BODY if topic.endswith("/body") else FORMAT_TOL).get(
+                name, FORMAT_TOL.get(name))
             a, b = xa[name].astype(float), xb[name].astype(float)
             diff = float(np.nanmax(np.abs(a - b)))
             same_nan = xa[name].dtype.kind != "f" or np.array_equal(np.isnan(xa[name]),

@@ -252,3 +252,39 @@ def test_other_topics_compare_topic_by_topic_whatever_their_interleaving(tmp_pat
     assert rc.mcap_verdict(a, b)[0] == "identical"  # each topic's messages in their order
     c = write(tmp_path / "c.mcap", [("calibration", 0), ("events", 2), ("events", 1)])
     assert rc.mcap_verdict(a, c)[0] != "identical"  # within a topic, order still counts
+
+
+def test_a_body_of_times_and_a_rotation_compares_as_the_calibrated_samples_turned(
+        tmp_path: Path) -> None:
+    from recal.core.alignment import to_body
+    from recal.io import recording
+    from recal.sinks import RecordingSink
+
+    rng = np.random.default_rng(4)
+    n = 50
+    t = np.arange(n, dtype=np.int64) * 10_000
+    cal = CalibratedBatch(t, rng.normal(size=(n, 3)), rng.random(n) < 0.5, rng.random(n) * 0.1,
+                          np.full(n, 3, np.uint8), rng.random(n) * 5.0, t)
+    r = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+    def write(path: Path, rotation_form: bool, shift_g: float = 0.0) -> Path:
+        body = CalibratedBatch(t, to_body(r, cal.a_g) + shift_g, cal.quasi_static,
+                               cal.detector_g, cal.status, cal.sigma_mg, t)
+        with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
+            if rotation_form:
+                sink = RecordingSink(w)
+                sink.json("s", "events", {"kind": "alignment", "detail": {"rotation": r}}, 1)
+                sink.calibrated("s", cal, 10**18)
+                sink.calibrated("s", body, 10**18, "body")
+            else:
+                w.write_json("/s/events", {"kind": "alignment", "detail": {"rotation": r}}, 1)
+                w.log_calibrated("s", cal, 10**18)
+                w.log_calibrated("s", body, 10**18, "body")
+        return path
+    old, new = write(tmp_path / "old.mcap", False), write(tmp_path / "new.mcap", True)
+    assert messages.decode_body_rotation(
+        next(recording.iter_messages(new, "/s/body")).data) is not None
+    verdict, _ = rc.mcap_verdict(old, new)
+    assert verdict == "identical" or verdict.startswith(rc.WITHIN), verdict
+    off = write(tmp_path / "off.mcap", False, 2e-6)  # an old body 2 micro-g away
+    assert rc.mcap_verdict(off, new)[0].startswith("/s/body a_g: max |diff|")
