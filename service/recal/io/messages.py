@@ -82,13 +82,15 @@ writer logs: a column is written either in its float64 field or in its compact o
 the first stamp and the differences; raw readings that are all integers (ADC counts) and
 calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g; sigma
 first on its ladder of 1 % steps, `sigma_steps`) are differences from the sample before (the
-first from 0), all as zigzag varints, which a few
-numpy passes write and read (`zigzag_varints_many`, `unzigzag_varints`); a column with a value
-that is not finite or beyond +-2147 g stays in float64. Differences make most varints one or
-two bytes, and zstd, restarted at every one-second chunk, finds little else to take. The bus
-keeps the float64 form: one sample is cheapest to encode that way, and subscribers read
-either. The decoders accept both forms (and older recordings, which have only the float64
-fields).
+first from 0), all as zigzag varints, which a few numpy passes write and read
+(`zigzag_varints_many`, `unzigzag_varints`); a column with a value that is not finite or beyond
++-2147 g stays in float64. Differences make most varints one or two bytes, and zstd, restarted
+at every one-second chunk, finds little else to take. The log's body topic holds no values
+(`encode_body_rotation`): its samples' times and the rotation that turns the calibrated topic's
+samples at those times (``decode_calibrated`` refuses such a message; `recal.io.recording`
+reads it back). The bus keeps the float64 form: one sample is cheapest to encode that way, and
+subscribers read either. The decoders accept both forms (and older recordings, which have only
+the float64 fields).
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays

@@ -19,7 +19,9 @@ wait in memory and go into the file as one message at the next flush (or once
 message per topic and flush interval, not one per sample. A crash loses exactly what it lost
 before (what arrived since the last flush, which was in the open chunk, in memory, anyway).
 ``write_raw`` and ``write_calibrated`` still return each batch encoded on its own in the
-float64 form, for the bus.
+float64 form, for the bus. ``log_body`` logs a body batch as its times and the rotation that
+turns the calibrated samples (`messages.encode_body_rotation`), joined while the rotation
+stays.
 
 Memory: the writer holds the open chunk and a few counters; the chunk indexes the summary needs
 wait in a temporary file (a week flushed every second is ~600k chunks), so a recording of any
