@@ -60,9 +60,9 @@ JOIN_SAMPLES = 8192
 
 
 class _JoiningSink(RecordingSink):
-    """A RecordingSink that holds a step's calibrated and plot batches (one per arrival) and
-    hands them to the writer at `flush` (after each pipeline step) in a call per topic
-    instead of one per arrival: the same messages (the calibrated batches still join into
+    """A RecordingSink that holds a step's calibrated, body and plot batches (one per
+    arrival) and hands them to the writer at `flush` (after each pipeline step) in a call
+    per topic instead of one per arrival: the same messages (the batches still join into
     messages arrival by arrival; the plot's log times stay per arrival)."""
 
     def __init__(self, writer: RecordingWriter) -> None:
@@ -70,11 +70,15 @@ class _JoiningSink(RecordingSink):
         self.writer: RecordingWriter = writer
         self._batches: dict[tuple[str, str], list[tuple[CalibratedBatch, int]]] = {}
         self._plots: dict[str, list[tuple[CalibratedBatch, int, int]]] = {}
+        self._bodies: dict[str, list[tuple[CalibratedBatch, np.ndarray | None, int]]] = {}
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
-        if suffix == "body":  # (times and a rotation: a list append in the writer)
-            super().calibrated(sensor_id, batch, log_time_ns, suffix)
+        if suffix == "body":  # times and the rotation if they say it, else the values
+            found = self.body.of(sensor_id, batch)
+            self._bodies.setdefault(sensor_id, []).append(
+                (batch, None, log_time_ns) if found is None else (found[0], found[1],
+                                                                   log_time_ns))
             return
         if suffix == "calibrated":
             self.body.note_calibrated(sensor_id, batch)
@@ -88,6 +92,8 @@ class _JoiningSink(RecordingSink):
         for (sid, suffix), held in self._batches.items():
             self.writer.log_calibrated_many(sid, [b for b, _ in held], [t for _, t in held],
                                             suffix)
+        for sid, bodies in self._bodies.items():
+            self.writer.log_body_many(sid, bodies)
         for sid, plots in self._plots.items():
             start = 0
             for i in range(1, len(plots) + 1):  # runs of one decimation
@@ -98,7 +104,7 @@ class _JoiningSink(RecordingSink):
                         arrivals=(np.array([len(b) for b, *_ in run], np.int64),
                                   np.array([t for _, t, _ in run], np.int64)))
                     start = i
-        self._batches, self._plots = {}, {}
+        self._batches, self._plots, self._bodies = {}, {}, {}
 
 
 def _joined(items: list[Any]) -> CalibratedBatch:

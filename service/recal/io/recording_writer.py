@@ -314,6 +314,26 @@ class RecordingWriter:
         self._hold(self._sensor_topic(sensor_id, "body"), sensor_id, calibrated,
                    _check_log_time(log_time_ns), raw=False, rotation=r.tobytes())
 
+    def log_body_many(self, sensor_id: str,
+                      items: Sequence[tuple[CalibratedBatch, np.ndarray | None, int]]) -> None:
+        """`log_body` (rotation given) or `log_calibrated` on ``body`` (rotation None: the
+        batch is the body's values) of each (batch, rotation, log time) in turn, in one call:
+        the same messages (replay hands a pipeline step's body batches over at once)."""
+        topic = self._sensor_topic(sensor_id, "body")
+        with self._lock:
+            self._raise_background_error()
+            if self._closed:
+                raise ValueError("recording writer is closed")
+            for batch, rotation, log_ns in items:
+                r = None
+                if rotation is not None:
+                    r = np.ascontiguousarray(rotation, np.float64)
+                    if r.shape != (3, 3):
+                        raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+                self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False,
+                                  rotation=None if r is None else r.tobytes())
+            self._maybe_flush()
+
     def log_calibrated_many(self, sensor_id: str, batches: Sequence[CalibratedBatch],
                             log_times_ns: Sequence[int], topic_suffix: str = "calibrated"
                             ) -> None:
