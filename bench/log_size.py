@@ -1,8 +1,11 @@
 """Bytes on disk per sample of a live log at 100 Hz, the first (float64, a message per arrival)
-form beside the compact, joined one; and what a sample's write costs the caller in each.
+form beside the compact, joined one (as it was, and as it is); and what a sample's write costs
+the caller in each.
 
     python bench/log_size.py                # 20 min of a simulated wearer, 5 timing runs
     python bench/log_size.py --minutes 5    # shorter
+    python bench/log_size.py --aligned      # from 60 s after the alignment: every topic logged
+    python bench/log_size.py --flush-s 2    # the writers flushed every 2 s
 
 How: a simulated wearer at 100 Hz (recal.sim defaults, 1024 counts/g, no prior: the node
 bootstraps, then calibrates and aligns, so every topic is there) goes through the calibration
@@ -14,8 +17,13 @@ settings):
     first form   each batch encoded alone in float64 (`messages.encode_raw`,
                  `encode_calibrated`, as the bus still carries it) and logged as one message
                  (what the writer did before it joined batches)
-    compact      `RecordingWriter` as it is: batches joined per topic until the next flush,
-                 in the compact form
+    compact 10 Hz `RecordingWriter` with batches joined per topic until the next flush, in
+                 the compact form, as it was before the plot's default rate went from 10 Hz
+                 to 2 Hz, sigma to 1 % steps and the body to times and a rotation: the plot
+                 every 10th sample, sigma kept to the micro-g (`messages.sigma_steps`
+                 bypassed), the body's values logged
+    compact      as `recal.sinks.LoggedBusSink` logs now (the plot at the node's default
+                 rate, sigma in 1 % steps, the body as times and a rotation)
 
 Per topic: the same writes with only that topic's messages, each in a file of its own (the
 per-topic bytes do not add up to the whole exactly: zstd shares nothing across files).
@@ -42,6 +50,7 @@ from recal.io.recording_writer import RecordingWriter
 from recal.node import CalibrationNode, node_settings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import simulate
+from recal.sinks import BodyRotations
 
 RATE_HZ = 100.0
 SENSOR = "s1"
@@ -115,20 +124,47 @@ def _write_plot_doubles(w: RecordingWriter, batch: CalibratedBatch, log_ns: int,
     return (phase + len(batch)) % every_n
 
 
-def write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
+FORMS = ("first form", "compact 10 Hz", "compact")
+#: The writers' flush interval, s (the daemon's default: 1; --flush-s).
+FLUSH_S = 1.0
+
+
+def write(path: Path, calls: list[tuple[str, str, Any, int]], form: str,
           topics: frozenset[str] | None = None) -> float:
-    """Write the captured calls (only ``topics``' when given); returns seconds spent in the
-    writer's calls for raw, calibrated, body and plot."""
+    """Write the captured calls in one of FORMS (only ``topics``' when given); returns
+    seconds spent in the writer's calls for raw, calibrated, body and plot."""
+    if form != "compact":  # the plot at 10 Hz, as it was
+        calls = [(k, s, (p[0], round(RATE_HZ / 10.0)) if k == "plot" else p, t)
+                 for k, s, p, t in calls]
+    if form != "compact 10 Hz":
+        return _write(path, calls, form == "first form", topics)
+    steps, messages.sigma_steps = messages.sigma_steps, lambda s: s  # sigma to the micro-g
+    try:
+        return _write(path, calls, False, topics, body_rotation=False)
+    finally:
+        messages.sigma_steps = steps
+
+
+def _write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
+           topics: frozenset[str] | None, body_rotation: bool = True) -> float:
+    """`write`: the first form, or the compact one as `recal.sinks.LoggedBusSink` writes it
+    (``body_rotation``: the body as times and a rotation when the calibrated batch and the
+    alignment give it, else as its values)."""
     clock = Clock()
     w = RecordingWriter(path, clock=clock, background_flush=False, fsync=False,
                         overwrite=True, log_batch_samples=1 if first_form else 8192)
+    rotations = BodyRotations() if body_rotation and not first_form else None
     spent = 0.0
     plot_phase = 0
     t_first = calls[0][3]
     for kind, suffix, payload, log_ns in calls:
+        if rotations is not None and kind == "json":  # (seen whatever the topics written)
+            rotations.note_json(SENSOR, suffix, payload)
+        elif rotations is not None and (kind, suffix) == ("calibrated", "calibrated"):
+            rotations.note_calibrated(SENSOR, payload)
         if topics is not None and suffix not in topics:
             continue
-        clock.now_s = (log_ns - t_first) / 1e9
+        clock.now_s = (log_ns - t_first) / 1e9 / FLUSH_S
         t = time.perf_counter()
         if kind == "raw":
             if first_form:
@@ -137,10 +173,15 @@ def write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
             else:
                 w.write_raw(SENSOR, payload, log_ns)
         elif kind == "calibrated":
+            found = (rotations.of(SENSOR, payload) if rotations is not None
+                     and suffix == "body" else None)
             if first_form:
                 w.write_encoded(f"/{SENSOR}/{suffix}",
                                 messages.encode_calibrated(SENSOR, payload), log_ns,
                                 int(payload.t_us[0]) * 1000, schema=messages.CALIBRATED_SCHEMA)
+            elif found is not None:  # as LoggedBusSink: the log the rotation, the bus values
+                w.log_body(SENSOR, found[0], found[1], log_ns)
+                messages.encode_calibrated(SENSOR, payload)
             else:
                 w.write_calibrated(SENSOR, payload, log_ns, suffix)
         elif kind == "plot":
@@ -165,22 +206,22 @@ def sizes(tmp: Path, calls: list, samples: int) -> list[tuple[str, float, float]
     rows = []
     for name, topics in groups:
         per = []
-        for first_form in (True, False):
-            path = tmp / f"{name.split(',')[0]}-{first_form}.mcap"
-            write(path, calls, first_form, topics)
+        for form in FORMS:
+            path = tmp / f"{name.split(',')[0]}-{form}.mcap"
+            write(path, calls, form, topics)
             per.append(path.stat().st_size / samples)
-        rows.append((name, per[0], per[1]))
+        rows.append((name, *per))
     return rows
 
 
-def timing(tmp: Path, calls: list, samples: int, runs: int) -> tuple[float, float]:
-    """Median microseconds per arrival in the writer (first form, compact)."""
-    times: dict[bool, list[float]] = {True: [], False: []}
+def timing(tmp: Path, calls: list, samples: int, runs: int) -> list[float]:
+    """Median microseconds per arrival in the writer, per form of FORMS."""
+    times: dict[str, list[float]] = {form: [] for form in FORMS}
     for _ in range(runs):
-        for first_form in (True, False):  # side by side in every run
-            spent = write(tmp / "t.mcap", calls, first_form)
-            times[first_form].append(spent / samples * 1e6)
-    return statistics.median(times[True]), statistics.median(times[False])
+        for form in FORMS:  # side by side in every run
+            spent = write(tmp / "t.mcap", calls, form)
+            times[form].append(spent / samples * 1e6)
+    return [statistics.median(times[form]) for form in FORMS]
 
 
 def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
@@ -200,28 +241,50 @@ def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
     return out[0], out[1]
 
 
+def aligned(calls: list[tuple[str, str, Any, int]]) -> tuple[list[tuple[str, str, Any, int]],
+                                                               int]:
+    """The calls from 60 s after the node's first body batch on, and their raw samples (the
+    setup and any state before are left out: a few bytes)."""
+    first = next(t for k, s, _, t in calls if (k, s) == ("calibrated", "body"))
+    kept = [c for c in calls if c[3] >= first + 60 * 10**9]
+    if not kept:
+        raise SystemExit("no body batch 60 s before the end: run longer (--minutes)")
+    return kept, sum(len(p) for k, _, p, _ in kept if k == "raw")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=20.0)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--aligned", action="store_true",
+                    help="write only what the node gave from 60 s after its first body batch "
+                         "on (every topic present: the steady state)")
+    ap.add_argument("--flush-s", type=float, default=1.0,
+                    help="the writers' flush interval, s (default 1, the daemon's)")
     a = ap.parse_args(argv)
+    global FLUSH_S
+    FLUSH_S = a.flush_s
     import os
     print(f"load average before: {os.getloadavg()[0]:.2f}", file=sys.stderr)
     calls, samples = capture(a.minutes, a.seed)
+    if a.aligned:
+        calls, samples = aligned(calls)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         rows = sizes(tmp, calls, samples)
-        first_us, compact_us = timing(tmp, calls, samples, a.runs)
+        first_us, before_us, compact_us = timing(tmp, calls, samples, a.runs)
     enc_old, enc_new = encode_one_us(calls)
-    print(f"{a.minutes:g} min at {RATE_HZ:g} Hz, one sample per arrival ({samples} samples), "
-          "zstd, 32 KiB chunks, flush every 1 s\n")
-    print("| topics | first form, B/sample | compact, B/sample | ratio |")
-    print("|---|---:|---:|---:|")
-    for name, old, new in rows:
-        print(f"| {name} | {old:.2f} | {new:.2f} | {new / old:.3f} |")
+    part = " (from 60 s after the alignment)" if a.aligned else ""
+    print(f"{a.minutes:g} min at {RATE_HZ:g} Hz{part}, one sample per arrival ({samples} "
+          f"samples), zstd, 32 KiB chunks, flush every {a.flush_s:g} s\n")
+    print("| topics | first form, B/sample | compact 10 Hz, B/sample | compact, B/sample | "
+          "compact / compact 10 Hz |")
+    print("|---|---:|---:|---:|---:|")
+    for name, old, before, new in rows:
+        print(f"| {name} | {old:.2f} | {before:.2f} | {new:.2f} | {new / before:.3f} |")
     print(f"\nwriter per arrival (raw, calibrated, body, plot): first form {first_us:.1f} us, "
-          f"compact {compact_us:.1f} us (ratio {compact_us / first_us:.2f}; medians of "
+          f"compact 10 Hz {before_us:.1f} us, compact {compact_us:.1f} us (medians of "
           f"{a.runs})")
     print(f"encoding one 1-sample CalibratedBatch: float64 (the bus's) {enc_old:.2f} us, "
           f"compact {enc_new:.2f} us")

@@ -2,6 +2,8 @@
 
     python bench/replay_throughput.py            # full: 2 h at 100 Hz per case, 5 runs
     python bench/replay_throughput.py --quick    # 15 min per case, 3 runs
+    python bench/replay_throughput.py --old /path/to/old/tree --hours 2 --runs 3 \
+        --live-minutes 30                        # an old tree's replay beside this one's
 
 Replay is `recal.replay.replay(in, out)` (what `recal replay` runs): every raw message through
 the calibration node the gateway runs live (detector, windows, estimator, correction,
@@ -125,6 +127,84 @@ def run_case(path: Path, out: Path, runs: int) -> dict[str, list[float]]:
     return res
 
 
+_CHILD = r"""
+import json, sys, time
+from mcap.reader import make_reader
+from recal.io import messages
+from recal.replay import replay
+src, out = sys.argv[1], sys.argv[2]
+t = time.perf_counter()
+n = 0
+with open(src, "rb") as f:
+    for _, channel, message in make_reader(f).iter_messages(log_time_order=False):
+        if channel.topic.endswith("/raw"):
+            n += len(messages.decode_raw(message.data)[1])
+t_mcap = time.perf_counter() - t
+t, c = time.perf_counter(), time.process_time()
+summary = replay(src, out, progress=False, overwrite=True)
+print(json.dumps({"n": n, "mcap": t_mcap, "replay": time.perf_counter() - t,
+                  "cpu": time.process_time() - c, "samples": summary["samples"]}))
+"""
+
+
+def replay_in(tree: Path, src: Path, out: Path) -> dict[str, float]:
+    """The mcap reader's and `replay`'s seconds on ``src`` in a fresh process importing recal
+    from ``tree``/service (its imports warmed by nothing: as `recal replay` runs)."""
+    import json
+    import os
+    import subprocess
+    r = subprocess.run([sys.executable, "-c", _CHILD, str(src), str(out)], check=True,
+                       capture_output=True, text=True,
+                       env={**os.environ, "PYTHONPATH": str(tree / "service")})
+    return json.loads(r.stdout)
+
+
+def write_live(path: Path, raw: RawBatch, minutes: float) -> None:
+    """A log as the daemon writes it: one sample per arrival, joined per 1 s flush."""
+    class Clock:
+        now_s = 0.0
+
+        def __call__(self) -> float:
+            return self.now_s
+    clock = Clock()
+    n = min(len(raw), round(minutes * 60 * RATE_HZ))
+    with RecordingWriter(path, clock=clock, background_flush=False, fsync=False,
+                         overwrite=True) as w:
+        for i in range(n):
+            clock.now_s = i / RATE_HZ
+            w.log_raw(SENSOR, raw[i:i + 1], 1_700_000_000_000_000_000 + int(raw.t_us[i]) * 1000)
+
+
+def old_beside_new(old: Path, raw: RawBatch, sizes: list[int], live_min: float,
+                   runs: int) -> None:
+    """`replay` of the same files by an old tree and this one, alternating, each in its own
+    process; medians of the per-run ratios."""
+    new = Path(__file__).resolve().parents[1]
+    print(f"old {old} beside new {new}: {runs} runs alternating, medians", flush=True)
+    print("| input | samples | old replay s | new replay s | old replay/mcap reader | "
+          "new replay/mcap reader |")
+    print("|---|---:|---:|---:|---:|---:|")
+    with tempfile.TemporaryDirectory(prefix="recal-replay-ab-") as tmp:
+        cases = []
+        for size in sizes:
+            cases.append((f"{size} samples/msg", Path(tmp) / f"in-{size}.mcap"))
+            write_recording(cases[-1][1], raw, size)
+        if live_min > 0:
+            cases.append((f"live log, {live_min:g} min", Path(tmp) / "live.mcap"))
+            write_live(cases[-1][1], raw, live_min)
+        for name, src in cases:
+            got: dict[str, list[dict[str, float]]] = {"old": [], "new": []}
+            for _ in range(runs):
+                for label, tree in (("old", old), ("new", new)):
+                    got[label].append(replay_in(tree, src, Path(tmp) / "out.mcap"))
+            med = {label: (statistics.median(r["replay"] for r in rs),
+                           statistics.median(r["mcap"] / r["replay"] for r in rs))
+                   for label, rs in got.items()}
+            print(f"| {name} | {int(got['new'][0]['n'])} | {med['old'][0]:.2f} | "
+                  f"{med['new'][0]:.2f} | {med['old'][1]:.3f} | {med['new'][1]:.3f} |",
+                  flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="15 min per case, 3 runs")
@@ -132,12 +212,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, help="timed runs per case (default 5)")
     ap.add_argument("--sizes", default="1000,100,10", help="samples per message, comma list")
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--old", type=Path, help="an old tree (a checkout whose service/ holds "
+                    "recal): its replay beside this one's, whole processes, alternating")
+    ap.add_argument("--live-minutes", type=float, default=0.0,
+                    help="with --old: also a log as the daemon writes it (one sample per "
+                         "arrival), this many minutes of the simulation")
     a = ap.parse_args(argv)
     hours = a.hours or (0.25 if a.quick else 2.0)
     runs = a.runs or (3 if a.quick else 5)
     sizes = [int(s) for s in a.sizes.split(",")]
     sensor = SensorSpec.random(np.random.default_rng(a.seed), offset_mg=40.0, gain_pct=3.0)
     raw = simulate(hours, RATE_HZ, a.seed, sensor).raw
+    if a.old is not None:
+        old_beside_new(a.old, raw, sizes, a.live_minutes, runs)
+        return 0
     print(f"recal replay throughput: {len(raw):,} samples ({hours:g} h at {RATE_HZ:g} Hz) per "
           f"case, {runs} runs, medians (M samples/s)", flush=True)
     head = (f"{'samples/msg':>11} | {'mcap reader':>11} | {'recal reader':>12} | "

@@ -233,3 +233,58 @@ def test_batch_topics_compare_as_samples_within_the_log_micro_g_and_no_further(
     raw2 = RawBatch(t, raw.v + (np.arange(n) == 7)[:, None], raw.aux)
     verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "e.mcap", cal, raw2, True))
     assert verdict.startswith("/s/raw v: max |diff| 1")
+    # sigma: within its 1 % steps (half a percent) and a micro-g, and no further
+    sigma_off = cal.sigma_mg * np.where(np.arange(n) == 12, 1.02, 1.0)
+    off = CalibratedBatch(t, cal.a_g, cal.quasi_static, cal.detector_g, cal.status, sigma_off, t)
+    verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "f.mcap", off, raw, True))
+    assert verdict.startswith("/s/calibrated sigma_mg: max |diff|")
+
+
+def test_other_topics_compare_topic_by_topic_whatever_their_interleaving(tmp_path: Path
+                                                                         ) -> None:
+    def write(path: Path, order: list[tuple[str, int]]) -> Path:
+        with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
+            for topic, i in order:
+                w.write_json(f"/s/{topic}", {"i": i}, 10**18)
+        return path
+    a = write(tmp_path / "a.mcap", [("events", 1), ("calibration", 0), ("events", 2)])
+    b = write(tmp_path / "b.mcap", [("calibration", 0), ("events", 1), ("events", 2)])
+    assert rc.mcap_verdict(a, b)[0] == "identical"  # each topic's messages in their order
+    c = write(tmp_path / "c.mcap", [("calibration", 0), ("events", 2), ("events", 1)])
+    assert rc.mcap_verdict(a, c)[0] != "identical"  # within a topic, order still counts
+
+
+def test_a_body_of_times_and_a_rotation_compares_as_the_calibrated_samples_turned(
+        tmp_path: Path) -> None:
+    from recal.core.alignment import to_body
+    from recal.io import recording
+    from recal.sinks import RecordingSink
+
+    rng = np.random.default_rng(4)
+    n = 50
+    t = np.arange(n, dtype=np.int64) * 10_000
+    cal = CalibratedBatch(t, rng.normal(size=(n, 3)), rng.random(n) < 0.5, rng.random(n) * 0.1,
+                          np.full(n, 3, np.uint8), rng.random(n) * 5.0, t)
+    r = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+    def write(path: Path, rotation_form: bool, shift_g: float = 0.0) -> Path:
+        body = CalibratedBatch(t, to_body(r, cal.a_g) + shift_g, cal.quasi_static,
+                               cal.detector_g, cal.status, cal.sigma_mg, t)
+        with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
+            if rotation_form:
+                sink = RecordingSink(w)
+                sink.json("s", "events", {"kind": "alignment", "detail": {"rotation": r}}, 1)
+                sink.calibrated("s", cal, 10**18)
+                sink.calibrated("s", body, 10**18, "body")
+            else:
+                w.write_json("/s/events", {"kind": "alignment", "detail": {"rotation": r}}, 1)
+                w.log_calibrated("s", cal, 10**18)
+                w.log_calibrated("s", body, 10**18, "body")
+        return path
+    old, new = write(tmp_path / "old.mcap", False), write(tmp_path / "new.mcap", True)
+    assert messages.decode_body_rotation(
+        next(recording.iter_messages(new, "/s/body")).data) is not None
+    verdict, _ = rc.mcap_verdict(old, new)
+    assert verdict == "identical" or verdict.startswith(rc.WITHIN), verdict
+    off = write(tmp_path / "off.mcap", False, 2e-6)  # an old body 2 micro-g away
+    assert rc.mcap_verdict(off, new)[0].startswith("/s/body a_g: max |diff|")

@@ -46,13 +46,31 @@ def test_compact_calibrated_keeps_values_to_half_a_micro_g_and_integers_exactly(
     assert np.array_equal(got.t_us, batch.t_us) and np.array_equal(got.t_dev, batch.t_dev)
     assert np.max(np.abs(got.a_g - batch.a_g)) <= 0.5e-6 + 1e-12
     assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 0.5e-6 + 1e-12
-    assert np.max(np.abs(got.sigma_mg - batch.sigma_mg)) <= 0.5e-3 + 1e-12  # mg: 0.5 ug
+    # sigma on its 1 % ladder: within half a step (0.5 %), then to the micro-g
+    assert np.all(np.abs(got.sigma_mg - batch.sigma_mg) <= 0.005 * batch.sigma_mg + 0.5e-3)
+    assert np.array_equal(got.sigma_mg, np.rint(m.sigma_steps(batch.sigma_mg) * 1e3) / 1e3)
     assert np.array_equal(got.status, batch.status)
     assert np.array_equal(got.quasi_static, batch.quasi_static)
     assert len(m.encode_calibrated_compact("s1", batch)) < 0.6 * len(
         m.encode_calibrated("s1", batch))
     assert m.batch_extent(m.encode_calibrated_compact("s1", batch)) == (
         700, int(batch.t_us[0]), int(batch.t_us[-1]))
+
+
+def test_sigma_steps_are_one_percent_apart_and_a_wandering_sigma_logs_as_zero_deltas() -> None:
+    sigma = np.array([0.0, -1.0, np.inf, np.nan, 1.0, 180.27, 180.37, 180.19, 181.9, 0.01])
+    steps = m.sigma_steps(sigma)
+    assert np.array_equal(steps[:4], sigma[:4], equal_nan=True)  # as they are
+    k = np.log(steps[4:]) / np.log(1.01)
+    assert np.allclose(k, np.rint(k), atol=1e-9) and steps[4] == 1.0
+    assert np.all(np.abs(steps[4:] / sigma[4:] - 1.0) <= 0.005 + 1e-12)
+    # a sigma wandering by parts per thousand stays on one step: deltas 0 after the first
+    rng = np.random.default_rng(1)
+    batch = _calibrated(200)
+    batch.sigma_mg[:] = 180.4 * (1.0 + 1e-3 * rng.standard_normal(200))
+    official = m.protobuf_message_class("recal.CalibratedBatch").FromString(
+        m.encode_calibrated_compact("s1", batch))
+    assert list(official.sigma_ug_delta)[1:] == [0] * 199
 
 
 def test_compact_raw_keeps_integer_counts_and_falls_back_to_float64_otherwise() -> None:
@@ -72,7 +90,8 @@ def test_values_the_fixed_point_cannot_hold_stay_float64_per_column() -> None:
     batch.t_us[20:] += 3_000_000_000  # a gap beyond int32 microseconds
     _, got = m.decode_calibrated(m.encode_calibrated_compact("s1", batch))
     assert np.array_equal(got.a_g, batch.a_g, equal_nan=True)
-    assert np.array_equal(got.sigma_mg, batch.sigma_mg)
+    assert np.array_equal(got.sigma_mg, m.sigma_steps(batch.sigma_mg))  # float64, its steps
+    assert np.isinf(got.sigma_mg[7])
     assert np.array_equal(got.t_us, batch.t_us)
     assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 0.5e-6 + 1e-12
 
@@ -85,7 +104,7 @@ def test_the_official_protobuf_runtime_reads_the_compact_form() -> None:
     assert list(official.dt_us) == np.diff(batch.t_us).tolist()
     x_ug = np.rint(batch.a_g[:, 0] * 1e6).astype(int)
     assert list(official.x_ug_delta) == np.diff(x_ug, prepend=0).tolist()
-    sigma_ug = np.rint(batch.sigma_mg * 1e3).astype(int)
+    sigma_ug = np.rint(m.sigma_steps(batch.sigma_mg) * 1e3).astype(int)
     assert list(official.sigma_ug_delta) == np.diff(sigma_ug, prepend=0).tolist()
     assert official.t_dev0 == batch.t_dev[0] and len(official.dt_dev) == 39
     raw = _raw(30)
@@ -94,8 +113,13 @@ def test_the_official_protobuf_runtime_reads_the_compact_form() -> None:
     assert list(official.y_counts_delta) == np.diff(raw.v[:, 1], prepend=0).astype(int).tolist()
     assert list(official.arrival_samples) == [10, 20]
     assert list(official.arrival_log_dt_us) == [0, 999]
-    sizes, log_us = m.raw_arrivals(data)  # type: ignore[misc]
+    _, back, arrivals = m.decode_raw_arrivals(data)
+    assert arrivals is not None and np.array_equal(back.v, raw.v)
+    sizes, log_us = arrivals
     assert sizes.tolist() == [10, 20] and log_us is not None and log_us.tolist() == [0, 999]
+    assert m.decode_raw_arrivals(m.encode_raw_compact("s1", raw))[2] is None  # one arrival
+    with pytest.raises(ValueError, match="add up"):
+        m.decode_raw_arrivals(m.encode_raw_compact("s1", raw, ([10, 19], [0, 999])))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -123,10 +147,11 @@ def test_single_sample_arrivals_are_joined_per_flush_with_their_arrivals(tmp_pat
             w.write_calibrated(SID, cal[i:i + 1], log_ns)
     logged = list(rec.iter_raw_logged(path))
     # one message per flush interval (a write that finds a flush due is in it)
-    assert [len(b) for _, b, _ in logged] == [101, 100, 49]
-    joined = RawBatch.concat([b for _, b, _ in logged])
+    assert [len(b) for _, b, _, _ in logged] == [101, 100, 49]
+    joined = RawBatch.concat([b for _, b, _, _ in logged])
     assert np.array_equal(joined.v, raw.v) and np.array_equal(joined.t_us, raw.t_us)
-    sizes, log_us = m.raw_arrivals(logged[1][2].data)  # type: ignore[misc]
+    assert logged[1][3] is not None
+    sizes, log_us = logged[1][3]
     assert sizes.tolist() == [1] * 100 and log_us is not None
     assert log_us.tolist() == list(range(0, 1_000_000, 10_000))
     assert logged[1][2].log_time_ns == 10**18 + 101 * 10_000_000
@@ -193,3 +218,64 @@ def test_tiny_batches_round_trip(n: int) -> None:
     raw = _raw(n)
     _, got_raw = m.decode_raw(m.encode_raw_compact("s", raw))
     assert np.array_equal(got_raw.v, raw.v) and len(got_raw) == n
+
+
+def test_zigzag_varints_of_every_width_read_back_by_the_official_runtime() -> None:
+    rng = np.random.default_rng(5)
+    widths = [rng.integers(-(2**k), 2**k, 50) for k in range(0, 63, 7)]
+    extremes = np.array([np.iinfo(np.int64).min, -1, 0, 1, np.iinfo(np.int64).max])
+    columns = [np.concatenate(widths), np.zeros(0, np.int64), extremes, np.array([-64, 63, 64])]
+    encoded = m.zigzag_varints_many(columns)
+    assert encoded[1] == b""
+    official = m.protobuf_message_class("recal.RawBatch")
+    for column, data in zip(columns, encoded, strict=True):
+        if not len(column):
+            continue
+        msg = official.FromString(bytes([12 << 3 | 2]) + m._varint(len(data)) + data)
+        assert list(msg.dt_us) == column.tolist()  # (field 12, sint64)
+        assert m.unzigzag_varints(np.frombuffer(data, np.uint8), "t").tolist() == column.tolist()
+    assert len(encoded[3]) == 1 + 1 + 2  # 127 and 126 fit one byte, 128 takes two
+
+
+def test_the_log_keeps_the_body_as_times_and_a_rotation_and_reads_it_back(tmp_path: Path
+                                                                          ) -> None:
+    from recal.core.alignment import to_body
+    from recal.sinks import RecordingSink
+
+    r = np.array([[0.99, -0.1, 0.0], [0.1, 0.99, 0.0], [0.0, 0.0, 1.0]])
+    r2 = r.T.copy()  # a second mounting, from a later alignment
+    cal = _calibrated(300)
+    path = tmp_path / "body.mcap"
+    with RecordingWriter(path, background_flush=False, fsync=False) as w:
+        sink = RecordingSink(w)
+        sink.json(SID, "events", {"kind": "alignment", "detail": {"rotation": r.tolist()}}, 1)
+        for i in range(300):  # one sample per arrival: calibrated, then rotated (as a node)
+            if i == 200:
+                sink.json(SID, "calibration", {"alignment": {"rotation": r2.tolist()}}, 1)
+            one = cal[i:i + 1]
+            sink.calibrated(SID, one, 10**18 + i)
+            rot = r if i < 200 else r2
+            body = CalibratedBatch(one.t_us, to_body(rot, one.a_g), one.quasi_static,
+                                   one.detector_g, one.status, one.sigma_mg, one.t_dev)
+            if i == 250:  # not what the rotation gives: logged as the values it has
+                body.a_g[0, 0] += 1e-3
+            sink.calibrated(SID, body, 10**18 + i, "body")
+    data = [mm.data for mm in rec.iter_messages(path, f"/{SID}/body")]
+    forms = [m.decode_body_rotation(d) is not None for d in data]
+    assert forms == [True, True, False, True]  # r, r2, the odd one, r2 again
+    official = m.protobuf_message_class("recal.CalibratedBatch").FromString(data[0])
+    assert list(official.body_rotation) == r.reshape(9).tolist() and len(official.dt_us) == 199
+    # 200 samples as their times and 9 doubles, against their values
+    assert len(data[0]) < 0.25 * len(m.encode_calibrated_compact(SID, cal[:200]))
+    with pytest.raises(ValueError, match="rotation"):
+        m.decode_calibrated(data[0])
+    got = rec.read_all_calibrated(path, SID, "body")
+    logged = rec.read_all_calibrated(path, SID)
+    want = np.concatenate([to_body(r, logged.a_g[:200]), to_body(r2, logged.a_g[200:])])
+    want[250, 0] = cal.a_g[250] @ r2[0] + 1e-3
+    assert np.array_equal(got.t_us, cal.t_us) and np.array_equal(got.status, cal.status)
+    assert np.max(np.abs(got.a_g - want)) <= 1e-6  # (the odd sample: its own micro-g)
+    # within a micro-g of the body the node computed (the calibrated values' micro-g, turned)
+    exact = np.concatenate([to_body(r, cal.a_g[:200]), to_body(r2, cal.a_g[200:])])
+    exact[250, 0] += 1e-3
+    assert np.max(np.abs(got.a_g - exact)) <= 0.87e-6

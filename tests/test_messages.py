@@ -411,3 +411,19 @@ def test_device_time_attached_to_a_batch_is_the_same_as_built_with_it() -> None:
     assert m.encode_calibrated("s", attached) == m.encode_calibrated("s", built)
     with pytest.raises(ValueError, match="differ in length"):
         CalibratedBatch(*fields).with_device_time(t_dev[:-1])
+
+
+def test_multi_byte_status_varints_decode_like_single_bytes_and_large_ones_as_not_recorded(
+        ) -> None:
+    data = m.encode_calibrated("s", _calibrated(4))  # (no statuses: all not recorded)
+    sigma = _key(9, 2) + _varint(32) + struct.pack("<4d", 1.0, 2.0, 3.0, 4.0)
+    # the statuses as one packed run of non-canonical and large varints: 0x83 0x00 is 3,
+    # 0x82 0x80 0x00 is 2, 0x80 0x02 is 256 (beyond any status: 0, not recorded), 0x05
+    run = b"\x83\x00\x82\x80\x00\x80\x02\x05"
+    _, ours = m.decode_calibrated(data + _key(8, 2) + _varint(len(run)) + run + sigma)
+    assert ours.status.tolist() == [3, 2, 0, 5]
+    assert ours.status.tolist() == [s if s < 256 else 0 for s in
+                                    OfficialCalibrated.FromString(data + _key(8, 2) + _varint(
+                                        len(run)) + run + sigma).status]
+    with pytest.raises(ValueError, match="ends inside a varint"):
+        m.decode_calibrated(data + _key(8, 2) + _varint(2) + b"\x05\x83" + sigma)

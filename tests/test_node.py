@@ -10,12 +10,12 @@ run.
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from memory_sink import MemorySink
 from recal import sim
 from recal.config import (
     AlignmentConfig,
@@ -25,43 +25,10 @@ from recal.config import (
     model_and_prior,
 )
 from recal.node import CalibrationNode, NodeSettings
-from recal.samples import CalibratedBatch, RawBatch
+from recal.samples import RawBatch
 
 RATE_HZ = 50.0
 SID = "chest"
-
-
-class MemorySink:
-    """Keeps what the node publishes, per topic, in memory (a real Sink, not a mock)."""
-
-    def __init__(self) -> None:
-        self.events: list[dict[str, Any]] = []
-        self.cal: list[CalibratedBatch] = []
-        self.body: list[CalibratedBatch] = []
-        self.states: list[dict[str, Any]] = []
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        pass
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   topic: str = "calibrated") -> None:
-        if topic == "calibrated":
-            self.cal.append(batch)
-        elif topic == "body":
-            self.body.append(batch)
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             topic: str = "plot") -> None:
-        pass
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix == "events":
-            self.events.append(obj)
-        elif suffix == "calibration":
-            self.states.append(obj)
-
-    def kinds(self) -> list[str]:
-        return [e["kind"] for e in self.events]
 
 
 def worn_tilted(tilt_x_deg: float, tilt_y_deg: float, seed: int = 3,

@@ -5,54 +5,19 @@ error against the simulator's truth after 30 min)."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import pytest
 
+from memory_sink import MemorySink
 from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core import timebase as tb
 from recal.io.ascii_lines import AsciiLineParser, encode_ascii
 from recal.node import CalibrationNode, NodeSettings
-from recal.samples import CalibratedBatch, RawBatch
+from recal.samples import RawBatch
 from recal.sim import SensorSpec, SimResult, error_1s_mg, simulate
 
 WRAP = 2**32
 RATE_HZ = 25.0
-
-
-class MemorySink:
-    """Keeps what a node produces."""
-
-    def __init__(self) -> None:
-        self.cal: list[CalibratedBatch] = []
-        self.events: list[dict[str, Any]] = []
-        self.setup: list[dict[str, Any]] = []
-
-    def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        pass
-
-    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   suffix: str = "calibrated") -> None:
-        if suffix == "calibrated":
-            self.cal.append(batch)
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None:
-        pass
-
-    def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
-        if suffix == "events":
-            self.events.append(obj)
-        elif suffix == "setup":
-            self.setup.append(obj)
-
-    def kinds(self) -> list[str]:
-        return [e["kind"] for e in self.events]
-
-    def joined(self) -> tuple[np.ndarray, np.ndarray]:
-        return (np.concatenate([c.t_us for c in self.cal]),
-                np.concatenate([c.a_g for c in self.cal]))
 
 
 def wearer(minutes: float, seed: int, start_us: int = 0, rate_hz: float = RATE_HZ) -> SimResult:

@@ -18,7 +18,7 @@ relative to the file)::
                 rotate_mb, rotate_hours, compression = "zstd", fsync = true
     [checkpoint] dir = "<state folder>/checkpoints", interval_s = 60, after_update_s = 5
     [pipeline]  threshold_g, window_s, model = "diagonal"|"full", mode = "all"|"offsets",
-                plot_hz = 10, any other PipelineConfig field; [pipeline.estimator],
+                plot_hz = 2, any other PipelineConfig field; [pipeline.estimator],
                 [pipeline.buffer] pass to EstimatorConfig / BufferConfig
     [alignment] enabled, min_still_s = 10, tilt_limit_deg = 7, upright_max_deg = 30,
                 request_interval_s = 60 (at most one recal/<sensor>/align request per sensor)
@@ -261,14 +261,15 @@ class PipelineSettings:
     Attributes:
         model: "diagonal" (Lötters, 6 parameters) or "full" (9, with cross-axis).
         mode: "all" parameters or "offsets" only (Lötters' two modes).
-        plot_hz: rate of the decimated per-sample plot topic, Hz.
+        plot_hz: rate of the decimated per-sample plot topic, Hz (2: each plot message costs
+            about 47 bytes on disk, the record and its index entry; docs/design.md).
         options: further PipelineConfig fields (threshold_g, window_s, ...).
         estimator, buffer: EstimatorConfig / BufferConfig fields.
     """
 
     model: str = "diagonal"
     mode: str = "all"
-    plot_hz: float = 10.0
+    plot_hz: float = 2.0
     options: Mapping[str, Any] = field(default_factory=dict)
     estimator: Mapping[str, Any] = field(default_factory=dict)
     buffer: Mapping[str, Any] = field(default_factory=dict)
@@ -613,7 +614,7 @@ def _pipeline(ctx: _Ctx, d: Any) -> PipelineSettings:
     options = _typed(ctx, d, PipelineConfig, _PIPELINE_FIELDS)
     settings = PipelineSettings(_str(ctx, d, "model", "diagonal", MODELS) or "diagonal",
                                 _str(ctx, d, "mode", "all", MODES) or "all",
-                                _num(ctx, d, "plot_hz", 10.0, positive=True), options, est, buf)
+                                _num(ctx, d, "plot_hz", 2.0, positive=True), options, est, buf)
     try:  # the core checks ranges and types; a sample rate is needed to build one
         settings.pipeline_config(100.0)
     except (TypeError, ValueError) as exc:

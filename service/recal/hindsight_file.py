@@ -72,7 +72,7 @@ def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float |
         return (b for _, b, _ in recording.iter_raw(parts, sid))
 
     def logged() -> Iterator[tuple[RawBatch, Any]]:
-        return ((b, m) for _, b, m in recording.iter_raw_logged(parts, sid))
+        return ((b, m) for _, b, m, _ in recording.iter_raw_logged(parts, sid))
 
     return Source(str(path), sid, raw, logged)
 

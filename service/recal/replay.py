@@ -45,9 +45,10 @@ from recal.core.pipeline import Pipeline
 from recal.core.status import status_line
 from recal.core.timebase import TimebaseState
 from recal.io import recording as rec
+from recal.io.messages import Arrivals
 from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
 from recal.node import CalibrationNode, NodeSettings, model_name, node_settings
-from recal.samples import RawBatch
+from recal.samples import CalibratedBatch, RawBatch
 from recal.sinks import RecordingSink
 
 __all__ = ["replay", "replay_lines"]
@@ -58,9 +59,62 @@ __all__ = ["replay", "replay_lines"]
 JOIN_SAMPLES = 8192
 
 
+class _JoiningSink(RecordingSink):
+    """A RecordingSink that holds a step's calibrated, body and plot batches (one per
+    arrival) and hands them to the writer at `flush` (after each pipeline step) in a call
+    per topic instead of one per arrival: the same messages (the batches still join into
+    messages arrival by arrival; the plot's log times stay per arrival)."""
+
+    def __init__(self, writer: RecordingWriter) -> None:
+        super().__init__(writer)
+        self.writer: RecordingWriter = writer
+        self._batches: dict[tuple[str, str], list[tuple[CalibratedBatch, int]]] = {}
+        self._plots: dict[str, list[tuple[CalibratedBatch, int, int]]] = {}
+        self._bodies: dict[str, list[tuple[CalibratedBatch, np.ndarray | None, int]]] = {}
+
+    def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+                   suffix: str = "calibrated") -> None:
+        if suffix == "body":  # times and the rotation if they say it, else the values
+            found = self.body.of(sensor_id, batch)
+            self._bodies.setdefault(sensor_id, []).append(
+                (batch, None, log_time_ns) if found is None else (found[0], found[1],
+                                                                   log_time_ns))
+            return
+        if suffix == "calibrated":
+            self.body.note_calibrated(sensor_id, batch)
+        self._batches.setdefault((sensor_id, suffix), []).append((batch, log_time_ns))
+
+    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
+             every_n: int) -> None:
+        self._plots.setdefault(sensor_id, []).append((batch, log_time_ns, every_n))
+
+    def flush(self) -> None:
+        for (sid, suffix), held in self._batches.items():
+            self.writer.log_calibrated_many(sid, [b for b, _ in held], [t for _, t in held],
+                                            suffix)
+        for sid, bodies in self._bodies.items():
+            self.writer.log_body_many(sid, bodies)
+        for sid, plots in self._plots.items():
+            start = 0
+            for i in range(1, len(plots) + 1):  # runs of one decimation
+                if i == len(plots) or plots[i][2] != plots[start][2]:
+                    run = plots[start:i]
+                    self.writer.write_plot(
+                        sid, _joined(run), run[-1][1], run[0][2],
+                        arrivals=(np.array([len(b) for b, *_ in run], np.int64),
+                                  np.array([t for _, t, _ in run], np.int64)))
+                    start = i
+        self._batches, self._plots, self._bodies = {}, {}, {}
+
+
+def _joined(items: list[Any]) -> CalibratedBatch:
+    return items[0][0] if len(items) == 1 else CalibratedBatch.concat([it[0] for it in items])
+
+
 @dataclass
 class _SensorRun:
     node: CalibrationNode
+    sink: _JoiningSink
     samples: int = 0
     batches: int = 0
     last_log_ns: int = 0
@@ -77,14 +131,15 @@ class _SensorRun:
     def drain(self) -> None:
         if self.waiting:
             self.node.process_many(self.waiting)
+            self.sink.flush()
         self.waiting, self.waiting_samples = [], 0
 
 
-def _arrivals(batch: RawBatch, logged: rec.LoggedMessage) -> list[tuple[RawBatch, int]]:
+def _arrivals(batch: RawBatch, logged: rec.LoggedMessage, found: Arrivals | None
+              ) -> list[tuple[RawBatch, int]]:
     """The batches as they arrived live, with their log times: a joined message's arrivals
     (the live node stepped once per arrival, and the calibration states fall at step ends),
     or the message itself."""
-    found = rec.messages.raw_arrivals(logged.data)
     if found is None:
         return [(batch, logged.log_time_ns)]
     sizes, log_us = found
@@ -186,22 +241,23 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
                              flush_interval_s=FILE_TO_FILE_FLUSH_S, fsync=False,
                              overwrite=overwrite, background_compression=True,
                              metadata={"replay_of": str(Path(in_mcap).name)})
-    sink = RecordingSink(writer)
+    sink = _JoiningSink(writer)
     bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
                disable=not progress, leave=False)
     try:
-        for sid, batch, logged in rec.iter_raw_logged(paths):
+        for sid, batch, logged, found in rec.iter_raw_logged(paths):
             bar.update(1)
             if sensor_ids is not None and sid not in sensor_ids:
                 continue
             run = runs.get(sid)
             if run is None:
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
-                run = runs[sid] = _SensorRun(node, extra={"start": start})
-            for piece, log_ns in _arrivals(batch, logged):
-                # the raw topic is logged again in the compact form (the same values; an
-                # older recording's float64 batches get joined and shrunk like a live log's)
-                writer.log_raw(sid, piece, log_ns)
+                run = runs[sid] = _SensorRun(node, sink, extra={"start": start})
+            # the raw topic is logged again in the compact form, the message at once with its
+            # arrivals (the same values; an older recording's float64 batches get joined and
+            # shrunk like a live log's)
+            writer.log_raw(sid, batch, logged.log_time_ns, found)
+            for piece, log_ns in _arrivals(batch, logged, found):
                 run.add(piece, log_ns)  # several per pipeline step, output per arrival
                 run.batches += 1
                 run.last_log_ns = log_ns
@@ -209,6 +265,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
         for run in runs.values():
             run.drain()
             run.node.flush(run.last_log_ns)
+            sink.flush()
     finally:
         bar.close()
         writer.close()

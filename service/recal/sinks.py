@@ -32,11 +32,14 @@ from collections.abc import Callable
 from functools import partial
 from typing import Any, Protocol
 
+import numpy as np
+
+from recal.core.alignment import to_body
 from recal.io import messages
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["Bus", "BusSink", "EventSink", "LoggedBusSink", "NullSink", "RecordingSink", "Sink",
-           "Writer"]
+__all__ = ["BodyRotations", "Bus", "BusSink", "EventSink", "LoggedBusSink", "NullSink",
+           "RecordingSink", "Sink", "Writer"]
 
 
 class Sink(Protocol):
@@ -70,6 +73,9 @@ class Writer(Protocol):
 
     def write_plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    every_n: int = 10) -> int: ...
+
+    def log_body(self, sensor_id: str, calibrated: CalibratedBatch, rotation: np.ndarray,
+                 log_time_ns: int) -> None: ...
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes: ...
 
@@ -124,18 +130,87 @@ class EventSink(NullSink):
         return [e for e in self.events if e["kind"] == kind]
 
 
+class BodyRotations:
+    """Which rotation made a sensor's body batch from its calibrated batch, so that the log
+    keeps the body stream as times and a rotation (`RecordingWriter.log_body`) instead of
+    values the calibrated stream and the alignment already say.
+
+    The node sends each batch calibrated, then (once the mounting is known) rotated; the
+    rotation is in every message that says the alignment (the ``alignment`` event, the
+    setup, the calibration states), which the node sends before the body batches it turns.
+    A body batch is logged in that form only if rotating the calibrated batch just seen gives
+    exactly its values and the rest of its columns are that batch's; otherwise (nothing
+    known, another caller of the sink) as the batch it is."""
+
+    def __init__(self) -> None:
+        self._rotation: dict[str, np.ndarray] = {}
+        self._last: dict[str, CalibratedBatch] = {}
+
+    def note_json(self, sensor_id: str, suffix: str, obj: Any) -> None:
+        ali = None
+        if suffix == "events" and isinstance(obj, dict) and obj.get("kind") == "alignment":
+            ali = obj.get("detail")
+        elif suffix in ("setup", "calibration") and isinstance(obj, dict):
+            ali = obj.get("alignment")
+        if isinstance(ali, dict) and ali.get("rotation") is not None:
+            try:
+                r = np.asarray(ali["rotation"], np.float64).reshape(3, 3)
+            except (TypeError, ValueError):
+                return
+            self._rotation[sensor_id] = r
+
+    def note_calibrated(self, sensor_id: str, batch: CalibratedBatch) -> None:
+        self._last[sensor_id] = batch
+
+    def of(self, sensor_id: str, body: CalibratedBatch) -> tuple[CalibratedBatch,
+                                                                  np.ndarray] | None:
+        """(the calibrated batch, the rotation) that give ``body`` exactly, or None."""
+        cal, r = self._last.get(sensor_id), self._rotation.get(sensor_id)
+        if cal is None or r is None or len(cal) != len(body):
+            return None
+        if (cal.t_dev is None) != (body.t_dev is None) or not all(
+                _same(u, v) for u, v in ((cal.t_us, body.t_us), (cal.status, body.status),
+                                         (cal.quasi_static, body.quasi_static),
+                                         (cal.detector_g, body.detector_g),
+                                         (cal.sigma_mg, body.sigma_mg), (cal.t_dev, body.t_dev),
+                                         (to_body(r, cal.a_g), body.a_g))):
+            return None
+        return cal, r
+
+
+def _same(u: np.ndarray | None, v: np.ndarray | None) -> bool:
+    """Equal arrays (NaN equal to NaN); a few values compared as Python numbers (a batch of
+    one sample per arrival: cheaper than numpy's comparison)."""
+    if u is v:
+        return True
+    if u is None or v is None:
+        return False
+    if u.size <= 16 and u.tolist() == v.tolist():
+        return True
+    return bool(np.array_equal(u, v, equal_nan=u.dtype.kind == "f"))
+
+
 class RecordingSink:
     """Writes to a :class:`recal.io.recording_writer.RecordingWriter` (topic
-    ``/<sensor>/<suffix>``)."""
+    ``/<sensor>/<suffix>``); the body stream as times and a rotation when it can
+    (:class:`BodyRotations`)."""
 
     def __init__(self, writer: Writer) -> None:
         self.writer = writer
+        self.body = BodyRotations()
 
     def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
         self.writer.log_raw(sensor_id, batch, log_time_ns)  # (no bus: no per-batch encoding)
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
+        if suffix == "calibrated":
+            self.body.note_calibrated(sensor_id, batch)
+        elif suffix == "body":
+            found = self.body.of(sensor_id, batch)
+            if found is not None:
+                self.writer.log_body(sensor_id, found[0], found[1], log_time_ns)
+                return
         self.writer.log_calibrated(sensor_id, batch, log_time_ns, suffix)
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
@@ -143,6 +218,7 @@ class RecordingSink:
         self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        self.body.note_json(sensor_id, suffix, obj)
         self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
 
 
@@ -205,6 +281,7 @@ class LoggedBusSink:
     def __init__(self, writer: Writer, bus: Bus) -> None:
         self.writer = writer
         self.bus = BusSink(bus)
+        self.body = BodyRotations()
 
     @property
     def dropped(self) -> int:
@@ -216,6 +293,15 @@ class LoggedBusSink:
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
+        if suffix == "calibrated":
+            self.body.note_calibrated(sensor_id, batch)
+        elif suffix == "body":
+            found = self.body.of(sensor_id, batch)
+            if found is not None:  # the log keeps times and the rotation, the bus the values
+                self.writer.log_body(sensor_id, found[0], found[1], log_time_ns)
+                self.bus.put(sensor_id, suffix,
+                             partial(messages.encode_calibrated, sensor_id, batch))
+                return
         # the log keeps the batch (encoded at its flush); the bus's bytes are made only if
         # someone subscribes to the topic (a body nobody watches costs no encoding)
         self.writer.log_calibrated(sensor_id, batch, log_time_ns, suffix)
@@ -226,6 +312,7 @@ class LoggedBusSink:
         self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        self.body.note_json(sensor_id, suffix, obj)
         data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
         if suffix in self.bus.topics:
             self.bus.put(sensor_id, suffix, data)

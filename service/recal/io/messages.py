@@ -42,9 +42,12 @@ message CalibratedBatch {
   repeated sint64 y_ug_delta = 14 [packed = true];
   repeated sint64 z_ug_delta = 15 [packed = true];
   repeated sint64 detector_ug_delta = 16 [packed = true];
-  repeated sint64 sigma_ug_delta = 17 [packed = true];
+  repeated sint64 sigma_ug_delta = 17 [packed = true];    // on 1 % steps (sigma_steps)
   sfixed64 t_dev0 = 18;
   repeated sint64 dt_dev = 19 [packed = true];
+  // the log's body topic, instead of every field but 1, 11, 12: the rotation R (row-major)
+  // that turns the calibrated topic's samples at these times into the body frame (R @ a)
+  repeated double body_rotation = 22 [packed = true];
 }
 enum Status {                                   // recal.core.status.Status
   STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
@@ -77,14 +80,17 @@ decodes with ``t_dev`` None.
 The compact form (`encode_raw_compact`, `encode_calibrated_compact`) is what the recording
 writer logs: a column is written either in its float64 field or in its compact one. Times are
 the first stamp and the differences; raw readings that are all integers (ADC counts) and
-calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g) are
-differences from the sample before (the first from 0), all as zigzag varints, which a few
-numpy passes write and read (`zigzag_varints_many`, `unzigzag_varints`); a column with a value
-that is not finite or beyond +-2147 g stays in float64. Differences make most varints one or
-two bytes, and zstd, restarted at every one-second chunk, finds little else to take. The bus
-keeps the float64 form: one sample is cheapest to encode that way, and subscribers read
-either. The decoders accept both forms (and older recordings, which have only the float64
-fields).
+calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g; sigma
+first on its ladder of 1 % steps, `sigma_steps`) are differences from the sample before (the
+first from 0), all as zigzag varints, which a few numpy passes write and read
+(`zigzag_varints_many`, `unzigzag_varints`); a column with a value that is not finite or beyond
++-2147 g stays in float64. Differences make most varints one or two bytes, and zstd, restarted
+at every one-second chunk, finds little else to take. The log's body topic holds no values
+(`encode_body_rotation`): its samples' times and the rotation that turns the calibrated topic's
+samples at those times (``decode_calibrated`` refuses such a message; `recal.io.recording`
+reads it back). The bus keeps the float64 form: one sample is cheapest to encode that way, and
+subscribers read either. The decoders accept both forms (and older recordings, which have only
+the float64 fields).
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
@@ -124,10 +130,13 @@ __all__ = [
     "RAW_SCHEMA",
     "SchemaSpec",
     "batch_extent",
+    "decode_body_rotation",
     "decode_calibrated",
     "decode_json",
     "decode_plot",
     "decode_raw",
+    "decode_raw_arrivals",
+    "encode_body_rotation",
     "encode_calibrated",
     "encode_calibrated_compact",
     "encode_event",
@@ -138,7 +147,7 @@ __all__ = [
     "file_descriptor_set",
     "plot_payloads",
     "protobuf_message_class",
-    "raw_arrivals",
+    "sigma_steps",
 ]
 
 PROTO_PACKAGE = "recal"
@@ -172,6 +181,9 @@ _F_CAL_DETECTOR_UG = 16
 _F_CAL_SIGMA_UG = 17
 _F_CAL_T_DEV0 = 18
 _F_CAL_DT_DEV = 19
+# The log's body topic: the samples' times and the rotation that turns the calibrated
+# topic's samples at those times into the body frame (nothing the calibrated topic says).
+_F_CAL_BODY_ROTATION = 22
 # A joined raw message keeps its arrivals: samples per arrival and each one's log time (us
 # after the message's), so a replay hands the node the batches the live node had.
 _F_RAW_ARRIVAL_SAMPLES = 20
@@ -262,6 +274,7 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
         _add_field(cal, name, number, fd.TYPE_SINT64, True)
     _add_field(cal, "t_dev0", _F_CAL_T_DEV0, fd.TYPE_SFIXED64, False)
     _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SINT64, True)
+    _add_field(cal, "body_rotation", _F_CAL_BODY_ROTATION, fd.TYPE_DOUBLE, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -455,27 +468,35 @@ def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
     if len(v) == 0:
         return [b"" for _ in columns]
     z = ((v << 1) ^ (v >> 63)).view(np.uint64)
-    width = max(1, (int(z.max()).bit_length() + 6) // 7)
-    if width <= 4:  # (values below 2**28: 32-bit arithmetic is faster)
+    if int(z.max()) < 1 << 32:  # (32-bit arithmetic is faster)
         z = z.astype(np.uint32)
-    # byte j of every value in row j: numpy's loops run along the values, not along 2-3 bytes
-    nbytes = np.ones(len(z), np.uint8)
-    for j in range(1, width):
-        nbytes += z >= (1 << (7 * j))
-    table = np.empty((width, len(z)), np.uint8)
-    keep = np.empty((width, len(z)), bool)
-    for j in range(width):
-        table[j] = (z >> (7 * j)) & 0x7F
-        table[j] |= (nbytes > j + 1).view(np.uint8) << 7  # continuation bit
-        keep[j] = nbytes > j
-    flat = np.ascontiguousarray(table.T)[np.ascontiguousarray(keep.T)].tobytes()  # by value
-    ends = np.cumsum(nbytes)[np.cumsum([len(c) for c in columns]) - 1].tolist()
+    nbytes = np.ones(len(z), np.int64)
+    rest = z >> 7
+    for _ in range(9):  # a uint64 takes at most 10 bytes
+        more = rest != 0
+        if not more.any():
+            break
+        nbytes += more
+        rest >>= 7
+    ends = np.cumsum(nbytes)
+    flat = np.empty(int(ends[-1]), np.uint8)
+    # byte j of every value at once, then only the values that have a byte j + 1 (deltas:
+    # most values end at the first or second byte, so the later passes are short)
+    pos, zz = ends - nbytes, z
+    for _ in range(10):
+        more = zz >= 0x80
+        flat[pos] = (zz & 0x7F).astype(np.uint8) | (more.view(np.uint8) << 7)
+        if not more.any():
+            break
+        pos, zz = pos[more] + 1, zz[more] >> 7
+    blob = flat.tobytes()
     out, start = [], 0
-    for c, end in zip(columns, ends, strict=True):
+    for c, end in zip(columns, ends[np.cumsum([len(c) for c in columns]) - 1].tolist(),
+                      strict=True):
         if len(c) == 0:
             out.append(b"")
             continue
-        out.append(flat[start:end])
+        out.append(blob[start:end])
         start = end
     return out
 
@@ -483,8 +504,16 @@ def zigzag_varints_many(columns: Sequence[np.ndarray]) -> list[bytes]:
 def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
     """A column of `zigzag_varints_many` back (a packed run of bytes) as int64; ValueError
     if it ends inside a varint or a varint is longer than 10 bytes."""
+    z = _unsigned_varints(run, what)
+    return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+
+
+def _unsigned_varints(run: np.ndarray, what: str) -> np.ndarray:
+    """A packed run of varints (bytes) as uint64, a few numpy calls per byte of the longest
+    value; ValueError if it ends inside a varint or a varint is longer than 10 bytes (bits
+    beyond 64 are dropped, as protobuf does)."""
     if run.size == 0:
-        return np.zeros(0, np.int64)
+        return np.zeros(0, np.uint64)
     last = run < 0x80
     if not last[-1]:
         raise ValueError(f"packed field {what} ends inside a varint")
@@ -497,7 +526,7 @@ def unzigzag_varints(run: np.ndarray, what: str) -> np.ndarray:
     for k in range(int(lengths.max())):
         sel = lengths > k
         z[sel] |= (run[starts[sel] + k] & 0x7F).astype(np.uint64) << np.uint64(7 * k)
-    return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+    return z
 
 
 class _Ints(NamedTuple):
@@ -558,7 +587,7 @@ def encode_raw_compact(sensor_id: str, batch: RawBatch,
     `decode_raw` reads both forms.
 
     ``arrivals``: (samples per arrival, log time of each in us after the message's) of a
-    batch joined from several arrivals (`raw_arrivals` reads them back)."""
+    batch joined from several arrivals (`decode_raw_arrivals` reads them back)."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
@@ -568,35 +597,14 @@ def encode_raw_compact(sensor_id: str, batch: RawBatch,
     return _join(parts + _aux_fields(batch))
 
 
-def raw_arrivals(data: bytes | bytearray | memoryview
-                 ) -> tuple[np.ndarray, np.ndarray | None] | None:
-    """(samples per arrival, log time of each in us after the message's, or None) of a
-    joined raw message; None for a message of one arrival (any message of an older
-    recording). ValueError if the sizes do not add up to the message's samples."""
-    buf = _as_bytes(data)
-    fields = _scan(buf, frozenset((_F_RAW_ARRIVAL_SAMPLES, _F_RAW_ARRIVAL_LOG_US)))
-    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _VARINT_WT):
-        return None
-    sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
-    log_us = None
-    if _F_RAW_ARRIVAL_LOG_US in fields:
-        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
-        if len(log_us) != len(sizes):
-            raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
-                             "arrivals")
-    if (sizes < 0).any() or sizes.sum() != batch_extent(buf)[0]:
-        raise ValueError("arrival_samples do not add up to the message's samples")
-    return sizes, log_us
-
-
 def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
     """A ``recal.CalibratedBatch`` in the log's compact form: times as ``t0_us`` + ``dt_us``
     deltas, values, detector and sigma as deltas of their micro-g values (``x_ug_delta`` ...,
     ``detector_ug_delta``, ``sigma_ug_delta``: each value minus the one before, the first as
     it is; Foxglove plots the ``plot`` topic, whose values are whole), the device stamps as
-    ``t_dev0`` + deltas, all deltas zigzag varints; a column with a value that is not finite
-    or beyond +-2147 g stays float64 in its old field. `decode_calibrated` reads both
-    forms."""
+    ``t_dev0`` + deltas, all deltas zigzag varints; sigma on its 1 % steps first
+    (`sigma_steps`); a column with a value that is not finite or beyond +-2147 g stays float64
+    in its old field. `decode_calibrated` reads both forms."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
@@ -605,11 +613,33 @@ def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
              *_compact_column(batch.detector_g, UG_PER_G, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG)]
     if batch.recorded:
         parts += [*_packed(_F_CAL_STATUS, _le_bytes(batch.status, "|u1")),
-                  *_compact_column(batch.sigma_mg, UG_PER_G / 1e3, _F_CAL_SIGMA,
+                  *_compact_column(sigma_steps(batch.sigma_mg), UG_PER_G / 1e3, _F_CAL_SIGMA,
                                    _F_CAL_SIGMA_UG)]
     if batch.t_dev is not None:
         parts += _time_fields(batch.t_dev, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
     return _join(parts)
+
+
+#: Relative step of the sigma the log keeps: sigma is itself an estimate (its own relative
+#: uncertainty is several percent), so 1 % steps say all it means; between updates it then
+#: stays on one step for long runs, which the delta field and zstd store in next to nothing
+#: (the raw value wanders by parts per thousand from sample to sample).
+SIGMA_STEP = 0.01
+_LOG_SIGMA_STEP = math.log1p(SIGMA_STEP)
+
+
+def sigma_steps(sigma_mg: np.ndarray) -> np.ndarray:
+    """Each positive finite sigma on the nearest step of a geometric ladder of ratio
+    1 + ``SIGMA_STEP`` (the steps are ``(1 + SIGMA_STEP) ** k`` mg, k an integer: within half
+    a step, 0.5 %, of the value); zero, negative and non-finite values as they are. What the
+    log's compact form keeps of sigma."""
+    s = np.asarray(sigma_mg, np.float64)
+    ok = np.isfinite(s) & (s > 0)
+    if not ok.any():
+        return s
+    out = s.copy()
+    out[ok] = np.exp(np.rint(np.log(s[ok]) / _LOG_SIGMA_STEP) * _LOG_SIGMA_STEP)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -728,16 +758,9 @@ def _small_varints(buf: bytes, occurrences: list[_Occurrence] | None, what: str)
         if wire_type not in (_WT_LEN, _WT_VARINT):
             continue
         run = np.frombuffer(buf, dtype=np.uint8, count=end - start, offset=start)
-        if run.size and run.max() >= 0x80:  # multi-byte varints: the rare slow path
-            values, pos = [], start
-            for _ in range(end - start):
-                if pos >= end:
-                    break
-                value, pos = _read_varint(buf, pos)
-                values.append(value if value <= 0xFF else 0)
-            if pos != end:
-                raise ValueError(f"packed field {what} ends inside a varint")
-            run = np.array(values, np.uint8)
+        if run.size and run.max() >= 0x80:  # multi-byte varints (a non-canonical writer)
+            values = _unsigned_varints(run, what)
+            run = np.where(values <= 0xFF, values, 0).astype(np.uint8)
         runs.append(run)
     if not runs:
         return np.zeros(0, np.uint8)
@@ -825,11 +848,12 @@ def _column(buf: bytes, fields: dict[int, list[_Occurrence]], f_float: int, f_fi
 
 _STAMP_FIELDS = (_F_T_US, _F_T0_US, _F_DT_US)
 _RAW_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES,
-                         _F_RAW_AUX, _F_X_FIX, _F_Y_FIX, _F_Z_FIX))
+                         _F_RAW_AUX, _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_RAW_ARRIVAL_SAMPLES,
+                         _F_RAW_ARRIVAL_LOG_US))
 _CAL_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
                          _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV,
                          _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_CAL_DETECTOR_UG, _F_CAL_SIGMA_UG,
-                         _F_CAL_T_DEV0, _F_CAL_DT_DEV))
+                         _F_CAL_T_DEV0, _F_CAL_DT_DEV, _F_CAL_BODY_ROTATION))
 
 
 def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
@@ -839,6 +863,21 @@ def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
 def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
     """Parse a ``recal.RawBatch`` message (either form) into (sensor_id, batch); ValueError if
     malformed."""
+    sensor_id, batch, _ = decode_raw_arrivals(data)
+    return sensor_id, batch
+
+
+#: A joined raw message's arrivals: samples per arrival, and the log time of each in us after
+#: the message's (None if the message has no log times).
+Arrivals = tuple[np.ndarray, np.ndarray | None]
+
+
+def decode_raw_arrivals(data: bytes | bytearray | memoryview
+                        ) -> tuple[str, RawBatch, Arrivals | None]:
+    """`decode_raw` and the message's arrivals in one reading of it: (sensor_id, batch,
+    arrivals), arrivals None for a message of one arrival (any message of an older
+    recording). ValueError if malformed, or if the arrival sizes do not add up to the
+    message's samples."""
     buf = _as_bytes(data)
     fields = _scan(buf, _RAW_FIELDS)
     t_us, v = _axes(buf, fields, ("x", "y", "z"), 1.0)
@@ -848,7 +887,24 @@ def decode_raw(data: bytes | bytearray | memoryview) -> tuple[str, RawBatch]:
         raise ValueError(f"aux has {len(aux)} values, expected {len(t_us)} samples x "
                          f"{len(names)} channels")
     batch = RawBatch(t_us, v, aux.reshape(len(t_us), len(names)), names)
-    return _last_string(buf, fields.get(_F_SENSOR)), batch
+    return _last_string(buf, fields.get(_F_SENSOR)), batch, _arrivals(buf, fields, len(t_us))
+
+
+def _arrivals(buf: bytes, fields: dict[int, list[_Occurrence]], samples: int
+              ) -> Arrivals | None:
+    """The arrival fields of a raw message already scanned (None if it has none)."""
+    if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _VARINT_WT):
+        return None
+    sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
+    log_us = None
+    if _F_RAW_ARRIVAL_LOG_US in fields:
+        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
+        if len(log_us) != len(sizes):
+            raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
+                             "arrivals")
+    if (sizes < 0).any() or sizes.sum() != samples:
+        raise ValueError("arrival_samples do not add up to the message's samples")
+    return sizes, log_us
 
 
 def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, CalibratedBatch]:
@@ -856,6 +912,10 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _CAL_FIELDS)
+    if _present(fields, _F_CAL_BODY_ROTATION, (_WT_LEN, _WT_I64)):
+        raise ValueError("a body message of the log's form holds a rotation, not samples: "
+                         "its samples are the calibrated topic's rotated (decode_body_rotation, "
+                         "recording.read_all_calibrated)")
     t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G)
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
     detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
@@ -873,6 +933,36 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
         _same_length(t_us, t_dev=t_dev)
     return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
                                                                       status, sigma, t_dev)
+
+
+def encode_body_rotation(sensor_id: str, t_us: np.ndarray, rotation: np.ndarray) -> bytes:
+    """The log's body message: the times of its samples (``t0_us`` + ``dt_us``) and the
+    rotation ``body_rotation`` (3 x 3, row-major) that turns the calibrated topic's samples at
+    those times into the body frame (``R @ a``, `recal.core.alignment.to_body`); no value the
+    calibrated topic and the alignment already say. `decode_body_rotation` reads it back."""
+    r = np.asarray(rotation, np.float64)
+    if r.shape != (3, 3):
+        raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+    return _join([*_string_fields(_F_SENSOR, sensor_id),
+                  *_time_fields(np.asarray(t_us, np.int64), _F_T0_US, _F_DT_US),
+                  *_packed(_F_CAL_BODY_ROTATION, _le_bytes(r.reshape(9), "<f8"))])
+
+
+def decode_body_rotation(data: bytes | bytearray | memoryview
+                         ) -> tuple[str, np.ndarray, np.ndarray] | None:
+    """(sensor_id, t_us, rotation 3 x 3) of a body message in the log's form
+    (`encode_body_rotation`), None for a message of samples (`decode_calibrated` reads it);
+    ValueError if malformed."""
+    buf = _as_bytes(data)
+    fields = _scan(buf, frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_CAL_BODY_ROTATION)))
+    if not _present(fields, _F_CAL_BODY_ROTATION, (_WT_LEN, _WT_I64)):
+        return None
+    r = _fixed64(buf, fields[_F_CAL_BODY_ROTATION], "<f8", "body_rotation")
+    if len(r) != 9:
+        raise ValueError(f"body_rotation has {len(r)} values, not 9")
+    t_us = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
+    return (_last_string(buf, fields.get(_F_SENSOR)),
+            np.zeros(0, np.int64) if t_us is None else t_us, r.reshape(3, 3).copy())
 
 
 def batch_extent(data: bytes | bytearray | memoryview) -> tuple[int, int | None, int | None]:
@@ -969,7 +1059,8 @@ def encode_event(kind: str, *, t_us: int | None = None, sensor_id: str | None = 
 # type), so numpy lays out a batch of them in one structured array.
 # The values are float32 (fields of type float): a plot needs no more, float32 keeps a value
 # below 16 g within 1 micro-g, and a message of doubles cost 24 bytes more (about 2.4 bytes
-# a logged sample at 100 Hz, plot_hz 10). Older recordings' doubles decode as well.
+# a logged sample at 100 Hz and 10 plot messages a second). Older recordings' doubles decode
+# as well.
 PLOT_DTYPE = np.dtype([
     ("k_t", "u1"), ("t_us", "<i8"), ("k_x", "u1"), ("x_g", "<f4"), ("k_y", "u1"),
     ("y_g", "<f4"), ("k_z", "u1"), ("z_g", "<f4"), ("k_n", "u1"), ("norm_g", "<f4"),

@@ -6,7 +6,8 @@ Topic layout (one MCAP file, or a rotated series ``rec.mcap``, ``rec-0001.mcap``
 |-----------------------|-----------------------------------|-----------------------------------|
 | /<sensor>/raw         | recal.RawBatch (protobuf)         | a batch of raw samples            |
 | /<sensor>/calibrated  | recal.CalibratedBatch (protobuf)  | the batch calibrated, sensor frame|
-| /<sensor>/body        | recal.CalibratedBatch (protobuf)  | the batch rotated to body frame   |
+| /<sensor>/body        | recal.CalibratedBatch (protobuf)  | the batch rotated to body frame:  |
+|                       |                                   | times and the rotation (the log's)|
 | /<sensor>/calibration | recal.CalibrationState (json)     | calibration state after an update |
 | /<sensor>/plot        | recal.PlotSample (protobuf)       | one calibrated sample (decimated) |
 | /<sensor>/events      | recal.Event (json)                | a sensor event                    |
@@ -43,6 +44,7 @@ from pathlib import Path
 from typing import IO, Any, NamedTuple
 
 import lz4.frame
+import numpy as np
 import zstandard
 from mcap.opcode import Opcode
 from mcap.reader import McapReader, make_reader
@@ -50,6 +52,7 @@ from mcap.records import Channel, ChunkIndex, Schema
 from mcap.summary import Summary
 from mcap.writer import MCAP0_MAGIC
 
+from recal.core.alignment import to_body
 from recal.errors import RecordingError, UsageError
 from recal.io import messages
 from recal.samples import CalibratedBatch, RawBatch
@@ -295,20 +298,49 @@ def iter_raw(path: Paths, sensor_id: str | None = None
 
 
 def iter_raw_logged(path: Paths, sensor_id: str | None = None
-                    ) -> Iterator[tuple[str, RawBatch, LoggedMessage]]:
-    """(sensor_id, batch, message as logged) of every raw batch, in file order: for copying
-    the raw topic into another recording byte for byte (replay)."""
+                    ) -> Iterator[tuple[str, RawBatch, LoggedMessage, messages.Arrivals | None]]:
+    """(sensor_id, batch, message as logged, its arrivals) of every raw batch, in file order,
+    each message read once (`messages.decode_raw_arrivals`; arrivals None for a message of
+    one arrival): what replay and hindsight need to hand the node the batches the live node
+    had."""
     for m in _iter(path, _batch_filter("raw", messages.RAW_MESSAGE_NAME, sensor_id)):
-        yield split_topic(m.topic)[0], messages.decode_raw(m.data)[1], m
+        _, batch, arrivals = messages.decode_raw_arrivals(m.data)
+        yield split_topic(m.topic)[0], batch, m, arrivals
 
 
 def iter_calibrated(path: Paths, sensor_id: str | None = None,
                     topic_suffix: str = "calibrated"
                     ) -> Iterator[tuple[str, CalibratedBatch, int]]:
-    """(sensor_id, batch, log_time_ns) of every calibrated (or ``body``) batch, in file order."""
+    """(sensor_id, batch, log_time_ns) of every calibrated (or ``body``) batch, in file order.
+
+    A body message of the log's form (times and a rotation, `messages.encode_body_rotation`)
+    is its samples of the calibrated topic rotated: the first such message reads that
+    sensor's calibrated topic once (held in memory while the body is read)."""
     want = _batch_filter(topic_suffix, messages.CALIBRATED_MESSAGE_NAME, sensor_id)
+    calibrated: dict[str, CalibratedBatch] = {}
     for m in _iter(path, want):
-        yield split_topic(m.topic)[0], messages.decode_calibrated(m.data)[1], m.log_time_ns
+        sid = split_topic(m.topic)[0]
+        found = messages.decode_body_rotation(m.data) if topic_suffix == "body" else None
+        if found is None:
+            yield sid, messages.decode_calibrated(m.data)[1], m.log_time_ns
+            continue
+        if sid not in calibrated:
+            calibrated[sid] = read_all_calibrated(path, sid)
+        yield sid, _rotated(calibrated[sid], found[1], found[2], m.topic), m.log_time_ns
+
+
+def _rotated(cal: CalibratedBatch, t_us: np.ndarray, rotation: np.ndarray,
+             topic: str) -> CalibratedBatch:
+    """The calibrated samples at ``t_us`` turned by ``rotation`` (R @ a): a body message of the
+    log's form read back; RecordingError if the calibrated topic lacks one of the times."""
+    i = np.searchsorted(cal.t_us, t_us)
+    if len(t_us) and (i[-1] >= len(cal) or not np.array_equal(cal.t_us[np.minimum(
+            i, len(cal) - 1)], t_us)):
+        raise RecordingError(f"{topic}: a body message names samples the calibrated topic "
+                             "does not have")
+    part = cal[i]
+    return CalibratedBatch(part.t_us, to_body(rotation, part.a_g), part.quasi_static,
+                           part.detector_g, part.status, part.sigma_mg, part.t_dev)
 
 
 def iter_json(path: Paths, topic_glob: str) -> Iterator[tuple[str, Any, int]]:

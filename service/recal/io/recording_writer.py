@@ -19,7 +19,9 @@ wait in memory and go into the file as one message at the next flush (or once
 message per topic and flush interval, not one per sample. A crash loses exactly what it lost
 before (what arrived since the last flush, which was in the open chunk, in memory, anyway).
 ``write_raw`` and ``write_calibrated`` still return each batch encoded on its own in the
-float64 form, for the bus.
+float64 form, for the bus. ``log_body`` logs a body batch as its times and the rotation that
+turns the calibrated samples (`messages.encode_body_rotation`), joined while the rotation
+stays.
 
 Memory: the writer holds the open chunk and a few counters; the chunk indexes the summary needs
 wait in a temporary file (a week flushed every second is ~600k chunks), so a recording of any
@@ -106,7 +108,9 @@ class _Pending:
     publish_ns: int
     batches: list[Any]
     samples: int
-    log_times: list[int]  # each batch's log time (raw: kept in the message)
+    sizes: list[int]  # raw: samples of each arrival (a batch may hold several)
+    log_times: list[int]  # raw: each arrival's log time (both kept in the message)
+    rotation: bytes | None = None  # body in the log's form: the rotation (float64 bytes)
 
 
 @dataclass(frozen=True)
@@ -271,11 +275,15 @@ class RecordingWriter:
         self.log_raw(sensor_id, batch, log_time_ns)
         return messages.encode_raw(sensor_id, batch)
 
-    def log_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
+    def log_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int,
+                arrivals: messages.Arrivals | None = None) -> None:
         """Log a raw batch on ``/<sensor>/raw``: joined with the topic's next batches into one
-        compact message at the next flush."""
+        compact message at the next flush. ``arrivals``: the batch is several arrivals
+        already joined, as `messages.decode_raw_arrivals` gives them (samples of each, log
+        time of each in us after ``log_time_ns``); kept in the message as the writer keeps
+        those it joins itself (replay logs a message's arrivals in one call)."""
         self._hold(self._sensor_topic(sensor_id, "raw"), sensor_id, batch,
-                   _check_log_time(log_time_ns), raw=True)
+                   _check_log_time(log_time_ns), raw=True, arrivals=arrivals)
 
     def write_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                          topic_suffix: str = "calibrated") -> bytes:
@@ -292,6 +300,56 @@ class RecordingWriter:
             raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
         self._hold(self._sensor_topic(sensor_id, topic_suffix), sensor_id, batch,
                    _check_log_time(log_time_ns), raw=False)
+
+    def log_body(self, sensor_id: str, calibrated: CalibratedBatch, rotation: np.ndarray,
+                 log_time_ns: int) -> None:
+        """Log on ``/<sensor>/body`` that these calibrated samples (as logged on
+        ``/<sensor>/calibrated``) rotated by ``rotation`` (3 x 3: ``R @ a``) are the body
+        frame's: the samples' times and the rotation, joined like `log_calibrated`'s batches
+        while the rotation stays (`messages.encode_body_rotation`). The body stream without
+        a value the calibrated stream and the alignment already say."""
+        r = np.ascontiguousarray(rotation, np.float64)
+        if r.shape != (3, 3):
+            raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+        self._hold(self._sensor_topic(sensor_id, "body"), sensor_id, calibrated,
+                   _check_log_time(log_time_ns), raw=False, rotation=r.tobytes())
+
+    def log_body_many(self, sensor_id: str,
+                      items: Sequence[tuple[CalibratedBatch, np.ndarray | None, int]]) -> None:
+        """`log_body` (rotation given) or `log_calibrated` on ``body`` (rotation None: the
+        batch is the body's values) of each (batch, rotation, log time) in turn, in one call:
+        the same messages (replay hands a pipeline step's body batches over at once)."""
+        topic = self._sensor_topic(sensor_id, "body")
+        with self._lock:
+            self._raise_background_error()
+            if self._closed:
+                raise ValueError("recording writer is closed")
+            for batch, rotation, log_ns in items:
+                r = None
+                if rotation is not None:
+                    r = np.ascontiguousarray(rotation, np.float64)
+                    if r.shape != (3, 3):
+                        raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+                self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False,
+                                  rotation=None if r is None else r.tobytes())
+            self._maybe_flush()
+
+    def log_calibrated_many(self, sensor_id: str, batches: Sequence[CalibratedBatch],
+                            log_times_ns: Sequence[int], topic_suffix: str = "calibrated"
+                            ) -> None:
+        """`log_calibrated` of each batch in turn, in one call (replay hands a pipeline
+        step's batches over at once): the same messages, for a list append per batch."""
+        if _SUFFIX_SCHEMAS.get(topic_suffix, messages.CALIBRATED_SCHEMA) is not \
+                messages.CALIBRATED_SCHEMA:
+            raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
+        topic = self._sensor_topic(sensor_id, topic_suffix)
+        with self._lock:
+            self._raise_background_error()
+            if self._closed:
+                raise ValueError("recording writer is closed")
+            for batch, log_ns in zip(batches, log_times_ns, strict=True):
+                self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False)
+            self._maybe_flush()
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes:
         """Log a JSON object; the schema follows the topic suffix (calibration, events,
@@ -321,11 +379,15 @@ class RecordingWriter:
         return data
 
     def write_plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-                   every_n: int = 10) -> int:
+                   every_n: int = 10, arrivals: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> int:
         """Log every ``every_n``-th sample as a plot message; returns how many were written.
 
         Decimation continues across batches (a per-sensor phase), so the plot rate is steady
-        whatever the batch sizes.
+        whatever the batch sizes. A sample's log time is its batch's, less its device-time
+        distance to the batch's last sample. ``arrivals``: the batch is several batches
+        joined (samples of each, log time of each in ns; ``log_time_ns`` is then unused):
+        the same messages as one call per batch, in one (replay).
         """
         if every_n < 1:
             raise ValueError("every_n must be >= 1")
@@ -339,6 +401,8 @@ class RecordingWriter:
             return 0  # most calls when samples are handled as they arrive: no numpy at all
         indices = np.arange(first, len(batch), every_n)
         t_us = batch.t_us[indices]
+        if arrivals is not None:
+            return self._write_plot_arrivals(topic, batch, indices, arrivals)
         # Spread the samples back from the log time by their device-time distance to the end.
         last_us = int(batch.t_us[-1])
         if len(indices) <= 16:  # a few samples: packed one by one (no array set-up)
@@ -350,6 +414,25 @@ class RecordingWriter:
         log_times = np.clip(log_ns - (last_us - t_us) * 1000, 0, None)
         self._write_fixed(topic, messages.PLOT_SCHEMA, messages.plot_payloads(batch, indices),
                           log_times, _publish_ns_array(t_us), log_ns)
+        return len(indices)
+
+    def _write_plot_arrivals(self, topic: str, batch: CalibratedBatch, indices: np.ndarray,
+                             arrivals: tuple[np.ndarray, np.ndarray]) -> int:
+        """`write_plot`'s messages for a batch of several arrivals: each sample's log time
+        from its own arrival's log time and last device time."""
+        sizes = np.asarray(arrivals[0], np.int64)
+        log_ns = np.asarray(arrivals[1], np.int64)
+        if sizes.sum() != len(batch) or len(log_ns) != len(sizes) or (sizes < 0).any():
+            raise ValueError("arrivals do not describe the batch")
+        if len(log_ns) and not (log_ns.min() >= 0 and log_ns.max() <= _MAX_U64):
+            raise ValueError("an arrival's log time is not an unsigned 64-bit integer")
+        ends = np.cumsum(sizes)
+        arrival = np.searchsorted(ends, indices, side="right")  # the arrival of each sample
+        t_us = batch.t_us[indices]
+        last_us = batch.t_us[ends[arrival] - 1]
+        log_times = np.clip(log_ns[arrival] - (last_us - t_us) * 1000, 0, None)
+        self._write_fixed(topic, messages.PLOT_SCHEMA, messages.plot_payloads(batch, indices),
+                          log_times, _publish_ns_array(t_us), int(log_ns[arrival[0]]))
         return len(indices)
 
     def write_encoded(self, topic: str, data: bytes, log_time_ns: int,
@@ -541,27 +624,43 @@ class RecordingWriter:
             self._maybe_flush()
 
     def _hold(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch, log_ns: int,
-              raw: bool) -> None:
+              raw: bool, arrivals: messages.Arrivals | None = None,
+              rotation: bytes | None = None) -> None:
         """Add a batch to its topic's waiting message (a list append per arrival: the join
         and the encoding happen once per message)."""
         with self._lock:
             self._raise_background_error()
             if self._closed:
                 raise ValueError("recording writer is closed")
-            p = self._pending.get(topic)
-            if p is not None and _layout(p.batches[0], raw) != _layout(batch, raw):
-                self._emit(topic)  # one message holds one layout
-                p = None
-            if p is None:
-                first = int(batch.t_us[0]) if len(batch) else None
-                p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
-                                                    _publish_ns(first, log_ns), [], 0, [])
-            p.batches.append(batch)
-            p.log_times.append(log_ns)
-            p.samples += len(batch)
-            if p.samples >= self._log_batch_samples:
-                self._emit(topic)
+            self._hold_locked(topic, sensor_id, batch, log_ns, raw, arrivals, rotation)
             self._maybe_flush()
+
+    def _hold_locked(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch,
+                     log_ns: int, raw: bool, arrivals: messages.Arrivals | None = None,
+                     rotation: bytes | None = None) -> None:
+        """`_hold` without the checks and the flush (lock held)."""
+        p = self._pending.get(topic)
+        if p is not None and (p.rotation != rotation
+                              or _layout(p.batches[0], raw) != _layout(batch, raw)):
+            self._emit(topic)  # one message holds one layout (and one rotation)
+            p = None
+        if p is None:
+            first = int(batch.t_us[0]) if len(batch) else None
+            p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
+                                                _publish_ns(first, log_ns), [], 0, [], [],
+                                                rotation)
+        p.batches.append(batch)
+        p.samples += len(batch)
+        if raw and arrivals is None:  # (a calibrated message keeps no arrivals)
+            p.sizes.append(len(batch))
+            p.log_times.append(log_ns)
+        elif raw and arrivals is not None:
+            sizes, log_us = arrivals
+            p.sizes += sizes.tolist()
+            p.log_times += ([log_ns] * len(sizes) if log_us is None
+                            else (log_ns + 1000 * log_us).tolist())
+        if p.samples >= self._log_batch_samples:
+            self._emit(topic)
 
     def _emit(self, topic: str) -> None:
         """Write a topic's waiting batches as one compact message (lock held)."""
@@ -569,12 +668,18 @@ class RecordingWriter:
         if p.raw:
             batch = p.batches[0] if len(p.batches) == 1 else RawBatch.concat(p.batches)
             # the arrivals, so that a replay gives the node the batches the live node had
-            arrivals = ([len(b) for b in p.batches],
-                        [(t - p.log_ns) // 1000 for t in p.log_times])
+            arrivals = (p.sizes, [(t - p.log_ns) // 1000 for t in p.log_times])
             data = messages.encode_raw_compact(p.sensor_id, batch, arrivals)
             spec = messages.RAW_SCHEMA
             self._write_many(topic, spec, [(data, p.log_ns, p.publish_ns)], p.log_ns,
                              samples=len(batch))
+            return
+        if p.rotation is not None:  # the body in the log's form: times and the rotation
+            t_us = np.concatenate([b.t_us for b in p.batches])
+            r = np.frombuffer(p.rotation, np.float64).reshape(3, 3)
+            self._write_many(topic, messages.CALIBRATED_SCHEMA,
+                             [(messages.encode_body_rotation(p.sensor_id, t_us, r), p.log_ns,
+                               p.publish_ns)], p.log_ns)
             return
         batch = p.batches[0] if len(p.batches) == 1 else CalibratedBatch.concat(p.batches)
         step = max(self._log_batch_samples, _MAX_MESSAGE_SAMPLES)  # (a file tool's batches)
