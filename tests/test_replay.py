@@ -13,6 +13,7 @@ import pytest
 
 from polling import wait_for
 from recal.config import parse_config
+from recal.core.status import Status
 from recal.errors import RecordingError
 from recal.gateway import Gateway, run_gateway
 from recal.io import recording as rec
@@ -196,3 +197,39 @@ def test_replaying_a_recording_twice_writes_the_same_bytes(tmp_path: Path) -> No
     assert len(chunks) >= 3  # enough to show where chunks end
     # every chunk but the last was closed by its size (1 MiB), none early by a clock
     assert all(c.uncompressed_size >= 1024 * 1024 for c in chunks[:-1])
+
+
+def _recording_with_a_reopen(path: Path, raw: RawBatch, reopen_at: int | None) -> None:
+    """raw logged as a gateway logs it, 250 samples per message, the port opened at the
+    start and (reopen_at: before that sample) opened again."""
+    with RecordingWriter(path, background_flush=False, fsync=False, overwrite=True) as w:
+        t0_ns = 1_760_000_000 * 10**9
+        w.write_event("port_opened", t0_ns, sensor_id=SID, detail={"port": "/dev/ttyX"})
+        for i in range(0, len(raw), 250):  # bounded: one pass over the data
+            b = raw[i:i + 250]
+            log_ns = t0_ns + 1000 * int(b.t_us[-1] - raw.t_us[0]) + 1_000_000
+            if i == reopen_at:
+                w.write_event("port_found", log_ns - 500_000, sensor_id=SID,
+                              detail={"port": "/dev/ttyX"})
+            w.log_raw(SID, b, log_ns)
+
+
+def test_replay_doubts_where_the_recorded_port_opened_again(tmp_path: Path) -> None:
+    """The live gateway holds a sensor's output from a reopened port until a still window
+    agrees (`CalibrationNode.port_reopened`); replay reads the port events and does the same
+    at the same arrival, so the statuses match a node told of the reopen there."""
+    rate = 25.0
+    res = simulate(50 / 60, rate, 1, SensorSpec.random(np.random.default_rng(1), 50, 3))
+    k = int(40 * 60 * rate)
+    statuses = {}
+    for name, at in (("reopened", k), ("plain", None)):
+        _recording_with_a_reopen(tmp_path / f"{name}.mcap", res.raw, at)
+        replay(tmp_path / f"{name}.mcap", tmp_path / f"{name}-out.mcap", progress=False)
+        statuses[name] = rec.read_all_calibrated(tmp_path / f"{name}-out.mcap", SID).status
+    plain, reopened = statuses["plain"], statuses["reopened"]
+    np.testing.assert_array_equal(plain[:k], reopened[:k])  # the same until the reopen
+    assert plain[k - 1] == plain[k] == Status.CALIBRATED
+    assert reopened[k] == Status.HELD  # held from the reopen on
+    back = np.flatnonzero(reopened[k:] == Status.CALIBRATED)
+    assert len(back) and back[0] / rate < 60  # until its first still window agreed
+    assert not np.any(reopened[k:] == Status.SUSPECT)

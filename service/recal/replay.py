@@ -121,8 +121,15 @@ class _SensorRun:
     extra: dict[str, Any] = field(default_factory=dict)
     waiting: list[tuple[RawBatch, int]] = field(default_factory=list)
     waiting_samples: int = 0
+    reopens_ns: list[int] = field(default_factory=list)  # log times, latest first
 
     def add(self, batch: RawBatch, log_ns: int) -> None:
+        if self.reopens_ns and log_ns > self.reopens_ns[-1]:
+            # the port reopened before this arrival: the live node doubted there
+            self.drain()
+            while self.reopens_ns and log_ns > self.reopens_ns[-1]:
+                self.reopens_ns.pop()
+            self.node.port_reopened()
         self.waiting.append((batch, log_ns))
         self.waiting_samples += len(batch)
         if self.waiting_samples >= JOIN_SAMPLES:
@@ -168,6 +175,16 @@ def _raw_message_count(paths: list[Path]) -> int | None:
     except Exception:  # a progress bar without a total is fine; reading reports real damage
         return None
     return total
+
+
+def _reopens(paths: list[Path]) -> dict[str, list[int]]:
+    """Per sensor, the log times at which its port opened again (each open after its first,
+    as the gateway calls `CalibrationNode.port_reopened`), latest first."""
+    opens: dict[str, list[int]] = {}
+    for topic, obj, log_ns in rec.iter_json(paths, "/*/events"):
+        if isinstance(obj, dict) and obj.get("kind") in ("port_opened", "port_found"):
+            opens.setdefault(rec.split_topic(topic)[0], []).append(log_ns)
+    return {sid: sorted(times[1:], reverse=True) for sid, times in opens.items()}
 
 
 def _setups(paths: list[Path]) -> dict[str, dict[str, Any]]:
@@ -232,6 +249,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     rec.refuse_input_as_output(out_mcap, in_mcap)
     paths = rec.recording_parts(in_mcap)
     setups = _setups(paths)
+    reopens = _reopens(paths)
     t0 = time.perf_counter()
     runs: dict[str, _SensorRun] = {}
     # Big chunks, compressed on a thread beside the calibration: a replay can be redone, so
@@ -252,7 +270,8 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
             run = runs.get(sid)
             if run is None:
                 node, start = _node_for(sid, cfg, model, setups.get(sid), sink)
-                run = runs[sid] = _SensorRun(node, sink, extra={"start": start})
+                run = runs[sid] = _SensorRun(node, sink, extra={"start": start},
+                                             reopens_ns=reopens.get(sid, []))
             # the raw topic is logged again in the compact form, the message at once with its
             # arrivals (the same values; an older recording's float64 batches get joined and
             # shrunk like a live log's)
