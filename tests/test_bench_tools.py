@@ -215,13 +215,19 @@ def _batches_mcap(path: Path, cal: CalibratedBatch, raw: RawBatch, joined: bool)
     return path
 
 
+def _random_calibrated(rng: np.random.Generator, n: int) -> tuple[np.ndarray, CalibratedBatch]:
+    """n samples 10 ms apart with random values in every column, and their times."""
+    t = np.arange(n, dtype=np.int64) * 10_000
+    return t, CalibratedBatch(t, rng.normal(size=(n, 3)), rng.random(n) < 0.5,
+                              rng.random(n) * 0.1, np.full(n, 3, np.uint8),
+                              rng.random(n) * 5.0, t)
+
+
 def test_batch_topics_compare_as_samples_within_the_log_micro_g_and_no_further(
         tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     n = 100
-    t = np.arange(n, dtype=np.int64) * 10_000
-    cal = CalibratedBatch(t, rng.normal(size=(n, 3)), rng.random(n) < 0.5, rng.random(n) * 0.1,
-                          np.full(n, 3, np.uint8), rng.random(n) * 5.0, t)
+    t, cal = _random_calibrated(rng, n)
     raw = RawBatch(t, rng.integers(-900, 900, (n, 3)).astype(float), np.zeros((n, 0)))
     first = _batches_mcap(tmp_path / "first.mcap", cal, raw, joined=False)
     verdict, _ = rc.mcap_verdict(first, _batches_mcap(tmp_path / "c.mcap", cal, raw, True))
@@ -262,9 +268,7 @@ def test_a_body_of_times_and_a_rotation_compares_as_the_calibrated_samples_turne
 
     rng = np.random.default_rng(4)
     n = 50
-    t = np.arange(n, dtype=np.int64) * 10_000
-    cal = CalibratedBatch(t, rng.normal(size=(n, 3)), rng.random(n) < 0.5, rng.random(n) * 0.1,
-                          np.full(n, 3, np.uint8), rng.random(n) * 5.0, t)
+    t, cal = _random_calibrated(rng, n)
     r = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
     def write(path: Path, rotation_form: bool, shift_g: float = 0.0) -> Path:

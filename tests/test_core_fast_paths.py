@@ -8,7 +8,7 @@ import pytest
 
 from recal.core.effects import Covariates, CrossAxis, Effect, Gain, Offset, Ratiometric
 from recal.core.model import SensorModel
-from recal.core.status import correction_jacobian, predicted_sigma_mg
+from recal.core.status import _chain_jacobian, correction_jacobian, predicted_sigma_mg
 
 S0 = 1024.0
 CHANNELS = ("vdd", "temp", "vref")
@@ -16,20 +16,13 @@ CHANNELS = ("vdd", "temp", "vref")
 
 def _chain_rule(model: SensorModel, p: np.ndarray, v: np.ndarray,
                 cov: Covariates) -> np.ndarray:
-    """J = da/dp by every stage's full `vjp`, each unit row of da/da in turn."""
+    """J = da/dp by every stage's full `vjp`, each unit row of da/da in turn, whatever the
+    model says of its axes."""
     stages = [(e, model.slice(e)) for e in model.effects]
     xs = [v]
     for e, sl in stages:
         xs.append(e.apply(xs[-1], cov, p[sl]))
-    J = np.empty((len(v), 3, model.size))
-    for j in range(3):
-        g = np.zeros((len(v), 3))
-        g[:, j] = 1.0
-        for k in range(len(stages) - 1, -1, -1):
-            e, sl = stages[k]
-            J[:, j, sl], g_in = e.vjp(g, xs[k], cov, p[sl], k > 0)
-            g = g_in if k else g
-    return J
+    return _chain_jacobian(stages, xs, cov, p, len(v), model.size)
 
 
 MODELS = {

@@ -364,7 +364,15 @@ def correction_jacobian(model: SensorModel, p: np.ndarray, v: np.ndarray,
     n = len(xs[0])
     if model.axes_apart:
         return _unit_jacobian(stages, xs, cov, p, n, model.size)
-    J = np.empty((n, 3, model.size))
+    return _chain_jacobian(stages, xs, cov, p, n, model.size)
+
+
+def _chain_jacobian(stages: list, xs: list[np.ndarray], cov: Covariates, p: np.ndarray,
+                    n: int, size: int) -> np.ndarray:
+    """`correction_jacobian` by every stage's full `vjp`, each unit row of da/da in turn
+    (the general chain rule; `_unit_jacobian` is its short form for stages that keep the axes
+    apart)."""
+    J = np.empty((n, 3, size))
     for j in range(3):
         g = np.zeros((n, 3))
         g[:, j] = 1.0
