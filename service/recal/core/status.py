@@ -37,7 +37,9 @@ Besides the alarms above, two moments hold the status (`Watch.probation`, `Watch
   it clears like any alarm (CLEAR_GOOD_WINDOWS agreeing windows after GROSS_HOLD_S).
 * A moment of doubt (`Pipeline.doubt`: the device's clock restarted, the state came from a
   checkpoint): the output is held until still windows in PROBATION_WINDOWS orientation
-  cells agree with the estimate (a gross contradiction among them: suspect).
+  cells agree with the estimate (a gross contradiction among them: suspect). A port that
+  opened again (`CalibrationNode.port_reopened`) or a gap in device time beyond GAP_S (the
+  pipeline's own) holds it until one still window agrees (REOPEN_PROBATION_WINDOWS).
 
 A calibration whose offsets or scales the data never observed (a wearer who never lies down:
 the scale along the never-vertical axis) is ``held``, not calibrated, however long it runs;
