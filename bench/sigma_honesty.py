@@ -3,6 +3,7 @@
     python bench/sigma_honesty.py           # 60 min per case at 25 Hz (a few minutes)
     python bench/sigma_honesty.py --quick   # 20 min per case
     python bench/sigma_honesty.py --live    # through the live node (`CalibrationNode`)
+    python bench/sigma_honesty.py --only gap  # the cases whose name contains "gap"
 
 Each case streams one simulated wearer through the core `Pipeline` in batches of 250 samples
 (what `recal run` does per message; `recal replay` joins messages and gives the same output
@@ -26,6 +27,9 @@ the sensor noise left in a 1 s mean (sigma speaks of the calibration only). Colu
   suspect sample, how many calibrated seconds were more than 20 mg off after it, and seconds
   to the first calibrated second after it (what a check after the event costs when the
   sensor is the same one).
+* cal. s: seconds marked calibrated; held s after each gap: for the same sensor with
+  GAP_LEN_S of device time missing at GAPS_AT_MIN (a radio out of range: the pipeline sees
+  the gap itself, no call), seconds from each gap to the first wholly calibrated second.
 
 Hindsight columns: not here (the hindsight console's sigma is its own module's).
 """
