@@ -3,6 +3,7 @@
     python bench/sigma_honesty.py           # 60 min per case at 25 Hz (a few minutes)
     python bench/sigma_honesty.py --quick   # 20 min per case
     python bench/sigma_honesty.py --live    # through the live node (`CalibrationNode`)
+    python bench/sigma_honesty.py --only gap  # the cases whose name contains "gap"
 
 Each case streams one simulated wearer through the core `Pipeline` in batches of 250 samples
 (what `recal run` does per message; `recal replay` joins messages and gives the same output
@@ -26,6 +27,9 @@ the sensor noise left in a 1 s mean (sigma speaks of the calibration only). Colu
   suspect sample, how many calibrated seconds were more than 20 mg off after it, and seconds
   to the first calibrated second after it (what a check after the event costs when the
   sensor is the same one).
+* cal. s: seconds marked calibrated; held s after each gap: for the same sensor with
+  GAP_LEN_S of device time missing at GAPS_AT_MIN (a radio out of range: the pipeline sees
+  the gap itself, no call), seconds from each gap to the first wholly calibrated second.
 
 Hindsight columns: not here (the hindsight console's sigma is its own module's).
 """
@@ -60,7 +64,7 @@ BATCH = 250
 @dataclass
 class Case:
     """One wearer: its sensor, the model, and what happens (event: None, "swap",
-    "swap+doubt", "swap+reopen", "reopen", "poisoned", "foreign")."""
+    "swap+doubt", "swap+reopen", "reopen", "swap+gap", "gaps", "poisoned", "foreign")."""
 
     spec: Callable[[np.random.Generator], sim.SensorSpec]
     full: bool = False
@@ -90,6 +94,9 @@ CASES: dict[str, Case] = {
     "the same, its clock restarting (the node doubts)": Case(_plain, event="swap+doubt"),
     "the same, after a port reopen (its clock runs on)": Case(_plain, event="swap+reopen"),
     "the same sensor after a port reopen (the check's cost)": Case(_plain, event="reopen"),
+    "the same, after a 3 s gap in device time (no reopen)": Case(_plain, event="swap+gap"),
+    "the same sensor after 3 s gaps at 20, 30, 40, 50 min (the cost)": Case(
+        _plain, event="gaps"),
     "poisoned checkpoint (offset x +0.39 g)": Case(_plain, event="poisoned"),
     "another sensor's checkpoint": Case(_plain, event="foreign"),
     "six clean poses twice, no prior (lab)": Case(_plain, poses=True),
@@ -175,6 +182,8 @@ def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
         raw = RawBatch(t_us, np.concatenate([raw.v[:k], other.raw.v[k:]]), raw.aux,
                        raw.aux_names)
         event_s = k / RATE_HZ
+    gaps = _gaps(case, len(raw), minutes)
+    raw = _with_gaps(raw, gaps)
     model, prior = _model_prior(spec, case.full)
     sink = _Kept()
     node = CalibrationNode(NodeSettings("bench", PipelineSettings(), model, prior, RATE_HZ),
@@ -190,11 +199,34 @@ def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
     cpu = time.process_time() - t0
     out = CalibratedBatch.concat(sink.batches)
     assert node.pipeline is not None and len(out) == len(raw)
-    return _row(name, seed, case, spec, node.pipeline, out, res.truth.a_true_g, event_s, cpu)
+    return _row(name, seed, case, spec, node.pipeline, out, res.truth.a_true_g, event_s, cpu,
+                gaps)
 
 
 #: The events that put another sensor under the id at half time.
-SWAPS = ("swap", "swap+doubt", "swap+reopen")
+SWAPS = ("swap", "swap+doubt", "swap+reopen", "swap+gap")
+#: A device's data that stop and come back (a radio out of range): this long of device time
+#: missing, the clock running on; when ("gaps"), minutes into the recording.
+GAP_LEN_S = 3.0
+GAPS_AT_MIN = (20.0, 30.0, 40.0, 50.0)
+
+
+def _gaps(case: Case, n: int, minutes: float) -> list[int]:
+    """The samples before which GAP_LEN_S of device time is missing."""
+    if case.event == "swap+gap":
+        return [n // 2]
+    if case.event == "gaps":
+        return [round(m * 60 * RATE_HZ) for m in GAPS_AT_MIN if m < minutes]
+    return []
+
+
+def _with_gaps(raw: RawBatch, at: list[int]) -> RawBatch:
+    """The recording with GAP_LEN_S of device time missing before each sample in ``at`` (no
+    sample dropped: the wearer's motion simply continues; the pipeline sees the gap itself)."""
+    t_us = raw.t_us.copy()
+    for k in at:
+        t_us[k:] += round(GAP_LEN_S * 1e6)
+    return RawBatch(t_us, raw.v, raw.aux, raw.aux_names)
 
 
 #: Still windows that must agree after a port reopen (None in the code before that check:
@@ -237,6 +269,7 @@ def run(name: str, case: Case, minutes: float, seed: int) -> dict:
     event_s = None
     pipe = _pipe(spec, case.full, raw.aux_names)
     first = None
+    gaps = _gaps(case, len(raw), minutes)
     if case.event in (*SWAPS, "reopen"):
         k = len(raw) // 2
         if case.event != "reopen":
@@ -266,13 +299,14 @@ def run(name: str, case: Case, minutes: float, seed: int) -> dict:
         _doubt(pipe)  # as the node does at a restore
         raw, truth = raw[k:], truth[k:]
         event_s = 0.0
+    raw = _with_gaps(raw, gaps)  # no call: the pipeline sees them
     t0 = time.process_time()
     out = _stream(pipe, raw)
     cpu = time.process_time() - t0
     if first is not None:  # the whole recording in the table
         out = CalibratedBatch.concat([first, out])
         truth, event_s = res.truth.a_true_g, len(first) / RATE_HZ
-    return _row(name, seed, case, spec, pipe, out, truth, event_s, cpu)
+    return _row(name, seed, case, spec, pipe, out, truth, event_s, cpu, gaps)
 
 
 def _scored(name: str, seed: int, spec: sim.SensorSpec, raw: RawBatch, truth: np.ndarray,
@@ -286,7 +320,8 @@ def _scored(name: str, seed: int, spec: sim.SensorSpec, raw: RawBatch, truth: np
 
 
 def _row(name: str, seed: int, case: Case, spec: sim.SensorSpec, pipe: Pipeline,
-         out: CalibratedBatch, truth: np.ndarray, event_s: float | None, cpu: float) -> dict:
+         out: CalibratedBatch, truth: np.ndarray, event_s: float | None, cpu: float,
+         gaps: list[int] | None = None) -> dict:
     if case.align:  # the best rotation (gravity cannot see one), fitted on the second half
         h = len(out) // 2
         rot, _ = Rotation.align_vectors(truth[h::10], out.a_g[h::10])
@@ -310,22 +345,36 @@ def _row(name: str, seed: int, case: Case, spec: sim.SensorSpec, pipe: Pipeline,
         row["cal_over_20mg"] = int(np.count_nonzero(cal & after & (e > 20.0)))
         back = np.flatnonzero(cal & after)
         row["to_calibrated_s"] = float(back[0] - event_s) if len(back) else float("nan")
+    row["cal_s"] = int(cal.sum())
+    # the same sensor after each gap: seconds from the gap to the first wholly calibrated
+    # second (what the check costs; the code before it is calibrated through)
+    row["held_s"] = ([_held_after(cal, k) for k in gaps or []] if case.event == "gaps"
+                     else [])
     return row
+
+
+def _held_after(cal: np.ndarray, k: int) -> int:
+    """Seconds from sample k's second to the first wholly calibrated second (-1: none)."""
+    nxt = np.flatnonzero(cal[k // int(RATE_HZ):])
+    return int(nxt[0]) if len(nxt) else -1
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="20 min per case, one seed")
     ap.add_argument("--seeds", type=int, default=2, help="wearers per case (default 2)")
+    ap.add_argument("--only", default="", help="the cases whose name contains this")
     ap.add_argument("--live", action="store_true",
                     help="through the live node (`CalibrationNode`), the cases it can run")
     args = ap.parse_args()
     minutes, seeds = (20.0, 1) if args.quick else (60.0, args.seeds)
     print("case | seed | cal % | >3 sigma_eff % | >10 sigma_eff % | real/pred | err mg "
           "(2nd half) | misfit mg | unobserved | to suspect s | cal. s > 20 mg | "
-          "to calibrated s")
-    print("---|---|---|---|---|---|---|---|---|---|---|---")
+          "to calibrated s | cal. s | held s after each gap")
+    print("---|---|---|---|---|---|---|---|---|---|---|---|---|---")
     for name, case in CASES.items():
+        if args.only not in name:
+            continue
         if args.live and (case.poses or case.event in ("poisoned", "foreign")):
             continue
         for seed in range(1, seeds + 1):
@@ -334,8 +383,8 @@ def main() -> None:
                   f"{r['to_calibrated_s']:.0f}" if "to_suspect_s" in r else "- | - | -")
             print(f"{name} | {seed} | {r['cal_pct']:.0f} | {r['beyond3_pct']:.1f} | "
                   f"{r['beyond10_pct']:.1f} | {r['real_pred']:.2f} | {r['err_mg']:.2f} | "
-                  f"{r['misfit_mg']:.1f} | {','.join(r['unobserved']) or '-'} | {ev}",
-                  flush=True)
+                  f"{r['misfit_mg']:.1f} | {','.join(r['unobserved']) or '-'} | {ev} | "
+                  f"{r['cal_s']} | {' '.join(map(str, r['held_s'])) or '-'}", flush=True)
 
 
 if __name__ == "__main__":

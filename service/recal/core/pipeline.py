@@ -58,8 +58,10 @@ from recal.core.refit import (
     tries,
 )
 from recal.core.status import (
+    GAP_S,
     MISFIT_MOVE_SDS,
     PROBATION_WINDOWS,
+    REOPEN_PROBATION_WINDOWS,
     UNPINNED_MG,
     RunningMisfit,
     Status,
@@ -264,7 +266,34 @@ class Pipeline:
         return self._stepped(joined, ends).split(lengths, model, estimate)
 
     def _stepped(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
-        """`step` with the state recorded after each mark's samples (`step_many`)."""
+        """`step` with the state recorded after each mark's samples (`step_many`), cut at a
+        gap in device time longer than GAP_S: a doubt for REOPEN_PROBATION_WINDOWS from the
+        sample after it. The cut falls at that sample however the samples were batched, so
+        live (a message at a time) and replay (messages joined) agree."""
+        g = self._gap(batch)
+        if g is None:
+            return self._stepped_whole(batch, marks)
+        if g == 0:
+            self.doubt(REOPEN_PROBATION_WINDOWS)
+            return self._stepped_whole(batch, marks)
+        head = self._stepped_whole(batch[:g], [m for m in marks if m <= g])
+        self.doubt(REOPEN_PROBATION_WINDOWS)
+        tail = self._stepped(batch[g:], [m - g for m in marks if m > g])
+        return head.joined(tail, g)
+
+    def _gap(self, batch: RawBatch) -> int | None:
+        """The first sample of the batch after a gap in device time beyond GAP_S, once an
+        estimate exists to doubt (None: no such gap; before that, nothing to doubt)."""
+        if self.estimate is None or not self.bootstrapped or not len(batch):
+            return None
+        t, last, gap_us = batch.t_us, self.last_t_us, GAP_S * 1e6
+        if last is not None and int(t[0]) - last > gap_us:
+            return 0
+        big = np.flatnonzero(np.diff(t) > gap_us)
+        return int(big[0]) + 1 if len(big) else None
+
+    def _stepped_whole(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
+        """`_stepped` for a batch without a gap inside (see there)."""
         if batch.aux_names != self.aux_names:
             raise InputError(f"batch channels {batch.aux_names} differ from {self.aux_names}")
         n = len(batch)

@@ -37,7 +37,9 @@ Besides the alarms above, two moments hold the status (`Watch.probation`, `Watch
   it clears like any alarm (CLEAR_GOOD_WINDOWS agreeing windows after GROSS_HOLD_S).
 * A moment of doubt (`Pipeline.doubt`: the device's clock restarted, the state came from a
   checkpoint): the output is held until still windows in PROBATION_WINDOWS orientation
-  cells agree with the estimate (a gross contradiction among them: suspect).
+  cells agree with the estimate (a gross contradiction among them: suspect). A port that
+  opened again (`CalibrationNode.port_reopened`) or a gap in device time beyond GAP_S (the
+  pipeline's own) holds it until one still window agrees (REOPEN_PROBATION_WINDOWS).
 
 A calibration whose offsets or scales the data never observed (a wearer who never lies down:
 the scale along the never-vertical axis) is ``held``, not calibrated, however long it runs;
@@ -69,7 +71,7 @@ from recal.core.misfit import ACROSS_SPHERE, CHANCE_SDS, excess_g2
 from recal.core.model import SensorModel
 from recal.core.triaxial import norm3
 
-__all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "GROSS_MIN_MG", "GROSS_SIGMAS",
+__all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "GAP_S", "GROSS_MIN_MG", "GROSS_SIGMAS",
            "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG", "PROBATION_WINDOWS", "SUSPECT_AFTER_S",
            "UNPINNED_MG", "RunningMisfit", "Status", "Watch",
            "correction_jacobian", "offsets_and_scales", "predicted_sigma_mg", "refill",
@@ -135,6 +137,12 @@ PROBATION_WINDOWS = 3
 #: PROBATION_WINDOWS: a loose USB lead reopens many times a day, and three orientations cost
 #: minutes of held output each time (docs/design.md, "a check after a port reopen").
 REOPEN_PROBATION_WINDOWS = 1
+#: A step in device time longer than this between two samples is a gap (`Pipeline`: a doubt
+#: for REOPEN_PROBATION_WINDOWS from the sample after it): the device's data stopped, a radio
+#: out of range or a link re-paired, time in which another device may have come under the id
+#: without a port of the gateway closing. 2 s: 50 sample steps at 25 Hz, longer than a batch
+#: of a working link takes to come, shorter than a re-pairing by hand.
+GAP_S = 2.0
 #: The misfit's running means weigh each still window by this (a memory of ~32 windows).
 MISFIT_WEIGHT = 1.0 / 32.0
 #: A window's squared residual enters the misfit's mean clipped at this many times the
