@@ -289,6 +289,8 @@ class Pipeline:
         t, last, gap_us = batch.t_us, self.last_t_us, GAP_S * 1e6
         if last is not None and int(t[0]) - last > gap_us:
             return 0
+        if len(t) == 1:  # a live arrival: no gap inside it (and no numpy calls for none)
+            return None
         big = np.flatnonzero(np.diff(t) > gap_us)
         return int(big[0]) + 1 if len(big) else None
 
