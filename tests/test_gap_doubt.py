@@ -122,6 +122,28 @@ def test_the_gap_is_seen_at_its_sample_however_the_samples_are_batched() -> None
     assert np.array_equal(one.status, outs[0].status)
 
 
+def test_every_gap_of_a_joined_batch_is_seen_as_message_by_message() -> None:
+    """Two gaps inside one step (replay joins thousands of samples): each holds the output
+    from its own sample, as a message at a time does."""
+    raw, k = _same()
+    k2 = k + int(3 * 60 * RATE_HZ) + 31
+    raw = _gapped(raw, k2)
+    model, prior = model_and_prior(SensorConfig(SID, rate_hz=RATE_HZ,
+                                                prior=PriorConfig(counts_per_g=S0)),
+                                   PipelineSettings())
+    pipe = Pipeline(_config(), model, prior, raw.aux_names)
+    one = CalibratedBatch.concat([pipe.step(raw[i:i + 250]).calibrated
+                                  for i in range(0, len(raw), 250)])
+    assert one.status[k2 - 1] == Status.CALIBRATED and one.status[k2] == Status.HELD
+    for head in (k, 0):  # the first gap just before the step, or inside it
+        pipe = Pipeline(_config(), model, prior, raw.aux_names)
+        first = pipe.step(raw[:head]).calibrated if head else CalibratedBatch.empty()
+        rest = pipe.step(raw[head:]).calibrated
+        whole = CalibratedBatch.concat([first, rest])
+        assert np.array_equal(whole.status, one.status)
+        assert np.array_equal(whole.sigma_mg, one.sigma_mg)
+
+
 def _config() -> PipelineConfig:
     return PipelineSettings().pipeline_config(RATE_HZ)
 

@@ -20,6 +20,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, replace
 from enum import Enum
+from itertools import pairwise
 
 import numpy as np
 
@@ -266,33 +267,35 @@ class Pipeline:
         return self._stepped(joined, ends).split(lengths, model, estimate)
 
     def _stepped(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
-        """`step` with the state recorded after each mark's samples (`step_many`), cut at a
+        """`step` with the state recorded after each mark's samples (`step_many`), cut at each
         gap in device time longer than GAP_S: a doubt for REOPEN_PROBATION_WINDOWS from the
-        sample after it. The cut falls at that sample however the samples were batched, so
-        live (a message at a time) and replay (messages joined) agree."""
-        g = self._gap(batch)
-        if g is None:
+        sample after it, once an estimate exists to doubt. The cuts fall at those samples
+        however the samples were batched, so live (a message at a time) and replay (messages
+        joined) agree (cutting a step changes nothing else: the pipeline is batch-size
+        invariant)."""
+        gaps = self._gaps(batch)
+        if not gaps:
             return self._stepped_whole(batch, marks)
-        if g == 0:
-            self.doubt(REOPEN_PROBATION_WINDOWS)
-            return self._stepped_whole(batch, marks)
-        head = self._stepped_whole(batch[:g], [m for m in marks if m <= g])
-        self.doubt(REOPEN_PROBATION_WINDOWS)
-        tail = self._stepped(batch[g:], [m - g for m in marks if m > g])
-        return head.joined(tail, g)
+        bounds = [0, *(g for g in gaps if g), len(batch)]
+        out: JoinedStep | None = None
+        for a, b in pairwise(bounds):
+            if (a or gaps[0] == 0) and self.estimate is not None and self.bootstrapped:
+                self.doubt(REOPEN_PROBATION_WINDOWS)
+            part = self._stepped_whole(batch[a:b], [m - a for m in marks if a < m <= b])
+            out = part if out is None else out.joined(part, a)
+        assert out is not None
+        return out
 
-    def _gap(self, batch: RawBatch) -> int | None:
-        """The first sample of the batch after a gap in device time beyond GAP_S, once an
-        estimate exists to doubt (None: no such gap; before that, nothing to doubt)."""
-        if self.estimate is None or not self.bootstrapped or not len(batch):
-            return None
+    def _gaps(self, batch: RawBatch) -> list[int]:
+        """The samples of the batch that follow a gap in device time beyond GAP_S, in order
+        (0: the gap lies before the batch's first sample)."""
         t, last, gap_us = batch.t_us, self.last_t_us, GAP_S * 1e6
-        if last is not None and int(t[0]) - last > gap_us:
-            return 0
+        if not len(t):
+            return []
+        gaps = [0] if last is not None and int(t[0]) - last > gap_us else []
         if len(t) == 1:  # a live arrival: no gap inside it (and no numpy calls for none)
-            return None
-        big = np.flatnonzero(np.diff(t) > gap_us)
-        return int(big[0]) + 1 if len(big) else None
+            return gaps
+        return gaps + (np.flatnonzero(np.diff(t) > gap_us) + 1).tolist()
 
     def _stepped_whole(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
         """`_stepped` for a batch without a gap inside (see there)."""
