@@ -273,43 +273,29 @@ class BusSink:
             self.put(sensor_id, suffix, messages.encode_json(obj))
 
 
-class LoggedBusSink:
-    """Logs to a recording, then publishes the very bytes it logged: a RecordingSink and a
-    BusSink in one, with each message encoded once instead of twice (the gateway's sink;
-    why it matters per sample: docs/performance.md)."""
+class LoggedBusSink(RecordingSink):
+    """Logs to a recording as a RecordingSink does, then publishes on the bus (the gateway's
+    sink): a batch goes out in its own float64 form, encoded only when a subscriber matches
+    its key, a JSON message as the very bytes logged (why it matters per sample:
+    docs/performance.md)."""
 
     def __init__(self, writer: Writer, bus: Bus) -> None:
-        self.writer = writer
+        super().__init__(writer)
         self.bus = BusSink(bus)
-        self.body = BodyRotations()
 
     @property
     def dropped(self) -> int:
         return self.bus.dropped
 
     def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
-        self.writer.log_raw(sensor_id, batch, log_time_ns)
+        super().raw(sensor_id, batch, log_time_ns)
         self.bus.put(sensor_id, "raw", partial(messages.encode_raw, sensor_id, batch))
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
-        if suffix == "calibrated":
-            self.body.note_calibrated(sensor_id, batch)
-        elif suffix == "body":
-            found = self.body.of(sensor_id, batch)
-            if found is not None:  # the log keeps times and the rotation, the bus the values
-                self.writer.log_body(sensor_id, found[0], found[1], log_time_ns)
-                self.bus.put(sensor_id, suffix,
-                             partial(messages.encode_calibrated, sensor_id, batch))
-                return
-        # the log keeps the batch (encoded at its flush); the bus's bytes are made only if
-        # someone subscribes to the topic (a body nobody watches costs no encoding)
-        self.writer.log_calibrated(sensor_id, batch, log_time_ns, suffix)
+        # the log keeps a body batch as times and a rotation when it can; the bus the values
+        super().calibrated(sensor_id, batch, log_time_ns, suffix)
         self.bus.put(sensor_id, suffix, partial(messages.encode_calibrated, sensor_id, batch))
-
-    def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
-             every_n: int) -> None:
-        self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
         self.body.note_json(sensor_id, suffix, obj)
