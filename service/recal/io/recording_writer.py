@@ -91,6 +91,21 @@ def _publish_ns_array(t_us: np.ndarray) -> np.ndarray:
     return out
 
 
+def _check_calibrated_suffix(topic_suffix: str) -> None:
+    """A calibrated batch may go on any suffix but one reserved for another schema."""
+    if _SUFFIX_SCHEMAS.get(topic_suffix, messages.CALIBRATED_SCHEMA) is not \
+            messages.CALIBRATED_SCHEMA:
+        raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
+
+
+def _rotation_bytes(rotation: np.ndarray) -> bytes:
+    """A body rotation (3 x 3, ``R @ a``) as the float64 bytes a waiting message keeps."""
+    r = np.ascontiguousarray(rotation, np.float64)
+    if r.shape != (3, 3):
+        raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+    return r.tobytes()
+
+
 def _check_log_time(log_time_ns: int) -> int:
     value = int(log_time_ns)
     if not 0 <= value <= _MAX_U64:
@@ -295,9 +310,7 @@ class RecordingWriter:
     def log_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                        topic_suffix: str = "calibrated") -> None:
         """Log a calibrated batch on ``/<sensor>/<topic_suffix>``, joined like `log_raw`'s."""
-        if _SUFFIX_SCHEMAS.get(topic_suffix, messages.CALIBRATED_SCHEMA) is not \
-                messages.CALIBRATED_SCHEMA:
-            raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
+        _check_calibrated_suffix(topic_suffix)
         self._hold(self._sensor_topic(sensor_id, topic_suffix), sensor_id, batch,
                    _check_log_time(log_time_ns), raw=False)
 
@@ -308,11 +321,8 @@ class RecordingWriter:
         frame's: the samples' times and the rotation, joined like `log_calibrated`'s batches
         while the rotation stays (`messages.encode_body_rotation`). The body stream without
         a value the calibrated stream and the alignment already say."""
-        r = np.ascontiguousarray(rotation, np.float64)
-        if r.shape != (3, 3):
-            raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
         self._hold(self._sensor_topic(sensor_id, "body"), sensor_id, calibrated,
-                   _check_log_time(log_time_ns), raw=False, rotation=r.tobytes())
+                   _check_log_time(log_time_ns), raw=False, rotation=_rotation_bytes(rotation))
 
     def log_body_many(self, sensor_id: str,
                       items: Sequence[tuple[CalibratedBatch, np.ndarray | None, int]]) -> None:
@@ -321,17 +331,11 @@ class RecordingWriter:
         the same messages (replay hands a pipeline step's body batches over at once)."""
         topic = self._sensor_topic(sensor_id, "body")
         with self._lock:
-            self._raise_background_error()
-            if self._closed:
-                raise ValueError("recording writer is closed")
+            self._check_writable()
             for batch, rotation, log_ns in items:
-                r = None
-                if rotation is not None:
-                    r = np.ascontiguousarray(rotation, np.float64)
-                    if r.shape != (3, 3):
-                        raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
                 self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False,
-                                  rotation=None if r is None else r.tobytes())
+                                  rotation=None if rotation is None else
+                                  _rotation_bytes(rotation))
             self._maybe_flush()
 
     def log_calibrated_many(self, sensor_id: str, batches: Sequence[CalibratedBatch],
@@ -339,14 +343,10 @@ class RecordingWriter:
                             ) -> None:
         """`log_calibrated` of each batch in turn, in one call (replay hands a pipeline
         step's batches over at once): the same messages, for a list append per batch."""
-        if _SUFFIX_SCHEMAS.get(topic_suffix, messages.CALIBRATED_SCHEMA) is not \
-                messages.CALIBRATED_SCHEMA:
-            raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
+        _check_calibrated_suffix(topic_suffix)
         topic = self._sensor_topic(sensor_id, topic_suffix)
         with self._lock:
-            self._raise_background_error()
-            if self._closed:
-                raise ValueError("recording writer is closed")
+            self._check_writable()
             for batch, log_ns in zip(batches, log_times_ns, strict=True):
                 self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False)
             self._maybe_flush()
@@ -606,9 +606,7 @@ class RecordingWriter:
         """Rotate if due, then ``add(channel_id, first_sequence)`` -> next sequence; ``add``
         reads ``self._mcap`` when called, i.e. the part open after any rotation."""
         with self._lock:
-            self._raise_background_error()
-            if self._closed:
-                raise ValueError("recording writer is closed")
+            self._check_writable()
             if self._rotation_due(call_log_ns):
                 self._finish_part()
                 self._open_part()
@@ -629,9 +627,7 @@ class RecordingWriter:
         """Add a batch to its topic's waiting message (a list append per arrival: the join
         and the encoding happen once per message)."""
         with self._lock:
-            self._raise_background_error()
-            if self._closed:
-                raise ValueError("recording writer is closed")
+            self._check_writable()
             self._hold_locked(topic, sensor_id, batch, log_ns, raw, arrivals, rotation)
             self._maybe_flush()
 
@@ -764,6 +760,12 @@ class RecordingWriter:
         if isinstance(exc, OSError):
             self._fsync_errors += 1
         self._last_error = _describe(exc) if isinstance(exc, OSError) else repr(exc)
+
+    def _check_writable(self) -> None:
+        """Raise what the background thread met, or that the writer is closed (lock held)."""
+        self._raise_background_error()
+        if self._closed:
+            raise ValueError("recording writer is closed")
 
     def _raise_background_error(self) -> None:
         if self._background_error is not None:
