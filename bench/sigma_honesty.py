@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -46,14 +47,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from recal import sim
+from recal.checkpoints import Checkpoints, checkpoint_path
 from recal.config import PipelineSettings
 from recal.core import status
+from recal.core.discovery_data import covariate_spread
+from recal.core.effects import make_effect
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status
-from recal.node import CalibrationNode, NodeSettings
+from recal.node import CalibrationNode, NodeSettings, make_node
 from recal.samples import CalibratedBatch, RawBatch
 from recal.simulated_sensor import sensor_type
 
@@ -72,22 +76,33 @@ class Case:
     event: str | None = None
     align: bool = False  # a cross-axis sensor: its frame's rotation is no calibration error
     poses: bool = False  # a lab's six positions twice over, no prior (`_six_poses`)
+    term: tuple[str, str] | None = None  # the effect's term in the model: (kind, channel)
 
 
 def _plain(rng: np.random.Generator) -> sim.SensorSpec:
     return sim.SensorSpec.random(rng, 50, 3)
 
 
+def _temp(rng: np.random.Generator) -> sim.SensorSpec:
+    return replace(_plain(rng), offset_tc_g_per_c=tuple(rng.choice([-1.5e-3, 1.5e-3], 3)))
+
+
+def _supply(rng: np.random.Generator) -> sim.SensorSpec:
+    return sensor_type("adxl335-adc12", rng, ratiometric_per_v=0.02, v_ref_v=3.85)
+
+
 CASES: dict[str, Case] = {
     "digital, diagonal model (fits)": Case(_plain),
-    "temperature 1.5 mg/degC on offsets, diagonal": Case(lambda r: replace(
-        _plain(r), offset_tc_g_per_c=tuple(r.choice([-1.5e-3, 1.5e-3], 3)))),
+    "temperature 1.5 mg/degC on offsets, diagonal": Case(_temp),
+    "temperature 1.5 mg/degC on offsets, with its term (fits)": Case(
+        _temp, term=("offset", "temp_c")),
     "cross-axis 1.5 deg, diagonal (lacks it)": Case(
         lambda r: sim.SensorSpec.random(r, 50, 3, 1.5), align=True),
     "cross-axis 1.5 deg, full model (fits)": Case(
         lambda r: sim.SensorSpec.random(r, 50, 3, 1.5), full=True, align=True),
-    "analog 12-bit, sagging supply (ratiometric), diagonal": Case(lambda r: sensor_type(
-        "adxl335-adc12", r, ratiometric_per_v=0.02, v_ref_v=3.85)),
+    "analog 12-bit, sagging supply (ratiometric), diagonal": Case(_supply),
+    "analog 12-bit, sagging supply, with its term (fits)": Case(
+        _supply, term=("ratiometric", "vdd_v")),
     "phone m/s2, diagonal (fits)": Case(lambda r: sensor_type("phone-ms2", r)),
     "upright only, diagonal": Case(_plain, upright=True),
     "another sensor under the id at half time": Case(_plain, event="swap"),
@@ -127,16 +142,25 @@ def _six_poses(spec: sim.SensorSpec, seed: int) -> tuple[RawBatch, np.ndarray]:
     return RawBatch(t, v, np.zeros((len(v), 0))), a
 
 
-def _model_prior(spec: sim.SensorSpec, full: bool) -> tuple[SensorModel, Prior]:
+def _model_prior(spec: sim.SensorSpec, case: Case, raw: RawBatch) -> tuple[SensorModel, Prior]:
+    """The datasheet prior on the case's model; with its term, the effect as `recal discover`
+    adds it (`discovery.candidates`: reference the channel's median, spread its 5-95 % range,
+    the recording's own channel), at nominal (0) with the effect's prior."""
     s0 = float(spec.counts_per_g or 1.0)
-    model = SensorModel.full(s0) if full else SensorModel.diagonal(s0)
+    model = SensorModel.full(s0) if case.full else SensorModel.diagonal(s0)
+    if case.term is not None:
+        kind, channel = case.term
+        c = raw.aux[:, raw.aux_names.index(channel)]
+        model = model.with_effect(make_effect(kind, channel, float(np.median(c))),
+                                  covariate_spread(c))
     p0 = model.nominal()
-    p0[model.slice(model.effects[0])] = spec.zero_g_counts  # offsets first: zero-g
+    p0[model.slice(("offset", None))] = spec.zero_g_counts  # the offsets at zero-g
     return model, Prior.default(model, p0)
 
 
-def _pipe(spec: sim.SensorSpec, full: bool, aux: tuple[str, ...]) -> Pipeline:
-    return Pipeline(PipelineConfig(rate_hz=RATE_HZ), *_model_prior(spec, full), aux)
+def _pipe(spec: sim.SensorSpec, case: Case, raw: RawBatch) -> Pipeline:
+    return Pipeline(PipelineConfig(rate_hz=RATE_HZ), *_model_prior(spec, case, raw),
+                    raw.aux_names)
 
 
 class _Kept:
@@ -161,21 +185,74 @@ class _Kept:
         pass
 
 
+def _settings(model: SensorModel, prior: Prior | None) -> NodeSettings:
+    return NodeSettings("bench", PipelineSettings(), model, prior, RATE_HZ)
+
+
+def _feed(node: CalibrationNode, raw: RawBatch, log0: int = 0,
+          reopen: int | None = None) -> float:
+    """The recording to the node in messages of BATCH samples (log time: the arrival, from
+    sample ``log0`` on), a port reopen before sample ``reopen``, then the end of the stream;
+    the CPU seconds it took."""
+    t0 = time.process_time()
+    cuts = sorted({*range(0, len(raw), BATCH), *([reopen] if reopen else [])})
+    for i, j in zip(cuts, [*cuts[1:], len(raw)], strict=True):
+        if i == reopen and hasattr(node, "port_reopened"):  # absent from the code before
+            node.port_reopened()  # what the gateway calls when the port opens again
+        node.process(raw[i:j], 1_000_000 * (log0 + i))
+    node.flush(1_000_000 * (log0 + len(raw)))
+    return time.process_time() - t0
+
+
+def _restored(settings: NodeSettings, first: RawBatch, sink: _Kept,
+              poison: bool) -> CalibrationNode:
+    """A node that calibrated ``first`` is checkpointed into a state folder and a new node made
+    from it as the gateway makes one (`Checkpoints` save and load, `make_node`, which restores
+    and doubts); ``poison``: the saved offset x moved by 400 counts first (0.39 g, inside the
+    bounds: the checks pass it)."""
+    before = CalibrationNode(settings, _Kept())
+    _feed(before, first)
+    with tempfile.TemporaryDirectory() as folder:
+        keeper = Checkpoints(folder, 60.0, out=lambda line: None)
+        keeper.acquire([settings.sensor_id])
+        try:
+            keeper.save({settings.sensor_id: before})
+            if poison:
+                path = checkpoint_path(folder, settings.sensor_id)
+                doc = json.loads(path.read_text())
+                doc["pipeline"]["estimate"]["p"][0] += 400.0
+                path.write_text(json.dumps(doc))
+            node = make_node(settings, sink, keeper)
+        finally:
+            keeper.release()
+    if node.start != "checkpoint":
+        raise RuntimeError("the checkpoint was not restored")
+    return node
+
+
 def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
     """The case through the live node (`CalibrationNode`: time base, channel layout, the
     pipeline), in messages of BATCH samples; a swap "with its clock restarting" restarts the
-    device time at the swap, and the node's own time base doubts there."""
-    if case.poses or case.event in ("poisoned", "foreign"):
-        raise ValueError(f"{name}: not a live case (no checkpoint or lab stream here)")
+    device time at the swap, and the node's own time base doubts there; a checkpoint case
+    restores the node from the first half's checkpoint as the gateway does (`_restored`),
+    the second half scored; the lab stream through a node without a prior."""
     spec = case.spec(np.random.default_rng(seed))
+    sink = _Kept()
+    if case.poses:
+        raw, truth = _six_poses(spec, seed)
+        node = CalibrationNode(_settings(SensorModel.diagonal(), None), sink)
+        cpu = _feed(node, raw)
+        assert node.pipeline is not None
+        return _row(name, seed, case, spec, node.pipeline, CalibratedBatch.concat(sink.batches),
+                    truth, None, cpu)
     wearer = sim.WearerSpec(upright_only=case.upright, temp_excursion_every_h=0.5)
     res = sim.simulate(minutes / 60, RATE_HZ, seed, spec, wearer)
-    raw, event_s = res.raw, None
+    raw, truth, event_s = res.raw, res.truth.a_true_g, None
+    k = len(raw) // 2
     if case.event == "reopen":
-        event_s = len(raw) // 2 / RATE_HZ
-    if case.event in SWAPS:
+        event_s = k / RATE_HZ
+    if case.event in (*SWAPS, "foreign"):
         other = sim.with_sensor(res, case.spec(np.random.default_rng(seed + 100)))
-        k = len(raw) // 2
         t_us = raw.t_us.copy()
         if case.event == "swap+doubt":  # the other device's clock starts near 0
             t_us[k:] = t_us[k:] - t_us[k] + 1000
@@ -184,23 +261,18 @@ def run_live(name: str, case: Case, minutes: float, seed: int) -> dict:
         event_s = k / RATE_HZ
     gaps = _gaps(case, len(raw), minutes)
     raw = _with_gaps(raw, gaps)
-    model, prior = _model_prior(spec, case.full)
-    sink = _Kept()
-    node = CalibrationNode(NodeSettings("bench", PipelineSettings(), model, prior, RATE_HZ),
-                           sink)
-    t0 = time.process_time()
-    reopen = len(raw) // 2 if case.event in ("swap+reopen", "reopen") else None
-    cuts = sorted({*range(0, len(raw), BATCH), *([reopen] if reopen else [])})
-    for i, j in zip(cuts, [*cuts[1:], len(raw)], strict=True):  # log time: the arrival
-        if i == reopen and hasattr(node, "port_reopened"):  # absent from the code before
-            node.port_reopened()  # what the gateway calls when the port opens again
-        node.process(raw[i:j], 1_000_000 * i)
-    node.flush(1_000_000 * len(raw))
-    cpu = time.process_time() - t0
+    settings = _settings(*_model_prior(spec, case, raw))
+    log0 = 0
+    if case.event in ("poisoned", "foreign"):
+        node = _restored(settings, raw[:k], sink, case.event == "poisoned")
+        raw, truth, event_s, log0 = raw[k:], truth[k:], 0.0, k
+    else:
+        node = CalibrationNode(settings, sink)
+    reopen = k if case.event in ("swap+reopen", "reopen") else None
+    cpu = _feed(node, raw, log0, reopen)
     out = CalibratedBatch.concat(sink.batches)
     assert node.pipeline is not None and len(out) == len(raw)
-    return _row(name, seed, case, spec, node.pipeline, out, res.truth.a_true_g, event_s, cpu,
-                gaps)
+    return _row(name, seed, case, spec, node.pipeline, out, truth, event_s, cpu, gaps)
 
 
 #: The events that put another sensor under the id at half time.
@@ -267,7 +339,7 @@ def run(name: str, case: Case, minutes: float, seed: int) -> dict:
     res = sim.simulate(minutes / 60, RATE_HZ, seed, spec, wearer)
     truth, raw = res.truth.a_true_g, res.raw
     event_s = None
-    pipe = _pipe(spec, case.full, raw.aux_names)
+    pipe = _pipe(spec, case, raw)
     first = None
     gaps = _gaps(case, len(raw), minutes)
     if case.event in (*SWAPS, "reopen"):
@@ -374,8 +446,6 @@ def main() -> None:
     print("---|---|---|---|---|---|---|---|---|---|---|---|---|---")
     for name, case in CASES.items():
         if args.only not in name:
-            continue
-        if args.live and (case.poses or case.event in ("poisoned", "foreign")):
             continue
         for seed in range(1, seeds + 1):
             r = (run_live if args.live else run)(name, case, minutes, seed)
