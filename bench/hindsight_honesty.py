@@ -36,12 +36,11 @@ from recal.samples import rebatch
 
 def run(case_index: int, seed: int, hours: float) -> list[dict]:
     case = CASES[case_index]
-    r = case.simulate(seed, hours)
-    raw = r.raw
+    raw, truth, noise_g = case.recording(seed, hours)
     rate_hz, median_norm = rate_and_scale([raw])
     cfg = PipelineConfig(rate_hz=rate_hz)
     t0 = time.perf_counter()
-    fit = hindsight.calibrate(lambda: [raw], case.model(median_norm), cfg)
+    fit = hindsight.calibrate(lambda: [raw], case.model_for(median_norm, raw), cfg)
     corrected = Corrected(fit, cfg)
     outs = [corrected(b) for b in rebatch([raw])]
     seconds = time.perf_counter() - t0
@@ -50,8 +49,6 @@ def run(case_index: int, seed: int, hours: float) -> list[dict]:
     status = np.concatenate([o.status for o in outs])
     cov = Covariates.from_samples(raw.t_us, raw.aux, raw.aux_names, fit.t0_us)
     sigma_p = predicted_sigma_mg(fit.model, fit.p, fit.cov, raw.v, cov)
-    noise_g = float(r.truth.params["sensor"]["noise_g"])
-    truth = r.truth.a_true_g
     before = honesty(cal, truth, sigma_p, np.full(len(raw), Status.CALIBRATED), rate_hz, noise_g)
     after = honesty(cal, truth, sigma, status, rate_hz, noise_g)
     every = honesty(cal, truth, sigma, np.full(len(raw), Status.CALIBRATED), rate_hz, noise_g)

@@ -24,12 +24,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from recal.core.discovery_data import covariate_spread
+from recal.core.effects import make_effect
 from recal.core.model import SensorModel
 from recal.core.status import Status
-from recal.sim import SensorSpec, SimResult, WearerSpec, simulate, with_sensor
+from recal.samples import RawBatch
+from recal.sim import SensorSpec, SimResult, WearerSpec, forward_model, simulate, with_sensor
 from recal.simulated_sensor import sensor_type
 
-__all__ = ["CASES", "Case", "honesty"]
+__all__ = ["CASES", "Case", "honesty", "six_poses", "with_terms"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +53,23 @@ class Case:
     wearer: dict = field(default_factory=dict)
     lacks: str = ""
     swap: bool = False  # another sensor of the same kind from half time on, under the same id
+    #: effects the model has beyond ``model`` (kind, channel), added as `recal discover` adds
+    #: them (`with_terms`)
+    terms: tuple[tuple[str, str], ...] = ()
+    poses: bool = False  # a lab's six positions twice over (`six_poses`), not a wearer
+
+    def recording(self, seed: int, hours: float = 2.0, rate_hz: float = 50.0
+                  ) -> tuple[RawBatch, np.ndarray, float]:
+        """(raw, true specific force in g, the sensor's noise in g) of this case."""
+        if self.poses:
+            spec = self.sensor(np.random.default_rng(seed))
+            return (*six_poses(spec, seed, rate_hz), spec.noise_g)
+        r = self.simulate(seed, hours, rate_hz)
+        return r.raw, r.truth.a_true_g, float(r.truth.params["sensor"]["noise_g"])
+
+    def model_for(self, s0: float, raw: RawBatch) -> SensorModel:
+        """The model the tool runs on ``raw``: ``model`` at s0 with the case's terms."""
+        return with_terms(self.model(s0), self.terms, raw)
 
     def simulate(self, seed: int, hours: float = 2.0, rate_hz: float = 50.0) -> SimResult:
         r = simulate(hours, rate_hz, seed, self.sensor(np.random.default_rng(seed)),
@@ -75,6 +95,43 @@ def _analog_supply(rng: np.random.Generator) -> SensorSpec:
     return sensor_type("adxl335-adc12", rng, ratiometric_per_v=1 / 3.3, v_ref_v=3.3)
 
 
+def with_terms(model: SensorModel, terms: tuple[tuple[str, str], ...], raw: RawBatch
+               ) -> SensorModel:
+    """The model with each (kind, channel) effect as `recal discover` adds it
+    (`discovery.candidates`: reference the channel's median, spread its 5-95 % range), at
+    nominal with the effect's own prior."""
+    for kind, channel in terms:
+        c = raw.aux[:, raw.aux_names.index(channel)]
+        model = model.with_effect(make_effect(kind, channel, float(np.median(c))),
+                                  covariate_spread(c))
+    return model
+
+
+#: The lab stream (`six_poses`): each pose held this long, a hand's turn between them.
+POSE_HOLD_S = 5.0
+POSE_TURN_S = 2.0
+_SIX = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+
+
+def six_poses(spec: SensorSpec, seed: int, rate_hz: float) -> tuple[RawBatch, np.ndarray]:
+    """The six positions held POSE_HOLD_S each, then again (the second round is what a lab
+    measures once calibrated), a hand's turn of POSE_TURN_S between poses; (raw, truth)."""
+    rng = np.random.default_rng(seed)
+    dirs = np.concatenate([_SIX, _SIX])
+    parts = []
+    for i, d in enumerate(dirs):
+        parts.append(np.tile(d, (int(POSE_HOLD_S * rate_hz), 1)))
+        if i + 1 < len(dirs):
+            s = np.linspace(0.0, 1.0, int(POSE_TURN_S * rate_hz))[:, None]
+            mid = (1 - s) * d + s * dirs[i + 1] + np.array([0.3, 0.2, 0.25])
+            mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+            parts.append(mid * (1 + 0.4 * np.sin(np.pi * s)))  # a hand's push and stop
+    a = np.concatenate(parts)
+    v = forward_model(a, spec, rng=rng)
+    t = np.arange(len(v), dtype=np.int64) * round(1e6 / rate_hz)
+    return RawBatch(t, v, np.zeros((len(v), 0))), a
+
+
 CASES: tuple[Case, ...] = (
     Case("clean digital", _digital),
     Case("temperature on offsets (2 mg/C)", _temp_offsets, lacks="offset[temp]"),
@@ -89,6 +146,12 @@ CASES: tuple[Case, ...] = (
     Case("upright only", _digital, wearer={"upright_only": True}),
     # two sensors in one recording: one fit cannot describe both (a poor fit)
     Case("another sensor at half time", _digital, lacks="another sensor", swap=True),
+    # each effect with its term in the model, as `recal discover` adds it (the model fits)
+    Case("temperature on offsets (2 mg/C), with its term", _temp_offsets,
+         terms=(("offset", "temp_c"),)),
+    Case("analog 12-bit, sagging supply, with its term", _analog_supply,
+         wearer={"vdd_start_v": 3.3, "vdd_end_v": 2.9}, terms=(("ratiometric", "vdd_v"),)),
+    Case("six clean poses twice (lab)", _digital, poses=True),
 )
 
 

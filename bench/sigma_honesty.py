@@ -7,14 +7,17 @@
 
 Each case streams one simulated wearer through the core `Pipeline` in batches of 250 samples
 (what `recal run` does per message; `recal replay` joins messages and gives the same output
-bit for bit, tests/test_status.py), with the datasheet prior unless said; the lab case is six
-positions held POSE_HOLD_S each, twice over, without a prior (`_six_poses`). ``--live`` runs
-the cases without a checkpoint or lab stream through `CalibrationNode` (`run_live`: its time
-base, channel layout and console), a swap "with its clock restarting" as a device time that
-restarts at the swap, which the node's time base sees. Per 1 s window whose
-samples are all marked calibrated: the error of the mean calibrated vector against the truth,
-against sigma_eff = sqrt(sigma^2 + n^2), sigma the mean predicted error of the second and n
-the sensor noise left in a 1 s mean (sigma speaks of the calibration only). Columns:
+bit for bit, tests/test_status.py), with the datasheet prior unless said; an effect "with its
+term" has it in the model as `recal discover` adds it (honesty_cases.with_terms); the lab case
+is six positions held 5 s each, twice over, without a prior (honesty_cases.six_poses).
+``--live`` runs every case through `CalibrationNode` (`run_live`: its time base, channel
+layout and console), a swap "with its clock restarting" as a device time that restarts at
+the swap, which the node's time base sees; a checkpoint case through a node restored from
+the first half's checkpoint in a state folder as the gateway restores one (`_restored`).
+Per 1 s window whose samples are all marked calibrated: the error of the mean calibrated
+vector against the truth, against sigma_eff = sqrt(sigma^2 + n^2), sigma the mean predicted
+error of the second and n the sensor noise left in a 1 s mean (sigma speaks of the
+calibration only). Columns:
 
 * cal %: seconds marked calibrated; >3 / >10: of those, the share beyond 3 and 10 sigma_eff;
 * real/pred: RMS error over RMS sigma_eff of those seconds (1 = sigma exactly right; below
@@ -38,10 +41,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -50,8 +55,6 @@ from recal import sim
 from recal.checkpoints import Checkpoints, checkpoint_path
 from recal.config import PipelineSettings
 from recal.core import status
-from recal.core.discovery_data import covariate_spread
-from recal.core.effects import make_effect
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
@@ -60,6 +63,9 @@ from recal.core.status import Status
 from recal.node import CalibrationNode, NodeSettings, make_node
 from recal.samples import CalibratedBatch, RawBatch
 from recal.simulated_sensor import sensor_type
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from honesty_cases import six_poses, with_terms
 
 RATE_HZ = 25.0
 BATCH = 250
@@ -117,29 +123,9 @@ CASES: dict[str, Case] = {
     "six clean poses twice, no prior (lab)": Case(_plain, poses=True),
 }
 
-#: The lab stream (`_six_poses`): each pose held this long, a hand's turn between them.
-POSE_HOLD_S = 5.0
-POSE_TURN_S = 2.0
-_SIX = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
-
-
 def _six_poses(spec: sim.SensorSpec, seed: int) -> tuple[RawBatch, np.ndarray]:
-    """The six positions held POSE_HOLD_S each, then again (the second round is what a lab
-    measures once calibrated), a hand's turn of POSE_TURN_S between poses; (raw, truth)."""
-    rng = np.random.default_rng(seed)
-    dirs = np.concatenate([_SIX, _SIX])
-    parts = []
-    for i, d in enumerate(dirs):
-        parts.append(np.tile(d, (int(POSE_HOLD_S * RATE_HZ), 1)))
-        if i + 1 < len(dirs):
-            s = np.linspace(0.0, 1.0, int(POSE_TURN_S * RATE_HZ))[:, None]
-            mid = (1 - s) * d + s * dirs[i + 1] + np.array([0.3, 0.2, 0.25])
-            mid /= np.linalg.norm(mid, axis=1, keepdims=True)
-            parts.append(mid * (1 + 0.4 * np.sin(np.pi * s)))  # a hand's push and stop
-    a = np.concatenate(parts)
-    v = sim.forward_model(a, spec, rng=rng)
-    t = np.arange(len(v), dtype=np.int64) * round(1e6 / RATE_HZ)
-    return RawBatch(t, v, np.zeros((len(v), 0))), a
+    """The lab stream (bench/honesty_cases.py `six_poses`) at RATE_HZ; (raw, truth)."""
+    return six_poses(spec, seed, RATE_HZ)
 
 
 def _model_prior(spec: sim.SensorSpec, case: Case, raw: RawBatch) -> tuple[SensorModel, Prior]:
@@ -147,12 +133,8 @@ def _model_prior(spec: sim.SensorSpec, case: Case, raw: RawBatch) -> tuple[Senso
     adds it (`discovery.candidates`: reference the channel's median, spread its 5-95 % range,
     the recording's own channel), at nominal (0) with the effect's prior."""
     s0 = float(spec.counts_per_g or 1.0)
-    model = SensorModel.full(s0) if case.full else SensorModel.diagonal(s0)
-    if case.term is not None:
-        kind, channel = case.term
-        c = raw.aux[:, raw.aux_names.index(channel)]
-        model = model.with_effect(make_effect(kind, channel, float(np.median(c))),
-                                  covariate_spread(c))
+    model = with_terms(SensorModel.full(s0) if case.full else SensorModel.diagonal(s0),
+                       (case.term,) if case.term else (), raw)
     p0 = model.nominal()
     p0[model.slice(("offset", None))] = spec.zero_g_counts  # the offsets at zero-g
     return model, Prior.default(model, p0)
