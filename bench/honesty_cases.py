@@ -1,10 +1,12 @@
 """Cases and metric of the sigma-honesty benches (hindsight_honesty.py; shared, so every tool is
 measured on the same recordings by the same rule).
 
-A case is a simulated recording (2 h at 50 Hz by default) and the model a user would run on it
-without `recal discover`: the diagonal model (offsets, scales) on a sensor that also has an
+A case is a simulated recording (2 h at 50 Hz by default) and the model a user would run on it:
+without `recal discover`, the diagonal model (offsets, scales) on a sensor that also has an
 effect the model lacks, or on a clean sensor (digital, a phone, a wearer who never lies down),
-and the full model on a sensor with cross-axis terms. `honesty` scores a tool's output on it:
+and the full model on a sensor with cross-axis terms; after it, the diagonal model with the
+effect's term (`with_terms`, as discover adds it); and a lab's six poses held twice
+(`six_poses`, no prior). `honesty` scores a tool's output on it:
 
 * windows: 1 s windows (rate samples each) whose every sample is marked calibrated;
 * error: |mean over the window of (calibrated - true)| in mg, after the best rotation (a
