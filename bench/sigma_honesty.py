@@ -419,7 +419,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=2, help="wearers per case (default 2)")
     ap.add_argument("--only", default="", help="the cases whose name contains this")
     ap.add_argument("--live", action="store_true",
-                    help="through the live node (`CalibrationNode`), the cases it can run")
+                    help="through the live node (`CalibrationNode`), every case")
     args = ap.parse_args()
     minutes, seeds = (20.0, 1) if args.quick else (60.0, args.seeds)
     print("case | seed | cal % | >3 sigma_eff % | >10 sigma_eff % | real/pred | err mg "
