@@ -4,6 +4,7 @@ sample j applies from sample j on; so do the status and the predicted error it b
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -11,7 +12,7 @@ import numpy as np
 
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
-from recal.core.status import Status, predicted_sigma_mg
+from recal.core.status import Status, predicted_sigma_mg, sigma_one_mg
 from recal.samples import RawBatch
 
 __all__ = ["Segment", "calibrate"]
@@ -30,6 +31,8 @@ class Segment:
     form: np.ndarray | None
     status: Status
     extra_mg2: float = 0.0  # what the model cannot explain, added to sigma^2 (`status.Misfit`)
+    #: ``form`` as nested lists (`status.sigma_one_mg`), made once per estimate, not per sample
+    form_rows: list[list[float]] | None = None
 
 
 def calibrate(segs: list[Segment], b: RawBatch,
@@ -64,7 +67,15 @@ def _calibrate_one(g: Segment, b: RawBatch,
     out = g.model.correct(g.p, b.v, cov)
     if out is b.v:  # a model without stages hands the reading back: never share it
         out = out.copy()
-    sigma = predicted_sigma_mg(g.model, g.p, g.cov, b.v, cov, g.form)
+    if g.form_rows is None:
+        sigma = predicted_sigma_mg(g.model, g.p, g.cov, b.v, cov, g.form)
+        if g.extra_mg2 > 0:
+            sigma = np.sqrt(sigma ** 2 + g.extra_mg2)
+        return out, np.array([g.status], np.uint8), sigma
+    # predicted_sigma_mg's few-sample path on this sample's floats, and the misfit's widening
+    # as Python floats: the same operations (x ** 2 of an array is x * x), so the same bits
+    x, y, z = b.v[0].tolist()
+    s = sigma_one_mg(g.form_rows, x, y, z)
     if g.extra_mg2 > 0:
-        sigma = np.sqrt(sigma ** 2 + g.extra_mg2)
-    return out, np.array([g.status], np.uint8), sigma
+        s = math.sqrt(s * s + g.extra_mg2)
+    return out, np.array([g.status], np.uint8), np.array([s])

@@ -165,7 +165,7 @@ class Pipeline:
         self._segs: list[Segment] = []  # during a step: what is in force from where
         self._watch_events: list[WatchEvent] = []
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
-        self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
+        self._form_cache: tuple | None = None  # (model, estimate, ...) of the last segment
         self._finite_estimate: Estimate | None = None
         self._converging_cache: tuple | None = None  # (estimate, model, `status.unsettled`)
 
@@ -542,7 +542,7 @@ class Pipeline:
         if self.estimate is None or chunk.norm is None:
             return False
         if chunk.sigma_mg is None:  # once per chunk, under the parameters it was cut with
-            _, _, p, cov, form = self._segment_cache()
+            _, _, p, cov, form, _ = self._segment_cache()
             w = chunk.w
             chunk.sigma_mg = predicted_sigma_mg(self.model, p, cov, w.v,
                                                 self.covariates(w.t_us, w.aux), form)
@@ -844,17 +844,20 @@ class Pipeline:
         misfit."""
         cache = self._segment_cache()
         extra = self.watch.misfit.said_mg2 if self.estimate is not None else 0.0
-        return Segment(idx, cache[0], cache[2], cache[3], cache[4], self.status, extra)
+        return Segment(idx, cache[0], cache[2], cache[3], cache[4], self.status, extra,
+                       cache[5])
 
     def _segment_cache(self) -> tuple:
-        """(model, estimate, p, cov, sigma form) of the estimate in force, kept while it is."""
+        """(model, estimate, p, cov, sigma form, the form as lists) of the estimate in force,
+        kept while it is."""
         est, model = self.estimate, self.model
         cache = self._form_cache
         if cache is None or cache[0] is not model or cache[1] is not est:
             p = self.params.copy()
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
-            cache = self._form_cache = (model, est, p, cov, form)
+            rows = form.tolist() if form is not None else None
+            cache = self._form_cache = (model, est, p, cov, form, rows)
         return cache
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
