@@ -641,6 +641,9 @@ class CalibrationNode(AlignmentRequests):
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
         assert self.pipeline is not None
         names = self.pipeline.aux_names
+        if batch.aux_names == names:  # the usual case: nothing to map, nothing to say
+            self._last_names = batch.aux_names
+            return batch
         if unnamed_for(batch.aux_names, names):
             # a device that prints its header only at boot, heard after a restart: the same
             # count of channels, unnamed, are the ones the state was built with (else each

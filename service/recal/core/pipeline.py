@@ -108,7 +108,7 @@ FEW_WINDOWS = 20
 
 #: The pipeline's attributes that are never changed in place (replaced when they change): a
 #: step's snapshot (`Pipeline._stepped`) keeps them as they are instead of copying them.
-_SHARED = frozenset(("cfg", "windower", "refit"))
+_SHARED = frozenset(("cfg", "windower", "refit", "_last_segment"))
 
 
 class Pipeline:
@@ -165,9 +165,11 @@ class Pipeline:
         self._segs: list[Segment] = []  # during a step: what is in force from where
         self._watch_events: list[WatchEvent] = []
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
+        self._last_segment: Segment | None = None  # `_segment`'s last, reused while it holds
         self._form_cache: tuple | None = None  # (model, estimate, ...) of the last segment
         self._finite_estimate: Estimate | None = None
-        self._converging_cache: tuple | None = None  # (estimate, model, `status.unsettled`)
+        # (estimate, model, `status.unsettled`, unobserved, `converging`)
+        self._converging_cache: tuple | None = None
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -228,9 +230,14 @@ class Pipeline:
         if est is None:
             return ()
         cached = self._converging_cache
-        if cached is None or cached[0] is not est or cached[1] is not self.model:
-            cached = self._converging_cache = (est, self.model, unsettled(self.model, est.cov))
-        return tuple(n for n in cached[2] if n not in self.unobserved)
+        unobserved = self.unobserved
+        if (cached is None or cached[0] is not est or cached[1] is not self.model
+                or cached[3] is not unobserved):  # asked at every step: once per estimate
+            names = unsettled(self.model, est.cov)
+            cached = self._converging_cache = (
+                est, self.model, names, unobserved,
+                tuple(n for n in names if n not in unobserved))
+        return cached[4]
 
     def doubt(self, cells: int = PROBATION_WINDOWS) -> None:
         """A moment of doubt (the device's clock restarted, the state came from a checkpoint,
@@ -844,8 +851,14 @@ class Pipeline:
         misfit."""
         cache = self._segment_cache()
         extra = self.watch.misfit.said_mg2 if self.estimate is not None else 0.0
-        return Segment(idx, cache[0], cache[2], cache[3], cache[4], self.status, extra,
-                       cache[5])
+        status = self.status
+        last = self._last_segment  # one per step: the same one while nothing in it changed
+        if (last is not None and last.index == idx and last.p is cache[2]
+                and last.status is status and last.extra_mg2 == extra):
+            return last
+        seg = self._last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4], status,
+                                           extra, cache[5])
+        return seg
 
     def _segment_cache(self) -> tuple:
         """(model, estimate, p, cov, sigma form, the form as lists) of the estimate in force,
