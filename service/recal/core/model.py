@@ -129,9 +129,8 @@ class SensorModel:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
-    @functools.cached_property
+    @property
     def covariates(self) -> tuple[str, ...]:
-        # the model is immutable; asked at every step (`channels.usable`)
         return tuple(sorted({c for e in self.effects for c in e.channels}))
 
     def nominal(self) -> np.ndarray:
