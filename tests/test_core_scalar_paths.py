@@ -76,7 +76,7 @@ def test_detector_one_sample_at_a_time_is_the_batch_bit_for_bit() -> None:
     for i in range(n):
         state, out = detect(cfg, state, raw[i:i + 1])
         outs.append(out)
-    for name in ("detector_g", "below_threshold", "clipped", "flat"):
+    for name in ("detector_g", "below_threshold", "clipped", "flat", "gate"):
         got = np.concatenate([getattr(o, name) for o in outs])
         assert np.array_equal(got, getattr(whole, name), equal_nan=name == "detector_g"), name
     assert np.array_equal(state.zi_hp, end.zi_hp) and np.array_equal(state.zi_lp, end.zi_lp)

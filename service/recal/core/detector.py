@@ -88,9 +88,13 @@ class DetectorOutput:
     below_threshold: np.ndarray
     clipped: np.ndarray
     flat: np.ndarray
+    #: the gate when its maker has it already (`_detect_one`); None: worked out when asked
+    still: np.ndarray | None = None
 
     @property
     def gate(self) -> np.ndarray:
+        if self.still is not None:
+            return self.still
         return self.below_threshold & ~self.clipped & ~self.flat
 
 
@@ -173,7 +177,7 @@ def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray
     in the same order as the array path (`norm3`'s (x^2 + y^2) + z^2, `sosfilt`'s scalar
     loop), so the same bits, with a handful of numpy calls instead of dozens. None for a
     sample the array path must take (not finite)."""
-    x, y, z = v[0].tolist()
+    x, y, z = vx, vy, vz = v[0].tolist()
     zx, zy, zz = cfg.zero_raw
     if zx or zy or zz:
         x, y, z = x - zx, y - zy, z - zz
@@ -184,12 +188,12 @@ def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray
     y_hp, zi_hp = sosfilt_one(hp, v_in, state.zi_hp.tolist())
     v_out, zi_lp = sosfilt_one(lp, abs(y_hp), state.zi_lp.tolist())  # eq. 2
     lx, ly, lz = state.last_v.tolist()
-    vx, vy, vz = v[0].tolist()
     run = state.same_run + 1 if (vx == lx and vy == ly and vz == lz) else 0
     clip = cfg.clip_raw
     clipped = clip is not None and (abs(x) >= clip or abs(y) >= clip or abs(z) >= clip)
-    out = DetectorOutput(np.array([v_out]), np.array([v_out < cfg.threshold_g]),
-                         np.array([clipped]), np.array([run >= cfg.flat_n - 1]))
+    below, flat = v_out < cfg.threshold_g, run >= cfg.flat_n - 1
+    out = DetectorOutput(np.array([v_out]), np.array([below]), np.array([clipped]),
+                         np.array([flat]), np.array([below and not clipped and not flat]))
     return DetectorState(np.array(zi_hp), np.array(zi_lp), v[0].copy(), run, True), out
 
 
