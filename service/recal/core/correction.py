@@ -58,12 +58,19 @@ def calibrate(segs: list[Segment], b: RawBatch,
     return out, status, sigma
 
 
+#: what a model that reads no covariate is handed for one sample (`_calibrate_one`)
+_NO_COVARIATES = Covariates(np.zeros(1), np.zeros((1, 0)))
+
+
 def _calibrate_one(g: Segment, b: RawBatch,
                    covariates: Callable[[np.ndarray, np.ndarray], Covariates]
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`calibrate` of a one-sample batch: the same calls on the same arrays, without the
     segment bookkeeping."""
-    cov = covariates(b.t_us, b.aux)
+    # a model that reads no covariate (time, aux) corrects without them, and its sigma comes
+    # from the form: no per-sample covariates to make then
+    reads = g.form_rows is None or g.model.covariates
+    cov = covariates(b.t_us, b.aux) if reads else _NO_COVARIATES
     out = g.model.correct(g.p, b.v, cov)
     if out is b.v:  # a model without stages hands the reading back: never share it
         out = out.copy()

@@ -445,6 +445,8 @@ class Pipeline:
         norm gate, directions and cells of the windows are worked out a chunk at a time
         (`refit.WindowChunk`), and `_scan` finds the next window after which an update runs from the
         chunk's arrays; the windows before it only enter the buffer (`_enter`)."""
+        if not due:  # no window finished (most arrivals of a live sensor): nothing to do
+            return [], []
         events: list[UpdateEvent] = []
         at = [idx for idx, window in due if window]  # commit sample of each window
         slot = [k for k, (_, window) in enumerate(due) if window]  # its place in due
