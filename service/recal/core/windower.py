@@ -293,9 +293,10 @@ def _cut_one(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.nd
     v0 = v[0]
     due: list[tuple[int, bool]] = []
     if open_ is not None and open_.k == k:  # the sample continues the open window (merge)
+        # no aux channels: the empty sum as it was (an empty array is never written to)
+        sum_aux = open_.sum_aux + (aux[0] + 0.0) if aux.shape[1] else open_.sum_aux
         acc = WindowAcc(run_start, k, open_.n + 1, open_.sum_v + (v0 + 0.0),
-                        open_.sum_v2 + v0 * v0, open_.sum_aux + (aux[0] + 0.0),
-                        open_.sum_t + float(t0 - run_start))
+                        open_.sum_v2 + v0 * v0, sum_aux, open_.sum_t + float(t0 - run_start))
     else:
         if open_ is not None:  # the open window ended where this one begins (`_finish`)
             if open_.n < cfg.min_samples:
