@@ -354,3 +354,33 @@ def test_the_alarm_stands_in_the_state_and_clears_when_the_sensor_is_reseated() 
     assert on[(at >= raised["t_us"]) & (at < cleared["t_us"])].all()
     assert not on[(at < raised["t_us"]) | (at >= cleared["t_us"])].any()
     assert len(sink.of("alignment")) == 1  # neither event replaced the reference
+
+
+def test_still_tracker_one_sample_on_scalars_is_the_array_path_bit_for_bit() -> None:
+    """`StillTracker._feed_one` (one sample, scalars) against the array path fed the same
+    one-sample batches: the same hits and the same state after every sample, to the bit,
+    through runs, gaps in time, arming and re-arming, with signed zeros among the values."""
+    rng = np.random.default_rng(21)
+    n, rate = 6000, 100.0
+    t = np.cumsum(np.where(rng.random(n) < 0.0005, 500_000, 10_000)).astype(np.int64)
+    gate = np.repeat(rng.random(n // 300 + 1) < 0.7, 300)[:n] & (rng.random(n) > 0.0005)
+    a = rng.normal(0.0, 0.3, (n, 3))
+    a[rng.random((n, 3)) < 0.05] = -0.0
+    armed = np.repeat(rng.random(n // 700 + 1) < 0.6, 700)[:n]
+    scalar = al.StillTracker(2.0, round(3e6 / rate))
+    arrays = al.StillTracker(2.0, round(3e6 / rate))
+    arrays._feed_one = lambda *args: None  # type: ignore[method-assign]  # the array path
+    hits = 0
+    for i in range(n):
+        if i % 1000 == 999:
+            scalar.rearm()
+            arrays.rearm()
+        h1 = scalar.feed(t[i:i + 1], a[i:i + 1], gate[i:i + 1], bool(armed[i]))
+        h2 = arrays.feed(t[i:i + 1], a[i:i + 1], gate[i:i + 1], bool(armed[i]))
+        assert [(h.mean_g.tobytes(), h.n, h.t_us, h.gap_s) for h in h1] == \
+            [(h.mean_g.tobytes(), h.n, h.t_us, h.gap_s) for h in h2]
+        hits += len(h1)
+        for name in ("start_us", "end_us", "last_us", "last_gate", "n", "fired", "gap_us"):
+            assert getattr(scalar, name) == getattr(arrays, name), name
+        assert scalar.sum_g.tobytes() == arrays.sum_g.tobytes()
+    assert hits >= 3, hits

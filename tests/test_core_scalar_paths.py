@@ -76,7 +76,7 @@ def test_detector_one_sample_at_a_time_is_the_batch_bit_for_bit() -> None:
     for i in range(n):
         state, out = detect(cfg, state, raw[i:i + 1])
         outs.append(out)
-    for name in ("detector_g", "below_threshold", "clipped", "flat"):
+    for name in ("detector_g", "below_threshold", "clipped", "flat", "gate"):
         got = np.concatenate([getattr(o, name) for o in outs])
         assert np.array_equal(got, getattr(whole, name), equal_nan=name == "detector_g"), name
     assert np.array_equal(state.zi_hp, end.zi_hp) and np.array_equal(state.zi_lp, end.zi_lp)
@@ -109,3 +109,35 @@ def test_pipeline_one_sample_per_step_is_the_large_batches_bit_for_bit(with_prio
         assert a.tobytes() == b.tobytes(), name
     assert one_state == big_state
     assert json.loads(big_state)["counts"]["updates"] > 3
+
+
+@pytest.mark.parametrize("extra_mg2", [0.0, 2.5])
+def test_correction_of_one_sample_is_the_batch_bit_for_bit(extra_mg2: float) -> None:
+    """`correction.calibrate` of one sample (sigma from the segment's form as lists, the
+    misfit's widening on Python floats) against a 400-sample batch (arrays): the same
+    corrected values, statuses and sigmas, NaN and inf readings among them."""
+    from recal.core.correction import Segment, calibrate
+    from recal.core.status import Status, sigma_form
+
+    rng = np.random.default_rng(13)
+    model = SensorModel.diagonal(1024.0)
+    p = model.nominal() + rng.normal(0.0, 20.0, model.size)
+    a = rng.normal(0.0, 1e-3, (model.size, model.size))
+    cov_p = a @ a.T + np.diag(np.full(model.size, 1e-2))
+    form = sigma_form(model, p, cov_p)
+    assert form is not None
+    seg = Segment(0, model, p, cov_p, form, Status.HELD, extra_mg2, form.tolist())
+    n = 400
+    v = rng.normal(0.0, 800.0, (n, 3)) + np.array([0.0, 0.0, 1024.0])
+    v[17, 0], v[99, 2], v[123, 1] = np.nan, np.inf, 1e200
+    b = RawBatch(np.arange(n, dtype=np.int64) * 10_000, v, np.zeros((n, 0)), ())
+
+    def cov(t_us: np.ndarray, aux: np.ndarray) -> Covariates:
+        return Covariates.from_samples(t_us, aux, (), 0)
+
+    whole = calibrate([seg], b, cov)
+    ones = [calibrate([seg], b[i:i + 1], cov) for i in range(n)]
+    for k, name in enumerate(("a_g", "status", "sigma_mg")):
+        got = np.concatenate([o[k] for o in ones])
+        assert got.dtype == whole[k].dtype and got.tobytes() == whole[k].tobytes(), name
+    assert np.isnan(whole[2]).sum() >= 2 and np.isfinite(whole[2]).sum() > n - 5

@@ -9,7 +9,7 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
-from recal.core.windower import WindowConfig, WindowerState, WindowSums, cut
+from recal.core.windower import WindowConfig, WindowerState, WindowSums, _Cutter, cut
 
 CFG = WindowConfig(rate_hz=50.0, window_s=2.0, guard_s=1.0, min_fill=0.8)
 
@@ -99,3 +99,51 @@ def test_one_sample_per_call_cuts_the_windows_of_large_batches(seed: int, n_aux:
     one = run(list(range(len(t) + 1)))
     assert one == run(ends)
     assert len(one[1]) > 10 and len(one[0]) > len(one[1])
+
+
+def _cut_one_by_cutter(state: WindowerState, t: np.ndarray, v: np.ndarray, aux: np.ndarray,
+                       gate: np.ndarray) -> tuple[list, list, WindowerState]:
+    """One sample cut by `_Cutter.schedule_run` on arrays, as a batch's run is: what the
+    scalar `_cut_one` stands in for."""
+    t0 = int(t[0])
+    if not gate[0]:
+        return [], [], WindowerState(None, None, t0, False)
+    dt = 1 if state.last_t_us is None else t0 - state.last_t_us
+    goes_on = state.last_gate and 0 < dt <= 3.0e6 / CFG.rate_hz
+    c = _Cutter(CFG, state.open if goes_on else None, state.pending if goes_on else None,
+                [], [])
+    c.schedule_run(t, v, aux, 0, 1)
+    table = WindowSums.gather(c.table, aux.shape[1]) if c.table else None
+    return c.due, _sums(table), WindowerState(c.open, c.pending, t0, True)
+
+
+@pytest.mark.parametrize("seed, n_aux", [(7, 0), (8, 2)])
+def test_one_sample_on_scalars_is_the_run_cutter_bit_for_bit(seed: int, n_aux: int) -> None:
+    """`_cut_one`'s scalar sums against `_Cutter.schedule_run` on the same one-sample
+    arrays, sample after sample: the same events, window sums and state, to the bit, with
+    float readings (sums in any order of addition) and signed zeros among them (a one-row
+    numpy sum turns -0.0 into 0.0)."""
+    t, v, aux, gate = _stream(seed, 6000, n_aux)
+    rng = np.random.default_rng(seed)
+    zero = rng.random(v.shape) < 0.05
+    v[zero] = np.where(rng.random(int(zero.sum())) < 0.5, -0.0, 0.0)
+    aux[rng.random(aux.shape) < 0.05] = -0.0
+    a = b = WindowerState()
+    commits = 0
+    for i in range(len(t)):
+        s = slice(i, i + 1)
+        ca, a = cut(CFG, a, t[s], v[s], aux[s], gate[s])
+        due, sums, b = _cut_one_by_cutter(b, t[s], v[s], aux[s], gate[s])
+        assert ca.due == due and _sums(ca.sums) == sums
+        for acc_a, acc_b in ((a.open, b.open), (a.pending and a.pending[0],
+                                                 b.pending and b.pending[0])):
+            assert (acc_a is None) == (acc_b is None)
+            if acc_a is not None:
+                assert [np.asarray(getattr(acc_a, f)).tobytes() for f in _ACC] == \
+                    [np.asarray(getattr(acc_b, f)).tobytes() for f in _ACC]
+        assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
+        commits += ca.committed
+    assert commits > 10 and ((v == 0) & np.signbit(v))[gate].any()
+
+
+_ACC = ("run_start_us", "k", "n", "sum_v", "sum_v2", "sum_aux", "sum_t")

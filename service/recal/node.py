@@ -459,10 +459,15 @@ class CalibrationNode(AlignmentRequests):
             self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
         self.sink.calibrated(self.sensor_id, cal, log_ns)
         self.sink.plot(self.sensor_id, cal, log_ns, self._plot_every())
-        self._report_watch(out, log_ns)
+        # (the calls that would return at once are not made: most arrivals have no watch
+        # event, no update, and rediscovery off)
+        if out.watch:
+            self._report_watch(out, log_ns)
         self._report_status(cal, log_ns)
-        self._report_updates(out, log_ns)
-        self._maybe_rediscover(log_ns)
+        if out.updates:
+            self._report_updates(out, log_ns)
+        if self.settings.rediscovery.enabled:
+            self._maybe_rediscover(log_ns)
         self._track_alignment(cal, log_ns, out)
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,
@@ -641,6 +646,9 @@ class CalibrationNode(AlignmentRequests):
         """The batch in the pipeline's channel layout, or None (reported) if it cannot be."""
         assert self.pipeline is not None
         names = self.pipeline.aux_names
+        if batch.aux_names == names:  # the usual case: nothing to map, nothing to say
+            self._last_names = batch.aux_names
+            return batch
         if unnamed_for(batch.aux_names, names):
             # a device that prints its header only at boot, heard after a restart: the same
             # count of channels, unnamed, are the ones the state was built with (else each

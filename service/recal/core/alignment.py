@@ -345,6 +345,10 @@ class StillTracker:
              armed: bool = True) -> list[StillHit]:
         """Add a batch; return the runs that first reach ``min_s`` in it while armed (in
         time order; usually none, at most one per run)."""
+        if len(t_us) == 1:
+            one = self._feed_one(int(t_us[0]), a_g, bool(gate[0]), armed)
+            if one is not None:
+                return one
         t_us = np.asarray(t_us, np.int64)
         a_g = np.asarray(a_g, np.float64).reshape(-1, 3)
         gate = np.asarray(gate, bool)
@@ -399,6 +403,29 @@ class StillTracker:
         else:
             return None
         self.last_us, self.last_gate = int(t_us[-1]), False
+        return []
+
+    def _feed_one(self, t0_us: int, a_g: np.ndarray, gated: bool,
+                  armed: bool) -> list[StillHit] | None:
+        """`feed` of one sample (a live sensor's arrival) on scalars when it ends the run or
+        continues it without completing min_s while armed; None otherwise (the array path
+        runs). The same state as `_feed_uniform` leaves: the run's sum adds the sample's row
+        (its one-row sum is the row plus 0.0, which changes nothing added to a sum that
+        starts at +0.0 and so is never -0.0)."""
+        if not gated:
+            self._end_run()
+            self.last_us, self.last_gate = t0_us, False
+            return []
+        start = self.start_us
+        if not (self.last_gate and start is not None and self.last_us is not None
+                and 0 < t0_us - self.last_us <= self.max_gap_us):
+            return None  # a run starts here
+        if armed and not self.fired and t0_us - start >= self.min_us:
+            return None  # the run fires at this sample
+        self.end_us = t0_us
+        self.sum_g = self.sum_g + np.asarray(a_g, np.float64).reshape(3)
+        self.n += 1
+        self.last_us, self.last_gate = t0_us, True
         return []
 
     def _start_run(self, t0_us: int) -> None:

@@ -4,6 +4,7 @@ sample j applies from sample j on; so do the status and the predicted error it b
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -11,7 +12,7 @@ import numpy as np
 
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
-from recal.core.status import Status, predicted_sigma_mg
+from recal.core.status import Status, predicted_sigma_mg, sigma_one_mg
 from recal.samples import RawBatch
 
 __all__ = ["Segment", "calibrate"]
@@ -30,6 +31,8 @@ class Segment:
     form: np.ndarray | None
     status: Status
     extra_mg2: float = 0.0  # what the model cannot explain, added to sigma^2 (`status.Misfit`)
+    #: ``form`` as nested lists (`status.sigma_one_mg`), made once per estimate, not per sample
+    form_rows: list[list[float]] | None = None
 
 
 def calibrate(segs: list[Segment], b: RawBatch,
@@ -55,16 +58,31 @@ def calibrate(segs: list[Segment], b: RawBatch,
     return out, status, sigma
 
 
+#: what a model that reads no covariate is handed for one sample (`_calibrate_one`)
+_NO_COVARIATES = Covariates(np.zeros(1), np.zeros((1, 0)))
+
+
 def _calibrate_one(g: Segment, b: RawBatch,
                    covariates: Callable[[np.ndarray, np.ndarray], Covariates]
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`calibrate` of a one-sample batch: the same calls on the same arrays, without the
     segment bookkeeping."""
-    cov = covariates(b.t_us, b.aux)
+    # a model that reads no covariate (time, aux) corrects without them, and its sigma comes
+    # from the form: no per-sample covariates to make then
+    reads = g.form_rows is None or g.model.covariates
+    cov = covariates(b.t_us, b.aux) if reads else _NO_COVARIATES
     out = g.model.correct(g.p, b.v, cov)
     if out is b.v:  # a model without stages hands the reading back: never share it
         out = out.copy()
-    sigma = predicted_sigma_mg(g.model, g.p, g.cov, b.v, cov, g.form)
+    if g.form_rows is None:
+        sigma = predicted_sigma_mg(g.model, g.p, g.cov, b.v, cov, g.form)
+        if g.extra_mg2 > 0:
+            sigma = np.sqrt(sigma ** 2 + g.extra_mg2)
+        return out, np.array([g.status], np.uint8), sigma
+    # predicted_sigma_mg's few-sample path on this sample's floats, and the misfit's widening
+    # as Python floats: the same operations (x ** 2 of an array is x * x), so the same bits
+    x, y, z = b.v[0].tolist()
+    s = sigma_one_mg(g.form_rows, x, y, z)
     if g.extra_mg2 > 0:
-        sigma = np.sqrt(sigma ** 2 + g.extra_mg2)
-    return out, np.array([g.status], np.uint8), sigma
+        s = math.sqrt(s * s + g.extra_mg2)
+    return out, np.array([g.status], np.uint8), np.array([s])

@@ -68,6 +68,15 @@ class DetectorConfig:
     def flat_n(self) -> int:
         return max(2, round(self.flat_s * self.rate_hz))
 
+    @functools.cached_property
+    def one(self) -> tuple:
+        """What `_detect_one` reads of the configuration, made once per configuration (the
+        configuration is immutable): the filters' sections as Python floats (hp, lp), and
+        zero_raw, s0, threshold_g, clip_raw and flat_n - 1."""
+        hp, lp = _butter_pair(self.order, self.hp_hz, self.lp_hz, self.rate_hz)
+        return (sos_rows(hp), sos_rows(lp), self.zero_raw, self.s0, self.threshold_g,
+                self.clip_raw, self.flat_n - 1)
+
 
 @dataclass(frozen=True, eq=False)
 class DetectorState:
@@ -88,9 +97,13 @@ class DetectorOutput:
     below_threshold: np.ndarray
     clipped: np.ndarray
     flat: np.ndarray
+    #: the gate when its maker has it already (`_detect_one`); None: worked out when asked
+    still: np.ndarray | None = None
 
     @property
     def gate(self) -> np.ndarray:
+        if self.still is not None:
+            return self.still
         return self.below_threshold & ~self.clipped & ~self.flat
 
 
@@ -173,32 +186,22 @@ def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray
     in the same order as the array path (`norm3`'s (x^2 + y^2) + z^2, `sosfilt`'s scalar
     loop), so the same bits, with a handful of numpy calls instead of dozens. None for a
     sample the array path must take (not finite)."""
-    x, y, z = v[0].tolist()
-    zx, zy, zz = cfg.zero_raw
+    hp, lp, (zx, zy, zz), s0, threshold_g, clip, flat_run = cfg.one
+    x, y, z = vx, vy, vz = v[0].tolist()
     if zx or zy or zz:
         x, y, z = x - zx, y - zy, z - zz
-    v_in = math.sqrt(x * x + y * y + z * z) / cfg.s0  # eq. 1
+    v_in = math.sqrt(x * x + y * y + z * z) / s0  # eq. 1
     if not math.isfinite(v_in):
         return None
-    hp, lp = _sos_rows(cfg.order, cfg.hp_hz, cfg.lp_hz, cfg.rate_hz)
     y_hp, zi_hp = sosfilt_one(hp, v_in, state.zi_hp.tolist())
     v_out, zi_lp = sosfilt_one(lp, abs(y_hp), state.zi_lp.tolist())  # eq. 2
     lx, ly, lz = state.last_v.tolist()
-    vx, vy, vz = v[0].tolist()
     run = state.same_run + 1 if (vx == lx and vy == ly and vz == lz) else 0
-    clip = cfg.clip_raw
     clipped = clip is not None and (abs(x) >= clip or abs(y) >= clip or abs(z) >= clip)
-    out = DetectorOutput(np.array([v_out]), np.array([v_out < cfg.threshold_g]),
-                         np.array([clipped]), np.array([run >= cfg.flat_n - 1]))
+    below, flat = v_out < threshold_g, run >= flat_run
+    out = DetectorOutput(np.array([v_out]), np.array([below]), np.array([clipped]),
+                         np.array([flat]), np.array([below and not clipped and not flat]))
     return DetectorState(np.array(zi_hp), np.array(zi_lp), v[0].copy(), run, True), out
-
-
-@functools.lru_cache(maxsize=64)
-def _sos_rows(order: int, hp_hz: float, lp_hz: float, rate_hz: float
-              ) -> tuple[tuple[tuple[float, ...], ...], tuple[tuple[float, ...], ...]]:
-    """`_butter_pair` as Python floats, for `_detect_one`."""
-    hp, lp = _butter_pair(order, hp_hz, lp_hz, rate_hz)
-    return sos_rows(hp), sos_rows(lp)
 
 
 def _detect_finite(cfg: DetectorConfig, state: DetectorState, v: np.ndarray,

@@ -129,8 +129,9 @@ class SensorModel:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
-    @property
+    @functools.cached_property
     def covariates(self) -> tuple[str, ...]:
+        # the model is immutable; asked at every step (`channels.usable`)
         return tuple(sorted({c for e in self.effects for c in e.channels}))
 
     def nominal(self) -> np.ndarray:

@@ -108,7 +108,7 @@ FEW_WINDOWS = 20
 
 #: The pipeline's attributes that are never changed in place (replaced when they change): a
 #: step's snapshot (`Pipeline._stepped`) keeps them as they are instead of copying them.
-_SHARED = frozenset(("cfg", "windower", "refit"))
+_SHARED = frozenset(("cfg", "windower", "refit", "_last_segment"))
 
 
 class Pipeline:
@@ -165,9 +165,11 @@ class Pipeline:
         self._segs: list[Segment] = []  # during a step: what is in force from where
         self._watch_events: list[WatchEvent] = []
         self._reset_due: str | None = None  # why the self-watch resets at the next update point
-        self._form_cache: tuple | None = None  # (model, estimate, form) of the last segment
+        self._last_segment: Segment | None = None  # `_segment`'s last, reused while it holds
+        self._form_cache: tuple | None = None  # (model, estimate, ...) of the last segment
         self._finite_estimate: Estimate | None = None
-        self._converging_cache: tuple | None = None  # (estimate, model, `status.unsettled`)
+        # (estimate, model, `status.unsettled`, unobserved, `converging`)
+        self._converging_cache: tuple | None = None
 
     # --- public ------------------------------------------------------------------------------
     @property
@@ -228,9 +230,14 @@ class Pipeline:
         if est is None:
             return ()
         cached = self._converging_cache
-        if cached is None or cached[0] is not est or cached[1] is not self.model:
-            cached = self._converging_cache = (est, self.model, unsettled(self.model, est.cov))
-        return tuple(n for n in cached[2] if n not in self.unobserved)
+        unobserved = self.unobserved
+        if (cached is None or cached[0] is not est or cached[1] is not self.model
+                or cached[3] is not unobserved):  # asked at every step: once per estimate
+            names = unsettled(self.model, est.cov)
+            cached = self._converging_cache = (
+                est, self.model, names, unobserved,
+                tuple(n for n in names if n not in unobserved))
+        return cached[4]
 
     def doubt(self, cells: int = PROBATION_WINDOWS) -> None:
         """A moment of doubt (the device's clock restarted, the state came from a checkpoint,
@@ -337,7 +344,8 @@ class Pipeline:
         """`step` with the detector as it is (see there)."""
         n = len(batch)
         self._watch_events = []
-        self._heal_if_not_finite(int(batch.t_us[0]))
+        if self.estimate is not None and self.estimate is not self._finite_estimate:
+            self._heal_if_not_finite(int(batch.t_us[0]))
         self.det_state, d = det.detect(self.det_cfg, self.det_state, batch.v)
         gate = usable(d.gate, batch, self.model)
         self._segs = [self._segment(0)]
@@ -346,7 +354,8 @@ class Pipeline:
                                  self.counts["quasi_static"])
         try:
             events, commits = self._windows(batch, gate)
-            self._reach(n)  # the marks no later change came before
+            if self._marks is not None:
+                self._reach(n)  # the marks no later change came before
         finally:
             done, self._marks = self._marks, None
         cal, status, sigma = calibrate(self._segs, batch, self.covariates)
@@ -438,6 +447,8 @@ class Pipeline:
         norm gate, directions and cells of the windows are worked out a chunk at a time
         (`refit.WindowChunk`), and `_scan` finds the next window after which an update runs from the
         chunk's arrays; the windows before it only enter the buffer (`_enter`)."""
+        if not due:  # no window finished (most arrivals of a live sensor): nothing to do
+            return [], []
         events: list[UpdateEvent] = []
         at = [idx for idx, window in due if window]  # commit sample of each window
         slot = [k for k, (_, window) in enumerate(due) if window]  # its place in due
@@ -542,7 +553,7 @@ class Pipeline:
         if self.estimate is None or chunk.norm is None:
             return False
         if chunk.sigma_mg is None:  # once per chunk, under the parameters it was cut with
-            _, _, p, cov, form = self._segment_cache()
+            _, _, p, cov, form, _ = self._segment_cache()
             w = chunk.w
             chunk.sigma_mg = predicted_sigma_mg(self.model, p, cov, w.v,
                                                 self.covariates(w.t_us, w.aux), form)
@@ -844,17 +855,26 @@ class Pipeline:
         misfit."""
         cache = self._segment_cache()
         extra = self.watch.misfit.said_mg2 if self.estimate is not None else 0.0
-        return Segment(idx, cache[0], cache[2], cache[3], cache[4], self.status, extra)
+        status = self.status
+        last = self._last_segment  # one per step: the same one while nothing in it changed
+        if (last is not None and last.index == idx and last.p is cache[2]
+                and last.status is status and last.extra_mg2 == extra):
+            return last
+        seg = self._last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4], status,
+                                           extra, cache[5])
+        return seg
 
     def _segment_cache(self) -> tuple:
-        """(model, estimate, p, cov, sigma form) of the estimate in force, kept while it is."""
+        """(model, estimate, p, cov, sigma form, the form as lists) of the estimate in force,
+        kept while it is."""
         est, model = self.estimate, self.model
         cache = self._form_cache
         if cache is None or cache[0] is not model or cache[1] is not est:
             p = self.params.copy()
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
-            cache = self._form_cache = (model, est, p, cov, form)
+            rows = form.tolist() if form is not None else None
+            cache = self._form_cache = (model, est, p, cov, form, rows)
         return cache
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:

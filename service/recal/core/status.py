@@ -75,7 +75,7 @@ __all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "GAP_S", "GROSS_MIN_MG", "GROS
            "JUMP_REPEAT_S", "NOT_FINITE_SIGMA_MG", "PROBATION_WINDOWS", "SUSPECT_AFTER_S",
            "UNPINNED_MG", "RunningMisfit", "Status", "Watch",
            "correction_jacobian", "offsets_and_scales", "predicted_sigma_mg", "refill",
-           "sigma_form", "status_line", "unsettled"]
+           "sigma_form", "sigma_one_mg", "status_line", "unsettled"]
 
 
 class Status(IntEnum):
@@ -444,8 +444,8 @@ def predicted_sigma_mg(model: SensorModel, p: np.ndarray, cov_p: np.ndarray, v: 
             # a few samples (a live sensor's) as Python floats, the same operations
             q = form.tolist()
             if len(v) <= SMALL_BATCH:
-                return np.array([1e3 * math.sqrt(max(_s2(q, x, y, z), 0.0))
-                                 for x, y, z in v.tolist()], np.float64).reshape(-1)
+                return np.array([sigma_one_mg(q, x, y, z) for x, y, z in v.tolist()],
+                                np.float64).reshape(-1)
             s2 = _s2(q, v[:, 0], v[:, 1], v[:, 2])
         else:
             J = correction_jacobian(model, p, v, cov)
@@ -455,6 +455,12 @@ def predicted_sigma_mg(model: SensorModel, p: np.ndarray, cov_p: np.ndarray, v: 
 
 #: Up to this many samples `predicted_sigma_mg` works in Python floats (fewer calls).
 SMALL_BATCH = 32
+
+
+def sigma_one_mg(q: list[list[float]], x: float, y: float, z: float) -> float:
+    """`predicted_sigma_mg` of one reading (x, y, z) as a Python float, from its form as
+    nested lists (``sigma_form(...).tolist()``)."""
+    return 1e3 * math.sqrt(max(_s2(q, x, y, z), 0.0))
 
 
 def _s2(q: list[list[float]], x: Any, y: Any, z: Any) -> Any:

@@ -181,9 +181,11 @@ def _clean_continuation(state: TimebaseState, t: np.ndarray, limit_dev: float
     out = t if unit == 1 and offset == 0 else t * unit + offset
     if int(out[0]) <= state.last_us:  # after bumped duplicates: the general path
         return None
-    s = TimebaseState(unit, state.step_us, offset, state.period, int(t[-1]), int(out[-1]),
-                      state.wraps, state.reboots, state.backwards, state.duplicates, state.jumps,
-                      state.refused)
+    # `replace(state, last_dev=..., last_us=...)` without the frozen dataclass's field by
+    # field __init__ (a one-sample arrival's largest cost here): the fields copied, two set
+    s = object.__new__(TimebaseState)
+    s.__dict__.update(state.__dict__)
+    s.__dict__.update(last_dev=int(t[-1]), last_us=int(out[-1]))
     return s, out, []
 
 

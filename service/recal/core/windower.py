@@ -275,20 +275,42 @@ def cut(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray
 
 def _cut_one(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.ndarray,
              aux: np.ndarray, gate: np.ndarray) -> tuple[Cut, WindowerState]:
-    """`cut` of one sample (a live sensor's arrival): `_run_starts` and the run bookkeeping
-    worked out on Python scalars, the window itself by `_Cutter` as for any batch, so the
-    same windows and state."""
+    """`cut` of one sample (a live sensor's arrival): `_run_starts` and `_Cutter.schedule_run`
+    for one sample, worked out on Python scalars and a few 3-element sums, so the same
+    windows and state. A one-row sum is the row plus 0.0 (numpy's reduction starts from
+    the identity, so -0.0 sums to 0.0): the sample's share is added as that."""
     t0 = int(t_us[0])
     if not gate[0]:  # no run: whatever was open or pending is dropped
         return Cut(None, []), WindowerState(None, None, t0, False)
     dt = 1 if state.last_t_us is None else t0 - state.last_t_us
     if state.last_gate and 0 < dt <= 3.0e6 / cfg.rate_hz:  # the run goes on
-        c = _Cutter(cfg, state.open, state.pending, [], [])
+        open_, pending = state.open, state.pending
     else:
-        c = _Cutter(cfg, None, None, [], [])
-    c.schedule_run(t_us, v, aux, 0, 1)
-    table = WindowSums.gather(c.table, aux.shape[1]) if c.table else None
-    return Cut(table, c.due), WindowerState(c.open, c.pending, t0, True)
+        open_, pending = None, None
+    run_start = open_.run_start_us if open_ is not None else (
+        pending[0].run_start_us if pending is not None else t0)
+    k = (t0 - run_start) // cfg.window_us
+    v0 = v[0]
+    due: list[tuple[int, bool]] = []
+    if open_ is not None and open_.k == k:  # the sample continues the open window (merge)
+        # no aux channels: the empty sum as it was (an empty array is never written to)
+        sum_aux = open_.sum_aux + (aux[0] + 0.0) if aux.shape[1] else open_.sum_aux
+        acc = WindowAcc(run_start, k, open_.n + 1, open_.sum_v + (v0 + 0.0),
+                        open_.sum_v2 + v0 * v0, sum_aux, open_.sum_t + float(t0 - run_start))
+    else:
+        if open_ is not None:  # the open window ended where this one begins (`_finish`)
+            if open_.n < cfg.min_samples:
+                due.append((0, False))
+            else:
+                pending = (open_, cfg.commit_us(open_.run_start_us, open_.k))
+        acc = WindowAcc(run_start, k, 1, v0 + 0.0, v0 * v0, aux[0] + 0.0,
+                        float(t0 - run_start))
+    table = None
+    if pending is not None and t0 >= pending[1]:  # guard_s past the pending window: commit
+        due.append((0, True))
+        table = WindowSums.of_accs([pending[0]], aux.shape[1])
+        pending = None
+    return Cut(table, due), WindowerState(acc, pending, t0, True)
 
 
 def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarray,
