@@ -46,9 +46,9 @@ def test_compact_calibrated_keeps_values_to_half_a_micro_g_and_integers_exactly(
     assert np.array_equal(got.t_us, batch.t_us) and np.array_equal(got.t_dev, batch.t_dev)
     assert np.max(np.abs(got.a_g - batch.a_g)) <= 0.5e-6 + 1e-12
     assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 0.5e-6 + 1e-12
-    # sigma on its 1 % ladder: within half a step (0.5 %), then to the micro-g
-    assert np.all(np.abs(got.sigma_mg - batch.sigma_mg) <= 0.005 * batch.sigma_mg + 0.5e-3)
-    assert np.array_equal(got.sigma_mg, np.rint(m.sigma_steps(batch.sigma_mg) * 1e3) / 1e3)
+    # sigma on its 1 % ladder: within half a step (0.5 %), the step itself kept exactly
+    assert np.all(np.abs(got.sigma_mg - batch.sigma_mg) <= 0.005 * batch.sigma_mg + 1e-12)
+    assert np.array_equal(got.sigma_mg, m.sigma_steps(batch.sigma_mg))
     assert np.array_equal(got.status, batch.status)
     assert np.array_equal(got.quasi_static, batch.quasi_static)
     assert len(m.encode_calibrated_compact("s1", batch)) < 0.6 * len(
@@ -70,7 +70,8 @@ def test_sigma_steps_are_one_percent_apart_and_a_wandering_sigma_logs_as_zero_de
     batch.sigma_mg[:] = 180.4 * (1.0 + 1e-3 * rng.standard_normal(200))
     official = m.protobuf_message_class("recal.CalibratedBatch").FromString(
         m.encode_calibrated_compact("s1", batch))
-    assert list(official.sigma_ug_delta)[1:] == [0] * 199
+    assert list(official.sigma_step_delta)[1:] == [0] * 199
+    assert not official.sigma_ug_delta
 
 
 def test_compact_raw_keeps_integer_counts_and_falls_back_to_float64_otherwise() -> None:
@@ -104,15 +105,21 @@ def test_the_official_protobuf_runtime_reads_the_compact_form() -> None:
     assert list(official.dt_us) == np.diff(batch.t_us).tolist()
     x_ug = np.rint(batch.a_g[:, 0] * 1e6).astype(int)
     assert list(official.x_ug_delta) == np.diff(x_ug, prepend=0).tolist()
-    sigma_ug = np.rint(m.sigma_steps(batch.sigma_mg) * 1e3).astype(int)
-    assert list(official.sigma_ug_delta) == np.diff(sigma_ug, prepend=0).tolist()
-    assert official.t_dev0 == batch.t_dev[0] and len(official.dt_dev) == 39
+    k = np.rint(np.log(m.sigma_steps(batch.sigma_mg)) / np.log1p(m.SIGMA_STEP)).astype(int)
+    assert list(official.sigma_step_delta) == np.diff(k, prepend=0).tolist()
+    detector_ug = np.rint(batch.detector_g * 1e6).astype(int)
+    assert list(official.detector_ug_delta2) == np.diff(np.diff(detector_ug, prepend=0),
+                                                        prepend=0).tolist()
+    assert list(official.t_dev_offset_delta) == np.diff(batch.t_dev - batch.t_us,
+                                                        prepend=0).tolist()
     raw = _raw(30)
     data = m.encode_raw_compact("s1", raw, ([10, 20], [0, 999]))  # (log times: deltas)
     official = m.protobuf_message_class("recal.RawBatch").FromString(data)
     assert list(official.y_counts_delta) == np.diff(raw.v[:, 1], prepend=0).astype(int).tolist()
     assert list(official.arrival_samples) == [10, 20]
-    assert list(official.arrival_log_dt_us) == [0, 999]
+    # each arrival's log time less its last device time after the first, as deltas
+    lag = np.array([0, 999]) - (raw.t_us[[9, 29]] - raw.t_us[0])
+    assert list(official.arrival_lag_delta_us) == np.diff(lag, prepend=0).tolist()
     _, back, arrivals = m.decode_raw_arrivals(data)
     assert arrivals is not None and np.array_equal(back.v, raw.v)
     sizes, log_us = arrivals
@@ -279,3 +286,21 @@ def test_the_log_keeps_the_body_as_times_and_a_rotation_and_reads_it_back(tmp_pa
     exact = np.concatenate([to_body(r, cal.a_g[:200]), to_body(r2, cal.a_g[200:])])
     exact[250, 0] += 1e-3
     assert np.max(np.abs(got.a_g - exact)) <= 0.87e-6
+
+
+def test_a_body_rotation_is_logged_as_its_quaternion_and_any_other_matrix_as_it_is() -> None:
+    from scipy.spatial.transform import Rotation
+
+    t_us = np.arange(100, dtype=np.int64) * 10_000
+    official = m.protobuf_message_class("recal.CalibratedBatch")
+    for seed in range(50):
+        r = Rotation.random(random_state=seed).as_matrix()
+        data = m.encode_body_rotation("s1", t_us, r)
+        msg = official.FromString(data)
+        assert len(msg.body_quaternion) == 4 and not msg.body_rotation
+        assert msg.body_quaternion[0] >= 0.0
+        _, got_t, got_r = m.decode_body_rotation(data)
+        assert np.array_equal(got_t, t_us) and np.max(np.abs(got_r - r)) <= 1e-14
+    skewed = np.array([[0.99, -0.1, 0.0], [0.1, 0.99, 0.0], [0.0, 0.0, 1.0]])  # not a rotation
+    msg = official.FromString(m.encode_body_rotation("s1", t_us, skewed))
+    assert list(msg.body_rotation) == skewed.reshape(9).tolist() and not msg.body_quaternion
