@@ -286,7 +286,7 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SINT64, True)
     _add_field(cal, "body_rotation", _F_CAL_BODY_ROTATION, fd.TYPE_DOUBLE, True)
     for name, number in (("sigma_step_delta", _F_CAL_SIGMA_STEP),
-                         ("detector_ug_delta2", _F_CAL_DETECTOR_UG_2),
+                         ("detector_2ug_delta2", _F_CAL_DETECTOR_UG_2),
                          ("t_dev_offset_delta", _F_CAL_T_DEV_OFFSET)):
         _add_field(cal, name, number, fd.TYPE_SINT64, True)
     _add_field(cal, "body_quaternion", _F_CAL_BODY_QUATERNION, fd.TYPE_DOUBLE, True)
@@ -652,10 +652,16 @@ def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
     return _join(parts)
 
 
+#: The detector's step in the log, g: within 1 micro-g of its value (it is compared with a
+#: threshold of milli-g; one bit less a sample than micro-g steps).
+DETECTOR_STEP_G = 2e-6
+
+
 def _detector_fields(detector_g: np.ndarray) -> list[Any]:
-    """The detector in micro-g as second differences (``detector_ug_delta2``: it is a
-    low-pass filter's output, so its slope changes less than its value), or float64."""
-    fixed = _fixed_point(detector_g, UG_PER_G)
+    """The detector in steps of ``DETECTOR_STEP_G`` as second differences
+    (``detector_2ug_delta2``: it is a low-pass filter's output, so its slope changes less
+    than its value), or float64."""
+    fixed = _fixed_point(detector_g, 1.0 / DETECTOR_STEP_G)
     if fixed is None:
         return _packed(_F_CAL_DETECTOR, _le_bytes(detector_g, "<f8"))
     return _varint_field(_F_CAL_DETECTOR_UG_2, _deltas(_deltas(fixed)))
@@ -988,7 +994,7 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
     if _present(fields, _F_CAL_DETECTOR_UG_2, _VARINT_WT):
         detector = np.cumsum(np.cumsum(_sint_varints(
-            buf, fields[_F_CAL_DETECTOR_UG_2], "detector_g"))) / UG_PER_G
+            buf, fields[_F_CAL_DETECTOR_UG_2], "detector_g"))) * DETECTOR_STEP_G
     else:
         detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
                            "detector_g")
