@@ -158,8 +158,10 @@ def _write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
     plot_phase = 0
     t_first = calls[0][3]
     for kind, suffix, payload, log_ns in calls:
-        if rotations is not None and kind == "json":  # (seen whatever the topics written)
+        if rotations is not None and kind in ("json", "note"):  # (seen whatever is written)
             rotations.note_json(SENSOR, suffix, payload)
+        if kind == "note":  # (`aligned`: what came before, seen but not written)
+            continue
         elif rotations is not None and (kind, suffix) == ("calibrated", "calibrated"):
             rotations.note_calibrated(SENSOR, payload)
         if topics is not None and suffix not in topics:
@@ -243,13 +245,17 @@ def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
 
 def aligned(calls: list[tuple[str, str, Any, int]]) -> tuple[list[tuple[str, str, Any, int]],
                                                                int]:
-    """The calls from 60 s after the node's first body batch on, and their raw samples (the
-    setup and any state before are left out: a few bytes)."""
+    """The calls from 60 s after the node's first body batch on, and their raw samples. The
+    setup, states and events before are not written (a few bytes) but still seen, as
+    "note" calls: the sink learns the alignment's rotation from them, as the daemon's did
+    (without them every body batch of the steady state would be logged as its values)."""
     first = next(t for k, s, _, t in calls if (k, s) == ("calibrated", "body"))
-    kept = [c for c in calls if c[3] >= first + 60 * 10**9]
+    cut = first + 60 * 10**9
+    kept = [c for c in calls if c[3] >= cut]
     if not kept:
         raise SystemExit("no body batch 60 s before the end: run longer (--minutes)")
-    return kept, sum(len(p) for k, _, p, _ in kept if k == "raw")
+    notes = [("note", s, p, kept[0][3]) for k, s, p, t in calls if k == "json" and t < cut]
+    return notes + kept, sum(len(p) for k, _, p, _ in kept if k == "raw")
 
 
 def main(argv: list[str] | None = None) -> int:
