@@ -23,7 +23,10 @@ message RawBatch {
   repeated sint64 z_counts_delta = 15 [packed = true];  // integers stay in fields 3-5
   repeated sint64 arrival_samples = 20 [packed = true];   // a joined batch's arrivals:
   repeated sint64 arrival_log_dt_us = 21 [packed = true]; // samples, log time deltas (us
-}                                               // after the message's log time, then apart)
+                                                // after the message's log time, then apart)
+  repeated sint64 arrival_lag_delta_us = 23 [packed = true];  // instead of 21: each log
+}                                               // time's lag behind its last sample's device
+                                                // time (both after the message's), deltas
 message CalibratedBatch {
   string sensor_id = 1;
   repeated sfixed64 t_us = 2 [packed = true];
@@ -48,6 +51,11 @@ message CalibratedBatch {
   // the log's body topic, instead of every field but 1, 11, 12: the rotation R (row-major)
   // that turns the calibrated topic's samples at these times into the body frame (R @ a)
   repeated double body_rotation = 22 [packed = true];
+  // the compact form's second version, each instead of an older field (still read):
+  repeated sint64 sigma_step_delta = 24 [packed = true];     // k of sigma = 1.01^k mg
+  repeated sint64 detector_2ug_delta2 = 25 [packed = true];  // 2 micro-g steps, 2nd diffs
+  repeated sint64 t_dev_offset_delta = 26 [packed = true];   // t_dev - t_us, differences
+  repeated double body_quaternion = 27 [packed = true];      // R as (w, x, y, z), w >= 0
 }
 enum Status {                                   // recal.core.status.Status
   STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
@@ -80,17 +88,22 @@ decodes with ``t_dev`` None.
 The compact form (`encode_raw_compact`, `encode_calibrated_compact`) is what the recording
 writer logs: a column is written either in its float64 field or in its compact one. Times are
 the first stamp and the differences; raw readings that are all integers (ADC counts) and
-calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g; sigma
-first on its ladder of 1 % steps, `sigma_steps`) are differences from the sample before (the
-first from 0), all as zigzag varints, which a few numpy passes write and read
-(`zigzag_varints_many`, `unzigzag_varints`); a column with a value that is not finite or beyond
-+-2147 g stays in float64. Differences make most varints one or two bytes, and zstd, restarted
-at every one-second chunk, finds little else to take. The log's body topic holds no values
-(`encode_body_rotation`): its samples' times and the rotation that turns the calibrated topic's
-samples at those times (``decode_calibrated`` refuses such a message; `recal.io.recording`
-reads it back). The bus keeps the float64 form: one sample is cheapest to encode that way, and
-subscribers read either. The decoders accept both forms (and older recordings, which have only
-the float64 fields).
+calibrated values in micro-g (rounded: within half a micro-g) are differences from the sample
+before (the first from 0); the detector in 2 micro-g steps (within one) as second differences;
+sigma on its ladder of 1 % steps (`sigma_steps`) as the differences of the steps' numbers; the
+device stamps as their distance from ``t_us``, differences; a joined raw message's arrival log
+times as the differences of their lag behind the device time; all as zigzag varints, which a
+few numpy passes write and read (`zigzag_varints_many`, `unzigzag_varints`); a column with a
+value that is not finite or beyond +-2147 g stays in float64 (sigma that is not all positive:
+micro-g differences). The fields of the compact form's first version (micro-g differences of
+the detector and sigma, ``t_dev0`` + ``dt_dev``, ``arrival_log_dt_us``, ``body_rotation`` as 9
+values) are still read. Differences make most varints one or two bytes, and zstd, restarted at
+every one-second chunk, finds little else to take. The log's body topic holds no values
+(`encode_body_rotation`): its samples' times and the rotation (as its unit quaternion) that
+turns the calibrated topic's samples at those times (``decode_calibrated`` refuses such a
+message; `recal.io.recording` reads it back). The bus keeps the float64 form: one sample is
+cheapest to encode that way, and subscribers read either. The decoders accept both forms (and
+older recordings, which have only the float64 fields).
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
@@ -630,12 +643,13 @@ def _arrival_lag_us(t_us: np.ndarray, sizes: np.ndarray) -> np.ndarray | None:
 
 def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
     """A ``recal.CalibratedBatch`` in the log's compact form: times as ``t0_us`` + ``dt_us``
-    deltas, values, detector and sigma as deltas of their micro-g values (``x_ug_delta`` ...,
-    ``detector_ug_delta``, ``sigma_ug_delta``: each value minus the one before, the first as
-    it is; Foxglove plots the ``plot`` topic, whose values are whole), the device stamps as
-    ``t_dev0`` + deltas, all deltas zigzag varints; sigma on its 1 % steps first
-    (`sigma_steps`); a column with a value that is not finite or beyond +-2147 g stays float64
-    in its old field. `decode_calibrated` reads both forms."""
+    deltas, values as deltas of their micro-g values (``x_ug_delta`` ...: each value minus the
+    one before, the first as it is; Foxglove plots the ``plot`` topic, whose values are
+    whole), the detector in 2 micro-g steps as second differences (``detector_2ug_delta2``),
+    sigma on its 1 % steps (`sigma_steps`) as the steps' numbers' deltas
+    (``sigma_step_delta``), the device stamps as ``t_dev - t_us`` deltas
+    (``t_dev_offset_delta``), all zigzag varints; a column with a value that is not finite or
+    beyond +-2147 g stays float64 in its old field. `decode_calibrated` reads every form."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
