@@ -20,8 +20,7 @@ settings):
                  `encode_calibrated`, as the bus still carries it) and logged as one message
                  (what the writer did before it joined batches)
     compact 10 Hz `RecordingWriter` with batches joined per topic until the next flush, in
-                 the compact form, as it was before the plot's default rate went from 10 Hz
-                 to 2 Hz, sigma to 1 % steps and the body to times and a rotation: the plot
+                 this tree's compact form with what the second pass changed undone: the plot
                  every 10th sample, sigma kept to the micro-g (`messages.sigma_steps`
                  bypassed), the body's values logged
     compact      as `recal.sinks.LoggedBusSink` logs now (the plot at the node's default
