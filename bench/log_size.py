@@ -6,6 +6,8 @@ the caller in each.
     python bench/log_size.py --minutes 5    # shorter
     python bench/log_size.py --aligned      # from 60 s after the alignment: every topic logged
     python bench/log_size.py --flush-s 2    # the writers flushed every 2 s
+    python bench/log_size.py --aligned --old-src OLD_TREE   # + the compact form of another
+                                            # tree (a `git archive` of it), same calls
 
 How: a simulated wearer at 100 Hz (recal.sim defaults, 1024 counts/g, no prior: the node
 bootstraps, then calibrates and aligns, so every topic is there) goes through the calibration
@@ -18,8 +20,7 @@ settings):
                  `encode_calibrated`, as the bus still carries it) and logged as one message
                  (what the writer did before it joined batches)
     compact 10 Hz `RecordingWriter` with batches joined per topic until the next flush, in
-                 the compact form, as it was before the plot's default rate went from 10 Hz
-                 to 2 Hz, sigma to 1 % steps and the body to times and a rotation: the plot
+                 this tree's compact form with what the second pass changed undone: the plot
                  every 10th sample, sigma kept to the micro-g (`messages.sigma_steps`
                  bypassed), the body's values logged
     compact      as `recal.sinks.LoggedBusSink` logs now (the plot at the node's default
@@ -29,14 +30,21 @@ Per topic: the same writes with only that topic's messages, each in a file of it
 per-topic bytes do not add up to the whole exactly: zstd shares nothing across files).
 Timing: microseconds per arrival of write_raw + write_calibrated (calibrated and body) +
 write_plot, the log part of what the daemon does per sample, medians of --runs runs.
+
+--old-src: the same captured calls (this tree's node) also written by the writer of another
+tree in its compact form, in a child process importing that tree's ``service`` (a column
+"old tree" and the ratio compact / old tree); its timing runs alternate with this tree's.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import pickle
 import statistics
 import struct
+import subprocess
 import sys
 import tempfile
 import time
@@ -158,8 +166,10 @@ def _write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
     plot_phase = 0
     t_first = calls[0][3]
     for kind, suffix, payload, log_ns in calls:
-        if rotations is not None and kind == "json":  # (seen whatever the topics written)
+        if rotations is not None and kind in ("json", "note"):  # (seen whatever is written)
             rotations.note_json(SENSOR, suffix, payload)
+        if kind == "note":  # (`aligned`: what came before, seen but not written)
+            continue
         elif rotations is not None and (kind, suffix) == ("calibrated", "calibrated"):
             rotations.note_calibrated(SENSOR, payload)
         if topics is not None and suffix not in topics:
@@ -197,14 +207,16 @@ def _write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
     return spent
 
 
-def sizes(tmp: Path, calls: list, samples: int) -> list[tuple[str, float, float]]:
-    groups: list[tuple[str, frozenset[str] | None]] = [
-        ("everything", None), ("raw", frozenset({"raw"})),
-        ("calibrated", frozenset({"calibrated"})), ("body", frozenset({"body"})),
-        ("plot", frozenset({"plot"})),
-        ("states, events, setup", frozenset({"calibration", "events", "setup"}))]
-    rows = []
-    for name, topics in groups:
+GROUPS: list[tuple[str, frozenset[str] | None]] = [
+    ("everything", None), ("raw", frozenset({"raw"})),
+    ("calibrated", frozenset({"calibrated"})), ("body", frozenset({"body"})),
+    ("plot", frozenset({"plot"})),
+    ("states, events, setup", frozenset({"calibration", "events", "setup"}))]
+
+
+def sizes(tmp: Path, calls: list, samples: int) -> list[tuple[Any, ...]]:
+    rows: list[tuple[Any, ...]] = []
+    for name, topics in GROUPS:
         per = []
         for form in FORMS:
             path = tmp / f"{name.split(',')[0]}-{form}.mcap"
@@ -214,14 +226,49 @@ def sizes(tmp: Path, calls: list, samples: int) -> list[tuple[str, float, float]
     return rows
 
 
-def timing(tmp: Path, calls: list, samples: int, runs: int) -> list[float]:
-    """Median microseconds per arrival in the writer, per form of FORMS."""
-    times: dict[str, list[float]] = {form: [] for form in FORMS}
+def timing(tmp: Path, calls: list, samples: int, runs: int,
+           old: Callable[[], float] | None = None) -> list[float]:
+    """Median microseconds per arrival in the writer, per form of FORMS (and of ``old``: the
+    seconds of one write by another tree, run beside them in every run)."""
+    times: dict[str, list[float]] = {form: [] for form in (*FORMS, "old tree")}
     for _ in range(runs):
         for form in FORMS:  # side by side in every run
             spent = write(tmp / "t.mcap", calls, form)
             times[form].append(spent / samples * 1e6)
-    return [statistics.median(times[form]) for form in FORMS]
+        if old is not None:
+            times["old tree"].append(old() / samples * 1e6)
+    return [statistics.median(times[form]) for form in (*FORMS, "old tree")
+            if times[form]]
+
+
+def _old_tree(tree: Path, pickled: Path, tmp: Path, topics: frozenset[str] | None
+              ) -> tuple[float, float]:
+    """(bytes per sample, writer seconds) of the pickled calls written in the compact form by
+    the tree at ``tree`` (its ``service`` first on the path, in a child process)."""
+    out = tmp / "old.mcap"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(tree / "service"), os.environ.get("PYTHONPATH", "")])}
+    args = [sys.executable, __file__, "--child", str(pickled), str(out),
+            ",".join(sorted(topics)) if topics is not None else "*"]
+    done = subprocess.run(args, env=env, check=True, capture_output=True, text=True)
+    spent, recal_file = done.stdout.split()
+    if not Path(recal_file).resolve().is_relative_to(tree.resolve()):
+        raise SystemExit(f"the child imported {recal_file}, not the tree at {tree}")
+    samples = pickle.loads(pickled.read_bytes())[1]
+    return out.stat().st_size / samples, float(spent)
+
+
+def _child(argv: list[str]) -> int:
+    """--child PICKLE OUT TOPICS: write the pickled calls in the compact form; print the
+    writer's seconds and the recal package written with."""
+    import recal
+
+    pickled, out, topics = argv
+    calls, _ = pickle.loads(Path(pickled).read_bytes())
+    spent = write(Path(out), calls, "compact",
+                  None if topics == "*" else frozenset(topics.split(",")))
+    print(spent, recal.__file__)
+    return 0
 
 
 def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
@@ -243,16 +290,23 @@ def encode_one_us(calls: list, repeat: int = 20000) -> tuple[float, float]:
 
 def aligned(calls: list[tuple[str, str, Any, int]]) -> tuple[list[tuple[str, str, Any, int]],
                                                                int]:
-    """The calls from 60 s after the node's first body batch on, and their raw samples (the
-    setup and any state before are left out: a few bytes)."""
+    """The calls from 60 s after the node's first body batch on, and their raw samples. The
+    setup, states and events before are not written (a few bytes) but still seen, as
+    "note" calls: the sink learns the alignment's rotation from them, as the daemon's did
+    (without them every body batch of the steady state would be logged as its values)."""
     first = next(t for k, s, _, t in calls if (k, s) == ("calibrated", "body"))
-    kept = [c for c in calls if c[3] >= first + 60 * 10**9]
+    cut = first + 60 * 10**9
+    kept = [c for c in calls if c[3] >= cut]
     if not kept:
         raise SystemExit("no body batch 60 s before the end: run longer (--minutes)")
-    return kept, sum(len(p) for k, _, p, _ in kept if k == "raw")
+    notes = [("note", s, p, kept[0][3]) for k, s, p, t in calls if k == "json" and t < cut]
+    return notes + kept, sum(len(p) for k, _, p, _ in kept if k == "raw")
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--child"]:
+        return _child(argv[1:])
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=20.0)
     ap.add_argument("--runs", type=int, default=5)
@@ -262,10 +316,11 @@ def main(argv: list[str] | None = None) -> int:
                          "on (every topic present: the steady state)")
     ap.add_argument("--flush-s", type=float, default=1.0,
                     help="the writers' flush interval, s (default 1, the daemon's)")
+    ap.add_argument("--old-src", type=Path, default=None,
+                    help="a tree (with service/) whose compact form is written beside")
     a = ap.parse_args(argv)
     global FLUSH_S
     FLUSH_S = a.flush_s
-    import os
     print(f"load average before: {os.getloadavg()[0]:.2f}", file=sys.stderr)
     calls, samples = capture(a.minutes, a.seed)
     if a.aligned:
@@ -273,19 +328,32 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         rows = sizes(tmp, calls, samples)
-        first_us, before_us, compact_us = timing(tmp, calls, samples, a.runs)
+        old: Callable[[], float] | None = None
+        if a.old_src is not None:
+            pickled = tmp / "calls.pkl"
+            pickled.write_bytes(pickle.dumps((calls, samples)))
+            old_rows = [_old_tree(a.old_src, pickled, tmp, topics)[0]
+                        for _, topics in GROUPS]
+            rows = [(*row, o) for row, o in zip(rows, old_rows, strict=True)]
+
+            def old() -> float:
+                return _old_tree(a.old_src, pickled, tmp, None)[1]
+        first_us, before_us, compact_us, *old_us = timing(tmp, calls, samples, a.runs, old)
     enc_old, enc_new = encode_one_us(calls)
     part = " (from 60 s after the alignment)" if a.aligned else ""
     print(f"{a.minutes:g} min at {RATE_HZ:g} Hz{part}, one sample per arrival ({samples} "
           f"samples), zstd, 32 KiB chunks, flush every {a.flush_s:g} s\n")
+    extra = " old tree, B/sample | compact / old tree |" if a.old_src is not None else ""
     print("| topics | first form, B/sample | compact 10 Hz, B/sample | compact, B/sample | "
-          "compact / compact 10 Hz |")
-    print("|---|---:|---:|---:|---:|")
-    for name, old, before, new in rows:
-        print(f"| {name} | {old:.2f} | {before:.2f} | {new:.2f} | {new / before:.3f} |")
+          "compact / compact 10 Hz |" + extra)
+    print("|---|---:|---:|---:|---:|" + ("---:|---:|" if extra else ""))
+    for name, first, before, new, *tree in rows:
+        cells = [f"{first:.2f}", f"{before:.2f}", f"{new:.2f}", f"{new / before:.3f}",
+                 *(f"{v:.2f} | {new / v:.3f}" for v in tree)]
+        print(f"| {name} | " + " | ".join(cells) + " |")
     print(f"\nwriter per arrival (raw, calibrated, body, plot): first form {first_us:.1f} us, "
           f"compact 10 Hz {before_us:.1f} us, compact {compact_us:.1f} us (medians of "
-          f"{a.runs})")
+          f"{a.runs})" + (f"; old tree {old_us[0]:.1f} us" if old_us else ""))
     print(f"encoding one 1-sample CalibratedBatch: float64 (the bus's) {enc_old:.2f} us, "
           f"compact {enc_new:.2f} us")
     print(f"load average after: {os.getloadavg()[0]:.2f}", file=sys.stderr)

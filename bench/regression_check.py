@@ -304,12 +304,13 @@ def read_mcap(path: Path) -> McapContent:
 
 
 #: The log's batch topics are compared as decoded samples, not as messages: the compact form
-#: joins a flush interval's batches into one message and keeps calibrated values, the detector
-#: and sigma to the micro-g (rounded: half a micro-g at most); its body messages are the
+#: joins a flush interval's batches into one message and keeps calibrated values to the
+#: micro-g (rounded: half a micro-g at most), the detector in 2 micro-g steps (one micro-g at
+#: most) and sigma on 1 % steps; its body messages are the
 #: calibrated samples turned (times and a rotation), compared as those samples. Everything
 #: else stays exact.
 BATCH_SCHEMAS = ("recal.RawBatch", "recal.CalibratedBatch")
-FORMAT_TOL = {"a_g": 0.5e-6 + 1e-12, "detector_g": 0.5e-6 + 1e-12,
+FORMAT_TOL = {"a_g": 0.5e-6 + 1e-12, "detector_g": 1e-6 + 1e-12,  # (2 micro-g steps)
               "sigma_mg": 1e-3 + 1e-12}  # sigma is in mg (each tree rounds it to the micro-g)
 #: The body's values: the calibrated micro-g turned (0.87 micro-g at most from the exact
 #: body) against an older tree's body rounded to the micro-g (0.5).

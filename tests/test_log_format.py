@@ -45,10 +45,10 @@ def test_compact_calibrated_keeps_values_to_half_a_micro_g_and_integers_exactly(
     assert sid == "s1"
     assert np.array_equal(got.t_us, batch.t_us) and np.array_equal(got.t_dev, batch.t_dev)
     assert np.max(np.abs(got.a_g - batch.a_g)) <= 0.5e-6 + 1e-12
-    assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 0.5e-6 + 1e-12
-    # sigma on its 1 % ladder: within half a step (0.5 %), then to the micro-g
-    assert np.all(np.abs(got.sigma_mg - batch.sigma_mg) <= 0.005 * batch.sigma_mg + 0.5e-3)
-    assert np.array_equal(got.sigma_mg, np.rint(m.sigma_steps(batch.sigma_mg) * 1e3) / 1e3)
+    assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 1e-6 + 1e-12
+    # sigma on its 1 % ladder: within half a step (0.5 %), the step itself kept exactly
+    assert np.all(np.abs(got.sigma_mg - batch.sigma_mg) <= 0.005 * batch.sigma_mg + 1e-12)
+    assert np.array_equal(got.sigma_mg, m.sigma_steps(batch.sigma_mg))
     assert np.array_equal(got.status, batch.status)
     assert np.array_equal(got.quasi_static, batch.quasi_static)
     assert len(m.encode_calibrated_compact("s1", batch)) < 0.6 * len(
@@ -70,7 +70,8 @@ def test_sigma_steps_are_one_percent_apart_and_a_wandering_sigma_logs_as_zero_de
     batch.sigma_mg[:] = 180.4 * (1.0 + 1e-3 * rng.standard_normal(200))
     official = m.protobuf_message_class("recal.CalibratedBatch").FromString(
         m.encode_calibrated_compact("s1", batch))
-    assert list(official.sigma_ug_delta)[1:] == [0] * 199
+    assert list(official.sigma_step_delta)[1:] == [0] * 199
+    assert not official.sigma_ug_delta
 
 
 def test_compact_raw_keeps_integer_counts_and_falls_back_to_float64_otherwise() -> None:
@@ -93,7 +94,7 @@ def test_values_the_fixed_point_cannot_hold_stay_float64_per_column() -> None:
     assert np.array_equal(got.sigma_mg, m.sigma_steps(batch.sigma_mg))  # float64, its steps
     assert np.isinf(got.sigma_mg[7])
     assert np.array_equal(got.t_us, batch.t_us)
-    assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 0.5e-6 + 1e-12
+    assert np.max(np.abs(got.detector_g - batch.detector_g)) <= 1e-6 + 1e-12
 
 
 def test_the_official_protobuf_runtime_reads_the_compact_form() -> None:
@@ -104,15 +105,21 @@ def test_the_official_protobuf_runtime_reads_the_compact_form() -> None:
     assert list(official.dt_us) == np.diff(batch.t_us).tolist()
     x_ug = np.rint(batch.a_g[:, 0] * 1e6).astype(int)
     assert list(official.x_ug_delta) == np.diff(x_ug, prepend=0).tolist()
-    sigma_ug = np.rint(m.sigma_steps(batch.sigma_mg) * 1e3).astype(int)
-    assert list(official.sigma_ug_delta) == np.diff(sigma_ug, prepend=0).tolist()
-    assert official.t_dev0 == batch.t_dev[0] and len(official.dt_dev) == 39
+    k = np.rint(np.log(m.sigma_steps(batch.sigma_mg)) / np.log1p(m.SIGMA_STEP)).astype(int)
+    assert list(official.sigma_step_delta) == np.diff(k, prepend=0).tolist()
+    detector_2ug = np.rint(batch.detector_g * 5e5).astype(int)
+    assert list(official.detector_2ug_delta2) == np.diff(np.diff(detector_2ug, prepend=0),
+                                                         prepend=0).tolist()
+    assert list(official.t_dev_offset_delta) == np.diff(batch.t_dev - batch.t_us,
+                                                        prepend=0).tolist()
     raw = _raw(30)
     data = m.encode_raw_compact("s1", raw, ([10, 20], [0, 999]))  # (log times: deltas)
     official = m.protobuf_message_class("recal.RawBatch").FromString(data)
     assert list(official.y_counts_delta) == np.diff(raw.v[:, 1], prepend=0).astype(int).tolist()
     assert list(official.arrival_samples) == [10, 20]
-    assert list(official.arrival_log_dt_us) == [0, 999]
+    # each arrival's log time less its last device time after the first, as deltas
+    lag = np.array([0, 999]) - (raw.t_us[[9, 29]] - raw.t_us[0])
+    assert list(official.arrival_lag_delta_us) == np.diff(lag, prepend=0).tolist()
     _, back, arrivals = m.decode_raw_arrivals(data)
     assert arrivals is not None and np.array_equal(back.v, raw.v)
     sizes, log_us = arrivals
@@ -279,3 +286,99 @@ def test_the_log_keeps_the_body_as_times_and_a_rotation_and_reads_it_back(tmp_pa
     exact = np.concatenate([to_body(r, cal.a_g[:200]), to_body(r2, cal.a_g[200:])])
     exact[250, 0] += 1e-3
     assert np.max(np.abs(got.a_g - exact)) <= 0.87e-6
+
+
+def test_a_body_rotation_is_logged_as_its_quaternion_and_any_other_matrix_as_it_is() -> None:
+    from scipy.spatial.transform import Rotation
+
+    t_us = np.arange(100, dtype=np.int64) * 10_000
+    official = m.protobuf_message_class("recal.CalibratedBatch")
+    for seed in range(50):
+        r = Rotation.random(random_state=seed).as_matrix()
+        data = m.encode_body_rotation("s1", t_us, r)
+        msg = official.FromString(data)
+        assert len(msg.body_quaternion) == 4 and not msg.body_rotation
+        assert msg.body_quaternion[0] >= 0.0
+        _, got_t, got_r = m.decode_body_rotation(data)
+        assert np.array_equal(got_t, t_us) and np.max(np.abs(got_r - r)) <= 1e-14
+    skewed = np.array([[0.99, -0.1, 0.0], [0.1, 0.99, 0.0], [0.0, 0.0, 1.0]])  # not a rotation
+    msg = official.FromString(m.encode_body_rotation("s1", t_us, skewed))
+    assert list(msg.body_rotation) == skewed.reshape(9).tolist() and not msg.body_quaternion
+
+
+# ---------------------------------------------------------------------------------------------
+# A recording in the first compact form (before the second: sigma steps, the detector's second
+# differences, device stamps from t_us, arrival lags, the body's quaternion) still works
+# ---------------------------------------------------------------------------------------------
+
+FIXTURE_V1 = Path(__file__).parent / "fixtures" / "compact_v1_steady.mcap"
+SID_V1 = "s1"
+
+
+def _relog(src: Path, dst: Path) -> None:
+    """Every batch of ``src`` logged again by today's writer, as logged (arrivals kept, the
+    body as its times and rotation)."""
+    with RecordingWriter(dst, background_flush=False, fsync=False) as w:
+        for mm in rec.iter_messages(src):
+            suffix = mm.topic.rsplit("/", 1)[1]
+            if suffix == "raw":  # a new second: the last one's messages out, as logged
+                w.flush()
+                _, batch, arrivals = m.decode_raw_arrivals(mm.data)
+                w.log_raw(SID_V1, batch, mm.log_time_ns, arrivals)
+            elif suffix == "calibrated":
+                w.log_calibrated(SID_V1, m.decode_calibrated(mm.data)[1], mm.log_time_ns)
+            elif suffix == "body":
+                body = m.decode_body_rotation(mm.data)
+                assert body is not None  # (the fixture's body is all in the rotation form)
+                cal = rec.read_all_calibrated(src, SID_V1)
+                i = np.searchsorted(cal.t_us, body[1])
+                w.log_body(SID_V1, cal[i], body[2], mm.log_time_ns)
+
+
+def test_fixture_of_the_first_compact_form_reads_back_and_logs_again_the_same(
+        tmp_path: Path) -> None:
+    raw = list(rec.iter_raw_logged(FIXTURE_V1, SID_V1))
+    assert len(raw) == 20 and all(a is not None and a[0].tolist() == [1] * len(b)
+                                  for _, b, _, a in raw)
+    cal = rec.read_all_calibrated(FIXTURE_V1, SID_V1)
+    body = rec.read_all_calibrated(FIXTURE_V1, SID_V1, "body")
+    assert len(cal) == len(body) == sum(len(b) for _, b, _, _ in raw) == 2000
+    assert np.isin(cal.status, (3, 4)).all() and np.all(np.isfinite(cal.sigma_mg))
+    again = tmp_path / "again.mcap"
+    _relog(FIXTURE_V1, again)
+    # the same samples in today's form: raw, times, statuses and arrivals exactly, values as
+    # logged, the detector within its 2 micro-g steps, sigma on the same 1 % step (the old
+    # form kept the step to the micro-g)
+    raw2 = list(rec.iter_raw_logged(again, SID_V1))
+    for (_, b1, m1, a1), (_, b2, m2, a2) in zip(raw, raw2, strict=True):
+        assert np.array_equal(b1.v, b2.v) and np.array_equal(b1.t_us, b2.t_us)
+        assert a1 is not None and a2 is not None and a1[1] is not None and a2[1] is not None
+        assert np.array_equal(a1[0], a2[0]) and np.array_equal(a1[1], a2[1])
+        assert m1.log_time_ns == m2.log_time_ns
+    cal2 = rec.read_all_calibrated(again, SID_V1)
+    assert np.array_equal(cal2.t_us, cal.t_us) and np.array_equal(cal2.t_dev, cal.t_dev)
+    assert np.array_equal(cal2.status, cal.status)
+    assert np.array_equal(cal2.quasi_static, cal.quasi_static)
+    assert np.max(np.abs(cal2.a_g - cal.a_g)) <= 1e-12
+    assert np.max(np.abs(cal2.detector_g - cal.detector_g)) <= 1.5e-6
+    assert np.max(np.abs(cal2.sigma_mg - cal.sigma_mg)) <= 0.5e-3 + 1e-12
+    body2 = rec.read_all_calibrated(again, SID_V1, "body")
+    assert np.array_equal(body2.t_us, body.t_us)
+    assert np.max(np.abs(body2.a_g - body.a_g)) <= 1e-12
+    official = m.protobuf_message_class("recal.CalibratedBatch").FromString(
+        next(rec.iter_messages(again, f"/{SID_V1}/body")).data)
+    assert len(official.body_quaternion) == 4 and not official.body_rotation
+    assert again.stat().st_size < FIXTURE_V1.stat().st_size
+
+
+def test_fixture_of_the_first_compact_form_replays_and_exports(tmp_path: Path) -> None:
+    out = tmp_path / "replayed.mcap"
+    replay(FIXTURE_V1, out, progress=False)
+    assert np.array_equal(rec.read_all_raw(out, SID_V1).v, rec.read_all_raw(FIXTURE_V1, SID_V1).v)
+    assert len(rec.read_all_calibrated(out, SID_V1)) == 2000
+    csv = tmp_path / "cal.csv"
+    assert cli.main(["export", str(FIXTURE_V1), "--csv", str(csv)]) == 0
+    rows = np.loadtxt(csv, delimiter=",", skiprows=1)
+    live = rec.read_all_calibrated(FIXTURE_V1, SID_V1)
+    assert len(rows) == len(live)
+    assert np.allclose(rows[:, 1:4], live.a_g, rtol=0, atol=1e-6)

@@ -83,6 +83,14 @@ class _Pending:
     defs: bytes = b""  # schema and channel records inside the chunk
 
 
+#: A chunk of at most this many uncompressed bytes is compressed at zstd level
+#: ``_SMALL_CHUNK_LEVEL`` (a sensor's second at 100 Hz is about 3.5 KiB: level 12 takes
+#: ~0.1 ms on one and 2.3 % fewer bytes than level 3's ~0.03 ms; level 19 ~0.4 ms for 0.2 %
+#: more), a larger one at zstd's default (3), whose cost per byte stays low.
+_SMALL_CHUNK_BYTES = 16 * 1024
+_SMALL_CHUNK_LEVEL = 12
+
+
 class McapFile:
     """MCAP records, laid out as ``mcap.writer.Writer`` lays them out: schemas, channels and
     messages in chunks, a message index per channel after each chunk, then a summary
@@ -117,6 +125,10 @@ class McapFile:
         self._chunk_size = chunk_size
         self._compression = _COMPRESSION_NAMES[compression]
         self._zstd = zstandard.ZstdCompressor() if compression == "zstd" else None
+        # a small chunk (a live log's, ended by the flush every second) at a higher level:
+        # 2 % fewer bytes for ~0.1 ms a chunk; a file tool's full chunks at the default
+        self._zstd_small = (zstandard.ZstdCompressor(level=_SMALL_CHUNK_LEVEL)
+                            if compression == "zstd" else None)
         self.position = 0  # bytes written to the stream (by the thread, if there is one)
         self._pieces: list[bytes] = []  # records of the open chunk
         self._size = 0
@@ -384,8 +396,9 @@ class McapFile:
                      samples: int, defs: bytes) -> None:
         """Compress the chunk (once, whatever happens to the write) and queue it with its
         message indexes; their file offsets are known when it is written."""
-        if self._zstd is not None:
-            packed = self._zstd.compress(data)
+        if self._zstd is not None and self._zstd_small is not None:
+            packed = (self._zstd_small if len(data) <= _SMALL_CHUNK_BYTES
+                      else self._zstd).compress(data)
         elif self._compression == "lz4":
             packed = lz4.frame.compress(data)
         else:

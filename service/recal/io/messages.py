@@ -23,7 +23,10 @@ message RawBatch {
   repeated sint64 z_counts_delta = 15 [packed = true];  // integers stay in fields 3-5
   repeated sint64 arrival_samples = 20 [packed = true];   // a joined batch's arrivals:
   repeated sint64 arrival_log_dt_us = 21 [packed = true]; // samples, log time deltas (us
-}                                               // after the message's log time, then apart)
+                                                // after the message's log time, then apart)
+  repeated sint64 arrival_lag_delta_us = 23 [packed = true];  // instead of 21: each log
+}                                               // time's lag behind its last sample's device
+                                                // time (both after the message's), deltas
 message CalibratedBatch {
   string sensor_id = 1;
   repeated sfixed64 t_us = 2 [packed = true];
@@ -48,6 +51,11 @@ message CalibratedBatch {
   // the log's body topic, instead of every field but 1, 11, 12: the rotation R (row-major)
   // that turns the calibrated topic's samples at these times into the body frame (R @ a)
   repeated double body_rotation = 22 [packed = true];
+  // the compact form's second version, each instead of an older field (still read):
+  repeated sint64 sigma_step_delta = 24 [packed = true];     // k of sigma = 1.01^k mg
+  repeated sint64 detector_2ug_delta2 = 25 [packed = true];  // 2 micro-g steps, 2nd diffs
+  repeated sint64 t_dev_offset_delta = 26 [packed = true];   // t_dev - t_us, differences
+  repeated double body_quaternion = 27 [packed = true];      // R as (w, x, y, z), w >= 0
 }
 enum Status {                                   // recal.core.status.Status
   STATUS_NOT_RECORDED = 0;                      // a recording from before statuses
@@ -80,17 +88,22 @@ decodes with ``t_dev`` None.
 The compact form (`encode_raw_compact`, `encode_calibrated_compact`) is what the recording
 writer logs: a column is written either in its float64 field or in its compact one. Times are
 the first stamp and the differences; raw readings that are all integers (ADC counts) and
-calibrated values, the detector and sigma in micro-g (rounded: within half a micro-g; sigma
-first on its ladder of 1 % steps, `sigma_steps`) are differences from the sample before (the
-first from 0), all as zigzag varints, which a few numpy passes write and read
-(`zigzag_varints_many`, `unzigzag_varints`); a column with a value that is not finite or beyond
-+-2147 g stays in float64. Differences make most varints one or two bytes, and zstd, restarted
-at every one-second chunk, finds little else to take. The log's body topic holds no values
-(`encode_body_rotation`): its samples' times and the rotation that turns the calibrated topic's
-samples at those times (``decode_calibrated`` refuses such a message; `recal.io.recording`
-reads it back). The bus keeps the float64 form: one sample is cheapest to encode that way, and
-subscribers read either. The decoders accept both forms (and older recordings, which have only
-the float64 fields).
+calibrated values in micro-g (rounded: within half a micro-g) are differences from the sample
+before (the first from 0); the detector in 2 micro-g steps (within one) as second differences;
+sigma on its ladder of 1 % steps (`sigma_steps`) as the differences of the steps' numbers; the
+device stamps as their distance from ``t_us``, differences; a joined raw message's arrival log
+times as the differences of their lag behind the device time; all as zigzag varints, which a
+few numpy passes write and read (`zigzag_varints_many`, `unzigzag_varints`); a column with a
+value that is not finite or beyond +-2147 g stays in float64 (sigma that is not all positive:
+micro-g differences). The fields of the compact form's first version (micro-g differences of
+the detector and sigma, ``t_dev0`` + ``dt_dev``, ``arrival_log_dt_us``, ``body_rotation`` as 9
+values) are still read. Differences make most varints one or two bytes, and zstd, restarted at
+every one-second chunk, finds little else to take. The log's body topic holds no values
+(`encode_body_rotation`): its samples' times and the rotation (as its unit quaternion) that
+turns the calibrated topic's samples at those times (``decode_calibrated`` refuses such a
+message; `recal.io.recording` reads it back). The bus keeps the float64 form: one sample is
+cheapest to encode that way, and subscribers read either. The decoders accept both forms (and
+older recordings, which have only the float64 fields).
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
@@ -188,6 +201,15 @@ _F_CAL_BODY_ROTATION = 22
 # after the message's), so a replay hands the node the batches the live node had.
 _F_RAW_ARRIVAL_SAMPLES = 20
 _F_RAW_ARRIVAL_LOG_US = 21
+# The log's compact form, second version (each replaces an older field of the same column,
+# which the decoders still read): arrival log times as the deltas of their lag behind the
+# device time, sigma as its step on the 1 % ladder, the detector as second differences, the
+# device stamps as their distance from t_us, the body's rotation as a unit quaternion.
+_F_RAW_ARRIVAL_LAG_US = 23
+_F_CAL_SIGMA_STEP = 24
+_F_CAL_DETECTOR_UG_2 = 25
+_F_CAL_T_DEV_OFFSET = 26
+_F_CAL_BODY_QUATERNION = 27
 STATUS_ENUM_NAME = "Status"
 
 
@@ -254,7 +276,8 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     for name, number in (("dt_us", _F_DT_US), ("x_counts_delta", _F_X_FIX),
                          ("y_counts_delta", _F_Y_FIX), ("z_counts_delta", _F_Z_FIX),
                          ("arrival_samples", _F_RAW_ARRIVAL_SAMPLES),
-                         ("arrival_log_dt_us", _F_RAW_ARRIVAL_LOG_US)):
+                         ("arrival_log_dt_us", _F_RAW_ARRIVAL_LOG_US),
+                         ("arrival_lag_delta_us", _F_RAW_ARRIVAL_LAG_US)):
         _add_field(raw, name, number, fd.TYPE_SINT64, True)
     cal = f.message_type.add(name="CalibratedBatch")
     _add_field(cal, "sensor_id", _F_SENSOR, fd.TYPE_STRING, False)
@@ -275,6 +298,11 @@ def file_descriptor_set() -> descriptor_pb2.FileDescriptorSet:
     _add_field(cal, "t_dev0", _F_CAL_T_DEV0, fd.TYPE_SFIXED64, False)
     _add_field(cal, "dt_dev", _F_CAL_DT_DEV, fd.TYPE_SINT64, True)
     _add_field(cal, "body_rotation", _F_CAL_BODY_ROTATION, fd.TYPE_DOUBLE, True)
+    for name, number in (("sigma_step_delta", _F_CAL_SIGMA_STEP),
+                         ("detector_2ug_delta2", _F_CAL_DETECTOR_UG_2),
+                         ("t_dev_offset_delta", _F_CAL_T_DEV_OFFSET)):
+        _add_field(cal, name, number, fd.TYPE_SINT64, True)
+    _add_field(cal, "body_quaternion", _F_CAL_BODY_QUATERNION, fd.TYPE_DOUBLE, True)
     plot = f.message_type.add(name="PlotSample")
     for name, number, ftype in _PLOT_FIELDS:
         _add_field(plot, name, number, ftype, False)
@@ -592,32 +620,82 @@ def encode_raw_compact(sensor_id: str, batch: RawBatch,
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.v, 1.0, (_F_X, _F_Y, _F_Z), (_F_X_FIX, _F_Y_FIX, _F_Z_FIX))]
     if arrivals is not None and len(arrivals[0]) > 1:
-        parts += _varint_field(_F_RAW_ARRIVAL_SAMPLES, np.asarray(arrivals[0], np.int64))
-        parts += _varint_field(_F_RAW_ARRIVAL_LOG_US, _deltas(np.asarray(arrivals[1])))
+        sizes = np.asarray(arrivals[0], np.int64)
+        parts += _varint_field(_F_RAW_ARRIVAL_SAMPLES, sizes)
+        lag = _arrival_lag_us(batch.t_us, sizes)
+        if lag is None:
+            parts += _varint_field(_F_RAW_ARRIVAL_LOG_US, _deltas(np.asarray(arrivals[1])))
+        else:
+            parts += _varint_field(_F_RAW_ARRIVAL_LAG_US,
+                                   _deltas(np.asarray(arrivals[1], np.int64) - lag))
     return _join(parts + _aux_fields(batch))
+
+
+def _arrival_lag_us(t_us: np.ndarray, sizes: np.ndarray) -> np.ndarray | None:
+    """Each arrival's last device time after the message's first (us), what an arrival's log
+    time is coded against (``arrival_lag_delta_us``: the lag's deltas, a few bytes of jitter
+    where the log times' own deltas carry the sample interval too); None if the sizes do not
+    describe the batch or an arrival is empty (the log times are then coded on their own)."""
+    if len(sizes) == 0 or sizes.sum() != len(t_us) or (sizes < 1).any():
+        return None
+    return t_us[np.cumsum(sizes) - 1] - t_us[0]
 
 
 def encode_calibrated_compact(sensor_id: str, batch: CalibratedBatch) -> bytes:
     """A ``recal.CalibratedBatch`` in the log's compact form: times as ``t0_us`` + ``dt_us``
-    deltas, values, detector and sigma as deltas of their micro-g values (``x_ug_delta`` ...,
-    ``detector_ug_delta``, ``sigma_ug_delta``: each value minus the one before, the first as
-    it is; Foxglove plots the ``plot`` topic, whose values are whole), the device stamps as
-    ``t_dev0`` + deltas, all deltas zigzag varints; sigma on its 1 % steps first
-    (`sigma_steps`); a column with a value that is not finite or beyond +-2147 g stays float64
-    in its old field. `decode_calibrated` reads both forms."""
+    deltas, values as deltas of their micro-g values (``x_ug_delta`` ...: each value minus the
+    one before, the first as it is; Foxglove plots the ``plot`` topic, whose values are
+    whole), the detector in 2 micro-g steps as second differences (``detector_2ug_delta2``),
+    sigma on its 1 % steps (`sigma_steps`) as the steps' numbers' deltas
+    (``sigma_step_delta``), the device stamps as ``t_dev - t_us`` deltas
+    (``t_dev_offset_delta``), all zigzag varints; a column with a value that is not finite or
+    beyond +-2147 g stays float64 in its old field. `decode_calibrated` reads every form."""
     parts = [*_string_fields(_F_SENSOR, sensor_id),
              *_time_fields(batch.t_us, _F_T0_US, _F_DT_US),
              *_compact_axes(batch.a_g, UG_PER_G, (_F_X, _F_Y, _F_Z),
                             (_F_X_FIX, _F_Y_FIX, _F_Z_FIX)),
              *_packed(_F_CAL_QUASI_STATIC, _le_bytes(batch.quasi_static, "|u1")),
-             *_compact_column(batch.detector_g, UG_PER_G, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG)]
+             *_detector_fields(batch.detector_g)]
     if batch.recorded:
         parts += [*_packed(_F_CAL_STATUS, _le_bytes(batch.status, "|u1")),
-                  *_compact_column(sigma_steps(batch.sigma_mg), UG_PER_G / 1e3, _F_CAL_SIGMA,
-                                   _F_CAL_SIGMA_UG)]
+                  *_sigma_fields(sigma_steps(batch.sigma_mg))]
     if batch.t_dev is not None:
-        parts += _time_fields(batch.t_dev, _F_CAL_T_DEV0, _F_CAL_DT_DEV)
+        # the device stamp's distance from t_us changes only when the time base does (a
+        # reboot, a gap): its deltas are zeros where the stamps' own carry the jitter
+        parts += _varint_field(_F_CAL_T_DEV_OFFSET, _deltas(batch.t_dev - batch.t_us))
     return _join(parts)
+
+
+#: The detector's step in the log, g: within 1 micro-g of its value (it is compared with a
+#: threshold of milli-g; one bit less a sample than micro-g steps).
+DETECTOR_STEP_G = 2e-6
+
+
+def _detector_fields(detector_g: np.ndarray) -> list[Any]:
+    """The detector in steps of ``DETECTOR_STEP_G`` as second differences
+    (``detector_2ug_delta2``: it is a low-pass filter's output, so its slope changes less
+    than its value), or float64."""
+    fixed = _fixed_point(detector_g, 1.0 / DETECTOR_STEP_G)
+    if fixed is None:
+        return _packed(_F_CAL_DETECTOR, _le_bytes(detector_g, "<f8"))
+    return _varint_field(_F_CAL_DETECTOR_UG_2, _deltas(_deltas(fixed)))
+
+
+def _sigma_fields(steps_mg: np.ndarray) -> list[Any]:
+    """Sigma already on its ladder (`sigma_steps`) as the steps' numbers k (sigma =
+    (1 + ``SIGMA_STEP``) ** k mg), differences (``sigma_step_delta``: a change of one step is
+    the same byte at any sigma, which a micro-g difference is not); sigma that is not all on
+    the ladder (zero, negative, not finite) as micro-g differences, or float64."""
+    if len(steps_mg) and np.all(np.isfinite(steps_mg) & (steps_mg > 0)):
+        k = np.rint(np.log(steps_mg) / _LOG_SIGMA_STEP)
+        if np.array_equal(_ladder_mg(k), steps_mg):
+            return _varint_field(_F_CAL_SIGMA_STEP, _deltas(k))
+    return _compact_column(steps_mg, UG_PER_G / 1e3, _F_CAL_SIGMA, _F_CAL_SIGMA_UG)
+
+
+def _ladder_mg(k: np.ndarray) -> np.ndarray:
+    """Sigma, mg, of the ladder's steps ``k`` (`sigma_steps`)."""
+    return np.exp(np.asarray(k, np.float64) * _LOG_SIGMA_STEP)
 
 
 #: Relative step of the sigma the log keeps: sigma is itself an estimate (its own relative
@@ -638,7 +716,7 @@ def sigma_steps(sigma_mg: np.ndarray) -> np.ndarray:
     if not ok.any():
         return s
     out = s.copy()
-    out[ok] = np.exp(np.rint(np.log(s[ok]) / _LOG_SIGMA_STEP) * _LOG_SIGMA_STEP)
+    out[ok] = _ladder_mg(np.rint(np.log(s[ok]) / _LOG_SIGMA_STEP))
     return out
 
 
@@ -849,11 +927,13 @@ def _column(buf: bytes, fields: dict[int, list[_Occurrence]], f_float: int, f_fi
 _STAMP_FIELDS = (_F_T_US, _F_T0_US, _F_DT_US)
 _RAW_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_RAW_AUX_NAMES,
                          _F_RAW_AUX, _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_RAW_ARRIVAL_SAMPLES,
-                         _F_RAW_ARRIVAL_LOG_US))
+                         _F_RAW_ARRIVAL_LOG_US, _F_RAW_ARRIVAL_LAG_US))
 _CAL_FIELDS = frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_X, _F_Y, _F_Z, _F_CAL_QUASI_STATIC,
                          _F_CAL_DETECTOR, _F_CAL_STATUS, _F_CAL_SIGMA, _F_CAL_T_DEV,
                          _F_X_FIX, _F_Y_FIX, _F_Z_FIX, _F_CAL_DETECTOR_UG, _F_CAL_SIGMA_UG,
-                         _F_CAL_T_DEV0, _F_CAL_DT_DEV, _F_CAL_BODY_ROTATION))
+                         _F_CAL_T_DEV0, _F_CAL_DT_DEV, _F_CAL_BODY_ROTATION,
+                         _F_CAL_SIGMA_STEP, _F_CAL_DETECTOR_UG_2, _F_CAL_T_DEV_OFFSET,
+                         _F_CAL_BODY_QUATERNION))
 
 
 def _as_bytes(data: bytes | bytearray | memoryview) -> bytes:
@@ -887,23 +967,30 @@ def decode_raw_arrivals(data: bytes | bytearray | memoryview
         raise ValueError(f"aux has {len(aux)} values, expected {len(t_us)} samples x "
                          f"{len(names)} channels")
     batch = RawBatch(t_us, v, aux.reshape(len(t_us), len(names)), names)
-    return _last_string(buf, fields.get(_F_SENSOR)), batch, _arrivals(buf, fields, len(t_us))
+    return _last_string(buf, fields.get(_F_SENSOR)), batch, _arrivals(buf, fields, t_us)
 
 
-def _arrivals(buf: bytes, fields: dict[int, list[_Occurrence]], samples: int
+def _arrivals(buf: bytes, fields: dict[int, list[_Occurrence]], t_us: np.ndarray
               ) -> Arrivals | None:
     """The arrival fields of a raw message already scanned (None if it has none)."""
     if not _present(fields, _F_RAW_ARRIVAL_SAMPLES, _VARINT_WT):
         return None
     sizes = _sint_varints(buf, fields[_F_RAW_ARRIVAL_SAMPLES], "arrival_samples")
-    log_us = None
-    if _F_RAW_ARRIVAL_LOG_US in fields:
-        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
-        if len(log_us) != len(sizes):
-            raise ValueError(f"arrival_log_us has {len(log_us)} values for {len(sizes)} "
-                             "arrivals")
-    if (sizes < 0).any() or sizes.sum() != samples:
+    if (sizes < 0).any() or sizes.sum() != len(t_us):
         raise ValueError("arrival_samples do not add up to the message's samples")
+    log_us = None
+    if _present(fields, _F_RAW_ARRIVAL_LAG_US, _VARINT_WT):
+        lag = _arrival_lag_us(t_us, sizes)
+        if lag is None:
+            raise ValueError("arrival_lag_delta_us needs arrivals of at least one sample")
+        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LAG_US],
+                                         "arrival_lag_delta_us"))
+        if len(log_us) == len(sizes):
+            log_us += lag
+    elif _F_RAW_ARRIVAL_LOG_US in fields:
+        log_us = np.cumsum(_sint_varints(buf, fields[_F_RAW_ARRIVAL_LOG_US], "arrival_log_us"))
+    if log_us is not None and len(log_us) != len(sizes):
+        raise ValueError(f"arrival log times: {len(log_us)} values for {len(sizes)} arrivals")
     return sizes, log_us
 
 
@@ -912,23 +999,39 @@ def decode_calibrated(data: bytes | bytearray | memoryview) -> tuple[str, Calibr
     malformed."""
     buf = _as_bytes(data)
     fields = _scan(buf, _CAL_FIELDS)
-    if _present(fields, _F_CAL_BODY_ROTATION, (_WT_LEN, _WT_I64)):
+    if any(_present(fields, f, (_WT_LEN, _WT_I64))
+           for f in (_F_CAL_BODY_ROTATION, _F_CAL_BODY_QUATERNION)):
         raise ValueError("a body message of the log's form holds a rotation, not samples: "
                          "its samples are the calibrated topic's rotated (decode_body_rotation, "
                          "recording.read_all_calibrated)")
     t_us, a_g = _axes(buf, fields, ("x_g", "y_g", "z_g"), UG_PER_G)
     quasi = _bools(buf, fields.get(_F_CAL_QUASI_STATIC), "quasi_static")
-    detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
-                       "detector_g")
+    if _present(fields, _F_CAL_DETECTOR_UG_2, _VARINT_WT):
+        detector = np.cumsum(np.cumsum(_sint_varints(
+            buf, fields[_F_CAL_DETECTOR_UG_2], "detector_g"))) * DETECTOR_STEP_G
+    else:
+        detector = _column(buf, fields, _F_CAL_DETECTOR, _F_CAL_DETECTOR_UG, UG_PER_G,
+                           "detector_g")
     _same_length(t_us, quasi_static=quasi, detector_g=detector)
     status = sigma = None  # absent: a recording from before statuses (not recorded, NaN)
     if (_F_CAL_STATUS in fields or _F_CAL_SIGMA in fields
-            or _present(fields, _F_CAL_SIGMA_UG, _VARINT_WT)):
+            or _present(fields, _F_CAL_SIGMA_UG, _VARINT_WT)
+            or _present(fields, _F_CAL_SIGMA_STEP, _VARINT_WT)):
         status = _small_varints(buf, fields.get(_F_CAL_STATUS), "status")
-        sigma = _column(buf, fields, _F_CAL_SIGMA, _F_CAL_SIGMA_UG, UG_PER_G / 1e3, "sigma_mg")
+        if _present(fields, _F_CAL_SIGMA_STEP, _VARINT_WT):
+            sigma = _ladder_mg(np.cumsum(_sint_varints(buf, fields[_F_CAL_SIGMA_STEP],
+                                                       "sigma_mg")))
+        else:
+            sigma = _column(buf, fields, _F_CAL_SIGMA, _F_CAL_SIGMA_UG, UG_PER_G / 1e3,
+                            "sigma_mg")
         _same_length(t_us, status=status, sigma_mg=sigma)
     # absent: a recording from before device times were kept
-    t_dev = _stamps(buf, fields, _F_CAL_T_DEV, _F_CAL_T_DEV0, _F_CAL_DT_DEV, "t_dev")
+    if _present(fields, _F_CAL_T_DEV_OFFSET, _VARINT_WT):
+        offset = np.cumsum(_sint_varints(buf, fields[_F_CAL_T_DEV_OFFSET], "t_dev"))
+        _same_length(t_us, t_dev=offset)
+        t_dev: np.ndarray | None = t_us + offset
+    else:
+        t_dev = _stamps(buf, fields, _F_CAL_T_DEV, _F_CAL_T_DEV0, _F_CAL_DT_DEV, "t_dev")
     if t_dev is not None:
         _same_length(t_us, t_dev=t_dev)
     return _last_string(buf, fields.get(_F_SENSOR)), CalibratedBatch(t_us, a_g, quasi, detector,
@@ -943,9 +1046,48 @@ def encode_body_rotation(sensor_id: str, t_us: np.ndarray, rotation: np.ndarray)
     r = np.asarray(rotation, np.float64)
     if r.shape != (3, 3):
         raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
+    q = _quaternion(r)
+    # a rotation in 4 numbers instead of 9, if they give it back to rounding (else the matrix)
+    kept = (_packed(_F_CAL_BODY_QUATERNION, _le_bytes(q, "<f8"))
+            if np.max(np.abs(_rotation_of(q) - r)) <= _QUATERNION_TOL
+            else _packed(_F_CAL_BODY_ROTATION, _le_bytes(r.reshape(9), "<f8")))
     return _join([*_string_fields(_F_SENSOR, sensor_id),
-                  *_time_fields(np.asarray(t_us, np.int64), _F_T0_US, _F_DT_US),
-                  *_packed(_F_CAL_BODY_ROTATION, _le_bytes(r.reshape(9), "<f8"))])
+                  *_time_fields(np.asarray(t_us, np.int64), _F_T0_US, _F_DT_US), *kept])
+
+
+#: How far the matrix a body quaternion gives back may be from the rotation logged (each
+#: element): a few float64 roundings, a body value 1e-14 g away (the matrix otherwise).
+_QUATERNION_TOL = 1e-14
+
+
+def _quaternion(r: np.ndarray) -> np.ndarray:
+    """The unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (Shepperd's method:
+    the largest of the four squared components first, for accuracy)."""
+    tr = float(np.trace(r))
+    diag = np.diag(r)
+    i = int(np.argmax([tr, *diag]))
+    if i == 0:
+        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+        q = [s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif i == 1:
+        s = 2.0 * math.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 0.0))
+        q = [(r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif i == 2:
+        s = 2.0 * math.sqrt(max(1.0 - r[0, 0] + r[1, 1] - r[2, 2], 0.0))
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(max(1.0 - r[0, 0] - r[1, 1] + r[2, 2], 0.0))
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4]
+    out = np.array(q, np.float64) if s > 0 else np.full(4, np.nan)
+    return -out if out[0] < 0 else out
+
+
+def _rotation_of(q: np.ndarray) -> np.ndarray:
+    """The rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
 def decode_body_rotation(data: bytes | bytearray | memoryview
@@ -954,15 +1096,23 @@ def decode_body_rotation(data: bytes | bytearray | memoryview
     (`encode_body_rotation`), None for a message of samples (`decode_calibrated` reads it);
     ValueError if malformed."""
     buf = _as_bytes(data)
-    fields = _scan(buf, frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_CAL_BODY_ROTATION)))
-    if not _present(fields, _F_CAL_BODY_ROTATION, (_WT_LEN, _WT_I64)):
+    fields = _scan(buf, frozenset((_F_SENSOR, *_STAMP_FIELDS, _F_CAL_BODY_ROTATION,
+                                   _F_CAL_BODY_QUATERNION)))
+    if _present(fields, _F_CAL_BODY_QUATERNION, (_WT_LEN, _WT_I64)):
+        q = _fixed64(buf, fields[_F_CAL_BODY_QUATERNION], "<f8", "body_quaternion")
+        if len(q) != 4:
+            raise ValueError(f"body_quaternion has {len(q)} values, not 4")
+        r = _rotation_of(q)
+    elif _present(fields, _F_CAL_BODY_ROTATION, (_WT_LEN, _WT_I64)):
+        values = _fixed64(buf, fields[_F_CAL_BODY_ROTATION], "<f8", "body_rotation")
+        if len(values) != 9:
+            raise ValueError(f"body_rotation has {len(values)} values, not 9")
+        r = values.reshape(3, 3).copy()
+    else:
         return None
-    r = _fixed64(buf, fields[_F_CAL_BODY_ROTATION], "<f8", "body_rotation")
-    if len(r) != 9:
-        raise ValueError(f"body_rotation has {len(r)} values, not 9")
     t_us = _stamps(buf, fields, _F_T_US, _F_T0_US, _F_DT_US, "t_us")
     return (_last_string(buf, fields.get(_F_SENSOR)),
-            np.zeros(0, np.int64) if t_us is None else t_us, r.reshape(3, 3).copy())
+            np.zeros(0, np.int64) if t_us is None else t_us, r)
 
 
 def batch_extent(data: bytes | bytearray | memoryview) -> tuple[int, int | None, int | None]:
