@@ -205,12 +205,7 @@ def test_fixture_of_the_first_form_replays_to_what_its_live_run_logged(tmp_path:
 
 
 def test_fixture_of_the_first_form_exports_and_calibrates(tmp_path: Path) -> None:
-    csv = tmp_path / "cal.csv"
-    assert cli.main(["export", str(FIXTURE), "--csv", str(csv)]) == 0
-    rows = np.loadtxt(csv, delimiter=",", skiprows=1)
-    live = rec.read_all_calibrated(FIXTURE, SID)
-    assert len(rows) == len(live)
-    assert np.allclose(rows[:, 1:4], live.a_g, rtol=0, atol=1e-6)
+    live = _exported_as_logged(FIXTURE, SID, tmp_path)
     out = tmp_path / "hind.mcap"
     assert cli.main(["hindsight", str(FIXTURE), "--out", str(out), "--quiet"]) in (0, 1)
     if out.exists():
@@ -376,9 +371,16 @@ def test_fixture_of_the_first_compact_form_replays_and_exports(tmp_path: Path) -
     replay(FIXTURE_V1, out, progress=False)
     assert np.array_equal(rec.read_all_raw(out, SID_V1).v, rec.read_all_raw(FIXTURE_V1, SID_V1).v)
     assert len(rec.read_all_calibrated(out, SID_V1)) == 2000
+    _exported_as_logged(FIXTURE_V1, SID_V1, tmp_path)
+
+
+def _exported_as_logged(fixture: Path, sid: str, tmp_path: Path) -> CalibratedBatch:
+    """`recal export` of a fixture gives its logged calibrated values (to the micro-g);
+    those values."""
     csv = tmp_path / "cal.csv"
-    assert cli.main(["export", str(FIXTURE_V1), "--csv", str(csv)]) == 0
+    assert cli.main(["export", str(fixture), "--csv", str(csv)]) == 0
     rows = np.loadtxt(csv, delimiter=",", skiprows=1)
-    live = rec.read_all_calibrated(FIXTURE_V1, SID_V1)
+    live = rec.read_all_calibrated(fixture, sid)
     assert len(rows) == len(live)
     assert np.allclose(rows[:, 1:4], live.a_g, rtol=0, atol=1e-6)
+    return live
