@@ -459,15 +459,10 @@ class CalibrationNode(AlignmentRequests):
             self.status_counts += np.bincount(cal.status, minlength=len(Status))[:len(Status)]
         self.sink.calibrated(self.sensor_id, cal, log_ns)
         self.sink.plot(self.sensor_id, cal, log_ns, self._plot_every())
-        # (the calls that would return at once are not made: most arrivals have no watch
-        # event, no update, and rediscovery off)
-        if out.watch:
-            self._report_watch(out, log_ns)
+        self._report_watch(out, log_ns)
         self._report_status(cal, log_ns)
-        if out.updates:
-            self._report_updates(out, log_ns)
-        if self.settings.rediscovery.enabled:
-            self._maybe_rediscover(log_ns)
+        self._report_updates(out, log_ns)
+        self._maybe_rediscover(log_ns)
         self._track_alignment(cal, log_ns, out)
         if self.alignment is not None:
             self.sink.calibrated(self.sensor_id, self._body(cal, self.alignment), log_ns,

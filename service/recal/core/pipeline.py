@@ -344,8 +344,7 @@ class Pipeline:
         """`step` with the detector as it is (see there)."""
         n = len(batch)
         self._watch_events = []
-        if self.estimate is not None and self.estimate is not self._finite_estimate:
-            self._heal_if_not_finite(int(batch.t_us[0]))
+        self._heal_if_not_finite(int(batch.t_us[0]))
         self.det_state, d = det.detect(self.det_cfg, self.det_state, batch.v)
         gate = usable(d.gate, batch, self.model)
         self._segs = [self._segment(0)]
@@ -354,8 +353,7 @@ class Pipeline:
                                  self.counts["quasi_static"])
         try:
             events, commits = self._windows(batch, gate)
-            if self._marks is not None:
-                self._reach(n)  # the marks no later change came before
+            self._reach(n)  # the marks no later change came before
         finally:
             done, self._marks = self._marks, None
         cal, status, sigma = calibrate(self._segs, batch, self.covariates)

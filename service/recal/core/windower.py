@@ -283,7 +283,7 @@ def _cut_one(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.nd
     if not gate[0]:  # no run: whatever was open or pending is dropped
         return Cut(None, []), WindowerState(None, None, t0, False)
     dt = 1 if state.last_t_us is None else t0 - state.last_t_us
-    if state.last_gate and 0 < dt <= 3.0e6 / cfg.rate_hz:  # the run goes on
+    if state.last_gate and 0 < dt <= _run_step_us(cfg.rate_hz):  # the run goes on
         open_, pending = state.open, state.pending
     else:
         open_, pending = None, None
@@ -311,6 +311,13 @@ def _cut_one(cfg: WindowConfig, state: WindowerState, t_us: np.ndarray, v: np.nd
         table = WindowSums.of_accs([pending[0]], aux.shape[1])
         pending = None
     return Cut(table, due), WindowerState(acc, pending, t0, True)
+
+
+def _run_step_us(rate_hz: float) -> int:
+    """The longest step (whole us) between two gated samples of one run: three sample
+    periods (integer steps against whole microseconds: the same test as against the float
+    bound, without a float copy of the steps)."""
+    return math.floor(3.0e6 / rate_hz)
 
 
 def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarray,
@@ -535,8 +542,7 @@ def _run_starts(t_us: np.ndarray, gate: np.ndarray, prev_t_us: int | None, prev_
     dt[0] = int(t_us[0]) - prev_t
     np.subtract(t_us[1:], t_us[:-1], out=dt[1:])
     forward = dt > 0
-    # integer steps against the gap's whole microseconds: the same test without a float copy
-    ok_dt = forward & (dt <= math.floor(3.0e6 / rate_hz))
+    ok_dt = forward & (dt <= _run_step_us(rate_hz))
     start = gate.copy()
     start[1:] &= ~(gate[:-1] & ok_dt[1:])
     start[0] &= not (prev_gate and ok_dt[0])
