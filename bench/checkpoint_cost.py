@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from recal.checkpoints import Checkpoints, load_checkpoint, restore_pipeline, save_checkpoint
-from recal.config import PriorConfig, SensorConfig, ServiceConfig
-from recal.node import CalibrationNode, node_settings
-from recal.sim import SensorSpec, simulate
-from recal.sinks import NullSink
+from recal.config.settings import PriorConfig, SensorConfig, ServiceConfig
+from recal.node.checkpoints import Checkpoints, load_checkpoint, restore_pipeline, save_checkpoint
+from recal.node.node import CalibrationNode, node_settings
+from recal.node.sinks import NullSink
+from recal.sim.wearer import SensorSpec, simulate
 
 
 def median_ms(f: Callable[[], object], runs: int) -> float:

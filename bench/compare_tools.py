@@ -22,7 +22,7 @@ Compared, on the same arrays (readings in g, Unix time stamps):
   and the correction, `run_floor`), without windows, buffer or estimator. Whatever the core
   does on top costs more, so this row bounds how fast any core of this design in numpy can be.
 
-Cases, simulated with `recal.sim` (truth included), offsets +-50 mg, gains +-3 %, 4 mg noise,
+Cases, simulated with `recal.sim.wearer` (truth included), offsets +-50 mg, gains +-3 %, 4 mg noise,
 1024 counts/g, passed to everyone in g (counts / 1024):
   plain       offsets and gains only; also the speed case (24 h at 50 Hz = 4.32 M samples)
   cross-axis  plus cross-axis misalignment +-1.5 deg
@@ -67,7 +67,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, SimResult, WearerSpec, error_1s_mg, inverse_model, simulate
+from recal.sim.wearer import SensorSpec, SimResult, WearerSpec, error_1s_mg, inverse_model, simulate
 
 HERE = Path(__file__).resolve().parent
 VENVS = HERE / ".venvs"

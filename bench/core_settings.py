@@ -25,7 +25,7 @@ import compare_tools as ct
 import in_use_accuracy as ia
 from recal.core.model import SensorModel
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
+from recal.sim.wearer import SensorSpec, WearerSpec, error_1s_mg, simulate
 
 DRIFT_SEEDS = (4, 13)
 DRIFT_G_PER_H = 0.0025

@@ -37,8 +37,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import sigma_honesty as sh
-from recal import sim
 from recal.core import misfit
+from recal.sim import wearer as sim
 
 
 def _cases() -> dict[str, sh.Case]:

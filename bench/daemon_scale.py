@@ -49,9 +49,9 @@ import numpy as np
 
 from child_process import ChildProcess
 from pty_fleet import FleetProcess
-from recal.demo import free_port
+from recal.commands.demo import free_port
+from recal.daemon.gateway import READY_PREFIX
 from recal.errors import RecordingError
-from recal.gateway import READY_PREFIX
 from recal.io import recording as rec
 from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config

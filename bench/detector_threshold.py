@@ -5,7 +5,7 @@ in-use calibration that runs on its windows becomes.
     python bench/detector_threshold.py            # 3 simulated wearers x 2 h + the Xsens file
     python bench/detector_threshold.py --quick    # 1 simulated wearer x 1 h + the Xsens file
 
-Simulated wearers (`recal.sim`, 50 Hz, 4 mg noise, offsets +-50 mg, gains +-3 %, cross-axis
+Simulated wearers (`recal.sim.wearer`, 50 Hz, 4 mg noise, offsets +-50 mg, gains +-3 %, cross-axis
 +-1.5 deg): "still" is the simulator's truth (inside a still posture, 0.5 s from its ends).
 Precision = still samples among those the detector passes, recall = passed among the still
 ones; the calibration error is the RMS over 1 s of |calibrated - true| after the first 30 min
@@ -52,7 +52,7 @@ from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.static import fit_unknown_orientations
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, error_1s_mg, simulate
+from recal.sim.wearer import SensorSpec, error_1s_mg, simulate
 
 XSENS = (Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
          / "xsens_imutk_multipos.npz")

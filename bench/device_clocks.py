@@ -2,8 +2,8 @@
 
 Simulated wearers (recal simulate's default random sensor: offsets +-50 mg, gains +-3 %,
 4 mg noise, 1024 counts/g), 40 min each, through the calibration node
-(`recal.node.CalibrationNode`, the live and replay code path, 500-sample batches); error =
-RMS over 1 s windows of |calibrated - true| after 30 min (`recal.sim.error_1s_mg`):
+(`recal.node.node.CalibrationNode`, the live and replay code path, 500-sample batches); error =
+RMS over 1 s windows of |calibrated - true| after 30 min (`recal.sim.wearer.error_1s_mg`):
 
 * a 32-bit micros() that wraps 10 minutes in (25 Hz, rate configured);
 * millis() under a t_us header, no rate configured (the node must find the unit);
@@ -21,13 +21,13 @@ import time
 
 import numpy as np
 
-from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core import timebase as tb
 from recal.io.ascii_lines import AsciiLineParser, encode_ascii
-from recal.node import CalibrationNode, NodeSettings
+from recal.node.node import CalibrationNode, NodeSettings
+from recal.node.sinks import NullSink
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sim import SensorSpec, SimResult, error_1s_mg, simulate
-from recal.sinks import NullSink
+from recal.sim.wearer import SensorSpec, SimResult, error_1s_mg, simulate
 
 WRAP = 2**32
 

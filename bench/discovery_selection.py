@@ -22,9 +22,9 @@ import time
 
 import numpy as np
 
-from recal import sim
 from recal.core import discovery as dc
 from recal.core import discovery_data as dd
+from recal.sim import wearer as sim
 
 WEARER = sim.WearerSpec(still_s=(10.0, 40.0), move_s=(3.0, 8.0), always_aux=True,
                         temp_wander_c=3.0, temp_wander_tau_min=5.0, temp_lag_min=1.0)

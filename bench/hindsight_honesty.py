@@ -25,12 +25,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from honesty_cases import CASES, honesty
+from recal.commands.hindsight import Corrected
 from recal.core import hindsight
 from recal.core.discovery_data import rate_and_scale
 from recal.core.effects import Covariates
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status, predicted_sigma_mg
-from recal.hindsight_file import Corrected
 from recal.samples import rebatch
 
 

@@ -31,8 +31,8 @@ from recal.core.effects import make_effect
 from recal.core.model import SensorModel
 from recal.core.status import Status
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, SimResult, WearerSpec, forward_model, simulate, with_sensor
-from recal.simulated_sensor import sensor_type
+from recal.sim.sensor import sensor_type
+from recal.sim.wearer import SensorSpec, SimResult, WearerSpec, forward_model, simulate, with_sensor
 
 __all__ = ["CASES", "Case", "honesty", "six_poses", "with_terms"]
 

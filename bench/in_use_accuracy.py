@@ -25,7 +25,7 @@ from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
-from recal.sim import SensorSpec, SimResult, WearerSpec, error_1s_mg, simulate
+from recal.sim.wearer import SensorSpec, SimResult, WearerSpec, error_1s_mg, simulate
 
 CASES = {  # group: (seeds, cross-axis deg, full model, upright only, drift g/h, target mg)
     "cross-axis, full model": ((2, 5, 8, 9, 10, 14, 15, 16), 1.5, True, False, 0.0, 1.5),

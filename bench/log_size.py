@@ -9,7 +9,7 @@ the caller in each.
     python bench/log_size.py --aligned --old-src OLD_TREE   # + the compact form of another
                                             # tree (a `git archive` of it), same calls
 
-How: a simulated wearer at 100 Hz (recal.sim defaults, 1024 counts/g, no prior: the node
+How: a simulated wearer at 100 Hz (recal.sim.wearer defaults, 1024 counts/g, no prior: the node
 bootstraps, then calibrates and aligns, so every topic is there) goes through the calibration
 node the gateway runs, one sample per arrival; the node's output (raw, calibrated, body, plot,
 calibration states, events, setup) is captured once and then written by two writers on the
@@ -23,7 +23,7 @@ settings):
                  this tree's compact form with what the second pass changed undone: the plot
                  every 10th sample, sigma kept to the micro-g (`messages.sigma_steps`
                  bypassed), the body's values logged
-    compact      as `recal.sinks.LoggedBusSink` logs now (the plot at the node's default
+    compact      as `recal.node.sinks.LoggedBusSink` logs now (the plot at the node's default
                  rate, sigma in 1 % steps, the body as times and a rotation)
 
 Per topic: the same writes with only that topic's messages, each in a file of its own (the
@@ -52,13 +52,17 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from recal.config import SensorConfig, ServiceConfig
+from layout import module
 from recal.io import messages
 from recal.io.recording_writer import RecordingWriter
-from recal.node import CalibrationNode, node_settings
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sim import simulate
-from recal.sinks import BodyRotations
+
+_settings = module("recal.config.settings", "recal.config")
+_node = module("recal.node.node", "recal.node")
+SensorConfig, ServiceConfig = _settings.SensorConfig, _settings.ServiceConfig
+CalibrationNode, node_settings = _node.CalibrationNode, _node.node_settings
+BodyRotations = module("recal.node.sinks", "recal.sinks").BodyRotations
+simulate = module("recal.sim.wearer", "recal.sim").simulate
 
 RATE_HZ = 100.0
 SENSOR = "s1"
@@ -155,7 +159,7 @@ def write(path: Path, calls: list[tuple[str, str, Any, int]], form: str,
 
 def _write(path: Path, calls: list[tuple[str, str, Any, int]], first_form: bool,
            topics: frozenset[str] | None, body_rotation: bool = True) -> float:
-    """`write`: the first form, or the compact one as `recal.sinks.LoggedBusSink` writes it
+    """`write`: the first form, or the compact one as `recal.node.sinks.LoggedBusSink` writes it
     (``body_rotation``: the body as times and a rotation when the calibrated batch and the
     alignment give it, else as its values)."""
     clock = Clock()

@@ -13,7 +13,7 @@ measures the disk, not memory), and its flush clock follows device time, so the 
 chunked as a live week would be (a chunk at least every second). The sensor is configured
 with a prior (1024 counts/g) as in configs/gateway.toml.
 
-Input: generated hour by hour in a separate process (recal.sim, the same sensor, a new wearer
+Input: generated hour by hour in a separate process (recal.sim.wearer, the same sensor, a new wearer
 schedule every hour), one MCAP of 1000-sample messages read back one message at a time: never
 in memory as a whole. Each run is a fresh process; a thread samples VmRSS from
 /proc/self/status every 0.5 s together with the samples processed so far.
@@ -52,7 +52,7 @@ CHILD_TIMEOUT_S = 3600.0
 def generate(path: Path, hours: int, seed: int) -> None:
     """The recording, one simulated hour at a time (never all of it in memory)."""
     from recal.io.recording_writer import RecordingWriter
-    from recal.sim import SensorSpec, simulate
+    from recal.sim.wearer import SensorSpec, simulate
 
     sensor = SensorSpec.random(np.random.default_rng(seed), offset_mg=40.0, gain_pct=3.0)
     with RecordingWriter(path, chunk_size=4 << 20, background_flush=False, fsync=False,
@@ -77,11 +77,11 @@ class DeviceClock:
 
 def measure(path: Path, out_dir: Path, warmup_samples: int) -> dict[str, Any]:
     """One run in this (fresh) process: the daemon's code path over the recording."""
-    from recal.config import PriorConfig, SensorConfig, ServiceConfig
+    from recal.config.settings import PriorConfig, SensorConfig, ServiceConfig
     from recal.io import recording as rec
     from recal.io.recording_writer import RecordingWriter
-    from recal.node import CalibrationNode, node_settings
-    from recal.sinks import RecordingSink
+    from recal.node.node import CalibrationNode, node_settings
+    from recal.node.sinks import RecordingSink
 
     cfg = ServiceConfig()
     m = cfg.mcap

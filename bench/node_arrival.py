@@ -54,9 +54,10 @@ def _workload(minutes: float, samples: int) -> tuple[Any, Any]:
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from recal import sim
+    from layout import module
     from recal.samples import RawBatch
 
+    sim = module("recal.sim.wearer", "recal.sim")
     seed = 3
     wearer = sim.WearerSpec(upright_tilt_deg=1.0, still_s=(30.0, 90.0))
     rng = np.random.default_rng(seed)
@@ -79,14 +80,14 @@ def _free_port() -> int:
 
 
 def _node(sink: Any) -> Any:
-    from recal.config import (
-        AlignmentConfig,
-        PipelineSettings,
-        PriorConfig,
-        SensorConfig,
-        model_and_prior,
-    )
-    from recal.node import CalibrationNode, NodeSettings
+    from layout import module
+
+    cfg = module("recal.config.settings", "recal.config")
+    AlignmentConfig, PipelineSettings = cfg.AlignmentConfig, cfg.PipelineSettings
+    PriorConfig, SensorConfig = cfg.PriorConfig, cfg.SensorConfig
+    model_and_prior = cfg.model_and_prior
+    node_mod = module("recal.node.node", "recal.node")
+    CalibrationNode, NodeSettings = node_mod.CalibrationNode, node_mod.NodeSettings
 
     sensor = SensorConfig(SID, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
     settings = PipelineSettings()
@@ -98,8 +99,11 @@ def _node(sink: Any) -> Any:
 def child(part: str, minutes: float, samples: int, profile: bool,
           gap_s: float = 0.0) -> dict[str, Any]:
     """Set up, warm up, then time ``samples`` one-sample arrivals; the result as a dict."""
+    from layout import module
     from recal.io.ascii_lines import encode_ascii
-    from recal.sinks import NullSink
+
+    sinks = module("recal.node.sinks", "recal.sinks")
+    NullSink = sinks.NullSink
 
     warm, tail = _workload(minutes, samples)
     tmp = Path(tempfile.mkdtemp(prefix="node-arrival-"))
@@ -107,7 +111,8 @@ def child(part: str, minutes: float, samples: int, profile: bool,
     if part == "shell":
         from recal.io.bus import Bus, key, zenoh_config
         from recal.io.recording_writer import RecordingWriter
-        from recal.sinks import LoggedBusSink
+
+        LoggedBusSink = sinks.LoggedBusSink
 
         writer = RecordingWriter(tmp / "a.mcap", fsync=False)
         port = _free_port()
@@ -131,8 +136,10 @@ def child(part: str, minutes: float, samples: int, profile: bool,
     if part == "shell":
         # the gateway's own per-port handling (log raw, publish raw, calibrate), on a
         # Gateway whose port is never opened: its parser is fed the lines directly
-        from recal.config import CheckpointConfig, PriorConfig, SensorConfig, ServiceConfig
-        from recal.gateway import Gateway
+        cfg = module("recal.config.settings", "recal.config")
+        CheckpointConfig, PriorConfig = cfg.CheckpointConfig, cfg.PriorConfig
+        SensorConfig, ServiceConfig = cfg.SensorConfig, cfg.ServiceConfig
+        Gateway = module("recal.daemon.gateway", "recal.gateway").Gateway
 
         sensor = SensorConfig(SID, port=str(tmp / "tty"), aux_names=(), rate_hz=RATE_HZ,
                               prior=PriorConfig(counts_per_g=1024.0))

@@ -2,8 +2,8 @@
 
 The daemon benchmarks (``daemon_scale.py``, ``scale_out.py``) start this as a child process so
 that producing the sensors' bytes never competes with the daemon for its GIL. Everything the
-devices will send is simulated (``recal.sim``) and encoded up front; while streaming, the only
-work left is one non-blocking ``os.write`` per device and chunk.
+devices will send is simulated (``recal.sim.wearer``) and encoded up front; while streaming,
+the only work left is one non-blocking ``os.write`` per device and chunk.
 
 Timing: sensor ``i`` sends sample ``k`` at ``start + k / rate + phase_i``, with the phases
 spread evenly over one sample period (real sensors are not synchronised; sending all of them
@@ -43,8 +43,8 @@ import numpy as np
 
 from recal.io.ascii_lines import encode_ascii
 from recal.io.cobs_frames import encode_cobs
-from recal.io.pty_device import PtyDevice
-from recal.sim import SensorSpec, WearerSpec, simulate
+from recal.sim.pty_device import PtyDevice
+from recal.sim.wearer import SensorSpec, WearerSpec, simulate
 
 __all__ = ["FleetProcess", "Stream", "encode_stream", "main", "phase_ns", "simulate_streams"]
 

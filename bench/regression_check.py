@@ -688,7 +688,7 @@ def child_make_sim(a: dict[str, Any]) -> None:
     """A simulated recording as arrays (the core case's shared input)."""
     from dataclasses import replace
 
-    from recal import sim
+    from recal.sim import wearer as sim
     rng = np.random.default_rng(5)
     spec = sim.SensorSpec.random(rng, offset_mg=50.0, gain_pct=3.0)
     if a["sensor"] != "default":

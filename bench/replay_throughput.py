@@ -5,8 +5,8 @@
     python bench/replay_throughput.py --old /path/to/old/tree --hours 2 --runs 3 \
         --live-minutes 30                        # an old tree's replay beside this one's
 
-Replay is `recal.replay.replay(in, out)` (what `recal replay` runs): every raw message through
-the calibration node the gateway runs live (detector, windows, estimator, correction,
+Replay is `recal.commands.replay.replay(in, out)` (what `recal replay` runs): every raw message
+through the calibration node the gateway runs live (detector, windows, estimator, correction,
 alignment), and everything written to a new MCAP (raw, calibrated, body, plot, calibration
 states, events). Targets: at least 1 M samples/s, and at least half the speed of merely
 reading and decoding the same file's messages with the mcap reader (ratio >= 0.5).
@@ -19,14 +19,14 @@ taken within a run, and the table shows medians over --runs runs):
     recal reader   recal.io.recording.iter_raw (the reader replay uses)
     core alone     Pipeline.step over the already decoded batches, one step per message (the
                    calibration's share; no node, no MCAP)
-    replay         recal.replay.replay end to end: wall clock, and its CPU seconds (the output is
-                   compressed on a second thread, so CPU can exceed wall)
+    replay         recal.commands.replay.replay end to end: wall clock, and its CPU seconds (the
+                   output is compressed on a second thread, so CPU can exceed wall)
 
 Rates are samples per wall-clock second; "per CPU s" divides by the process's CPU time
 instead (both threads), which a busy machine inflates much less than wall time: when other
 processes share the cores, "replay CPU/wall" drops below 1 and the wall rates with it.
 
-Recordings: a simulated wearer at 100 Hz (recal.sim defaults: still 20-180 s, moving 4-30 s;
+Recordings: a simulated wearer at 100 Hz (recal.sim.wearer defaults: still 20-180 s, moving 4-30 s;
 offsets +-40 mg, gains +-3 %, 1024 counts/g), written as `recal simulate` writes them (zstd,
 32 KiB chunks, no prior, so replay bootstraps), in messages of 1000 samples (`recal simulate`,
 `recal import`) and of 100 and 10 samples (a live gateway logs what each serial read brought:
@@ -47,14 +47,19 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-from recal.config import SensorConfig, ServiceConfig, model_and_prior
+from layout import module
 from recal.core.pipeline import Pipeline
 from recal.io import messages
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
-from recal.replay import replay
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, simulate
+
+replay = module("recal.commands.replay", "recal.replay").replay
+_settings = module("recal.config.settings", "recal.config")
+SensorConfig, ServiceConfig = _settings.SensorConfig, _settings.ServiceConfig
+model_and_prior = _settings.model_and_prior
+_wearer = module("recal.sim.wearer", "recal.sim")
+SensorSpec, simulate = _wearer.SensorSpec, _wearer.simulate
 
 RATE_HZ = 100.0
 SENSOR = "s1"
@@ -131,7 +136,10 @@ _CHILD = r"""
 import json, sys, time
 from mcap.reader import make_reader
 from recal.io import messages
-from recal.replay import replay
+try:
+    from recal.commands.replay import replay
+except ModuleNotFoundError:  # a tree from before the package layout
+    from recal.replay import replay
 src, out = sys.argv[1], sys.argv[2]
 t = time.perf_counter()
 n = 0

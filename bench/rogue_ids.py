@@ -18,14 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from recal.config import parse_config
-from recal.demo import free_port
+from recal.commands.demo import free_port
+from recal.config.settings import parse_config
+from recal.daemon.remote_node import run_node
 from recal.io import recording as rec
 from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import encode_raw
 from recal.io.router import RouterProcess
-from recal.remote_node import run_node
 from recal.samples import RawBatch
 
 RATE_HZ = 50.0

@@ -59,10 +59,10 @@ from daemon_scale import (
     verify,
 )
 from pty_fleet import FleetProcess
-from recal.demo import free_port
+from recal.commands.demo import free_port
+from recal.daemon.remote_node import NODE_READY_PREFIX
 from recal.io.bus_config import zenoh_config
 from recal.io.router import READY_PREFIX as ROUTER_READY_PREFIX
-from recal.remote_node import NODE_READY_PREFIX
 
 __all__ = ["main", "run_row"]
 

@@ -3,7 +3,7 @@
     python bench/sensor_types.py            # 2 h per type, the default wearer, seeds 1-2
     python bench/sensor_types.py --quick    # 40 min, a livelier wearer, seed 1
 
-Each type of `recal.sim.SENSOR_TYPES` (offsets +-40 mg, gains +-3 %, 4 mg noise, 50 Hz; the
+Each type of `recal.sim.wearer.SENSOR_TYPES` (offsets +-40 mg, gains +-3 %, 4 mg noise, 50 Hz; the
 analog parts on an unsigned ADC with zero-g at mid-scale; "adxl335-adc12 sag": its output
 ratiometric, the supply sagging 3.3 -> 2.9 V, the ADC reference fixed) goes through the three
 tools' core code with no prior: replay (`Pipeline`, batches of 1000, as `recal replay`),
@@ -22,13 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from recal import sim
 from recal.core import discovery, discovery_data, hindsight
 from recal.core.effects import Covariates, Scale
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.samples import RawBatch
+from recal.sim import wearer as sim
 
 RATE = 50.0
 TYPES: dict[str, dict[str, Any]] = {

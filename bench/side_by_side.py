@@ -108,7 +108,7 @@ def _bench_module(bench: str, name: str) -> Any:
 def child_make_inputs(a: dict[str, Any]) -> dict[str, Any]:
     """The shared inputs (run once, with the new tree): arrays of the core case, the replay
     recording, and the 24 h recording's raw samples as arrays for the windowing."""
-    from recal import sim
+    from recal.sim import wearer as sim
     out = Path(a["dir"])
     ct = _bench_module(a["bench"], "compare_tools")
     if ct is not None:  # its speed case exactly: "plain", in g
@@ -120,7 +120,7 @@ def child_make_inputs(a: dict[str, Any]) -> dict[str, Any]:
         spec = replace(spec, counts_per_g=1024.0)
         res = sim.simulate(float(a["core_hours"]), 50.0, 1, spec,
                            start_us=1_704_067_200_000_000)
-        counts, case_from = 1024.0, "recal.sim, compare_tools' settings"
+        counts, case_from = 1024.0, "recal.sim.wearer, compare_tools' settings"
     raw = res.raw
     np.savez(out / "core.npz", t_us=raw.t_us, v=raw.v / counts, aux=raw.aux,
              aux_names=np.array(raw.aux_names, dtype=str))

@@ -51,18 +51,18 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from recal import sim
-from recal.checkpoints import Checkpoints, checkpoint_path
-from recal.config import PipelineSettings
+from recal.config.settings import PipelineSettings
 from recal.core import status
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status
-from recal.node import CalibrationNode, NodeSettings, make_node
+from recal.node.checkpoints import Checkpoints, checkpoint_path
+from recal.node.node import CalibrationNode, NodeSettings, make_node
 from recal.samples import CalibratedBatch, RawBatch
-from recal.simulated_sensor import sensor_type
+from recal.sim import wearer as sim
+from recal.sim.sensor import sensor_type
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from honesty_cases import six_poses, with_terms

@@ -18,13 +18,13 @@ import argparse
 
 import numpy as np
 
-from recal import sim
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status
 from recal.samples import CalibratedBatch, RawBatch
+from recal.sim import wearer as sim
 
 RATE_HZ = 25.0
 S0 = 1024.0

@@ -5,7 +5,7 @@
     python bench/tilt_alarm.py --case "all orientations, no" --seeds 30 --first-seed 101 --hours 4
 
 Every case runs a `CalibrationNode` (default alignment settings: reference after the first
-accepted update, 10 s still periods, 7 deg limit) on a simulated wearer (`recal.sim`: offsets
+accepted update, 10 s still periods, 7 deg limit) on a simulated wearer (`recal.sim.wearer`: offsets
 +-50 mg, gains +-3 %, 4 mg noise, 1024 counts/g, the pre-calibration prior), in 10 s batches,
 and counts the wearers with at least one `tilt_alarm` event.
 
@@ -33,14 +33,14 @@ from typing import Any
 
 import numpy as np
 
-from recal.config import (
+from recal.config.settings import (
     PriorConfig,
     SensorConfig,
     ServiceConfig,
 )
-from recal.node import CalibrationNode, node_settings
-from recal.sim import MountSlip, SensorSpec, WearerSpec, simulate
-from recal.sinks import EventSink
+from recal.node.node import CalibrationNode, node_settings
+from recal.node.sinks import EventSink
+from recal.sim.wearer import MountSlip, SensorSpec, WearerSpec, simulate
 
 RATE_HZ = 25.0
 SLIP_AFTER_REF_S = 300.0

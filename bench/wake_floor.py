@@ -37,14 +37,14 @@ import time
 from pathlib import Path
 
 from pty_fleet import FleetProcess
-from recal.config import SensorConfig, ServiceConfig, model_and_prior
+from recal.config.settings import SensorConfig, ServiceConfig, model_and_prior
 from recal.core.pipeline import Pipeline
 from recal.io.ascii_lines import encode_ascii
 from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource
 from recal.io.wire_formats import make_parser
 from recal.samples import RawBatch
-from recal.sim import simulate
+from recal.sim.wearer import simulate
 
 RATE_HZ = 100.0
 STAGES = ("wake", "parse", "step", "log")

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from gateway_process import GatewayProcess
-from recal.demo import free_port
+from recal.commands.demo import free_port
 from recal.io.router import RouterProcess
 
 #: Modules whose every test checks numeric results that BLAS and numpy's SIMD kernels could
@@ -52,7 +52,7 @@ def children() -> Iterator[list[GatewayProcess]]:
 @pytest.fixture(autouse=True)
 def state_home(tmp_path_factory: pytest.TempPathFactory,
                monkeypatch: pytest.MonkeyPatch) -> Path:
-    """The platform state folder (recal.config.default_state_dir), where a config without
+    """The platform state folder (recal.config.settings.default_state_dir), where a config without
     ``[checkpoint] dir`` keeps checkpoints and locks, in a folder of the test's own: never the
     user's, never shared with another test (or a child process it starts)."""
     home = tmp_path_factory.mktemp("state")

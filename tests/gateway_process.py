@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from polling import wait_for
-from recal.gateway import READY_PREFIX
+from recal.daemon.gateway import READY_PREFIX
 
 
 def write_config(tmp: Path, link: str, zenoh: str, flush_s: float, sensor_id: str = "s1",

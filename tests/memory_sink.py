@@ -1,5 +1,5 @@
 """A node's sink that keeps what it is given in memory, per topic (a real Sink, not a mock):
-the tests that watch a `recal.node.CalibrationNode` share it."""
+the tests that watch a `recal.node.node.CalibrationNode` share it."""
 
 from __future__ import annotations
 

@@ -9,15 +9,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from recal import sim
-from recal.config import (
+from recal.config.settings import (
     PriorConfig,
     SensorConfig,
     ServiceConfig,
 )
 from recal.core import alignment as al
-from recal.node import CalibrationNode, NodeSettings, node_settings
-from recal.sinks import EventSink
+from recal.node.node import CalibrationNode, NodeSettings, node_settings
+from recal.node.sinks import EventSink
+from recal.sim import wearer as sim
 
 Z = np.array([0.0, 0.0, 1.0])
 

@@ -16,11 +16,11 @@ import numpy as np
 
 from gateway_process import GatewayProcess
 from polling import wait_for
-from recal import sim
 from recal.core.status import Status
 from recal.io import recording as rec
-from recal.io.pty_device import PtyDevice
 from recal.samples import RawBatch
+from recal.sim import wearer as sim
+from recal.sim.pty_device import PtyDevice
 
 SID = "analog"
 RATE_HZ = 50.0

@@ -264,7 +264,7 @@ def test_a_body_of_times_and_a_rotation_compares_as_the_calibrated_samples_turne
         tmp_path: Path) -> None:
     from recal.core.alignment import to_body
     from recal.io import recording
-    from recal.sinks import RecordingSink
+    from recal.node.sinks import RecordingSink
 
     rng = np.random.default_rng(4)
     n = 50

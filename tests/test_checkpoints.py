@@ -1,8 +1,8 @@
-"""Checkpoints that can be trusted, and one owner per sensor (recal.checkpoints).
+"""Checkpoints that can be trusted, and one owner per sensor (recal.node.checkpoints).
 
 Poisoned checkpoint files (NaN, infinity, 100 g offsets, wrong shapes, times of 2^70 or years
 ahead, deep nesting, a directory, truncated JSON) are refused with one console line and an
-event, the previous generation or the prior is used, and a simulated wearer (recal.sim, with
+event, the previous generation or the prior is used, and a simulated wearer (recal.sim.wearer, with
 truth) fed through the node from that folder is calibrated to <= 1.5 mg (1 s vector RMS) after
 30 min of data, with no NaN ever published. A state that would not load is never saved; failed
 saves reach the console, rate-limited. Real processes (`python -m recal run` on a pty): a
@@ -31,7 +31,22 @@ import pytest
 
 from gateway_process import GatewayProcess
 from polling import wait_for
-from recal.checkpoints import (
+from recal.commands.demo import free_port
+from recal.config.settings import (
+    CheckpointConfig,
+    PriorConfig,
+    SensorConfig,
+    ServiceConfig,
+    default_state_dir,
+    load_config,
+)
+from recal.core.pipeline import Pipeline
+from recal.core.status import Status
+from recal.daemon.gateway import NOTE_PREFIX, READY_PREFIX, run_gateway
+from recal.daemon.runtime import ERROR_PREFIX
+from recal.io import recording as rec
+from recal.io.bus import key
+from recal.node.checkpoints import (
     FAIL_NOTE_S,
     Checkpoints,
     SensorLockedError,
@@ -42,25 +57,10 @@ from recal.checkpoints import (
     previous_path,
     save_checkpoint,
 )
-from recal.config import (
-    CheckpointConfig,
-    PriorConfig,
-    SensorConfig,
-    ServiceConfig,
-    default_state_dir,
-    load_config,
-)
-from recal.core.pipeline import Pipeline
-from recal.core.status import Status
-from recal.demo import free_port
-from recal.gateway import NOTE_PREFIX, READY_PREFIX, run_gateway
-from recal.io import recording as rec
-from recal.io.bus import key
-from recal.io.pty_device import PtyDevice
-from recal.node import CalibrationNode, NodeSettings, make_node, node_settings
-from recal.runtime import ERROR_PREFIX
+from recal.node.node import CalibrationNode, NodeSettings, make_node, node_settings
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sim import SensorSpec, SimResult, error_1s_mg, sensor_type, simulate
+from recal.sim.pty_device import PtyDevice
+from recal.sim.wearer import SensorSpec, SimResult, error_1s_mg, sensor_type, simulate
 from test_gateway import get_json, peer, sim_raw, stream
 
 SID = "s1"

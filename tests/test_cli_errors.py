@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 
 from recal.errors import InputError
-from recal.io.pty_device import PtyDevice
 from recal.io.recording_writer import RecordingWriter
-from recal.sim import simulate
+from recal.sim.pty_device import PtyDevice
+from recal.sim.wearer import simulate
 
 NO_ZENOH = "[zenoh]\nenabled = false\n"
 FILES: dict[str, bytes] = {

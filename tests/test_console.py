@@ -16,8 +16,8 @@ import numpy as np
 from gateway_process import GatewayProcess
 from polling import wait_for
 from recal.console import BURST, LineLimiter, RateLimitFilter, install_logging
-from recal.io.pty_device import PtyDevice
 from recal.samples import RawBatch
+from recal.sim.pty_device import PtyDevice
 from test_serial_first_contact import config, device_samples, events, run_args
 
 STEPS_BACK = 400

@@ -24,7 +24,7 @@ from recal.core.static import fit_known_orientations, fit_unknown_orientations
 from recal.core.status import Status
 from recal.core.triaxial import all3, any3, norm3
 from recal.errors import ModelError, RecalError
-from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
+from recal.sim.wearer import SensorSpec, WearerSpec, error_1s_mg, simulate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

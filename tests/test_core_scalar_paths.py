@@ -22,7 +22,7 @@ from recal.core.pipeline_config import PipelineConfig
 from recal.core.refit import WindowChunk
 from recal.core.status import MISFIT_CHANCE, RunningMisfit
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sim import SensorSpec, simulate
+from recal.sim.wearer import SensorSpec, simulate
 
 
 def test_q_g2_is_excess_g2_bit_for_bit() -> None:

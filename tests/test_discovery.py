@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recal import cli, sim
-from recal import discovery_report as dr
-from recal.config import PipelineSettings, RediscoveryConfig, load_model_file
+from recal import cli
+from recal.commands import discover as dr
+from recal.config.settings import PipelineSettings, RediscoveryConfig, load_model_file
 from recal.core import discovery as dc
 from recal.core import discovery_data as dd
 from recal.core.effects import Covariates, make_effect
@@ -28,8 +28,9 @@ from recal.errors import ConfigError, InputError, ModelError
 from recal.io import csv_table
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
-from recal.node import CalibrationNode, NodeSettings
+from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
+from recal.sim import wearer as sim
 
 RATE_HZ = 25.0
 HOURS = 0.5

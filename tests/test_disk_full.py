@@ -26,20 +26,20 @@ import pytest
 
 from gateway_process import GatewayProcess
 from polling import wait_for
-from recal import runtime
-from recal.checkpoints import load_checkpoint, save_checkpoint
 from recal.cli import main as recal_main
-from recal.config import ConfigError, parse_config
-from recal.demo import free_port
+from recal.commands.demo import free_port
+from recal.config.settings import ConfigError, parse_config
+from recal.daemon import runtime
+from recal.daemon.runtime import open_recording
 from recal.errors import RecordingError
 from recal.io import recording as rec
 from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated
-from recal.io.pty_device import PtyDevice
 from recal.io.recording_writer import RecordingWriter
-from recal.runtime import open_recording
+from recal.node.checkpoints import load_checkpoint, save_checkpoint
 from recal.samples import RawBatch
+from recal.sim.pty_device import PtyDevice
 from test_gateway import get_json, sim_raw, stream
 
 SID = "s1"

@@ -9,13 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from recal.commands.replay import replay_lines
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status
-from recal.replay import replay_lines
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, forward_model
+from recal.sim.wearer import SensorSpec, forward_model
 
 RATE_HZ = 50.0
 S0 = 1024.0

@@ -36,10 +36,10 @@ from recal.io.cobs_frames import (
     encode_cobs,
 )
 from recal.io.frames import ParseErrors
-from recal.io.pty_device import PtyDevice
 from recal.io.serial_source import SerialSource
 from recal.io.wire_formats import make_parser
 from recal.samples import RawBatch
+from recal.sim.pty_device import PtyDevice
 from test_frames import _assert_same, _frame
 from test_frames import _payload as frame_payload
 

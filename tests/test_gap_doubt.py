@@ -11,13 +11,13 @@ import numpy as np
 
 from held_checks import held_until_agreed, held_until_contradicted
 from memory_sink import MemorySink
-from recal import sim
-from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import GAP_S, Status
-from recal.node import CalibrationNode, NodeSettings
+from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
+from recal.sim import wearer as sim
 
 RATE_HZ = 25.0
 S0 = 1024.0

@@ -17,22 +17,22 @@ import pytest
 
 from gateway_process import GatewayProcess, write_config
 from polling import wait_for
-from recal.checkpoints import load_checkpoint
-from recal.config import ServiceConfig, model_and_prior, parse_config
+from recal.commands.demo import free_port
+from recal.commands.replay import replay
+from recal.config.settings import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
 from recal.core.status import REOPEN_PROBATION_WINDOWS
-from recal.demo import free_port
-from recal.gateway import NOTE_PREFIX, Gateway, run_gateway
+from recal.daemon.gateway import NOTE_PREFIX, Gateway, run_gateway
+from recal.daemon.remote_node import run_node
 from recal.io import recording as rec
 from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
-from recal.io.pty_device import PtyDevice
 from recal.io.repair import repair
-from recal.remote_node import run_node
-from recal.replay import replay
+from recal.node.checkpoints import load_checkpoint
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, WearerSpec, simulate
+from recal.sim.pty_device import PtyDevice
+from recal.sim.wearer import SensorSpec, WearerSpec, simulate
 
 RATE_HZ = 100.0
 SID = "s1"
@@ -383,7 +383,7 @@ def test_bad_config_is_one_line_and_exit_code_2(tmp_path: Path) -> None:
                                  json.loads('{"tresholds": 1}'),
                                  json.loads('{"batch_ms": -5}')])
 def test_config_errors_name_the_key(doc: dict) -> None:
-    from recal.config import ConfigError
+    from recal.config.settings import ConfigError
 
     with pytest.raises(ConfigError) as err:
         parse_config(doc, ".", "x.toml")
@@ -391,7 +391,7 @@ def test_config_errors_name_the_key(doc: dict) -> None:
 
 
 def test_shipped_configs_load() -> None:
-    from recal.config import load_config
+    from recal.config.settings import load_config
 
     root = Path(__file__).resolve().parents[1] / "configs"
     cfg = load_config(root / "gateway.toml")
@@ -515,7 +515,7 @@ def test_latency_on_demand_ticks_until_someone_subscribes(tmp_path: Path) -> Non
 
 
 def test_checkpoints_are_spread_over_the_interval() -> None:
-    from recal.checkpoints import CheckpointSchedule
+    from recal.node.checkpoints import CheckpointSchedule
 
     now = [0.0]
     schedule = CheckpointSchedule(60.0, clock=lambda: now[0])

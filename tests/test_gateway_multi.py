@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 
 from polling import wait_for
-from recal.config import model_and_prior
+from recal.config.settings import model_and_prior
 from recal.core.pipeline import Pipeline
-from recal.gateway import Gateway, run_gateway
+from recal.daemon.gateway import Gateway, run_gateway
 from recal.io import recording as rec
-from recal.io.pty_device import PtyDevice
 from recal.samples import CalibratedBatch
+from recal.sim.pty_device import PtyDevice
 from test_gateway import RATE_HZ, service_config, sim_raw
 
 

@@ -19,7 +19,7 @@ from recal.core.refit import fresh_windows
 from recal.core.triaxial import per_axis
 from recal.core.windowing import Windowing, window_means
 from recal.samples import RawBatch, batch_groups, rebatch
-from recal.sim import SensorSpec, WearerSpec, error_1s_mg, simulate
+from recal.sim.wearer import SensorSpec, WearerSpec, error_1s_mg, simulate
 
 RATE = 50.0
 FIELDS = ("v", "aux", "t_us", "n", "var")

@@ -11,6 +11,8 @@ from functools import cache
 import numpy as np
 
 from bench_modules import load_bench
+from recal.commands.discover import format_table
+from recal.commands.hindsight import Corrected, fit_summary, summary_lines
 from recal.core import hindsight
 from recal.core.discovery import DiscoveryConfig, discover
 from recal.core.discovery_data import data_from_windows, rate_and_scale
@@ -19,10 +21,8 @@ from recal.core.pipeline_config import PipelineConfig
 from recal.core.residuals import misfit
 from recal.core.status import Status, predicted_sigma_mg
 from recal.core.windowing import window_means
-from recal.discovery_report import format_table
-from recal.hindsight_file import Corrected, fit_summary, summary_lines
 from recal.samples import rebatch
-from recal.sim import error_1s_mg
+from recal.sim.wearer import error_1s_mg
 
 hc = load_bench("honesty_cases")
 CASE = ({c.lacks: c for c in hc.CASES if c.lacks} | {"clean": hc.CASES[0]}  # clean digital

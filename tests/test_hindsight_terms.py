@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from bench_modules import load_bench
+from recal.commands.hindsight import Corrected
 from recal.core import hindsight
 from recal.core.discovery_data import rate_and_scale
 from recal.core.pipeline_config import PipelineConfig
-from recal.hindsight_file import Corrected
 from recal.samples import rebatch
 
 hc = load_bench("honesty_cases")

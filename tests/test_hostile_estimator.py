@@ -23,7 +23,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, SimResult, WearerSpec, forward_model, simulate, with_sensor
+from recal.sim.wearer import SensorSpec, SimResult, WearerSpec, forward_model, simulate, with_sensor
 
 RATE_HZ = 50.0
 S0 = 1024.0  # counts per g, the simulator's default ADC

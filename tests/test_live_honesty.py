@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from bench_modules import load_bench
-from recal import sim
+from recal.sim import wearer as sim
 
 MINUTES = 60.0
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from recal import cli
+from recal.commands.replay import replay
 from recal.io import messages as m
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
-from recal.replay import replay
 from recal.samples import CalibratedBatch, RawBatch
 
 FIXTURE = Path(__file__).parent / "fixtures" / "release_0_demo.mcap"
@@ -242,7 +242,7 @@ def test_zigzag_varints_of_every_width_read_back_by_the_official_runtime() -> No
 def test_the_log_keeps_the_body_as_times_and_a_rotation_and_reads_it_back(tmp_path: Path
                                                                           ) -> None:
     from recal.core.alignment import to_body
-    from recal.sinks import RecordingSink
+    from recal.node.sinks import RecordingSink
 
     r = np.array([[0.99, -0.1, 0.0], [0.1, 0.99, 0.0], [0.0, 0.0, 1.0]])
     r2 = r.T.copy()  # a second mounting, from a later alignment

@@ -117,7 +117,7 @@ def test_an_unfinished_mcap_keeps_the_repair_hint(tmp_path: Path,
 def test_the_demo_headline_is_the_settled_error_not_the_warm_up_mean() -> None:
     """The figure right after "calibrated" is the settled one; the whole-run mean, warm-up
     included, comes last and says so."""
-    from recal.demo import _print_summary
+    from recal.commands.demo import _print_summary
 
     lines: list[str] = []
     errors = {"offset_true_mg": [1.0] * 3, "offset_est_mg": [1.0] * 3, "offset_err_mg": [0.0] * 3,
@@ -135,8 +135,8 @@ def test_the_demo_headline_is_the_settled_error_not_the_warm_up_mean() -> None:
 
 
 def test_export_counts_uncalibrated_and_bootstrapping_apart() -> None:
+    from recal.commands.export import StatusCounts
     from recal.core.status import Status
-    from recal.export import StatusCounts
     from recal.samples import CalibratedBatch
 
     status = np.array([Status.UNCALIBRATED] * 3 + [Status.BOOTSTRAPPING] * 5

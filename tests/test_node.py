@@ -16,16 +16,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from memory_sink import MemorySink
-from recal import sim
-from recal.config import (
+from recal.config.settings import (
     AlignmentConfig,
     PipelineSettings,
     PriorConfig,
     SensorConfig,
     model_and_prior,
 )
-from recal.node import CalibrationNode, NodeSettings
+from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import RawBatch
+from recal.sim import wearer as sim
 
 RATE_HZ = 50.0
 SID = "chest"

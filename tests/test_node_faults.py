@@ -11,11 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from recal import sim
-from recal.checkpoints import Checkpoints, checkpoint_path, load_checkpoint
-from recal.config import AlignmentConfig, PipelineSettings, SensorConfig, model_and_prior
-from recal.node import CalibrationNode, NodeSettings, make_node
+from recal.config.settings import AlignmentConfig, PipelineSettings, SensorConfig, model_and_prior
+from recal.node.checkpoints import Checkpoints, checkpoint_path, load_checkpoint
+from recal.node.node import CalibrationNode, NodeSettings, make_node
 from recal.samples import RawBatch
+from recal.sim import wearer as sim
 from test_node import MemorySink
 
 RATE_HZ = 50.0
@@ -119,7 +119,7 @@ def test_a_channel_that_stays_missing_never_stops_the_saves(tmp_path: Path) -> N
 
 def _configured(sid: str = SID) -> NodeSettings:
     """A sensor with a datasheet prior (1024 counts per g), as configured for a fleet."""
-    from recal.config import PriorConfig
+    from recal.config.settings import PriorConfig
 
     sensor = SensorConfig(sid, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
     pipeline = PipelineSettings()

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from gateway_process import GatewayProcess
 from polling import wait_for
-from recal.io.pty_device import PtyDevice
+from recal.sim.pty_device import PtyDevice
 
 TRIES = 8
 START_S = 30.0
@@ -84,7 +84,7 @@ class _Listed:
 
 def test_default_id_is_the_by_id_name_else_the_usb_serial_else_the_port_path(
         tmp_path: Path) -> None:
-    from recal.config import default_sensor_id
+    from recal.config.settings import default_sensor_id
     from recal.io.recording import sensor_topic
 
     dev = tmp_path / "dev"
@@ -124,7 +124,7 @@ def test_two_ptys_without_ids_get_distinct_ids_from_their_paths(tmp_path: Path) 
     with PtyDevice(links[0]), PtyDevice(links[1]):
         lines: list[str] = []
         stop = threading.Event()
-        from recal.gateway import run_gateway
+        from recal.daemon.gateway import run_gateway
 
         ready: list[object] = []
         cfg = _config(tmp_path, "c")
@@ -147,7 +147,7 @@ def test_a_port_another_process_takes_after_an_unplug_stops_the_daemon(tmp_path:
     the daemon stops with one line naming the holder instead of waiting to take it over."""
     import fcntl
 
-    from recal.gateway import run_gateway
+    from recal.daemon.gateway import run_gateway
 
     link = tmp_path / "tty0"
     first = os.openpty()

@@ -9,7 +9,7 @@ import numpy as np
 
 from recal.cli import main
 from recal.io import recording as rec
-from recal.sim import load_truth
+from recal.sim.wearer import load_truth
 
 RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 

@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 
 from polling import wait_for
-from recal.config import parse_config
+from recal.commands.replay import replay
+from recal.config.settings import parse_config
 from recal.core.status import Status
+from recal.daemon.gateway import Gateway, run_gateway
 from recal.errors import RecordingError
-from recal.gateway import Gateway, run_gateway
 from recal.io import recording as rec
-from recal.io.pty_device import PtyDevice
 from recal.io.recording_writer import RecordingWriter
 from recal.io.repair import repair
-from recal.replay import replay
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
+from recal.sim.pty_device import PtyDevice
+from recal.sim.wearer import SensorSpec, SimResult, WearerSpec, simulate
 
 RATE_HZ = 100.0
 SID = "s1"

@@ -16,17 +16,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from recal import replay as replay_mod
-from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.commands import replay as replay_mod
+from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.io import recording as rec
 from recal.io.messages import encode_json
 from recal.io.recording_writer import RecordingWriter
-from recal.node import CalibrationNode, NodeSettings
+from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sim import SensorSpec, WearerSpec, simulate
+from recal.sim.wearer import SensorSpec, WearerSpec, simulate
 
 RATE_HZ = 50.0
 SID = "s1"

@@ -13,9 +13,9 @@ import numpy as np
 
 from gateway_process import GatewayProcess, write_config
 from polling import wait_for
-from recal.checkpoints import checkpoint_path, load_checkpoint
-from recal.io.pty_device import PtyDevice
+from recal.node.checkpoints import checkpoint_path, load_checkpoint
 from recal.samples import RawBatch
+from recal.sim.pty_device import PtyDevice
 from test_gateway import sim_raw, stream
 
 SID = "wrist"

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from recal import cli, sim
-from recal.config import model_and_prior, parse_config
+from recal import cli
+from recal.config.settings import model_and_prior, parse_config
 from recal.core import static
 from recal.core.bootstrap import locate
 from recal.core.estimator import Prior
@@ -26,6 +26,7 @@ from recal.core.pipeline_config import PipelineConfig
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
 from recal.samples import RawBatch
+from recal.sim import wearer as sim
 
 RATE = 50.0
 SID = "s1"

@@ -1,5 +1,5 @@
 """First contact with a serial device, its clock, and who owns the port: `python -m recal run`
-as a real process on a real pseudo-terminal (recal.io.pty_device), its MCAP read back with
+as a real process on a real pseudo-terminal (recal.sim.pty_device), its MCAP read back with
 the mcap reader. Every wait is bounded in count and time."""
 
 from __future__ import annotations
@@ -18,14 +18,14 @@ from mcap.reader import make_reader
 
 from gateway_process import GatewayProcess
 from polling import wait_for
+from recal.commands.replay import replay
 from recal.core.effects import Ratiometric
 from recal.core.model import SensorModel
 from recal.io import recording as rec
 from recal.io.ascii_lines import encode_ascii
-from recal.io.pty_device import PtyDevice
-from recal.replay import replay
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, simulate
+from recal.sim.pty_device import PtyDevice
+from recal.sim.wearer import SensorSpec, simulate
 
 SID = "s1"
 WRAP = 2**32
@@ -417,8 +417,8 @@ def test_lines_without_time_after_a_break() -> None:
 def test_run_options_set_what_the_config_would(tmp_path: Path) -> None:
     """--rate, --aux-names, --prior NAME (the config's priors, else the shipped ones),
     --counts-per-g and --zero-g, for every sensor served; an unknown name is one error."""
-    from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
-    from recal.sensor_options import SensorOptions, with_options
+    from recal.config.sensor_options import SensorOptions, with_options
+    from recal.config.settings import ConfigError, SensorConfig, ServiceConfig, load_config
 
     cfg = ServiceConfig(sensors=(SensorConfig("a", port="x"), SensorConfig("b", port="y")))
     got = with_options(cfg, SensorOptions(rate_hz=50.0, aux_names=("vdd",),

@@ -12,10 +12,10 @@ import pytest
 
 from recal.io.ascii_lines import AsciiLineParser
 from recal.io.cobs_frames import CobsFrameParser, encode_cobs
-from recal.io.pty_device import PtyDevice
 from recal.io.serial_source import EVENT_KINDS, SerialSource, SourceEvent
 from recal.io.wire_formats import make_parser
 from recal.samples import RawBatch
+from recal.sim.pty_device import PtyDevice
 
 AUX = ("temp_c", "vdd_v")
 

@@ -11,16 +11,16 @@ from functools import cache
 import numpy as np
 
 from bench_modules import load_bench
-from recal import sim
-from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import GROSS_MIN_MG, PROBATION_WINDOWS, RunningMisfit, Status
-from recal.node import CalibrationNode, NodeSettings
+from recal.node.node import CalibrationNode, NodeSettings
+from recal.node.sinks import EventSink
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sinks import EventSink
+from recal.sim import wearer as sim
 
 RATE_HZ = 25.0
 S0 = 1024.0
@@ -268,7 +268,7 @@ def test_a_clock_restart_holds_the_output_until_the_windows_agree() -> None:
 def test_the_console_and_the_replay_summary_name_an_unobserved_axis() -> None:
     """The upright wearer through a node: the console says which parameter is not observed,
     and `recal replay`'s summary lines (from the same node's state) say it too."""
-    from recal.replay import replay_lines
+    from recal.commands.replay import replay_lines
 
     res = sim.simulate(30 / 60, RATE_HZ, 3, _spec(3), sim.WearerSpec(upright_only=True))
     said: list[str] = []

@@ -1,4 +1,4 @@
-"""Tests of the seeded wearer / sensor simulator (recal.sim)."""
+"""Tests of the seeded wearer / sensor simulator (recal.sim.wearer)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from recal.sim import (
+from recal.sim.wearer import (
     POSTURE_KINDS,
     SensorSpec,
     SimResult,

@@ -72,7 +72,7 @@ def test_detector_is_the_same_in_any_batching_across_the_kernel_switch() -> None
 
 
 def test_daemon_and_its_detector_do_not_load_scipy_signal() -> None:
-    code = ("import sys, numpy as np, recal.cli, recal.gateway, recal.node\n"
+    code = ("import sys, numpy as np, recal.cli, recal.daemon.gateway, recal.node.node\n"
             "from recal.core.detector import DetectorConfig, detect, init_state\n"
             "cfg = DetectorConfig(rate_hz=100.0)\n"
             "s = init_state(cfg)\n"

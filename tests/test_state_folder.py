@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recal.checkpoints import (
+from recal.config.settings import CheckpointConfig, PriorConfig, SensorConfig, ServiceConfig
+from recal.node.checkpoints import (
     CheckpointError,
     Checkpoints,
     SensorLockedError,
@@ -22,10 +23,9 @@ from recal.checkpoints import (
     lock_sensor,
     previous_path,
 )
-from recal.config import CheckpointConfig, PriorConfig, SensorConfig, ServiceConfig
-from recal.node import CalibrationNode, make_node, node_settings
+from recal.node.node import CalibrationNode, make_node, node_settings
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, simulate
+from recal.sim.wearer import SensorSpec, simulate
 from test_checkpoints import Capture
 
 RATE_HZ = 50.0

@@ -16,10 +16,9 @@ import pytest
 from bench_modules import load_bench
 from held_checks import held_until_agreed, held_until_contradicted
 from memory_sink import MemorySink
-from recal import sim
-from recal.checkpoints import CheckpointError
 from recal.cli import main as cli_main
-from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.commands.replay import replay
+from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core.effects import Covariates
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
@@ -30,9 +29,10 @@ from recal.io import messages
 from recal.io import recording as rec
 from recal.io.csv_table import read_csv
 from recal.io.recording_writer import RecordingWriter
-from recal.node import CalibrationNode, NodeSettings
-from recal.replay import replay
+from recal.node.checkpoints import CheckpointError
+from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
+from recal.sim import wearer as sim
 
 RATE_HZ = 25.0
 S0 = 1024.0
@@ -231,7 +231,7 @@ def _nan_checkpoint(prior_too: bool) -> tuple[dict, sim.SimResult]:
 @pytest.mark.parametrize("prior_too", [False, True])
 def test_a_checkpoint_with_nan_parameters_publishes_no_nan(prior_too: bool) -> None:
     """Was: every calibrated sample NaN, on Zenoh and in the log. Now the checkpoint file is
-    refused (recal.checkpoints: the previous generation or the prior is used), and a pipeline
+    refused (recal.node.checkpoints: the previous generation or the prior is used), and a pipeline
     handed such a state all the same (a library caller) resets itself: the estimate goes back
     to the prior (held) or, with no finite prior either, to no estimate (uncalibrated, then a
     bootstrap): said by an event, never NaN, and nothing calibrated until data inform it."""
@@ -442,9 +442,9 @@ def test_the_gateway_says_when_a_sensor_is_first_calibrated(tmp_path: Path) -> N
     import time
 
     from polling import wait_for
-    from recal.config import parse_config
-    from recal.gateway import Gateway, run_gateway
-    from recal.io.pty_device import PtyDevice
+    from recal.config.settings import parse_config
+    from recal.daemon.gateway import Gateway, run_gateway
+    from recal.sim.pty_device import PtyDevice
 
     res = sim.simulate(3 / 60, 50.0, 11, _spec(11), sim.WearerSpec(still_s=(8.0, 20.0),
                                                                     move_s=(2.0, 5.0)))

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from memory_sink import MemorySink
-from recal.config import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
 from recal.core import timebase as tb
 from recal.io.ascii_lines import AsciiLineParser, encode_ascii
-from recal.node import CalibrationNode, NodeSettings
+from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import RawBatch
-from recal.sim import SensorSpec, SimResult, error_1s_mg, simulate
+from recal.sim.wearer import SensorSpec, SimResult, error_1s_mg, simulate
 
 WRAP = 2**32
 RATE_HZ = 25.0

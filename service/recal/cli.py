@@ -23,7 +23,7 @@ import numpy as np
 from recal.errors import RecalError, UsageError
 
 if TYPE_CHECKING:
-    from recal.sensor_options import SensorOptions
+    from recal.config.sensor_options import SensorOptions
 
 __all__ = ["build_parser", "main"]
 
@@ -67,10 +67,10 @@ def _positive(text: str) -> float:
 
 # --- simulate --------------------------------------------------------------------------------
 def _cmd_simulate(a: argparse.Namespace) -> int:
-    from recal import sim
-    from recal.importer import write_raw_messages
+    from recal.commands.import_csv import write_raw_messages
     from recal.io import csv_table
     from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
+    from recal.sim import wearer as sim
 
     rng = np.random.default_rng(a.seed)
     sensor = sim.SensorSpec.random(rng, offset_mg=a.offset_mg, gain_pct=a.gain_pct,
@@ -111,7 +111,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 
 # --- import / export -------------------------------------------------------------------------
 def _cmd_import(a: argparse.Namespace) -> int:
-    from recal.importer import import_csv
+    from recal.commands.import_csv import import_csv
 
     _new_output(a.out, a.overwrite, a.input)
     print("\n".join(import_csv(a.input, a.out, units=a.units, rate_hz=a.rate,
@@ -120,7 +120,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
 
 def _cmd_export(a: argparse.Namespace) -> int:
-    from recal.export import export_csv
+    from recal.commands.export import export_csv
 
     _new_output(a.csv, a.overwrite, a.input)
     _report_paths(a.json)
@@ -138,7 +138,7 @@ STATIC_SAY_ROWS = 50_000
 
 
 def _cmd_static(a: argparse.Namespace) -> int:
-    from recal import static_table as st
+    from recal.commands import static as st
 
     _report_paths(a.json)
     v = st.read_static_table(a.input)
@@ -158,11 +158,11 @@ def _cmd_static(a: argparse.Namespace) -> int:
 
 # --- discover --------------------------------------------------------------------------------
 def _cmd_discover(a: argparse.Namespace) -> int:
-    from recal import discovery_report as dr
-    from recal.config import load_model_file
+    from recal.commands import discover as dr
+    from recal.commands.static import read_static_table
+    from recal.config.settings import load_model_file
     from recal.core.discovery import DiscoveryConfig
     from recal.core.discovery_data import data_from_table
-    from recal.static_table import read_static_table
 
     _report_paths(a.json, a.write_model, a.plots)
     path = Path(a.input)
@@ -189,14 +189,14 @@ def _cmd_discover(a: argparse.Namespace) -> int:
 def _cmd_hindsight(a: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from recal import hindsight_file as hf
-    from recal.config import load_model_file
+    from recal.commands import hindsight as hf
+    from recal.config.settings import load_model_file
 
     _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json, a.out)
     model = load_model_file(a.model)[0] if a.model else None
     src = hf.open_source(a.input, a.sensor_id, a.rate, a.units)
-    # three passes over the input (module doc of recal.hindsight_file): samples read, in all
+    # three passes over the input (module doc of recal.commands.hindsight): samples read, in all
     with tqdm(unit="sample", unit_scale=True, desc="hindsight (3 passes)", leave=False,
               disable=a.quiet or None) as bar:
         summary = hf.calibrate_file(src, a.out, model, a.overwrite, bar.update)
@@ -208,7 +208,7 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
 
 # --- replay / repair / run / demo / router ---------------------------------------------------
 def _cmd_replay(a: argparse.Namespace) -> int:
-    from recal.replay import replay, replay_lines
+    from recal.commands.replay import replay, replay_lines
 
     _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json)
@@ -266,7 +266,7 @@ def _names(text: str) -> tuple[str, ...]:
 
 
 def _sensor_options(a: argparse.Namespace) -> SensorOptions:
-    from recal.sensor_options import SensorOptions
+    from recal.config.sensor_options import SensorOptions
 
     return SensorOptions(rate_hz=a.rate, aux_names=a.aux_names, prior=a.prior,
                          counts_per_g=a.counts_per_g, zero_g=a.zero_g)
@@ -274,7 +274,7 @@ def _sensor_options(a: argparse.Namespace) -> SensorOptions:
 
 def _cmd_run(a: argparse.Namespace) -> int:
     """The daemon, with the options of `_add_run_arguments`."""
-    from recal.gateway import run_gateway
+    from recal.daemon.gateway import run_gateway
 
     return run_gateway(a.config, a.port, a.sensor_id, a.mcap, model_path=a.model,
                        batch_s=None if a.batch_ms is None else a.batch_ms / 1e3,
@@ -303,14 +303,14 @@ def _add_serving_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def _cmd_node(a: argparse.Namespace) -> int:
-    from recal.remote_node import run_node
+    from recal.daemon.remote_node import run_node
 
     return run_node(a.config, a.sensor_id, a.mcap, a.model, accept_any=a.accept_any,
                     max_sensors=a.max_sensors)
 
 
 def _cmd_demo(a: argparse.Namespace) -> int:
-    from recal.demo import run_demo
+    from recal.commands.demo import run_demo
 
     return run_demo(a.seconds, a.out, seed=a.seed)
 
@@ -318,7 +318,7 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 def _cmd_router(a: argparse.Namespace) -> int:
     import zenoh
 
-    from recal.config import read_config_text
+    from recal.config.settings import read_config_text
     from recal.io.router import run_router
 
     if a.config is not None:  # missing, a directory, binary: said here, naming the file

@@ -2,8 +2,8 @@
 per sample into the operator's journal.
 
 Every line a long-running recal process prints for the operator goes through one
-:class:`LineLimiter` (`recal.runtime.console` wraps the process's output with it; the CLI puts
-:class:`RateLimitFilter` on the logging handler it installs). Lines are grouped by their
+:class:`LineLimiter` (`recal.daemon.runtime.console` wraps the process's output with it; the CLI
+puts :class:`RateLimitFilter` on the logging handler it installs). Lines are grouped by their
 template, the text with its numbers blanked out ("device time restarted (41 -> 40 ms)" and
 "(40 -> 39 ms)" are one kind): each kind passes ``burst`` lines per ``interval_s``, the rest of
 that interval are counted, and one line then says how many were left out and shows the last.

@@ -1,6 +1,6 @@
 """A stream's sample rate from its time stamps, when nobody configured it.
 
-The node holds a stream's first samples until it knows the rate (recal.node); the rule is a
+The node holds a stream's first samples until it knows the rate (recal.node.node); the rule is a
 pure function of the stamps, so it lives in the core. The median of the positive steps: a
 repeated stamp, a dropped sample or a clock jump moves it little.
 """

@@ -316,7 +316,7 @@ class SerialSource:
         """Never wait: open the port if an attempt is due, read what is waiting, parse it.
 
         The non-blocking twin of :meth:`read_batch` for a caller that serves many ports from
-        one selector loop (``recal.gateway``): call it when the selector reports the port
+        one selector loop (``recal.daemon.gateway``): call it when the selector reports the port
         readable (``readable=True``: no bytes then means the device hung up, as pyserial
         decides too), and now and then regardless, so that opening retries and the path check
         run. Reads at most ``max_batch_bytes``. Never raises for port or data trouble.

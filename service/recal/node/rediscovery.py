@@ -1,6 +1,6 @@
 """Effect discovery on a live node's buffer, in a thread of its own.
 
-``[discovery] every_h`` makes a :class:`recal.node.CalibrationNode` rerun effect discovery
+``[discovery] every_h`` makes a :class:`recal.node.node.CalibrationNode` rerun effect discovery
 (`recal.core.discovery`) on a copy of its window buffer now and then; the run takes seconds,
 so it goes to a daemon thread and the node takes its result ``adopt_after_s`` device seconds
 later. The core is pure, so the thread shares nothing with the node's pipeline. The method:

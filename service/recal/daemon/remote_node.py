@@ -3,7 +3,7 @@
 Gateways that run with ``run_nodes = false`` only log and publish ``recal/<sensor>/raw``; this
 process subscribes to ``recal/*/raw``, admits the sensor ids it serves (:class:`SensorGate`:
 named ones, and with ``accept_any`` a bounded number of others), runs one
-:class:`recal.node.CalibrationNode` per admitted sensor, publishes what they derive, answers
+:class:`recal.node.node.CalibrationNode` per admitted sensor, publishes what they derive, answers
 the status and align queries, and checkpoints like the gateway. Deployment and access
 control: docs/design.md; throughput: docs/performance.md.
 """
@@ -17,14 +17,8 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from recal.align_requests import align_handler
-from recal.checkpoints import Checkpoints, SensorLockedError
-from recal.config import SensorConfig, ServiceConfig, load_config
-from recal.errors import ConfigError
-from recal.io import bus as _bus
-from recal.io import messages
-from recal.node import CalibrationNode, make_node, node_settings
-from recal.runtime import (
+from recal.config.settings import SensorConfig, ServiceConfig, load_config
+from recal.daemon.runtime import (
     ERROR_PREFIX,
     console,
     flush_console,
@@ -33,8 +27,14 @@ from recal.runtime import (
     open_recording,
     watch_recording,
 )
+from recal.errors import ConfigError
+from recal.io import bus as _bus
+from recal.io import messages
+from recal.node.align_requests import align_handler
+from recal.node.checkpoints import Checkpoints, SensorLockedError
+from recal.node.node import CalibrationNode, make_node, node_settings
+from recal.node.sinks import BusSink, LoggedBusSink, Sink
 from recal.samples import RawBatch, join_by_layout
-from recal.sinks import BusSink, LoggedBusSink, Sink
 
 __all__ = ["NODE_READY_PREFIX", "NOTE_PREFIX", "REJECT_IDS_KEPT", "SensorGate", "run_node"]
 

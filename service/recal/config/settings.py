@@ -245,7 +245,7 @@ def default_checkpoint_dir() -> Path:
 
 @dataclass(frozen=True)
 class CheckpointConfig:
-    """Pipeline checkpoints: ``<dir>/<sensor>.json`` (see recal.checkpoints), every
+    """Pipeline checkpoints: ``<dir>/<sensor>.json`` (see recal.node.checkpoints), every
     ``interval_s``, within ``after_update_s`` of an accepted update (at most that often;
     0: off), and at stop. ``dir`` None: none kept."""
 

@@ -1,10 +1,10 @@
 """What every long-running recal process shares: stop signals, the bus, the recording and its
 health, and the operator's console lines.
 
-The gateway daemon (`recal.gateway`) and the remote calibration node (`recal.remote_node`)
-open the same Zenoh session and MCAP writer from the same [zenoh] and [mcap] settings and tell
-the operator the same things the same way; that lives here, once. Why the recording never
-stops the reading: docs/design.md.
+The gateway daemon (`recal.daemon.gateway`) and the remote calibration node
+(`recal.daemon.remote_node`) open the same Zenoh session and MCAP writer from the same [zenoh]
+and [mcap] settings and tell the operator the same things the same way; that lives here, once.
+Why the recording never stops the reading: docs/design.md.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from recal.config import ServiceConfig
+from recal.config.settings import ServiceConfig
 from recal.console import LineLimiter
 from recal.io.recording_writer import RecordingWriter, WriteHealth
 

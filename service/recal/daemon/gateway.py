@@ -3,7 +3,7 @@
 One I/O thread serves every port (one serial port per sensor) from a selector: it reads what
 the ready ports hold (never waiting on one device), then, per port, handles all the new
 samples as one batch: logged at once (``/<sensor>/raw``), the same bytes published on
-``recal/<sensor>/raw``, then calibrated by the sensor's :class:`recal.node.CalibrationNode`.
+``recal/<sensor>/raw``, then calibrated by the sensor's :class:`recal.node.node.CalibrationNode`.
 Logging before calibrating means a sample that reached the service is in the log exactly
 once, whatever happens to the node or the bus. When calibration takes longer, the next round
 finds more bytes waiting, so batches grow with the load; the serial ports' kernel buffers are
@@ -12,9 +12,9 @@ the back-pressure point. ``batch_s`` (``--batch-ms``) and ``idle_batch_s`` (conf
 and what each choice costs: docs/design.md and docs/performance.md.
 
 With ``run_nodes = false`` the gateway only logs and publishes raw; a node elsewhere
-(`recal.remote_node`) subscribes to ``recal/*/raw``.
+(`recal.daemon.remote_node`) subscribes to ``recal/*/raw``.
 
-The main thread checkpoints every pipeline (recal.checkpoints), reports aggregated counts
+The main thread checkpoints every pipeline (recal.node.checkpoints), reports aggregated counts
 (parse errors, dropped publishes) once a second as events, and waits for SIGINT/SIGTERM or a
 stop event. Stopping reads what the ports still hold, calibrates it, writes the checkpoints,
 closes (and indexes) the MCAP and the Zenoh session. A restart resumes each pipeline from its
@@ -24,7 +24,7 @@ Then every port that exists is opened (exclusively) before the recording: the op
 owns a port, so of two daemons started at the same instant on one port the one that lost
 exits at once with one line naming the holder; a port taken by another process later (after
 an unplug) stops the daemon the same way. A port that does not exist yet is waited for.
-A full disk never stops reading, calibrating or publishing (`recal.runtime.RecordingWatch`).
+A full disk never stops reading, calibrating or publishing (`recal.daemon.runtime.RecordingWatch`).
 
 Queries: ``recal/<sensor>/status`` answers the node's calibration state plus a ``gateway``
 section (port, samples logged, parse errors, ...); ``recal/<sensor>/align`` requests a
@@ -46,23 +46,15 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from recal.align_requests import align_handler
-from recal.checkpoints import Checkpoints, SensorLockedError
-from recal.config import (
+from recal.config.sensor_options import SensorOptions, with_options
+from recal.config.settings import (
     SensorConfig,
     ServiceConfig,
     check_model_channels,
     default_sensor_id,
     load_config,
 )
-from recal.errors import ConfigError, RecalError
-from recal.io import messages
-from recal.io.recording import sensor_topic
-from recal.io.recording_writer import RecordingWriter
-from recal.io.serial_source import SerialSource, SourceEvent, port_problem
-from recal.io.wire_formats import make_parser
-from recal.node import CalibrationNode, make_node, node_settings
-from recal.runtime import (
+from recal.daemon.runtime import (
     ERROR_PREFIX,
     RecordingWatch,
     console,
@@ -71,9 +63,17 @@ from recal.runtime import (
     open_bus,
     open_recording,
 )
+from recal.errors import ConfigError, RecalError
+from recal.io import messages
+from recal.io.recording import sensor_topic
+from recal.io.recording_writer import RecordingWriter
+from recal.io.serial_source import SerialSource, SourceEvent, port_problem
+from recal.io.wire_formats import make_parser
+from recal.node.align_requests import align_handler
+from recal.node.checkpoints import Checkpoints, SensorLockedError
+from recal.node.node import CalibrationNode, make_node, node_settings
+from recal.node.sinks import LoggedBusSink, RecordingSink, Sink
 from recal.samples import RawBatch, join_by_layout
-from recal.sensor_options import SensorOptions, with_options
-from recal.sinks import LoggedBusSink, RecordingSink, Sink
 
 __all__ = [
     "NOTE_PREFIX",
@@ -228,7 +228,7 @@ class Gateway:
 
     def run(self, stop: threading.Event) -> None:
         """Checkpoint (each sensor in its turn, and soon after its accepted updates, see
-        recal.checkpoints) and report until ``stop`` is set."""
+        recal.node.checkpoints) and report until ``stop`` is set."""
         self._stop_event = stop
         if self.fatal is not None:
             stop.set()
@@ -699,7 +699,7 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
         idle_batch_s: the tick while nobody subscribes live (see Gateway); None: the config's
             ``idle_batch_ms``.
         sensor_options: the command line's rate, channels and prior for every served sensor
-            (`recal.config.with_options`).
+            (`recal.config.settings.with_options`).
     Returns 0 on a clean stop, 2 for a configuration error (also one found at a sensor's first
     batch: a channel its model needs is not in the stream), 1 if the log or bus cannot open.
     """

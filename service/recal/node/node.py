@@ -1,14 +1,14 @@
 """Calibration node: one per sensor, between the bus or a recording and ``Pipeline.step``.
 
 A :class:`CalibrationNode` takes raw batches and hands everything it derives to a
-:class:`recal.sinks.Sink`: the calibrated batch, the calibration state whenever an update
+:class:`recal.node.sinks.Sink`: the calibrated batch, the calibration state whenever an update
 happened, the decimated plot topic, events and, once the mounting is known, the acceleration
 rotated into the body frame. The gateway (in-process), a node on another machine
-(`recal.remote_node`) and ``replay`` (no Zenoh) run this same code, so a replay reproduces a
-live run bit for bit. The messages and their fields: `recal.sinks`. Device time goes through
+(`recal.daemon.remote_node`) and ``replay`` (no Zenoh) run this same code, so a replay reproduces a
+live run bit for bit. The messages and their fields: `recal.node.sinks`. Device time goes through
 `recal.core.timebase` right before ``Pipeline.step`` (docs/design.md, device time); a model
 that needs a channel the stream lacks is one ``missing_channel`` event at the stream's first
-batch, then the node skips (``failed``). The alignment rules: `recal.align_requests`.
+batch, then the node skips (``failed``). The alignment rules: `recal.node.align_requests`.
 
 No calibration algebra here: the estimator is behind ``Pipeline``, the tilt math in
 ``recal.core.alignment``, the time base in ``recal.core.timebase``.
@@ -29,14 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from recal.align_requests import AlignmentRequests
-from recal.checkpoints import (
-    CHECKPOINT_FORMAT,
-    Checkpoints,
-    estimate_problem,
-    restore_pipeline,
-)
-from recal.config import (
+from recal.config.settings import (
     AlignmentConfig,
     PipelineSettings,
     RediscoveryConfig,
@@ -53,9 +46,16 @@ from recal.core.outputs import StepOutput
 from recal.core.pipeline import Pipeline
 from recal.core.rate import infer_rate_hz
 from recal.core.status import NOT_FINITE_SIGMA_MG, REOPEN_PROBATION_WINDOWS, Status
-from recal.rediscovery import Rediscovery as _Rediscovery
+from recal.node.align_requests import AlignmentRequests
+from recal.node.checkpoints import (
+    CHECKPOINT_FORMAT,
+    Checkpoints,
+    estimate_problem,
+    restore_pipeline,
+)
+from recal.node.rediscovery import Rediscovery as _Rediscovery
+from recal.node.sinks import Sink
 from recal.samples import CalibratedBatch, RawBatch, conform_channels
-from recal.sinks import Sink
 
 __all__ = [
     "CalibrationNode",
@@ -326,7 +326,7 @@ class CalibrationNode(AlignmentRequests):
     def from_checkpoint(cls, settings: NodeSettings, sink: Sink,
                         doc: dict[str, Any]) -> CalibrationNode:
         """Continue from :meth:`checkpoint` output (ValueError if it does not fit or cannot be
-        trusted: `recal.checkpoints.restore_pipeline` checks the state)."""
+        trusted: `recal.node.checkpoints.restore_pipeline` checks the state)."""
         if doc.get("sensor_id") != settings.sensor_id:
             raise ValueError(f"checkpoint is for sensor {doc.get('sensor_id')!r}, "
                              f"not {settings.sensor_id!r}")
@@ -472,7 +472,7 @@ class CalibrationNode(AlignmentRequests):
     def _vet(self, t_us: int, log_ns: int) -> None:
         """Whatever the pipeline took on (a bootstrap, a reset, a new zero-g and scale, a
         rediscovered model) must pass the checks its checkpoint meets at the next start
-        (`recal.checkpoints.estimate_problem`, bounds around the configured zero-g): a node
+        (`recal.node.checkpoints.estimate_problem`, bounds around the configured zero-g): a node
         never holds a state it could not save, and a stream no sensor of this configuration
         sends (a crafted one) cannot move it there. Refused: back to the last state that
         passed (else the configured start), an event ``estimate_refused`` and a line. Runs

@@ -1,7 +1,7 @@
 """The simulator's sensor: a triaxial accelerometer's forward model from true specific force
 to the readings it sends, its inverse, and the sensor types people plug in.
 
-`recal.sim` passes a simulated wearer's motion through it; tests and benches compare what the
+`recal.sim.wearer` passes a simulated wearer's motion through it; tests and benches compare what the
 estimator recovers with the truth it was given. Pure numpy.
 
 Sensor forward model (the estimator inverts it; tests compare its output with `a_true_g`)

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from recal.commands.discover import misfit_dict, misfit_words
 from recal.core import detector as det
 from recal.core import hindsight
 from recal.core.channels import usable
@@ -32,7 +33,6 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import UNPINNED_MG, Status, predicted_sigma_mg, sigma_form, unsettled
-from recal.discovery_report import misfit_dict, misfit_words
 from recal.errors import RecordingError
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 

@@ -1,7 +1,7 @@
 """Where a calibration node's output goes: nowhere, a list of events, a recording, the bus,
 or the recording and the bus at once.
 
-A :class:`recal.node.CalibrationNode` hands every message it derives to a :class:`Sink`; the
+A :class:`recal.node.node.CalibrationNode` hands every message it derives to a :class:`Sink`; the
 same node then runs in the gateway (:class:`LoggedBusSink`), on a machine of its own
 (:class:`BusSink` or :class:`LoggedBusSink`) and in ``recal replay`` (:class:`RecordingSink`,
 no Zenoh). The sinks are typed against what they use of a recording writer (:class:`Writer`)

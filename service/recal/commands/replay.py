@@ -1,7 +1,7 @@
 """Replay a recording through the calibration node, without Zenoh.
 
 ``replay(in_mcap, out_mcap)`` reads every ``/<sensor>/raw`` batch of a recording (rotated parts
-included), runs each sensor's :class:`recal.node.CalibrationNode` (the code path the gateway
+included), runs each sensor's :class:`recal.node.node.CalibrationNode` (the code path the gateway
 runs live) and writes raw + calibrated + body + calibration + plot + events + setup to a new
 recording, with the original log times.
 
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from recal.config import (
+from recal.config.settings import (
     AlignmentConfig,
     SensorConfig,
     ServiceConfig,
@@ -47,9 +47,9 @@ from recal.core.timebase import TimebaseState
 from recal.io import recording as rec
 from recal.io.messages import Arrivals
 from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
-from recal.node import CalibrationNode, NodeSettings, model_name, node_settings
+from recal.node.node import CalibrationNode, NodeSettings, model_name, node_settings
+from recal.node.sinks import RecordingSink
 from recal.samples import CalibratedBatch, RawBatch
-from recal.sinks import RecordingSink
 
 __all__ = ["replay", "replay_lines"]
 
@@ -230,7 +230,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
         in_mcap: a finished recording (its rotated parts are read too). A crashed one must be
             repaired first (``recal.io.repair.repair``).
         out_mcap: the new recording (an existing file is an error unless ``overwrite``).
-        model: a model file for every sensor (see ``recal.config.load_model_file``).
+        model: a model file for every sensor (see ``recal.config.settings.load_model_file``).
         config: a ServiceConfig or TOML path: per-sensor priors, rates, pipeline settings.
         progress: show a tqdm progress bar (in raw messages) on stderr.
         sensor_ids: only these sensors (default: all with a raw topic).

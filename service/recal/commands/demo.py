@@ -1,7 +1,7 @@
 """``recal demo``: the whole service on one machine, with no hardware and no router.
 
-A simulated wearer (``recal.sim``: a sensor with random offsets and gains) streams ASCII lines
-in real time, sped up, on a pseudo-terminal (:class:`recal.io.pty_device.PtyDevice`). The
+A simulated wearer (``recal.sim.wearer``: a sensor with random offsets and gains) streams ASCII
+lines in real time, sped up, on a pseudo-terminal (:class:`recal.sim.pty_device.PtyDevice`). The
 gateway daemon reads it as it would a USB accelerometer, logs to MCAP and publishes on Zenoh in
 peer mode on 127.0.0.1 (explicit endpoints, no scouting). The demo's own Zenoh session connects
 to the gateway, queries ``recal/demo/status`` for a live progress line and times the calibrated
@@ -32,12 +32,12 @@ from typing import Any
 
 import numpy as np
 
-from recal.config import parse_config
-from recal.gateway import Gateway, run_gateway
+from recal.config.settings import parse_config
+from recal.daemon.gateway import Gateway, run_gateway
+from recal.daemon.runtime import ERROR_PREFIX
 from recal.io import recording as rec
-from recal.io.pty_device import PtyDevice
-from recal.runtime import ERROR_PREFIX
-from recal.sim import SensorSpec, SimResult, WearerSpec, simulate
+from recal.sim.pty_device import PtyDevice
+from recal.sim.wearer import SensorSpec, SimResult, WearerSpec, simulate
 
 __all__ = ["free_port", "new_run_dir", "run_demo"]
 

@@ -63,7 +63,7 @@ def export_csv(source: str, csv_out: str, sensor_id: str | None, topic: str
 
 def _device_unit(source: str, sid: str) -> str | None:
     """The unit the sensor's device time was read in ("us", "ms", "s"), from the first setup
-    its node recorded (`recal.node`); None without one."""
+    its node recorded (`recal.node.node`); None without one."""
     for _, obj, _ in recording.iter_json(source, recording.sensor_topic(sid, "setup")):
         base = obj.get("timebase") if isinstance(obj, dict) else None
         unit_us = base.get("unit_us") if isinstance(base, dict) else None

@@ -6,7 +6,7 @@ forward model to give the raw readings the device would send. Pure numpy/scipy, 
 except `save_truth` / `load_truth`. Same seed -> bit-identical result.
 
 The sensor (its forward model, cross-axis matrix and the sensor types people plug in) is
-`recal.simulated_sensor`; its names are importable from here too.
+`recal.sim.sensor`; its names are importable from here too.
 
 Wearer model
 ------------
@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from recal.errors import UsageError
 from recal.samples import RawBatch
-from recal.simulated_sensor import (
+from recal.sim.sensor import (
     SENSOR_TYPES,
     SensorSpec,
     error_1s_mg,

@@ -30,11 +30,11 @@ ALIGN_NOTE_PREFIX = "recal node:"  # the align query's console lines, unless tol
 
 
 class AlignmentRequests:
-    """The request side of a :class:`recal.node.CalibrationNode` (a mixin: it uses the node's
+    """The request side of a :class:`recal.node.node.CalibrationNode` (a mixin: it uses the node's
     lock, settings, still-run tracker, events and ``_set_alignment``)."""
 
     sensor_id: str
-    settings: Any  # recal.node.NodeSettings
+    settings: Any  # recal.node.node.NodeSettings
     last_t_us: int | None
     _lock: threading.RLock
     _tracker: al.StillTracker | None

@@ -1,0 +1,1 @@
+"""The batch commands: replay, hindsight, discover, import, export, static, demo."""
