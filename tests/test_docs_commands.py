@@ -84,7 +84,7 @@ def test_the_readme_command_table_lists_every_flag(command: str) -> None:
 def test_the_readme_topic_table_lists_every_topic_a_sensor_gets() -> None:
     """The per-sensor topics the recording writer knows and recal.node.sinks documents (``name``
     ...) each have a README row."""
-    doc = (SERVICE / "recal" / "sinks.py").read_text().split('"""')[1]
+    doc = (SERVICE / "recal" / "node" / "sinks.py").read_text().split('"""')[1]
     suffixes = set(re.findall(r"^\* ``(\w+)``", doc, re.MULTILINE)) | set(_SUFFIX_SCHEMAS)
     assert {"raw", "calibrated", "setup"} <= suffixes, suffixes
     readme = (ROOT / "README.md").read_text()
