@@ -1,6 +1,7 @@
 """COBS binary frames, one sample a frame: the parser, its CRC, and the device-side encoder.
 
-(COBS guarantees no zero inside an encoded frame). Payload, all little-endian, 25 + 4*K bytes::
+Each sample is one payload, COBS-encoded and ended by a zero byte (COBS guarantees no zero
+inside an encoded frame). Payload, all little-endian, 25 + 4*K bytes::
 
     offset  size  field
     0       1     version, 1
@@ -15,6 +16,7 @@
 
 A payload is at most 153 bytes, so an encoded frame is 1 byte longer than its payload (one
 COBS block, no 0xFF code). Binary frames carry no channel names: they come from the
+configuration (``aux_names``), else the channels are named by position.
 
 The stream part (carry-over, resync, error counts) is `recal.io.frames`; why a vectorized
 decode beside ``cobs.decode``: docs/performance.md.
@@ -29,7 +31,15 @@ from collections.abc import Sequence
 import numpy as np
 from cobs import cobs
 
-from recal.io.frames import DEFAULT_MAX_ABS_XYZ, DelimitedParser, Rows, check_values, keep_valid
+from recal.io.frames import (
+    DEFAULT_MAX_ABS_XYZ,
+    DelimitedParser,
+    DeviceStyle,
+    Rows,
+    WireFormat,
+    check_values,
+    keep_valid,
+)
 from recal.samples import RawBatch
 
 __all__ = [
@@ -37,6 +47,7 @@ __all__ = [
     "COBS_MAX_AUX",
     "COBS_VERSION",
     "DEFAULT_MAX_FRAME_BYTES",
+    "WIRE_FORMAT",
     "CobsFrameParser",
     "cobs_payload_bytes",
     "crc16_ccitt_false",
@@ -244,7 +255,7 @@ class CobsFrameParser(DelimitedParser):
         rows.add_many(t_us[keep], vals[keep])
 
 
-# --------------------------------------------------------------------------- factory
+# --------------------------------------------------------------------------- device side
 
 
 def encode_cobs(batch: RawBatch, xyz: str = "auto") -> bytes:
@@ -276,3 +287,11 @@ def encode_cobs(batch: RawBatch, xyz: str = "auto") -> bytes:
     raw = records.tobytes()
     size = records.dtype.itemsize
     return b"".join(cobs.encode(raw[i:i + size]) + b"\x00" for i in range(0, len(raw), size))
+
+
+def _device_frames(batch: RawBatch, style: DeviceStyle) -> bytes:
+    return encode_cobs(batch, xyz=style.xyz)
+
+
+# frames carry no channel names, so no header; nor records without time
+WIRE_FORMAT = WireFormat("cobs", CobsFrameParser, _device_frames)
