@@ -49,6 +49,7 @@ __all__ = [
     "DEFAULT_MAX_FRAME_BYTES",
     "WIRE_FORMAT",
     "CobsFrameParser",
+    "cobs_decode_rows",
     "cobs_payload_bytes",
     "crc16_ccitt_false",
     "encode_cobs",
@@ -107,8 +108,9 @@ def _payload_dtype(n_aux: int, xyz: str) -> np.dtype:
                      ("xyz", xyz, (3,)), ("aux", "<f4", (n_aux,)), ("crc", "<u2")])
 
 
-def _cobs_decode_rows(enc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vectorized COBS decode of (F, E) encoded frames whose payload is shorter than 254 bytes.
+def cobs_decode_rows(enc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vectorized COBS decode of (F, E) encoded frames whose payload is shorter than 254 bytes
+    (for every COBS-framed wire format).
 
     Returns (decoded (F, E-1), ok (F,)): ok is False where the code-byte chain does not end
     exactly at the frame end (those frames need ``cobs.decode`` to say what is wrong).
@@ -228,7 +230,7 @@ class CobsFrameParser(DelimitedParser):
                 enc = np.frombuffer(chunk + b"\x00", np.uint8).reshape(-1, width + 1)[:, :width]
             else:
                 enc = arr[starts[cand, None] + np.arange(width)]
-            decoded, ok = _cobs_decode_rows(enc)
+            decoded, ok = cobs_decode_rows(enc)
             crc = decoded[:, -2].astype(np.uint32) | (decoded[:, -1].astype(np.uint32) << 8)
             ok &= crc16_ccitt_false(decoded[:, :-2]) == crc
             ok &= (decoded[:, 0] == COBS_VERSION) & (decoded[:, 2] == n_aux)
