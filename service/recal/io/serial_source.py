@@ -204,7 +204,7 @@ class _Reopen:
 
     initial_s: float
     max_s: float
-    delay_s: float = 0.0
+    delay_s: float = field(init=False)  # the wait after the next failed open
     next_open_s: float = 0.0  # on the source's clock
     attempts: int = 0  # failed opens since the last success
     ever_opened: bool = False
