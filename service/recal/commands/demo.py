@@ -36,6 +36,7 @@ from recal.config.settings import parse_config
 from recal.daemon.gateway import Gateway, run_gateway
 from recal.daemon.runtime import ERROR_PREFIX
 from recal.io import recording as rec
+from recal.io.wire_formats import DEFAULT_FORMAT
 from recal.sim.pty_device import PtyDevice
 from recal.sim.wearer import SensorSpec, SimResult, WearerSpec, simulate
 
@@ -181,7 +182,7 @@ def run_demo(seconds: float = 45.0, out_dir: str | Path | None = None, *,
         "zenoh": {"mode": "peer", "listen": [endpoint], "connect": []},
         "mcap": {"flush_interval_s": 0.5},
         "checkpoint": {"dir": str(ckpt_dir), "interval_s": 10.0},
-        "sensors": [{"id": SENSOR_ID, "port": str(link), "format": "ascii", "aux_names": [],
+        "sensors": [{"id": SENSOR_ID, "port": str(link), "format": DEFAULT_FORMAT, "aux_names": [],
                      "rate_hz": rate_hz, "prior": {"counts_per_g": COUNTS_PER_G}}],
     }, out_path, "demo")
     emit(f"recal demo: {minutes:g} min of simulated wear at {rate_hz:g} Hz, streamed "
@@ -190,7 +191,7 @@ def run_demo(seconds: float = 45.0, out_dir: str | Path | None = None, *,
     stop = threading.Event()
     ready: list[Gateway] = []
     lines: list[str] = []
-    with PtyDevice(str(link), fmt="ascii") as dev:
+    with PtyDevice(str(link), fmt=DEFAULT_FORMAT) as dev:
         th = threading.Thread(target=run_gateway, args=(cfg,), daemon=True, kwargs={
             "mcap_out": out_path / "demo.mcap", "stop_event": stop, "on_ready": ready.append,
             "out": lines.append})

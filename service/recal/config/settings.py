@@ -26,8 +26,9 @@ relative to the file)::
                 (default: only those in [[sensors]] or --sensor-id)
     [discovery] every_h = 0 (off), min_windows = 60, blocks = 10: rediscover effects on the
                 live buffer (recal.core.discovery) and continue with the extended model
-    [[sensors]] id, port, format = "ascii"|"cobs", baudrate, aux_names, rate_hz,
-                full_scale_g, model, prior = "<name in priors_file>" | { inline table }
+    [[sensors]] id, port, format = "ascii" (a name in recal.io.wire_formats), baudrate,
+                aux_names, rate_hz, full_scale_g, model,
+                prior = "<name in priors_file>" | { inline table }
 
 A prior (inline, or ``[priors.<name>]`` in the priors file): ``counts_per_g`` (nominal
 sensitivity s0, raw units per g), ``zero_g`` (the reading at 0 g, raw units: one number or
@@ -56,6 +57,7 @@ from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline_config import PipelineConfig
 from recal.errors import ConfigError
+from recal.io.wire_formats import DEFAULT_FORMAT, WIRE_FORMATS
 
 __all__ = [
     "AlignmentConfig",
@@ -79,7 +81,7 @@ __all__ = [
     "parse_config",
 ]
 
-FORMATS = ("ascii", "cobs")
+FORMATS = tuple(WIRE_FORMATS)
 MODELS = ("diagonal", "full")
 MODES = ("all", "offsets")
 ZENOH_MODES = ("peer", "client", "router")
@@ -120,7 +122,7 @@ class SensorConfig:
     Attributes:
         id: sensor id (topic- and key-safe: ``[A-Za-z0-9][A-Za-z0-9_.-]*``).
         port: device path or pyserial URL (None: only a remote node sees this sensor).
-        format: wire format, "ascii" lines or "cobs" frames.
+        format: wire format, a name in `recal.io.wire_formats` ("ascii" lines, "cobs" frames).
         baudrate: UART rate (ignored by ptys).
         aux_names: auxiliary channels (None: learnt from the stream's header).
         rate_hz: nominal sample rate, Hz (None: inferred from the time stamps).
@@ -131,7 +133,7 @@ class SensorConfig:
 
     id: str
     port: str | None = None
-    format: str = "ascii"
+    format: str = DEFAULT_FORMAT
     baudrate: int = 115200
     aux_names: tuple[str, ...] | None = None
     rate_hz: float | None = None
@@ -528,8 +530,8 @@ def _sensor(ctx: _Ctx, d: Any, priors: Mapping[str, PriorConfig]) -> SensorConfi
     else:
         prior = _prior(ctx.sub(f"{ctx.table}.prior"), prior_v)
     return SensorConfig(
-        id=sid, port=_str(ctx, d, "port", None), format=_str(ctx, d, "format", "ascii",
-                                                               FORMATS) or "ascii",
+        id=sid, port=_str(ctx, d, "port", None), format=_str(ctx, d, "format", DEFAULT_FORMAT,
+                                                               FORMATS) or DEFAULT_FORMAT,
         baudrate=_int(ctx, d, "baudrate", 115200),
         aux_names=_strings(ctx, d, "aux_names"),
         rate_hz=_num(ctx, d, "rate_hz", None, positive=True),

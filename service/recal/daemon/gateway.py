@@ -68,7 +68,7 @@ from recal.io import messages
 from recal.io.recording import sensor_topic
 from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource, SourceEvent, port_problem
-from recal.io.wire_formats import make_parser
+from recal.io.wire_formats import make_parser, wire_format
 from recal.node.align_requests import align_handler
 from recal.node.checkpoints import Checkpoints, SensorLockedError
 from recal.node.node import CalibrationNode, make_node, node_settings
@@ -305,7 +305,7 @@ class Gateway:
             # rest would start the next run's stream and both halves would be lost
             deadline = time.monotonic() + FINAL_LINE_S
             while (time.monotonic() < deadline
-                   and any(getattr(p.source.parser, "partial", False)
+                   and any(p.source.parser.partial
                            for p in self.ports.values() if p.source.is_open)):
                 time.sleep(0.005)
                 self._guarded_round(sel, [], final=True)
@@ -487,7 +487,8 @@ class Gateway:
         p.parse_noted, p.parse_noted_s = snapshot, now_s
         what = ", ".join(f"{k} {v}" for k, v in sorted(new.items()))
         hint = ""
-        if "wrong_columns" in new and p.sensor.format == "ascii" and p.sensor.rate_hz is None:
+        if ("wrong_columns" in new and p.sensor.rate_hz is None
+                and wire_format(p.sensor.format).untimed_by_rate):
             hint = " (lines x,y,z[,aux] without a time column need the rate: --rate or rate_hz)"
         self.out(f"{NOTE_PREFIX} {p.sensor_id}: skipped bad input ({what}); valid samples "
                  f"kept{hint}")
@@ -627,9 +628,9 @@ class PortTakenError(RecalError):
 
 def _source(s: SensorConfig) -> SerialSource:
     assert s.port is not None
-    # a known rate lets ASCII lines come without a time column (x,y,z[,aux])
-    extra = {"rate_hz": s.rate_hz} if s.format == "ascii" and s.rate_hz else {}
-    parser = make_parser(s.format, s.aux_names, **extra)
+    # a known rate lets records come without a time column where the format allows it
+    # (ASCII lines x,y,z[,aux]); make_parser passes it to such formats only
+    parser = make_parser(s.format, s.aux_names, rate_hz=s.rate_hz)
     return SerialSource(s.port, parser, s.baudrate, read_timeout_s=0.02)
 
 

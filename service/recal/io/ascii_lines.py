@@ -24,10 +24,18 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from recal.io.frames import DEFAULT_MAX_ABS_XYZ, DelimitedParser, Rows, check_values, keep_valid
+from recal.io.frames import (
+    DEFAULT_MAX_ABS_XYZ,
+    DelimitedParser,
+    DeviceStyle,
+    Rows,
+    WireFormat,
+    check_values,
+    keep_valid,
+)
 from recal.samples import RawBatch
 
-__all__ = ["DEFAULT_MAX_LINE_BYTES", "AsciiLineParser", "encode_ascii"]
+__all__ = ["DEFAULT_MAX_LINE_BYTES", "WIRE_FORMAT", "AsciiLineParser", "encode_ascii"]
 
 _T_EXACT_LIMIT = 2**53  # a float t_us below this is an exact integer
 
@@ -423,9 +431,6 @@ def _commas_fit(commas: np.ndarray, starts: np.ndarray, ends: np.ndarray, per_li
     return bool(((grid[:, 0] >= starts) & (grid[:, -1] < ends)).all())
 
 
-# --------------------------------------------------------------------------- COBS
-
-
 # --------------------------------------------------------------------------- encoders
 
 
@@ -461,3 +466,17 @@ def encode_ascii(batch: RawBatch, header: bool = False, line_ending: str = "\n",
     else:
         out.extend(f"{','.join(map(fmt, row))}{line_ending}" for row in values)
     return "".join(out).encode("ascii")
+
+
+def _device_lines(batch: RawBatch, style: DeviceStyle) -> bytes:
+    return encode_ascii(batch, header=False, line_ending=style.line_ending,
+                        time_column=style.time_column)
+
+
+def _device_header(aux_names: tuple[str, ...], style: DeviceStyle) -> bytes:
+    return encode_ascii(RawBatch.empty(aux_names), header=True, line_ending=style.line_ending,
+                        time_column=style.time_column, header_prefix=style.header_prefix)
+
+
+WIRE_FORMAT = WireFormat("ascii", AsciiLineParser, _device_lines, _device_header,
+                         untimed_by_rate=True)

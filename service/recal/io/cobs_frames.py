@@ -1,6 +1,7 @@
 """COBS binary frames, one sample a frame: the parser, its CRC, and the device-side encoder.
 
-(COBS guarantees no zero inside an encoded frame). Payload, all little-endian, 25 + 4*K bytes::
+Each sample is one payload, COBS-encoded and ended by a zero byte (COBS guarantees no zero
+inside an encoded frame). Payload, all little-endian, 25 + 4*K bytes::
 
     offset  size  field
     0       1     version, 1
@@ -15,6 +16,7 @@
 
 A payload is at most 153 bytes, so an encoded frame is 1 byte longer than its payload (one
 COBS block, no 0xFF code). Binary frames carry no channel names: they come from the
+configuration (``aux_names``), else the channels are named by position.
 
 The stream part (carry-over, resync, error counts) is `recal.io.frames`; why a vectorized
 decode beside ``cobs.decode``: docs/performance.md.
@@ -29,7 +31,15 @@ from collections.abc import Sequence
 import numpy as np
 from cobs import cobs
 
-from recal.io.frames import DEFAULT_MAX_ABS_XYZ, DelimitedParser, Rows, check_values, keep_valid
+from recal.io.frames import (
+    DEFAULT_MAX_ABS_XYZ,
+    DelimitedParser,
+    DeviceStyle,
+    Rows,
+    WireFormat,
+    check_values,
+    keep_valid,
+)
 from recal.samples import RawBatch
 
 __all__ = [
@@ -37,7 +47,9 @@ __all__ = [
     "COBS_MAX_AUX",
     "COBS_VERSION",
     "DEFAULT_MAX_FRAME_BYTES",
+    "WIRE_FORMAT",
     "CobsFrameParser",
+    "cobs_decode_rows",
     "cobs_payload_bytes",
     "crc16_ccitt_false",
     "encode_cobs",
@@ -96,8 +108,9 @@ def _payload_dtype(n_aux: int, xyz: str) -> np.dtype:
                      ("xyz", xyz, (3,)), ("aux", "<f4", (n_aux,)), ("crc", "<u2")])
 
 
-def _cobs_decode_rows(enc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vectorized COBS decode of (F, E) encoded frames whose payload is shorter than 254 bytes.
+def cobs_decode_rows(enc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vectorized COBS decode of (F, E) encoded frames whose payload is shorter than 254 bytes
+    (for every COBS-framed wire format).
 
     Returns (decoded (F, E-1), ok (F,)): ok is False where the code-byte chain does not end
     exactly at the frame end (those frames need ``cobs.decode`` to say what is wrong).
@@ -217,7 +230,7 @@ class CobsFrameParser(DelimitedParser):
                 enc = np.frombuffer(chunk + b"\x00", np.uint8).reshape(-1, width + 1)[:, :width]
             else:
                 enc = arr[starts[cand, None] + np.arange(width)]
-            decoded, ok = _cobs_decode_rows(enc)
+            decoded, ok = cobs_decode_rows(enc)
             crc = decoded[:, -2].astype(np.uint32) | (decoded[:, -1].astype(np.uint32) << 8)
             ok &= crc16_ccitt_false(decoded[:, :-2]) == crc
             ok &= (decoded[:, 0] == COBS_VERSION) & (decoded[:, 2] == n_aux)
@@ -244,7 +257,7 @@ class CobsFrameParser(DelimitedParser):
         rows.add_many(t_us[keep], vals[keep])
 
 
-# --------------------------------------------------------------------------- factory
+# --------------------------------------------------------------------------- device side
 
 
 def encode_cobs(batch: RawBatch, xyz: str = "auto") -> bytes:
@@ -276,3 +289,11 @@ def encode_cobs(batch: RawBatch, xyz: str = "auto") -> bytes:
     raw = records.tobytes()
     size = records.dtype.itemsize
     return b"".join(cobs.encode(raw[i:i + size]) + b"\x00" for i in range(0, len(raw), size))
+
+
+def _device_frames(batch: RawBatch, style: DeviceStyle) -> bytes:
+    return encode_cobs(batch, xyz=style.xyz)
+
+
+# frames carry no channel names, so no header; nor records without time
+WIRE_FORMAT = WireFormat("cobs", CobsFrameParser, _device_frames)

@@ -6,8 +6,9 @@ points gives the same samples and the same error counts. Nothing a device sends 
 is counted in ``parser.errors`` (a :class:`ParseErrors`) and skipped, and every valid sample
 after it is kept, exactly once, in order. :class:`DelimitedParser` owns the byte stream
 (buffering up to a delimiter, the bounded carry-over, skipping an over-long record, the reset
-after a break); `recal.io.ascii_lines` and `recal.io.cobs_frames` decode the records, and
-`recal.io.wire_formats.make_parser` picks one.
+after a break); each format's module (`recal.io.ascii_lines`, `recal.io.cobs_frames`) decodes
+the records and declares itself in a :class:`WireFormat`, and `recal.io.wire_formats` names
+them.
 
 Which auxiliary channels a stream carries (its layout) comes from, in this order of authority:
   1. the constructor's ``aux_names`` (configuration): fixed for the parser's life; a header that
@@ -39,7 +40,7 @@ from __future__ import annotations
 
 import math
 import types
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar, Protocol
 
@@ -50,10 +51,12 @@ from recal.samples import RawBatch
 __all__ = [
     "DEFAULT_MAX_ABS_XYZ",
     "DelimitedParser",
+    "DeviceStyle",
     "FrameParser",
     "Layout",
     "ParseErrors",
     "Rows",
+    "WireFormat",
     "check_values",
     "keep_valid",
 ]
@@ -110,18 +113,69 @@ class ParseErrors:
 
 
 class FrameParser(Protocol):
-    """What a byte source needs from a parser (both parsers here implement it)."""
+    """What a byte source needs from a parser (:class:`DelimitedParser` implements it)."""
 
     errors: ParseErrors
 
     @property
     def aux_names(self) -> tuple[str, ...]: ...
 
+    @property
+    def partial(self) -> bool:
+        """Whether part of a record is waiting for its delimiter."""
+
+    @property
+    def needs_time_anchor(self) -> bool:
+        """Whether records without time may come and no arrival time anchors them yet: the
+        shell then calls :meth:`anchor_time` with its clock before the next :meth:`feed`."""
+
+    def anchor_time(self, t_us: int) -> None: ...
+
     def feed(self, data: bytes) -> RawBatch: ...
 
     def flush(self) -> RawBatch: ...
 
     def reset(self, resync: bool = True) -> None: ...
+
+
+@dataclass(frozen=True)
+class DeviceStyle:
+    """How a (simulated) device writes its wire format; each encoder reads the fields it knows.
+
+    Attributes:
+        line_ending: "\\n" or "\\r\\n" (line formats).
+        xyz: x, y, z as "int32", "float32" or "auto" (binary formats that offer both).
+        time_column: False: records without time (only a format with ``untimed_by_rate``).
+        header_prefix: "#" or "" before a header line.
+    """
+
+    line_ending: str = "\n"
+    xyz: str = "auto"
+    time_column: bool = True
+    header_prefix: str = "#"
+
+
+@dataclass(frozen=True)
+class WireFormat:
+    """One wire format as its own module declares it; `recal.io.wire_formats` lists them by
+    name, and the config, the gateway and the pty device ask the record, not the name.
+
+    Attributes:
+        name: the ``format`` a sensor is configured with.
+        parser: makes the streaming parser, ``parser(aux_names, **options)``.
+        encode: the device side, samples to bytes: ``encode(batch, style)``.
+        header: the line a device prints at boot naming its channels,
+            ``header(aux_names, style)``; None when the format has none.
+        untimed_by_rate: records may come without a time column when the sample rate is
+            configured (the parser then takes ``rate_hz`` and stamps them from it); without
+            the rate such records are counted ``wrong_columns``.
+    """
+
+    name: str
+    parser: Callable[..., FrameParser]
+    encode: Callable[[RawBatch, DeviceStyle], bytes]
+    header: Callable[[tuple[str, ...], DeviceStyle], bytes] | None = None
+    untimed_by_rate: bool = False
 
 
 # --------------------------------------------------------------------------- layout
@@ -295,6 +349,16 @@ class DelimitedParser:
     def partial(self) -> bool:
         """Whether part of a record is waiting for its delimiter."""
         return bool(self._pending)
+
+    @property
+    def needs_time_anchor(self) -> bool:
+        """Whether records without time wait for :meth:`anchor_time` (never, unless a
+        format that stamps them overrides this)."""
+        return False
+
+    def anchor_time(self, t_us: int) -> None:
+        """Records without time from now on count from ``t_us`` (a format that has them
+        overrides this)."""
 
     def feed(self, data: bytes) -> RawBatch:
         """Parse the complete records in ``pending + data``; keep the unfinished tail."""

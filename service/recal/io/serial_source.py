@@ -196,6 +196,45 @@ def _open_unflushed(port: str, exclusive: bool, **kwargs: Any) -> Any:
     return ser
 
 
+@dataclass
+class _Reopen:
+    """When to try opening a closed port again, and how the tries went: the delay doubles
+    from ``initial_s`` up to ``max_s`` with each failed open and starts again after a
+    success."""
+
+    initial_s: float
+    max_s: float
+    delay_s: float = field(init=False)  # the wait after the next failed open
+    next_open_s: float = 0.0  # on the source's clock
+    attempts: int = 0  # failed opens since the last success
+    ever_opened: bool = False
+    lost_at_s: float | None = None
+
+    def __post_init__(self) -> None:
+        self.delay_s = self.initial_s
+
+    def failed(self, now_s: float) -> float:
+        """Count a failed open at ``now_s``; the delay until the next one."""
+        self.attempts += 1
+        delay_s = self.delay_s
+        self.next_open_s = now_s + delay_s
+        self.delay_s = min(2.0 * delay_s, self.max_s)
+        return delay_s
+
+    def opened(self, now_s: float) -> float | None:
+        """Count an open at ``now_s``; how long the port was down (None: its first open)."""
+        down_s = None
+        if self.ever_opened:
+            down_s = now_s - (self.lost_at_s if self.lost_at_s is not None else now_s)
+        self.delay_s, self.attempts, self.ever_opened = self.initial_s, 0, True
+        return down_s
+
+    def lost(self, now_s: float) -> None:
+        """The open port failed at ``now_s``: the next open after the current delay."""
+        self.lost_at_s = now_s
+        self.next_open_s = now_s + self.delay_s
+
+
 class SerialSource:
     """One serial device read through a streaming parser.
 
@@ -224,8 +263,6 @@ class SerialSource:
         self.parser = parser
         self.baudrate = baudrate
         self.read_timeout_s = read_timeout_s
-        self.backoff_initial_s = backoff_initial_s
-        self.backoff_max_s = backoff_max_s
         self.max_read_bytes = max_read_bytes
         self.max_batch_bytes = max_batch_bytes
         self.path_check_interval_s = path_check_interval_s
@@ -234,11 +271,7 @@ class SerialSource:
         self._ser: Any = None
         self._fd: int | None = None
         self._closed = False
-        self._ever_opened = False
-        self._lost_at_s: float | None = None
-        self._next_open_s = 0.0
-        self._backoff_s = backoff_initial_s
-        self._attempts = 0  # failed opens since the last success
+        self._reopen = _Reopen(backoff_initial_s, backoff_max_s)
         self._device_id: tuple[int, int] | None = None
         self._next_path_check_s = 0.0
         self._errors_seen = parser.errors.copy()
@@ -310,7 +343,7 @@ class SerialSource:
     @property
     def next_open_s(self) -> float:
         """When (on ``clock``) the next open attempt of a closed port is due."""
-        return self._next_open_s
+        return self._reopen.next_open_s
 
     def poll(self, readable: bool = False) -> tuple[RawBatch, list[SourceEvent]]:
         """Never wait: open the port if an attempt is due, read what is waiting, parse it.
@@ -324,7 +357,7 @@ class SerialSource:
         events: list[SourceEvent] = []
         batches: list[RawBatch] = [self._carry] if self._carry is not None else []
         self._carry = None
-        if self._ser is None and not self._closed and self._clock() >= self._next_open_s:
+        if self._ser is None and not self._closed and self._clock() >= self._reopen.next_open_s:
             self._try_open(events)
         if self._ser is not None:
             try:
@@ -373,8 +406,8 @@ class SerialSource:
     def _feed(self, data: bytes) -> RawBatch:
         """Parse bytes; lines without time are stamped from their first arrival (wall clock,
         microseconds since the epoch) on."""
-        if getattr(self.parser, "needs_time_anchor", False):
-            self.parser.anchor_time(time.time_ns() // 1000)  # type: ignore[attr-defined]
+        if self.parser.needs_time_anchor:
+            self.parser.anchor_time(time.time_ns() // 1000)
         return self.parser.feed(data)
 
     def write(self, data: bytes) -> int:
@@ -405,12 +438,12 @@ class SerialSource:
 
     def _open_when_due(self, deadline_s: float, events: list[SourceEvent]) -> None:
         """Sleep until the next open attempt if it falls before the deadline, then try."""
-        now_s = self._clock()
-        if now_s < self._next_open_s:
-            if self._next_open_s > deadline_s:
+        now_s, next_open_s = self._clock(), self._reopen.next_open_s
+        if now_s < next_open_s:
+            if next_open_s > deadline_s:
                 time.sleep(max(0.0, deadline_s - now_s))
                 return
-            time.sleep(self._next_open_s - now_s)
+            time.sleep(next_open_s - now_s)
         self._try_open(events)
 
     def _try_open(self, events: list[SourceEvent]) -> None:
@@ -433,25 +466,20 @@ class SerialSource:
         self._ser, self._device_id = ser, device_id
         self._fd = _descriptor(ser)
         self._next_path_check_s = now_s + self.path_check_interval_s
-        self._backoff_s, self._attempts = self.backoff_initial_s, 0
         # The first bytes may be the tail of a line the device was sending before we looked.
         self.parser.reset(resync=True)
-        if self._ever_opened:
-            down_s = now_s - (self._lost_at_s if self._lost_at_s is not None else now_s)
+        down_s = self._reopen.opened(now_s)
+        if down_s is not None:
             events.append(SourceEvent("port_found", {"port": self.port, "down_s": down_s},
                                       now_s))
         else:
             events.append(SourceEvent("port_opened", {"port": self.port}, now_s))
-        self._ever_opened = True
 
     def _open_failed(self, exc: BaseException, now_s: float,
                      events: list[SourceEvent], busy: bool = False) -> None:
-        self._attempts += 1
-        delay_s = self._backoff_s
-        self._next_open_s = now_s + delay_s
-        self._backoff_s = min(2.0 * delay_s, self.backoff_max_s)
+        delay_s = self._reopen.failed(now_s)
         detail: dict[str, Any] = {"port": self.port, "error": str(exc),
-                                  "attempt": self._attempts, "retry_in_s": delay_s}
+                                  "attempt": self._reopen.attempts, "retry_in_s": delay_s}
         if busy:
             holder = port_holder(self.port)
             detail.update(error=_busy_text(self.port), holder_pid=holder)
@@ -462,8 +490,7 @@ class SerialSource:
         self._close_port()
         # A partial line from before the unplug must not be glued to the new device's bytes.
         self.parser.reset(resync=True)
-        self._lost_at_s = now_s
-        self._next_open_s = now_s + self._backoff_s
+        self._reopen.lost(now_s)
         events.append(SourceEvent("port_lost", {"port": self.port, "error": str(exc)}, now_s))
 
     def _close_port(self) -> None:

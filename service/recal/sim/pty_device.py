@@ -30,9 +30,9 @@ from types import TracebackType
 
 import numpy as np
 
-from recal.errors import UsageError
-from recal.io.ascii_lines import encode_ascii
-from recal.io.cobs_frames import encode_cobs
+from recal.errors import ConfigError, UsageError
+from recal.io.frames import DeviceStyle
+from recal.io.wire_formats import DEFAULT_FORMAT, wire_format
 from recal.samples import RawBatch
 
 __all__ = ["PtyDevice"]
@@ -43,40 +43,43 @@ _tmp_names = itertools.count()
 
 
 class PtyDevice:
-    """A device that writes ASCII lines or COBS frames on a pseudo-terminal behind a symlink.
+    """A device that writes a wire format on a pseudo-terminal behind a symlink.
 
     Args:
         link_path: where the symlink to the slave tty goes (replaced if it is a symlink).
-        fmt: "ascii" or "cobs" (see :mod:`recal.io.wire_formats`).
-        header: for ASCII, print a ``#t_us,x,y,z,<aux>`` header before the first samples after
-            each (re)plug, as a device does at boot.
+        fmt: a name in :mod:`recal.io.wire_formats` ("ascii", "cobs", ...).
+        header: for a format with a header (ASCII), print it (``#t_us,x,y,z,<aux>``) before
+            the first samples after each (re)plug, as a device does at boot.
         write_timeout_s: how long one write waits for the reader to make room.
         line_ending: "\\n" or "\\r\\n" for ASCII.
         xyz: COBS x, y, z encoding, "auto" | "int32" | "float32".
-        clock: the device's time stamps: "us", "us32", "ms" or "none" (ASCII only; see the
-            module docstring).
+        clock: the device's time stamps: "us", "us32", "ms" or "none" (only a format that
+            takes records without time, ASCII; see the module docstring).
         header_prefix: "#" or "" (a header line without the comment mark).
     """
 
     CLOCKS = ("us", "us32", "ms", "none")
 
-    def __init__(self, link_path: str, fmt: str = "ascii", header: bool = True, *,
+    def __init__(self, link_path: str, fmt: str = DEFAULT_FORMAT, header: bool = True, *,
                  write_timeout_s: float = 1.0, line_ending: str = "\n",
                  xyz: str = "auto", clock: str = "us", header_prefix: str = "#") -> None:
-        if fmt not in ("ascii", "cobs"):
-            raise UsageError(f"unknown wire format {fmt!r}; expected 'ascii' or 'cobs'")
-        if clock not in self.CLOCKS or (clock == "none" and fmt != "ascii"):
-            raise UsageError(f"clock must be one of {self.CLOCKS} ('none' for ASCII only)")
+        try:
+            self._wire = wire_format(fmt)
+        except ConfigError as exc:
+            raise UsageError(str(exc)) from None
+        if clock not in self.CLOCKS or (clock == "none" and not self._wire.untimed_by_rate):
+            raise UsageError(f"clock must be one of {self.CLOCKS} ('none' not for {fmt!r}: "
+                             f"its records carry their time)")
         if os.path.exists(link_path) and not os.path.islink(link_path):
             raise FileExistsError(f"{link_path} exists and is not a symlink")
         self.link_path = link_path
         self.fmt = fmt
         self.header = header
         self.write_timeout_s = write_timeout_s
-        self.line_ending = line_ending
-        self.xyz = xyz
         self.clock = clock
-        self.header_prefix = header_prefix
+        # what the encoders read; a clock "none" writes no time column
+        self.style = DeviceStyle(line_ending=line_ending, xyz=xyz,
+                                 time_column=clock != "none", header_prefix=header_prefix)
         self._lock = threading.Lock()
         self._master: int | None = None
         self._slave: int | None = None
@@ -114,7 +117,7 @@ class PtyDevice:
             raise
         with self._lock:
             self._master, self._slave, self._slave_name = master, slave, name
-            self._header_due = self.header and self.fmt == "ascii"
+            self._header_due = self.header and self._wire.header is not None
 
     def unplug(self) -> None:
         """Close both ends and remove the link: readers get EIO, the path vanishes."""
@@ -199,17 +202,9 @@ class PtyDevice:
         with self._lock:  # the streaming thread and the caller may both write
             header_due, self._header_due = self._header_due, False
         data = b""
-        timed = self.clock != "none"
-        if header_due:
-            data = encode_ascii(batch[:0], header=True, line_ending=self.line_ending,
-                                time_column=timed, header_prefix=self.header_prefix)
-        batch = self.on_wire(batch)
-        if self.fmt == "ascii":
-            data += encode_ascii(batch, header=False, line_ending=self.line_ending,
-                                 time_column=timed)
-        else:
-            data += encode_cobs(batch, xyz=self.xyz)
-        return self.write_bytes(data)
+        if header_due and self._wire.header is not None:
+            data = self._wire.header(batch.aux_names, self.style)
+        return self.write_bytes(data + self._wire.encode(self.on_wire(batch), self.style))
 
     def on_wire(self, batch: RawBatch) -> RawBatch:
         """The batch with the time stamps this device's clock writes."""
@@ -220,11 +215,11 @@ class PtyDevice:
         return batch
 
     def write_header(self, aux_names: tuple[str, ...]) -> int:
-        """Send the ASCII header line now (devices may repeat it)."""
-        empty = RawBatch.empty(aux_names)
-        return self.write_bytes(encode_ascii(empty, header=True, line_ending=self.line_ending,
-                                             time_column=self.clock != "none",
-                                             header_prefix=self.header_prefix))
+        """Send the format's header line now (devices may repeat it); UsageError for a
+        format without one (COBS frames)."""
+        if self._wire.header is None:
+            raise UsageError(f"the {self.fmt!r} wire format has no header line")
+        return self.write_bytes(self._wire.header(tuple(aux_names), self.style))
 
     def write_garbage(self, data: bytes) -> int:
         """Write arbitrary bytes (line noise, a reset banner, half a frame)."""
