@@ -35,6 +35,9 @@ The names below are the core's public API; each lives in the module named above.
 from importlib import import_module
 from typing import TYPE_CHECKING
 
+# the registry names the effect classes below; the module is small (numpy and the axes helpers)
+from recal.core.effects import EFFECT_KINDS as _EFFECT_KINDS
+
 if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its module on use
     from recal.core.alignment import Alignment
     from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
@@ -58,19 +61,8 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
         data_from_batches,
         data_from_table,
     )
-    from recal.core.effects import (
-        EFFECT_KINDS,
-        TIME,
-        Covariates,
-        CrossAxis,
-        Effect,
-        Gain,
-        Nonlinearity,
-        Offset,
-        Ratiometric,
-        Scale,
-        make_effect,
-    )
+    from recal.core.effects import *  # noqa: F403  (the effect classes, as below)
+    from recal.core.effects import EFFECT_KINDS, TIME, Covariates, Effect, make_effect
     from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
     from recal.core.hindsight import HindsightFit
     from recal.core.model import AffineCorrection, SensorModel
@@ -92,7 +84,6 @@ _HOMES = {
     "BufferConfig": "buffer",
     "Covariates": "effects",
     "Coverage": "buffer",
-    "CrossAxis": "effects",
     "DetectorConfig": "detector",
     "DetectorOutput": "detector",
     "DetectorState": "detector",
@@ -103,16 +94,11 @@ _HOMES = {
     "Effect": "effects",
     "Estimate": "estimator",
     "EstimatorConfig": "estimator",
-    "Gain": "effects",
     "HindsightFit": "hindsight",
     "Lifecycle": "pipeline",
-    "Nonlinearity": "effects",
-    "Offset": "effects",
     "Pipeline": "pipeline",
     "PipelineConfig": "pipeline_config",
     "Prior": "estimator",
-    "Ratiometric": "effects",
-    "Scale": "effects",
     "SensorModel": "model",
     "StaticFit": "static",
     "Status": "status",
@@ -146,6 +132,10 @@ _HOMES = {
 }
 
 
+# every effect class of the registry, by its own name (a new effect is public once registered)
+_HOMES |= {cls.__name__: "effects" for cls in _EFFECT_KINDS.values()}
+
+
 def __getattr__(name: str) -> object:
     if name not in _HOMES:
         raise AttributeError(f"module 'recal.core' has no attribute {name!r}")
@@ -165,7 +155,6 @@ __all__ = [
     "BufferConfig",
     "Covariates",
     "Coverage",
-    "CrossAxis",
     "DetectorConfig",
     "DetectorOutput",
     "DetectorState",
@@ -175,16 +164,11 @@ __all__ = [
     "Effect",
     "Estimate",
     "EstimatorConfig",
-    "Gain",
     "HindsightFit",
     "Lifecycle",
-    "Nonlinearity",
-    "Offset",
     "Pipeline",
     "PipelineConfig",
     "Prior",
-    "Ratiometric",
-    "Scale",
     "SensorModel",
     "StaticFit",
     "Status",
@@ -214,4 +198,6 @@ __all__ = [
     "make_effect",
     "missing_channels",
     "window_means",
+    # and every effect class of the registry, below
 ]
+__all__ += [cls.__name__ for cls in _EFFECT_KINDS.values()]

@@ -5,7 +5,11 @@ extended). Each effect owns a few named parameters and knows three things: how i
 input (`apply`), the derivative of its output with respect to its parameters (`d_theta`) and with
 respect to its input (`d_x`). `model.SensorModel` chains them, so the Jacobian of |a| that
 Lötters eq. 13a writes out for the diagonal model comes out of the chain rule for any set of
-effects. A new effect is one new class here and one entry in `EFFECT_KINDS`.
+effects. An effect also says which forms of it `discover` proposes and how simple it is
+(`proposed`, a `Proposals`), and the options by which `recal simulate` gives a simulated
+sensor the same effect (`simulated`, `SimOption`s). A new effect is one new class here and one
+entry in `EFFECT_KINDS` (and its forward-model line in `recal.sim.sensor`); discovery's
+candidates (`candidates`), the core's public names and `recal simulate` read the registry.
 
 Stages, in the order they are applied (raw unit = whatever the sensor sends, e.g. counts):
 
@@ -22,6 +26,7 @@ docs/design.md ("The core, module by module").
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -37,9 +42,12 @@ __all__ = [
     "Gain",
     "Nonlinearity",
     "Offset",
+    "Proposals",
     "Ratiometric",
     "Scale",
+    "SimOption",
     "make_effect",
+    "sim_options",
 ]
 
 TIME = "time"
@@ -75,6 +83,53 @@ class Covariates:
                      t0_us: int = 0) -> Covariates:
         t_h = (np.asarray(t_us, np.float64) - t0_us) / 3.6e9
         return cls(t_h, np.asarray(aux, np.float64).reshape(len(t_h), -1), tuple(aux_names))
+
+
+@dataclass(frozen=True)
+class Proposals:
+    """The forms of an effect that discovery proposes (`candidates.candidates`), and its rank.
+
+    Attributes:
+        order: rank of simplicity among kinds whose candidates determine as many directions
+            (lower: tried as the simpler; `candidates.KIND_ORDER`).
+        per_channel: one candidate per usable aux channel c, linear in c.
+        channel_pairs: one per pair of usable channels (c, and r as a reference: `make_effect`'s
+            `reference`).
+        plain: one without a covariate.
+        in_time: one in time (hours; where the data have time and the settings ask for it).
+    A channel that an effect of the same kind already reads is not proposed again for it.
+    """
+
+    order: float
+    per_channel: bool = False
+    channel_pairs: bool = False
+    plain: bool = False
+    in_time: bool = False
+
+
+@dataclass(frozen=True)
+class SimOption:
+    """How `recal simulate` gives its sensor an effect: a command-line option (default 0) that
+    sets one `recal.sim.sensor.SensorSpec` field.
+
+    Attributes:
+        flag, help: the option and its help text.
+        field: the SensorSpec field; its value is the option's divided by `divisor`
+            (1e3: mg to g, 100: % to a fraction).
+        per_axis: three values of the option's size, each with a random sign; else one number.
+        channel: what the effect reads in the simulator ("temperature", "supply", "time"), so
+            the recording carries it; None: nothing.
+        place: position among the options, which is also the order the random signs are drawn
+            in (a seed keeps its sensor).
+    """
+
+    flag: str
+    help: str
+    field: str
+    divisor: float
+    per_axis: bool
+    channel: str | None
+    place: int
 
 
 def _eye(n: int) -> np.ndarray:
@@ -127,6 +182,10 @@ class Effect:
         return tuple(f"{self.symbol}{suffix}_{ax}" for ax in AXES)
 
     symbol = "p"
+    #: which forms of it discovery proposes (None: never a candidate, e.g. the scale)
+    proposed: ClassVar[Proposals | None] = None
+    #: the options of `recal simulate` that give the simulated sensor this effect
+    simulated: ClassVar[tuple[SimOption, ...]] = ()
     #: apply is x -> x A + c, the same A and c for every sample, unless it reads a covariate
     linear_in_x = False
     #: apply divides every reading by one factor per sample (`row_divisor`)
@@ -222,6 +281,10 @@ class Ratiometric(Effect):
     stage: int = field(default=1, init=False)
     divides_rows = True
     symbol = "rho"
+    proposed = Proposals(order=3, per_channel=True, channel_pairs=True)
+    simulated = (SimOption("--ratiometric-pct-per-v",
+                           "whole output scaled by the supply (ratiometric parts)",
+                           "ratiometric_per_v", 100, per_axis=False, channel="supply", place=2),)
     reference: str | None = None
     reference_ref: float = 0.0
 
@@ -303,6 +366,13 @@ class Offset(Effect):
     stage: int = field(default=2, init=False)
     symbol = "o"
     linear_in_x = True
+    proposed = Proposals(order=1, per_channel=True, in_time=True)
+    simulated = (SimOption("--offset-tc-mg-per-c",
+                           "offset temperature coefficient (random sign per axis)",
+                           "offset_tc_g_per_c", 1e3, per_axis=True, channel="temperature",
+                           place=0),
+                 SimOption("--drift-mg-per-h", "offset drift in time", "offset_drift_g_per_h",
+                           1e3, per_axis=True, channel="time", place=3))
 
     def prior_sd(self, s0, spread):
         if self.covariate is None:
@@ -405,6 +475,10 @@ class Gain(Effect):
     kind: str = field(default="gain", init=False)
     stage: int = field(default=3, init=False)
     symbol = "gamma"
+    proposed = Proposals(order=2, per_channel=True)
+    simulated = (SimOption("--gain-tc-pct-per-c",
+                           "gain temperature coefficient (random sign per axis)",
+                           "gain_tc_per_c", 100, per_axis=True, channel="temperature", place=1),)
 
     def observable_with(self, axes_covered):
         return np.array(axes_covered, bool)
@@ -450,6 +524,8 @@ class CrossAxis(Effect):
     kind: str = field(default="cross_axis", init=False)
     stage: int = field(default=4, init=False)
     linear_in_x = True
+    # its simulated form is the sensor's random misalignment (`SensorSpec.random`)
+    proposed = Proposals(order=4, plain=True)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -493,6 +569,10 @@ class Nonlinearity(Effect):
     kind: str = field(default="nonlinearity", init=False)
     stage: int = field(default=5, init=False)
     symbol = "q"
+    proposed = Proposals(order=5, plain=True)
+    # the simulator's q distorts the true acceleration: the correction's q is about its opposite
+    simulated = (SimOption("--nonlinearity-pct", "quadratic, % per g", "q_per_g", 100,
+                           per_axis=True, channel=None, place=4),)
 
     def observable_with(self, axes_covered):
         return np.array(axes_covered, bool)
@@ -524,6 +604,12 @@ EFFECT_KINDS: dict[str, type[Effect]] = {
     "cross_axis": CrossAxis,
     "nonlinearity": Nonlinearity,
 }
+
+
+def sim_options() -> tuple[SimOption, ...]:
+    """Every effect's `recal simulate` options, in their places."""
+    return tuple(sorted((o for cls in EFFECT_KINDS.values() for o in cls.simulated),
+                        key=lambda o: o.place))
 
 
 def make_effect(kind: str, covariate: str | None = None, ref: float = 0.0,
