@@ -10,7 +10,8 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 - `buffer`: the bounded set of window means the estimator fits, spread over orientations;
 - `refit`: whether the new windows call for a re-fit (most repeat what the buffer says);
 - `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
-- `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...),
+- `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...;
+  the registry `EFFECT_KINDS`, whose classes are public names here by their own),
   with `triaxial` for the per-axis arithmetic on (N, 3) readings;
 - `correction`, `status`: each sample corrected with the parameters in force when it arrived,
   with its status and predicted error; the self-watch that doubts the estimate;
@@ -20,8 +21,8 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 Beside it:
 
 - `windowing`: a whole recording's window means at once, by the pipeline's windower;
-- `discovery` (with `discovery_data`, `model_fit`, `residuals`): which effects a recording
-  needs, chosen by held-out error;
+- `discovery` (with `candidates`, `discovery_data`, `model_fit`, `residuals`): which effects a
+  recording needs, chosen by held-out error among the forms each registered effect proposes;
 - `hindsight`: one fit on a whole recording, every sample corrected with it;
 - `static`: lab calibration from a table of still positions;
 - `bootstrap`: zero-g, scale and starting values (sphere, ellipsoid fits) from no prior;
