@@ -19,14 +19,17 @@ from recal.node.node import model_name
 from recal.sim.sensor import SensorSpec
 
 CHANNELS = {"a": (1.0, 0.5), "b": (2.0, 0.25), "c": (3.0, 1.0)}
+#: the kinds whose candidates and order are pinned below (a kind added later joins KIND_ORDER
+#: without changing what these propose, nor in which order)
+PINNED = ("offset", "gain", "ratiometric", "cross_axis", "nonlinearity")
 
 
-def _labels(model: SensorModel, kinds: tuple[str, ...] = KIND_ORDER) -> list[str]:
+def _labels(model: SensorModel, kinds: tuple[str, ...] = PINNED) -> list[str]:
     return [e.label for e, _ in proposals(model, CHANNELS, (0.5, 1.0), kinds)]
 
 
 def test_the_kinds_in_their_order_of_simplicity() -> None:
-    assert KIND_ORDER == ("offset", "gain", "ratiometric", "cross_axis", "nonlinearity")
+    assert tuple(k for k in KIND_ORDER if k in PINNED) == PINNED
     assert DiscoveryConfig().kinds == KIND_ORDER
 
 
@@ -61,7 +64,8 @@ def test_every_effect_class_is_a_public_core_name() -> None:
 
 
 def test_named_models_from_the_registry() -> None:
-    assert MODELS == tuple(NAMED_MODELS) == ("diagonal", "full")
+    assert MODELS == tuple(NAMED_MODELS)
+    assert {"diagonal", "full"} <= set(MODELS)
     for name in NAMED_MODELS:
         model = SensorModel.named(name, 512.0)
         assert model.name == name and model_name(model) == name and model.s0 == 512.0
