@@ -43,6 +43,7 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
     from recal.core.alignment import Alignment
     from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
     from recal.core.channels import missing_channels
+    from recal.core.covariates import TIME, Covariates
     from recal.core.detector import (
         DetectorConfig,
         DetectorOutput,
@@ -63,7 +64,7 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
         data_from_table,
     )
     from recal.core.effects import *  # noqa: F403  (the effect classes, as below)
-    from recal.core.effects import EFFECT_KINDS, TIME, Covariates, Effect, make_effect
+    from recal.core.effects import EFFECT_KINDS, Effect, make_effect
     from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
     from recal.core.hindsight import HindsightFit
     from recal.core.model import AffineCorrection, SensorModel
@@ -83,7 +84,7 @@ _HOMES = {
     "AffineCorrection": "model",
     "Alignment": "alignment",
     "BufferConfig": "buffer",
-    "Covariates": "effects",
+    "Covariates": "covariates",
     "Coverage": "buffer",
     "DetectorConfig": "detector",
     "DetectorOutput": "detector",
@@ -104,7 +105,7 @@ _HOMES = {
     "StaticFit": "static",
     "Status": "status",
     "StepOutput": "outputs",
-    "TIME": "effects",
+    "TIME": "covariates",
     "TimebaseConfig": "timebase",
     "TimebaseState": "timebase",
     "UpdateEvent": "outputs",

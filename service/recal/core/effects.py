@@ -30,8 +30,10 @@ from typing import ClassVar
 
 import numpy as np
 
+from recal.core.covariates import TIME, Covariates
+from recal.core.effect_specs import Proposals, SimOption
 from recal.core.triaxial import per_axis, per_row
-from recal.errors import ConfigError, ModelError
+from recal.errors import ConfigError
 
 __all__ = [
     "EFFECT_KINDS",
@@ -50,86 +52,11 @@ __all__ = [
     "sim_options",
 ]
 
-TIME = "time"
 AXES = ("x", "y", "z")
 #: Random walk of the zero-g offsets, g per sqrt(hour) (see Offset.process_sd_per_sqrt_h).
 OFFSET_WALK_G_PER_SQRT_H = 0.0025
 #: Random walk of the sensitivities, fraction of nominal per sqrt(hour).
 SCALE_WALK_PER_SQRT_H = 0.00025
-
-
-@dataclass(frozen=True, eq=False)
-class Covariates:
-    """What effects may depend on, sample for sample: time in hours and named aux channels."""
-
-    t_h: np.ndarray
-    aux: np.ndarray
-    aux_names: tuple[str, ...] = ()
-
-    def get(self, name: str) -> np.ndarray:
-        if name == TIME:
-            return self.t_h
-        try:
-            return self.aux[:, self.aux_names.index(name)]
-        except ValueError:
-            raise ModelError(f"model needs channel {name!r}; recording has "
-                             f"{self.aux_names}") from None
-
-    def __getitem__(self, index: slice | np.ndarray) -> Covariates:
-        return Covariates(self.t_h[index], self.aux[index], self.aux_names)
-
-    @classmethod
-    def from_samples(cls, t_us: np.ndarray, aux: np.ndarray, aux_names: tuple[str, ...],
-                     t0_us: int = 0) -> Covariates:
-        t_h = (np.asarray(t_us, np.float64) - t0_us) / 3.6e9
-        return cls(t_h, np.asarray(aux, np.float64).reshape(len(t_h), -1), tuple(aux_names))
-
-
-@dataclass(frozen=True)
-class Proposals:
-    """The forms of an effect that discovery proposes (`candidates.candidates`), and its rank.
-
-    Attributes:
-        order: rank of simplicity among kinds whose candidates determine as many directions
-            (lower: tried as the simpler; `candidates.KIND_ORDER`).
-        per_channel: one candidate per usable aux channel c, linear in c.
-        channel_pairs: one per pair of usable channels (c, and r as a reference: `make_effect`'s
-            `reference`).
-        plain: one without a covariate.
-        in_time: one in time (hours; where the data have time and the settings ask for it).
-    A channel that an effect of the same kind already reads is not proposed again for it.
-    """
-
-    order: float
-    per_channel: bool = False
-    channel_pairs: bool = False
-    plain: bool = False
-    in_time: bool = False
-
-
-@dataclass(frozen=True)
-class SimOption:
-    """How `recal simulate` gives its sensor an effect: a command-line option (default 0) that
-    sets one `recal.sim.sensor.SensorSpec` field.
-
-    Attributes:
-        flag, help: the option and its help text.
-        field: the SensorSpec field; its value is the option's divided by `divisor`
-            (1e3: mg to g, 100: % to a fraction).
-        per_axis: three values of the option's size, each with a random sign; else one number.
-        channel: what the effect reads in the simulator ("temperature", "supply", "time"), so
-            the recording carries it; None: nothing.
-        place: position among the options, which is also the order the random signs are drawn
-            in (a seed keeps its sensor).
-    """
-
-    flag: str
-    help: str
-    field: str
-    divisor: float
-    per_axis: bool
-    channel: str | None
-    place: int
 
 
 def _eye(n: int) -> np.ndarray:
