@@ -14,8 +14,9 @@ import pytest
 from recal.core import detector as det
 from recal.core.bootstrap import fit_ellipsoid
 from recal.core.buffer import BufferConfig, WindowBuffer
+from recal.core.candidates import proposals
 from recal.core.channels import check_channels
-from recal.core.effects import TIME, Covariates, Gain, Nonlinearity, Offset, Ratiometric
+from recal.core.effects import EFFECT_KINDS, Covariates, Offset, Ratiometric
 from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Lifecycle, Pipeline
@@ -42,11 +43,38 @@ def _err_1s_mg(cal, truth, t_us, after_s=1800.0, align=False):
 
 
 # --- model -----------------------------------------------------------------------------------
-def test_chain_rule_jacobian_matches_finite_differences():
+#: channels (reference, spread) and time for the registry's proposals (`candidates.proposals`)
+_CHANNELS = {"temp": (25.0, 10.0), "vdd": (3.3, 0.5)}
+_TIME = (0.0, 1.0)
+
+
+def _every_effect_at_once() -> SensorModel:
+    """The full model grown by the registry's first proposal until none is left: every kind
+    of `EFFECT_KINDS` that discovery proposes, in as many forms as fit in one model."""
+    m = SensorModel.full(1000.0)
+    for _ in range(50):  # bounded: each round adds one effect the model lacked
+        todo = proposals(m, _CHANNELS, _TIME)
+        if not todo:
+            return m
+        m = m.with_effect(*todo[0])
+    raise AssertionError("the proposals did not run out")
+
+
+_MODELS = {"every effect": _every_effect_at_once} | {
+    f"full+{e.label}": (lambda e=e, sp=sp: SensorModel.full(1000.0).with_effect(e, sp))
+    for e, sp in proposals(SensorModel.full(1000.0), _CHANNELS, _TIME)}
+
+
+def test_the_jacobian_models_cover_every_proposed_kind() -> None:
+    kinds = {e.kind for e in _every_effect_at_once().effects}
+    assert kinds == {k for k, cls in EFFECT_KINDS.items() if cls.proposed} | {"scale"}
+    assert "full+ratiometric[temp,vdd]" in _MODELS  # the pair form, which cannot join the rest
+
+
+@pytest.mark.parametrize("name", sorted(_MODELS))
+def test_chain_rule_jacobian_matches_finite_differences(name: str) -> None:
     rng = np.random.default_rng(0)
-    m = (SensorModel.full(1000.0).with_effect(Offset("temp", 25.0), 10)
-         .with_effect(Gain("temp", 25.0), 10).with_effect(Ratiometric("vdd", 3.3), 0.5)
-         .with_effect(Nonlinearity()).with_effect(Offset(TIME)))
+    m = _MODELS[name]()
     p = m.nominal() + rng.normal(0, 0.01, m.size) * (np.abs(m.nominal()) + 1)
     n = 40
     v = rng.normal(0, 1000, (n, 3))

@@ -13,7 +13,7 @@ import pytest
 import recal.core
 
 #: Names without a __module__ (constants) and the module that defines them.
-CONSTANTS = {"TIME": "recal.core.effects", "EFFECT_KINDS": "recal.core.effects"}
+CONSTANTS = {"TIME": "recal.core.covariates", "EFFECT_KINDS": "recal.core.effects"}
 
 CORE_MODULES = sorted(m.name for m in pkgutil.iter_modules(recal.core.__path__, "recal.core."))
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from recal.core.candidates import proposals
 from recal.core.effects import Covariates, CrossAxis, Effect, Gain, Offset, Ratiometric
 from recal.core.model import SensorModel
 from recal.core.status import _chain_jacobian, correction_jacobian, predicted_sigma_mg
@@ -60,6 +61,29 @@ def test_per_axis_jacobian_is_the_chain_rule_to_the_bit(name: str) -> None:
     sigma = predicted_sigma_mg(model, p, cov_p, v, cov)
     full = 1e3 * np.sqrt(np.einsum("nip,nip->n", np.matmul(ref, cov_p), ref))
     assert np.array_equal(sigma.view(np.uint64), full.view(np.uint64))
+
+
+#: every form of every kind the registry proposes, each on the diagonal model
+REGISTERED = {e.label: (e, sp) for e, sp in proposals(
+    SensorModel.diagonal(S0), {"vdd": (3.3, 0.5), "temp": (20.0, 10.0)}, (0.0, 1.0))}
+
+
+@pytest.mark.parametrize("label", sorted(REGISTERED))
+def test_every_registered_effect_gives_the_chain_rule_to_the_bit(label: str) -> None:
+    """Whichever path `correction_jacobian` takes for it (axis by axis or the full rule)."""
+    model = SensorModel.diagonal(S0).with_effect(*REGISTERED[label])
+    rng = np.random.default_rng(6)
+    n = 500
+    v = rng.normal(0, S0, (n, 3))
+    aux = np.column_stack([3.3 + rng.normal(0, 0.3, n), 20 + rng.normal(0, 5, n),
+                           1.2 + rng.normal(0, 0.01, n)])
+    cov = Covariates.from_samples(np.arange(n) * 20_000, aux, CHANNELS, 0)
+    p = model.nominal() + rng.normal(size=model.size) * model.prior_sd() * 0.3
+    J = correction_jacobian(model, p, v, cov)
+    ref = _chain_rule(model, p, v, cov)
+    assert np.array_equal(J, ref)
+    nonzero = J != 0
+    assert np.array_equal(J[nonzero].view(np.uint64), ref[nonzero].view(np.uint64))
 
 
 def test_a_stage_that_mixes_axes_takes_the_chain_rule() -> None:

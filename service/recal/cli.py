@@ -66,6 +66,23 @@ def _positive(text: str) -> float:
 
 
 # --- simulate --------------------------------------------------------------------------------
+def _simulated_effects(a: argparse.Namespace, rng: np.random.Generator) -> dict[str, object]:
+    """The sensor fields of the effects' options (`effects.SimOption`): three values with a
+    random sign each, or one number; the signs drawn in the options' order."""
+    from recal.core.effects import sim_options
+
+    out: dict[str, object] = {}
+    for o in sim_options():
+        value = getattr(a, _dest(o.flag)) / o.divisor
+        out[o.field] = tuple(np.full(3, value) * rng.choice([-1, 1], 3)) if o.per_axis else value
+    return out
+
+
+def _dest(flag: str) -> str:
+    """argparse's attribute name for a long option."""
+    return flag.lstrip("-").replace("-", "_")
+
+
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from recal.commands.import_csv import write_raw_messages
     from recal.io import csv_table
@@ -78,12 +95,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     sensor = replace(
         sensor, noise_g=a.noise_mg / 1e3,
         counts_per_g=None if a.counts_per_g <= 0 else a.counts_per_g,
-        offset_tc_g_per_c=tuple(np.full(3, a.offset_tc_mg_per_c / 1e3) * rng.choice([-1, 1], 3)),
-        gain_tc_per_c=tuple(np.full(3, a.gain_tc_pct_per_c / 100) * rng.choice([-1, 1], 3)),
-        ratiometric_per_v=a.ratiometric_pct_per_v / 100,
-        offset_drift_g_per_h=tuple(np.full(3, a.drift_mg_per_h / 1e3) * rng.choice([-1, 1], 3)),
-        q_per_g=tuple(np.full(3, a.nonlinearity_pct / 100) * rng.choice([-1, 1], 3)),
-        temp_channel=a.temp_name, supply_channel=a.supply_name)
+        **_simulated_effects(a, rng), temp_channel=a.temp_name, supply_channel=a.supply_name)
     if a.sensor_type:  # the type's fields (counts per g, zero-g, ADC) over the options'
         if a.sensor_type not in sim.SENSOR_TYPES:
             raise UsageError(f"--sensor-type must be one of {', '.join(sim.SENSOR_TYPES)}, "
@@ -440,6 +452,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "sensor is quasi-static its calibrated vector must be 1 g long (Lötters "
                     "1998); recal estimates offsets, sensitivities and more from that, live.")
     from recal import __version__
+    from recal.core.effects import sim_options
+
     p.add_argument("--version", action="version", version=f"recal {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -496,14 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a sensor people plug in: adxl335-adc12, mma7260-adc14 (analog, "
                         "unsigned ADC), digital-2g ... digital-16g, adxl345-10bit, phone-ms2 "
                         "(floats); its counts per g, zero-g and ADC replace --counts-per-g")
-    s.add_argument("--offset-tc-mg-per-c", type=float, default=0.0,
-                   help="offset temperature coefficient (random sign per axis)")
-    s.add_argument("--gain-tc-pct-per-c", type=float, default=0.0,
-                   help="gain temperature coefficient (random sign per axis)")
-    s.add_argument("--ratiometric-pct-per-v", type=float, default=0.0,
-                   help="whole output scaled by the supply (ratiometric parts)")
-    s.add_argument("--drift-mg-per-h", type=float, default=0.0, help="offset drift in time")
-    s.add_argument("--nonlinearity-pct", type=float, default=0.0, help="quadratic, %% per g")
+    for o in sim_options():  # each effect's own (offset, gain in temperature, ...)
+        s.add_argument(o.flag, type=float, default=0.0, help=o.help.replace("%", "%%"))
     s.add_argument("--temp-name", default="temp_c", help="name of the temperature channel")
     s.add_argument("--supply-name", default="vdd_v", help="name of the supply channel")
     s.add_argument("--aux", action="store_true", help="always write temperature and supply")

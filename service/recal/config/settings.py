@@ -54,7 +54,7 @@ import numpy as np
 from recal.core.buffer import BufferConfig
 from recal.core.channels import missing_channels
 from recal.core.estimator import EstimatorConfig, Prior
-from recal.core.model import SensorModel
+from recal.core.model import NAMED_MODELS, SensorModel
 from recal.core.pipeline_config import PipelineConfig
 from recal.errors import ConfigError
 from recal.io.wire_formats import DEFAULT_FORMAT, WIRE_FORMATS
@@ -82,7 +82,7 @@ __all__ = [
 ]
 
 FORMATS = tuple(WIRE_FORMATS)
-MODELS = ("diagonal", "full")
+MODELS = tuple(NAMED_MODELS)
 MODES = ("all", "offsets")
 ZENOH_MODES = ("peer", "client", "router")
 COMPRESSIONS = ("zstd", "lz4", "none")
@@ -786,7 +786,7 @@ def _model_doc(doc: Mapping[str, Any]) -> tuple[SensorModel, Prior | None]:
 
 
 def _named_model(name: str, s0: float) -> SensorModel:
-    return SensorModel.full(s0) if name == "full" else SensorModel.diagonal(s0)
+    return SensorModel.named(name, s0)
 
 
 def model_and_prior(sensor: SensorConfig, settings: PipelineSettings,

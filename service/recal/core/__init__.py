@@ -10,7 +10,8 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 - `buffer`: the bounded set of window means the estimator fits, spread over orientations;
 - `refit`: whether the new windows call for a re-fit (most repeat what the buffer says);
 - `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
-- `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...),
+- `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...;
+  the registry `EFFECT_KINDS`, whose classes are public names here by their own),
   with `triaxial` for the per-axis arithmetic on (N, 3) readings;
 - `correction`, `status`: each sample corrected with the parameters in force when it arrived,
   with its status and predicted error; the self-watch that doubts the estimate;
@@ -20,8 +21,8 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 Beside it:
 
 - `windowing`: a whole recording's window means at once, by the pipeline's windower;
-- `discovery` (with `discovery_data`, `model_fit`, `residuals`): which effects a recording
-  needs, chosen by held-out error;
+- `discovery` (with `candidates`, `discovery_data`, `model_fit`, `residuals`): which effects a
+  recording needs, chosen by held-out error among the forms each registered effect proposes;
 - `hindsight`: one fit on a whole recording, every sample corrected with it;
 - `static`: lab calibration from a table of still positions;
 - `bootstrap`: zero-g, scale and starting values (sphere, ellipsoid fits) from no prior;
@@ -35,10 +36,14 @@ The names below are the core's public API; each lives in the module named above.
 from importlib import import_module
 from typing import TYPE_CHECKING
 
+# the registry names the effect classes below; the module is small (numpy and the axes helpers)
+from recal.core.effects import EFFECT_KINDS as _EFFECT_KINDS
+
 if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its module on use
     from recal.core.alignment import Alignment
     from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
     from recal.core.channels import missing_channels
+    from recal.core.covariates import TIME, Covariates
     from recal.core.detector import (
         DetectorConfig,
         DetectorOutput,
@@ -58,19 +63,8 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
         data_from_batches,
         data_from_table,
     )
-    from recal.core.effects import (
-        EFFECT_KINDS,
-        TIME,
-        Covariates,
-        CrossAxis,
-        Effect,
-        Gain,
-        Nonlinearity,
-        Offset,
-        Ratiometric,
-        Scale,
-        make_effect,
-    )
+    from recal.core.effects import *  # noqa: F403  (the effect classes, as below)
+    from recal.core.effects import EFFECT_KINDS, Effect, make_effect
     from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
     from recal.core.hindsight import HindsightFit
     from recal.core.model import AffineCorrection, SensorModel
@@ -90,9 +84,8 @@ _HOMES = {
     "AffineCorrection": "model",
     "Alignment": "alignment",
     "BufferConfig": "buffer",
-    "Covariates": "effects",
+    "Covariates": "covariates",
     "Coverage": "buffer",
-    "CrossAxis": "effects",
     "DetectorConfig": "detector",
     "DetectorOutput": "detector",
     "DetectorState": "detector",
@@ -103,21 +96,16 @@ _HOMES = {
     "Effect": "effects",
     "Estimate": "estimator",
     "EstimatorConfig": "estimator",
-    "Gain": "effects",
     "HindsightFit": "hindsight",
     "Lifecycle": "pipeline",
-    "Nonlinearity": "effects",
-    "Offset": "effects",
     "Pipeline": "pipeline",
     "PipelineConfig": "pipeline_config",
     "Prior": "estimator",
-    "Ratiometric": "effects",
-    "Scale": "effects",
     "SensorModel": "model",
     "StaticFit": "static",
     "Status": "status",
     "StepOutput": "outputs",
-    "TIME": "effects",
+    "TIME": "covariates",
     "TimebaseConfig": "timebase",
     "TimebaseState": "timebase",
     "UpdateEvent": "outputs",
@@ -146,6 +134,10 @@ _HOMES = {
 }
 
 
+# every effect class of the registry, by its own name (a new effect is public once registered)
+_HOMES |= {cls.__name__: "effects" for cls in _EFFECT_KINDS.values()}
+
+
 def __getattr__(name: str) -> object:
     if name not in _HOMES:
         raise AttributeError(f"module 'recal.core' has no attribute {name!r}")
@@ -165,7 +157,6 @@ __all__ = [
     "BufferConfig",
     "Covariates",
     "Coverage",
-    "CrossAxis",
     "DetectorConfig",
     "DetectorOutput",
     "DetectorState",
@@ -175,16 +166,11 @@ __all__ = [
     "Effect",
     "Estimate",
     "EstimatorConfig",
-    "Gain",
     "HindsightFit",
     "Lifecycle",
-    "Nonlinearity",
-    "Offset",
     "Pipeline",
     "PipelineConfig",
     "Prior",
-    "Ratiometric",
-    "Scale",
     "SensorModel",
     "StaticFit",
     "Status",
@@ -214,4 +200,6 @@ __all__ = [
     "make_effect",
     "missing_channels",
     "window_means",
+    # and every effect class of the registry, below
 ]
+__all__ += [cls.__name__ for cls in _EFFECT_KINDS.values()]

@@ -13,10 +13,11 @@ the rows of a static table, `discover`:
    of xi that the candidate's Jacobian columns (eq. 13a at the effect's nominal value,
    orthogonalized against the model's own columns) explain: a score test of what the residual
    looks like;
-3. builds the candidates: for every auxiliary channel c, whatever it is called, an offset
-   linear in c (3 parameters), a gain linear in c (3), the whole output ratiometric in c (1),
-   and ratiometric in c with every other channel r as the reference rail (2); cross-axis with
-   the rotation gauge fixed (3), per-axis quadratic nonlinearity (3), offset linear in time (3);
+3. builds the candidates (`candidates`: the forms each registered effect proposes): for every
+   auxiliary channel c, whatever it is called, an offset linear in c (3 parameters), a gain
+   linear in c (3), the whole output ratiometric in c (1), and ratiometric in c with every
+   other channel r as the reference rail (2); cross-axis with the rotation gauge fixed (3),
+   per-axis quadratic nonlinearity (3), offset linear in time (3);
 4. scores each candidate on held-out data: the windows are cut into `blocks` contiguous time
    blocks (rows in table order for a table) and each block is predicted by a fit on the
    others, so neighbouring windows, which share posture, temperature and drift, never sit on
@@ -48,21 +49,21 @@ docs/performance.md.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from itertools import combinations
 
 import numpy as np
 from scipy import stats
 
 from recal.core.buffer import Windows
+from recal.core.candidates import KIND_ORDER
+from recal.core.candidates import candidates as proposed_on
 from recal.core.discovery_data import (
     DiscoveryData,
-    covariate_spread,
     data_from_windows,
     scorable,
     time_blocks,
     usable_channels,
 )
-from recal.core.effects import TIME, CrossAxis, Effect, Nonlinearity, make_effect
+from recal.core.effects import Effect, make_effect
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.model_fit import (
@@ -120,8 +121,8 @@ class DiscoveryConfig:
         max_iter: Gauss-Newton iterations per fit.
         observable_ratio: a fitted parameter counts as observed when its posterior standard
             deviation is below this fraction of its prior one (as the live estimator).
-        kinds: candidate kinds to try (any of offset, gain, ratiometric, cross_axis,
-            nonlinearity); `time` whether to try the offset linear in time.
+        kinds: candidate kinds to try (any of `candidates.KIND_ORDER`: offset, gain,
+            ratiometric, cross_axis, nonlinearity); `time` whether to try effects in time.
     """
 
     blocks: int = 10
@@ -136,7 +137,7 @@ class DiscoveryConfig:
     sigma_floor_g: float = FitConfig.sigma_floor_g
     max_iter: int = FitConfig.max_iter
     observable_ratio: float = 0.5
-    kinds: tuple[str, ...] = ("offset", "gain", "ratiometric", "cross_axis", "nonlinearity")
+    kinds: tuple[str, ...] = KIND_ORDER
     time: bool = True
 
     def __post_init__(self) -> None:
@@ -153,31 +154,9 @@ class DiscoveryConfig:
 
 def candidates(model: SensorModel, data: DiscoveryData,
                cfg: DiscoveryConfig = DiscoveryConfig()) -> list[tuple[Effect, float]]:
-    """Every effect (with its covariate spread) the model could be extended by."""
-    out: list[tuple[Effect, float]] = []
-    chans = usable_channels(data)
-    ratio_used = {c for e in model.effects if e.kind == "ratiometric" for c in e.channels}
-    for name, (ref, spread) in chans.items():
-        for kind in ("offset", "gain", "ratiometric"):
-            if kind not in cfg.kinds or model.has(kind, name):
-                continue
-            if kind == "ratiometric" and name in ratio_used:
-                continue
-            out.append((make_effect(kind, name, ref), spread))
-    if "ratiometric" in cfg.kinds:
-        for a, b in combinations([c for c in chans if c not in ratio_used], 2):
-            eff = make_effect("ratiometric", a, chans[a][0], b, chans[b][0])
-            out.append((eff, min(chans[a][1], chans[b][1])))
-    if "cross_axis" in cfg.kinds and not model.has("cross_axis"):
-        out.append((CrossAxis(), 1.0))
-    if "nonlinearity" in cfg.kinds and not model.has("nonlinearity"):
-        out.append((Nonlinearity(), 1.0))
-    if cfg.time and data.has_time and "offset" in cfg.kinds and not model.has("offset", TIME):
-        t = data.cov.t_h
-        if len(t) and covariate_spread(t) > 0:
-            out.append((make_effect("offset", TIME, float(np.median(t))), covariate_spread(t)))
-    return out
-
+    """Every effect (with its covariate spread) the model could be extended by
+    (`candidates.candidates` with the settings' kinds and time)."""
+    return proposed_on(model, data, cfg.kinds, cfg.time)
 
 
 @dataclass(frozen=True)
@@ -333,13 +312,6 @@ def _paired_gain(ss_m: np.ndarray, ss_c: np.ndarray, n_boot: int,
     idx = np.random.default_rng(seed).integers(0, len(ss_m), (n_boot, len(ss_m)))
     rb = 1.0 - ss_c[idx].sum(axis=1) / np.maximum(ss_m[idx].sum(axis=1), 1e-300)
     return r, float(np.std(rb, ddof=1))
-
-
-#: Order of simplicity between candidates with as many observed directions (e.g. in a single
-#: pose an offset, a gain and a ratiometric term in temperature all move |a| alike, one
-#: direction each): the commoner effect first (offsets drift with temperature in every field
-#: device; gains less; supply scaling needs a ratiometric part).
-KIND_ORDER = ("offset", "gain", "ratiometric", "cross_axis", "nonlinearity")
 
 
 #: Two candidates with as many observed directions whose R differ by less than this explain

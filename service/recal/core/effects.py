@@ -5,7 +5,11 @@ extended). Each effect owns a few named parameters and knows three things: how i
 input (`apply`), the derivative of its output with respect to its parameters (`d_theta`) and with
 respect to its input (`d_x`). `model.SensorModel` chains them, so the Jacobian of |a| that
 Lötters eq. 13a writes out for the diagonal model comes out of the chain rule for any set of
-effects. A new effect is one new class here and one entry in `EFFECT_KINDS`.
+effects. An effect also says which forms of it `discover` proposes and how simple it is
+(`proposed`, a `Proposals`), and the options by which `recal simulate` gives a simulated
+sensor the same effect (`simulated`, `SimOption`s). A new effect is one new class here and one
+entry in `EFFECT_KINDS` (and its forward-model line in `recal.sim.sensor`); discovery's
+candidates (`candidates`), the core's public names and `recal simulate` read the registry.
 
 Stages, in the order they are applied (raw unit = whatever the sensor sends, e.g. counts):
 
@@ -22,11 +26,14 @@ docs/design.md ("The core, module by module").
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
+from recal.core.covariates import TIME, Covariates
+from recal.core.effect_specs import Proposals, SimOption
 from recal.core.triaxial import per_axis, per_row
-from recal.errors import ConfigError, ModelError
+from recal.errors import ConfigError
 
 __all__ = [
     "EFFECT_KINDS",
@@ -37,44 +44,19 @@ __all__ = [
     "Gain",
     "Nonlinearity",
     "Offset",
+    "Proposals",
     "Ratiometric",
     "Scale",
+    "SimOption",
     "make_effect",
+    "sim_options",
 ]
 
-TIME = "time"
 AXES = ("x", "y", "z")
 #: Random walk of the zero-g offsets, g per sqrt(hour) (see Offset.process_sd_per_sqrt_h).
 OFFSET_WALK_G_PER_SQRT_H = 0.0025
 #: Random walk of the sensitivities, fraction of nominal per sqrt(hour).
 SCALE_WALK_PER_SQRT_H = 0.00025
-
-
-@dataclass(frozen=True, eq=False)
-class Covariates:
-    """What effects may depend on, sample for sample: time in hours and named aux channels."""
-
-    t_h: np.ndarray
-    aux: np.ndarray
-    aux_names: tuple[str, ...] = ()
-
-    def get(self, name: str) -> np.ndarray:
-        if name == TIME:
-            return self.t_h
-        try:
-            return self.aux[:, self.aux_names.index(name)]
-        except ValueError:
-            raise ModelError(f"model needs channel {name!r}; recording has "
-                             f"{self.aux_names}") from None
-
-    def __getitem__(self, index: slice | np.ndarray) -> Covariates:
-        return Covariates(self.t_h[index], self.aux[index], self.aux_names)
-
-    @classmethod
-    def from_samples(cls, t_us: np.ndarray, aux: np.ndarray, aux_names: tuple[str, ...],
-                     t0_us: int = 0) -> Covariates:
-        t_h = (np.asarray(t_us, np.float64) - t0_us) / 3.6e9
-        return cls(t_h, np.asarray(aux, np.float64).reshape(len(t_h), -1), tuple(aux_names))
 
 
 def _eye(n: int) -> np.ndarray:
@@ -127,6 +109,10 @@ class Effect:
         return tuple(f"{self.symbol}{suffix}_{ax}" for ax in AXES)
 
     symbol = "p"
+    #: which forms of it discovery proposes (None: never a candidate, e.g. the scale)
+    proposed: ClassVar[Proposals | None] = None
+    #: the options of `recal simulate` that give the simulated sensor this effect
+    simulated: ClassVar[tuple[SimOption, ...]] = ()
     #: apply is x -> x A + c, the same A and c for every sample, unless it reads a covariate
     linear_in_x = False
     #: apply divides every reading by one factor per sample (`row_divisor`)
@@ -222,6 +208,10 @@ class Ratiometric(Effect):
     stage: int = field(default=1, init=False)
     divides_rows = True
     symbol = "rho"
+    proposed = Proposals(order=3, per_channel=True, channel_pairs=True)
+    simulated = (SimOption("--ratiometric-pct-per-v",
+                           "whole output scaled by the supply (ratiometric parts)",
+                           "ratiometric_per_v", 100, per_axis=False, channel="supply", place=2),)
     reference: str | None = None
     reference_ref: float = 0.0
 
@@ -303,6 +293,13 @@ class Offset(Effect):
     stage: int = field(default=2, init=False)
     symbol = "o"
     linear_in_x = True
+    proposed = Proposals(order=1, per_channel=True, in_time=True)
+    simulated = (SimOption("--offset-tc-mg-per-c",
+                           "offset temperature coefficient (random sign per axis)",
+                           "offset_tc_g_per_c", 1e3, per_axis=True, channel="temperature",
+                           place=0),
+                 SimOption("--drift-mg-per-h", "offset drift in time", "offset_drift_g_per_h",
+                           1e3, per_axis=True, channel="time", place=3))
 
     def prior_sd(self, s0, spread):
         if self.covariate is None:
@@ -405,6 +402,10 @@ class Gain(Effect):
     kind: str = field(default="gain", init=False)
     stage: int = field(default=3, init=False)
     symbol = "gamma"
+    proposed = Proposals(order=2, per_channel=True)
+    simulated = (SimOption("--gain-tc-pct-per-c",
+                           "gain temperature coefficient (random sign per axis)",
+                           "gain_tc_per_c", 100, per_axis=True, channel="temperature", place=1),)
 
     def observable_with(self, axes_covered):
         return np.array(axes_covered, bool)
@@ -450,6 +451,8 @@ class CrossAxis(Effect):
     kind: str = field(default="cross_axis", init=False)
     stage: int = field(default=4, init=False)
     linear_in_x = True
+    # its simulated form is the sensor's random misalignment (`SensorSpec.random`)
+    proposed = Proposals(order=4, plain=True)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -493,6 +496,10 @@ class Nonlinearity(Effect):
     kind: str = field(default="nonlinearity", init=False)
     stage: int = field(default=5, init=False)
     symbol = "q"
+    proposed = Proposals(order=5, plain=True)
+    # the simulator's q distorts the true acceleration: the correction's q is about its opposite
+    simulated = (SimOption("--nonlinearity-pct", "quadratic, % per g", "q_per_g", 100,
+                           per_axis=True, channel=None, place=4),)
 
     def observable_with(self, axes_covered):
         return np.array(axes_covered, bool)
@@ -524,6 +531,12 @@ EFFECT_KINDS: dict[str, type[Effect]] = {
     "cross_axis": CrossAxis,
     "nonlinearity": Nonlinearity,
 }
+
+
+def sim_options() -> tuple[SimOption, ...]:
+    """Every effect's `recal simulate` options, in their places."""
+    return tuple(sorted((o for cls in EFFECT_KINDS.values() for o in cls.simulated),
+                        key=lambda o: o.place))
 
 
 def make_effect(kind: str, covariate: str | None = None, ref: float = 0.0,

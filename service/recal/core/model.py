@@ -23,7 +23,13 @@ from recal.core.effects import Covariates, CrossAxis, Effect, Offset, Scale, mak
 from recal.core.triaxial import norm3, per_axis, per_row
 from recal.errors import ConfigError
 
-__all__ = ["AffineCorrection", "SensorModel"]
+__all__ = ["NAMED_MODELS", "AffineCorrection", "SensorModel"]
+
+#: The models a config names (``model = "diagonal"``), by their effects (none reads a channel).
+NAMED_MODELS: dict[str, tuple[type[Effect], ...]] = {
+    "diagonal": (Offset, Scale),     # Lötters' six parameters
+    "full": (Offset, Scale, CrossAxis),  # Bragge/Georgieva, nine
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,12 +94,27 @@ class SensorModel:
     @classmethod
     def diagonal(cls, s0: float = 1.0) -> SensorModel:
         """Lötters' six parameters: offsets and per-axis sensitivities."""
-        return cls((Offset(), Scale()), s0)
+        return cls.named("diagonal", s0)
 
     @classmethod
     def full(cls, s0: float = 1.0) -> SensorModel:
         """Offsets and an upper-triangular inverse sensitivity (Bragge/Georgieva, 9 parameters)."""
-        return cls((Offset(), Scale(), CrossAxis()), s0)
+        return cls.named("full", s0)
+
+    @classmethod
+    def named(cls, name: str, s0: float = 1.0) -> SensorModel:
+        """One of `NAMED_MODELS`."""
+        try:
+            return cls(tuple(kind() for kind in NAMED_MODELS[name]), s0)
+        except KeyError:
+            raise ConfigError(f"unknown model {name!r}; known: {', '.join(NAMED_MODELS)}") from None
+
+    @property
+    def name(self) -> str | None:
+        """The `NAMED_MODELS` name of this chain of effects (None: not a named one)."""
+        keys = tuple(e.key for e in self.effects)
+        return next((name for name, kinds in NAMED_MODELS.items()
+                     if keys == tuple((k.kind, None) for k in kinds)), None)
 
     def with_effect(self, effect: Effect, spread: float = 1.0) -> SensorModel:
         return SensorModel((*self.effects, effect), self.s0, (*self.spreads, float(spread)))

@@ -78,13 +78,9 @@ UNIT_SAMPLES = 8
 # ---------------------------------------------------------------------------------------------
 
 def model_name(model: SensorModel) -> str:
-    """"diagonal", "full", or the effect labels joined by "+" for discovered models."""
-    kinds = tuple(e.key for e in model.effects)
-    if kinds == (("offset", None), ("scale", None)):
-        return "diagonal"
-    if kinds == (("offset", None), ("scale", None), ("cross_axis", None)):
-        return "full"
-    return "+".join(e.label for e in model.effects)
+    """A named model's name ("diagonal", "full"), or the effect labels joined by "+" for
+    discovered models."""
+    return model.name or "+".join(e.label for e in model.effects)
 
 
 def _decade_reached(total: int, latest: int) -> bool:

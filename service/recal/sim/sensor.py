@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from recal.core.effects import sim_options
 from recal.errors import UsageError
 
 __all__ = [
@@ -185,13 +186,23 @@ class SensorSpec:
             return None
         return float(math.floor(self.full_scale_g * self.counts_per_g + 1e-9))
 
+    def needs(self, channel: str) -> bool:
+        """Whether an effect of the sensor reads `channel` ("temperature", "supply", "time"):
+        a nonzero field that an effect's simulator option sets (`effects.SimOption`)."""
+        return any(bool(np.any(np.asarray(getattr(self, o.field)) != 0.0))
+                   for o in sim_options() if o.channel == channel)
+
     @property
     def needs_temp(self) -> bool:
-        return any(self.gain_tc_per_c) or any(self.offset_tc_g_per_c)
+        return self.needs("temperature")
 
     @property
     def needs_supply(self) -> bool:
-        return self.ratiometric_per_v != 0.0
+        return self.needs("supply")
+
+    @property
+    def needs_time(self) -> bool:
+        return self.needs("time")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serializable fields (tuples become lists)."""

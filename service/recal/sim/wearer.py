@@ -541,7 +541,7 @@ def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None 
     if sensor.supply_channel in aux_names:
         vdd = aux[:, aux_names.index(sensor.supply_channel)]
         vdd[:] = _supply(t_s, rate_hz, wearer, r_vdd)
-    t_h = t_s / 3600.0 if any(sensor.offset_drift_g_per_h) else None
+    t_h = t_s / 3600.0 if sensor.needs_time else None
     del t_s
     v = forward_model(a_true, sensor, temp_c=temp, vdd_v=vdd, t_h=t_h, rng=r_noise)
     raw = RawBatch(t_us, v, aux, tuple(aux_names))
