@@ -14,8 +14,8 @@ and what each choice costs: docs/design.md and docs/performance.md.
 With ``run_nodes = false`` the gateway only logs and publishes raw; a node elsewhere
 (`recal.daemon.remote_node`) subscribes to ``recal/*/raw``.
 
-The main thread checkpoints every pipeline (recal.node.checkpoints), reports aggregated counts
-(parse errors, dropped publishes) once a second as events, and waits for SIGINT/SIGTERM or a
+The main thread checkpoints every pipeline (recal.daemon.checkpoint_store), reports aggregated
+counts (parse errors, dropped publishes) once a second as events, and waits for SIGINT/SIGTERM or a
 stop event. Stopping reads what the ports still hold, calibrates it, writes the checkpoints,
 closes (and indexes) the MCAP and the Zenoh session. A restart resumes each pipeline from its
 checked checkpoint; each calibrated sensor's lock in the state folder is taken before anything
@@ -54,6 +54,7 @@ from recal.config.settings import (
     default_sensor_id,
     load_config,
 )
+from recal.daemon.checkpoint_store import Checkpoints, SensorLockedError
 from recal.daemon.runtime import (
     ERROR_PREFIX,
     RecordingWatch,
@@ -69,8 +70,7 @@ from recal.io.recording import sensor_topic
 from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource, SourceEvent, port_problem
 from recal.io.wire_formats import make_parser
-from recal.node.align_requests import align_handler
-from recal.node.checkpoints import Checkpoints, SensorLockedError
+from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, make_node, node_settings
 from recal.node.sinks import LoggedBusSink, RecordingSink, Sink
 from recal.samples import RawBatch, join_by_layout
@@ -228,7 +228,7 @@ class Gateway:
 
     def run(self, stop: threading.Event) -> None:
         """Checkpoint (each sensor in its turn, and soon after its accepted updates, see
-        recal.node.checkpoints) and report until ``stop`` is set."""
+        recal.daemon.checkpoint_store) and report until ``stop`` is set."""
         self._stop_event = stop
         if self.fatal is not None:
             stop.set()
