@@ -502,7 +502,7 @@ def test_latency_on_demand_ticks_until_someone_subscribes(tmp_path: Path) -> Non
             bus = peer(zport)
             got: list[int] = []
             bus.subscribe(key(SID, "calibrated"), lambda m: got.append(1))
-            assert wait_for(lambda: live.gw._tick_s() == 0.0, 10), "subscriber not noticed"
+            assert wait_for(lambda: live.gw.loop.tick_s() == 0.0, 10), "subscriber not noticed"
             before = p.batches_logged
             more, _ = stream(dev, raw[500:700], 100.0, chunk=1)  # 10 ms apart, each at once
             assert wait_for(lambda: p.samples_logged == sent + more, 10)
