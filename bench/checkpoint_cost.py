@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from recal.config.settings import PriorConfig, SensorConfig, ServiceConfig
-from recal.node.checkpoints import Checkpoints, load_checkpoint, restore_pipeline, save_checkpoint
+from recal.daemon.checkpoint_store import Checkpoints, load_checkpoint, save_checkpoint
+from recal.node.checkpoint_doc import restore_pipeline
 from recal.node.node import CalibrationNode, node_settings
 from recal.node.sinks import NullSink
 from recal.sim.wearer import SensorSpec, simulate

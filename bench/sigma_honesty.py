@@ -58,7 +58,7 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status
-from recal.node.checkpoints import Checkpoints, checkpoint_path
+from recal.daemon.checkpoint_store import Checkpoints, checkpoint_path
 from recal.node.node import CalibrationNode, NodeSettings, make_node
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import wearer as sim

@@ -1,4 +1,5 @@
-"""Checkpoints that can be trusted, and one owner per sensor (recal.node.checkpoints).
+"""Checkpoints that can be trusted, and one owner per sensor (recal.node.checkpoint_doc,
+recal.daemon.checkpoint_store).
 
 Poisoned checkpoint files (NaN, infinity, 100 g offsets, wrong shapes, times of 2^70 or years
 ahead, deep nesting, a directory, truncated JSON) are refused with one console line and an
@@ -42,21 +43,21 @@ from recal.config.settings import (
 )
 from recal.core.pipeline import Pipeline
 from recal.core.status import Status
-from recal.daemon.gateway import NOTE_PREFIX, READY_PREFIX, run_gateway
-from recal.daemon.runtime import ERROR_PREFIX
-from recal.io import recording as rec
-from recal.io.bus import key
-from recal.node.checkpoints import (
+from recal.daemon.checkpoint_store import (
     FAIL_NOTE_S,
     Checkpoints,
     SensorLockedError,
     checkpoint_path,
-    json_depth,
     load_checkpoint,
     lock_sensor,
     previous_path,
     save_checkpoint,
 )
+from recal.daemon.gateway import NOTE_PREFIX, READY_PREFIX, run_gateway
+from recal.daemon.runtime import ERROR_PREFIX
+from recal.io import recording as rec
+from recal.io.bus import key
+from recal.node.checkpoint_doc import json_depth
 from recal.node.node import CalibrationNode, NodeSettings, make_node, node_settings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim.pty_device import PtyDevice

@@ -30,6 +30,7 @@ from recal.cli import main as recal_main
 from recal.commands.demo import free_port
 from recal.config.settings import ConfigError, parse_config
 from recal.daemon import runtime
+from recal.daemon.checkpoint_store import load_checkpoint, save_checkpoint
 from recal.daemon.runtime import open_recording
 from recal.errors import RecordingError
 from recal.io import recording as rec
@@ -37,7 +38,6 @@ from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated
 from recal.io.recording_writer import RecordingWriter
-from recal.node.checkpoints import load_checkpoint, save_checkpoint
 from recal.samples import RawBatch
 from recal.sim.pty_device import PtyDevice
 from test_gateway import get_json, sim_raw, stream

@@ -22,6 +22,7 @@ from recal.commands.replay import replay
 from recal.config.settings import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
 from recal.core.status import REOPEN_PROBATION_WINDOWS
+from recal.daemon.checkpoint_store import load_checkpoint
 from recal.daemon.gateway import NOTE_PREFIX, Gateway, run_gateway
 from recal.daemon.remote_node import run_node
 from recal.io import recording as rec
@@ -29,7 +30,6 @@ from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_calibrated, decode_json
 from recal.io.repair import repair
-from recal.node.checkpoints import load_checkpoint
 from recal.samples import RawBatch
 from recal.sim.pty_device import PtyDevice
 from recal.sim.wearer import SensorSpec, WearerSpec, simulate
@@ -502,7 +502,7 @@ def test_latency_on_demand_ticks_until_someone_subscribes(tmp_path: Path) -> Non
             bus = peer(zport)
             got: list[int] = []
             bus.subscribe(key(SID, "calibrated"), lambda m: got.append(1))
-            assert wait_for(lambda: live.gw._tick_s() == 0.0, 10), "subscriber not noticed"
+            assert wait_for(lambda: live.gw.loop.tick_s() == 0.0, 10), "subscriber not noticed"
             before = p.batches_logged
             more, _ = stream(dev, raw[500:700], 100.0, chunk=1)  # 10 ms apart, each at once
             assert wait_for(lambda: p.samples_logged == sent + more, 10)
@@ -515,7 +515,7 @@ def test_latency_on_demand_ticks_until_someone_subscribes(tmp_path: Path) -> Non
 
 
 def test_checkpoints_are_spread_over_the_interval() -> None:
-    from recal.node.checkpoints import CheckpointSchedule
+    from recal.daemon.checkpoint_store import CheckpointSchedule
 
     now = [0.0]
     schedule = CheckpointSchedule(60.0, clock=lambda: now[0])

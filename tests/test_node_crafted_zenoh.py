@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from polling import wait_for
+from recal.daemon.checkpoint_store import load_checkpoint
 from recal.io import recording as rec
 from recal.io.bus import key
 from recal.io.messages import encode_raw
-from recal.node.checkpoints import load_checkpoint
 from recal.samples import RawBatch
 from recal.sim import wearer as sim
 from test_security import RATE_HZ, NodeThread, node_config, plain_client, status_of

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from recal.config.settings import AlignmentConfig, PipelineSettings, SensorConfig, model_and_prior
-from recal.node.checkpoints import Checkpoints, checkpoint_path, load_checkpoint
+from recal.daemon.checkpoint_store import Checkpoints, checkpoint_path, load_checkpoint
 from recal.node.node import CalibrationNode, NodeSettings, make_node
 from recal.samples import RawBatch
 from recal.sim import wearer as sim
@@ -40,6 +40,11 @@ def _feed(node: CalibrationNode, raw: RawBatch, batch: int = 500) -> None:
     for i in range(0, len(raw), batch):
         b = raw[i:i + batch]
         node.process(b, 10**18 + int(b.t_us[0]) * 1000)
+
+
+def _store(folder: Path) -> Checkpoints:
+    """The state folder as the daemon opens it (its lines to the log)."""
+    return Checkpoints(folder, 60.0, out=lambda _line: None)
 
 
 def _keeper(folder: Path, lines: list[str], events: list[tuple[str, str, Any]]) -> Checkpoints:
@@ -82,7 +87,7 @@ def test_a_restart_without_the_header_maps_the_unnamed_channel_and_keeps_saving(
     assert keeper2.saves == 1 and keeper2.failed_saves == 0, lines
     doc = load_checkpoint(checkpoint_path(tmp_path, SID))
     assert doc is not None and doc["t_us"] == node2.last_t_us
-    assert make_node(_settings(), MemorySink(), tmp_path).start == "checkpoint"
+    assert make_node(_settings(), MemorySink(), _store(tmp_path)).start == "checkpoint"
 
 
 def test_a_channel_that_stays_missing_never_stops_the_saves(tmp_path: Path) -> None:
@@ -98,7 +103,7 @@ def test_a_channel_that_stays_missing_never_stops_the_saves(tmp_path: Path) -> N
     _feed(node1, _with_aux(raw[:half], "temp_c"))
     _keeper(tmp_path, lines, events).save({SID: node1})
 
-    node2 = make_node(_settings(), MemorySink(), tmp_path)
+    node2 = make_node(_settings(), MemorySink(), _store(tmp_path))
     assert node2.start == "checkpoint"
     _feed(node2, raw[half:])
     assert node2.samples == len(raw) - half
@@ -112,7 +117,7 @@ def test_a_channel_that_stays_missing_never_stops_the_saves(tmp_path: Path) -> N
     assert sum("saved as null" in line for line in lines) == 1, lines
     doc = load_checkpoint(checkpoint_path(tmp_path, SID))
     assert doc is not None and doc["t_us"] == node2.last_t_us
-    restored = make_node(_settings(), MemorySink(), tmp_path)
+    restored = make_node(_settings(), MemorySink(), _store(tmp_path))
     assert restored.start == "checkpoint" and restored.pipeline is not None
     assert restored.pipeline.bootstrapped == node2.pipeline.bootstrapped
 
@@ -172,7 +177,7 @@ def test_a_crafted_stream_cannot_move_time_or_adopt_an_estimate_the_node_could_n
         assert est is None or np.all(np.abs(est.p[:3] - good[:3]) < 0.2 * 1024), (scale, est)
         assert abs(node.pipeline.model.s0 - 1024.0) < 0.5 * 1024, node.pipeline.model.s0
         assert any(n.startswith("calibration refused") for n in notes), notes
-        restored = make_node(_configured(), MemorySink(), folder)
+        restored = make_node(_configured(), MemorySink(), _store(folder))
         assert restored.start == "checkpoint", scale
 
 

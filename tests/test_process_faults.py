@@ -19,12 +19,12 @@ from gateway_process import GatewayProcess, write_config
 from polling import wait_for
 from recal.cli import main as recal_main
 from recal.commands.demo import free_port
+from recal.daemon.checkpoint_store import checkpoint_path, load_checkpoint
 from recal.io import recording as rec
 from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_raw
 from recal.io.router import RouterProcess
-from recal.node.checkpoints import checkpoint_path, load_checkpoint
 from recal.samples import RawBatch
 from recal.sim.pty_device import PtyDevice
 from test_gateway import sim_raw, stream

@@ -13,7 +13,7 @@ import numpy as np
 
 from gateway_process import GatewayProcess, write_config
 from polling import wait_for
-from recal.node.checkpoints import checkpoint_path, load_checkpoint
+from recal.daemon.checkpoint_store import checkpoint_path, load_checkpoint
 from recal.samples import RawBatch
 from recal.sim.pty_device import PtyDevice
 from test_gateway import sim_raw, stream

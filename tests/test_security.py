@@ -27,14 +27,14 @@ import zenoh
 from polling import wait_for
 from recal.commands.demo import free_port
 from recal.config.settings import ConfigError, load_config, parse_config
+from recal.daemon.checkpoint_store import load_checkpoint
 from recal.daemon.remote_node import REJECT_IDS_KEPT, REJECT_REPORT_S, SensorGate, run_node
 from recal.io import recording as rec
 from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_json, encode_raw
 from recal.io.router import RouterProcess, run_router, security_summary
-from recal.node.align_requests import align_handler
-from recal.node.checkpoints import load_checkpoint
+from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, NodeSettings, node_settings
 from recal.node.sinks import EventSink
 from recal.samples import RawBatch

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from recal.config.settings import CheckpointConfig, PriorConfig, SensorConfig, ServiceConfig
-from recal.node.checkpoints import (
+from recal.daemon.checkpoint_store import (
     CheckpointError,
     Checkpoints,
     SensorLockedError,

@@ -25,11 +25,11 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import Status, correction_jacobian, predicted_sigma_mg, sigma_form
+from recal.daemon.checkpoint_store import CheckpointError
 from recal.io import messages
 from recal.io import recording as rec
 from recal.io.csv_table import read_csv
 from recal.io.recording_writer import RecordingWriter
-from recal.node.checkpoints import CheckpointError
 from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import wearer as sim
@@ -231,7 +231,7 @@ def _nan_checkpoint(prior_too: bool) -> tuple[dict, sim.SimResult]:
 @pytest.mark.parametrize("prior_too", [False, True])
 def test_a_checkpoint_with_nan_parameters_publishes_no_nan(prior_too: bool) -> None:
     """Was: every calibrated sample NaN, on Zenoh and in the log. Now the checkpoint file is
-    refused (recal.node.checkpoints: the previous generation or the prior is used), and a pipeline
+    refused (checkpoint_store: the previous generation or the prior is used), and a pipeline
     handed such a state all the same (a library caller) resets itself: the estimate goes back
     to the prior (held) or, with no finite prior either, to no estimate (uncalibrated, then a
     bootstrap): said by an event, never NaN, and nothing calibrated until data inform it."""

@@ -8,8 +8,10 @@ keep working.
 
 from __future__ import annotations
 
-__all__ = ["ConfigError", "InputError", "ModelError", "RecalError", "RecordingError",
-           "UsageError"]
+from pathlib import Path
+
+__all__ = ["CheckpointError", "ConfigError", "InputError", "ModelError", "RecalError",
+           "RecordingError", "SensorLockedError", "UsageError"]
 
 
 class RecalError(Exception):
@@ -35,3 +37,17 @@ class RecordingError(RecalError, ValueError):
 
 class ModelError(RecalError, ValueError):
     """A sensor model that does not fit the data it is given (a channel the stream lacks)."""
+
+
+class CheckpointError(RecalError, ValueError):
+    """A checkpoint file that exists but cannot be trusted (the message says why)."""
+
+
+class SensorLockedError(RecalError, RuntimeError):
+    """Another process calibrates this sensor id from the same state folder."""
+
+    def __init__(self, sensor_id: str, path: Path, pid: int | None) -> None:
+        self.sensor_id, self.path, self.pid = sensor_id, path, pid
+        holder = f"process {pid}" if pid else "another process"
+        super().__init__(f"sensor {sensor_id!r} is already calibrated by {holder} "
+                         f"(lock {path}); one process per sensor id and state folder")

@@ -1,2 +1,3 @@
-"""The long-running processes: the gateway (`recal run`), the remote calibration node
-(`recal node`) and what every such process shares (`runtime`)."""
+"""The long-running processes: the gateway (`recal run`) and its ports, the remote calibration
+node (`recal node`), the checkpoint store with its state-folder files, and what every such
+process shares (`runtime`)."""

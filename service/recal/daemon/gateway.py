@@ -9,13 +9,14 @@ once, whatever happens to the node or the bus. When calibration takes longer, th
 finds more bytes waiting, so batches grow with the load; the serial ports' kernel buffers are
 the back-pressure point. ``batch_s`` (``--batch-ms``) and ``idle_batch_s`` (config
 ``idle_batch_ms``: a tick while nobody subscribes live) trade latency for CPU. Why one thread
-and what each choice costs: docs/design.md and docs/performance.md.
+and what each choice costs: docs/design.md and docs/performance.md. The ports, which sensors
+they serve and the I/O thread's loop: `recal.daemon.ports`.
 
 With ``run_nodes = false`` the gateway only logs and publishes raw; a node elsewhere
 (`recal.daemon.remote_node`) subscribes to ``recal/*/raw``.
 
-The main thread checkpoints every pipeline (recal.node.checkpoints), reports aggregated counts
-(parse errors, dropped publishes) once a second as events, and waits for SIGINT/SIGTERM or a
+The main thread checkpoints every pipeline (recal.daemon.checkpoint_store), reports aggregated
+counts (parse errors, dropped publishes) once a second as events, and waits for SIGINT/SIGTERM or a
 stop event. Stopping reads what the ports still hold, calibrates it, writes the checkpoints,
 closes (and indexes) the MCAP and the Zenoh session. A restart resumes each pipeline from its
 checked checkpoint; each calibrated sensor's lock in the state folder is taken before anything
@@ -34,25 +35,28 @@ the parser's partial line, the pipeline's bounded buffer; counters only.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import selectors
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 from recal.config.sensor_options import SensorOptions, with_options
 from recal.config.settings import (
-    SensorConfig,
     ServiceConfig,
     check_model_channels,
-    default_sensor_id,
     load_config,
+)
+from recal.daemon.checkpoint_store import Checkpoints, SensorLockedError
+from recal.daemon.ports import (
+    Port,
+    PortLoop,
+    PortTakenError,
+    claim_ports,
+    make_source,
+    select_sensors,
 )
 from recal.daemon.runtime import (
     ERROR_PREFIX,
@@ -63,17 +67,15 @@ from recal.daemon.runtime import (
     open_bus,
     open_recording,
 )
-from recal.errors import ConfigError, RecalError
+from recal.errors import ConfigError
 from recal.io import messages
-from recal.io.recording import sensor_topic
 from recal.io.recording_writer import RecordingWriter
-from recal.io.serial_source import SerialSource, SourceEvent, port_problem
-from recal.io.wire_formats import make_parser, wire_format
-from recal.node.align_requests import align_handler
-from recal.node.checkpoints import Checkpoints, SensorLockedError
+from recal.io.serial_source import SerialSource, SourceEvent
+from recal.io.wire_formats import wire_format
+from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, make_node, node_settings
 from recal.node.sinks import LoggedBusSink, RecordingSink, Sink
-from recal.samples import RawBatch, join_by_layout
+from recal.samples import RawBatch
 
 __all__ = [
     "NOTE_PREFIX",
@@ -86,12 +88,6 @@ log = logging.getLogger(__name__)
 
 READY_PREFIX = "recal gateway ready"
 STOPPED_PREFIX = "recal gateway stopped"
-READ_WAIT_S = 0.05  # longest selector wait: bounds how fast a stop is noticed
-POLL_QUIET_S = 0.25  # an open port that sent nothing is polled this often (unplug check)
-SWEEP_S = 0.05  # how often every port is looked at for a due open retry or quiet poll
-IO_RETRY_S = 0.1  # pause after a failed I/O round
-LISTEN_CHECK_S = 0.5  # how often the loop asks whether anyone subscribes to live data
-LIVE_TOPICS = ("raw", "calibrated", "body")  # a subscriber to any of these wants low latency
 REPORT_INTERVAL_S = 1.0  # aggregated events (parse errors, dropped publishes) at most this often
 NOTE_PREFIX = "recal gateway:"  # a line for the operator (stdout: the journal under systemd)
 NOTE_KINDS = ("port_opened", "port_found", "port_lost", "port_missing", "port_busy")  # a line each
@@ -99,49 +95,12 @@ PARSE_NOTE_S = 60.0  # bad input is summed up for the operator at most this ofte
 # a partial line cut at a (re)connect is expected: an event in the log, no line for the operator
 PARSE_NOT_NOTED = frozenset({"resync_dropped", "truncated"})
 STOP_JOIN_S = 10.0
-FINAL_LINE_S = 0.1  # at stop, how long a partial line may take to end
 
 
 # ---------------------------------------------------------------------------------------------
 # One sensor's live parts
 # ---------------------------------------------------------------------------------------------
 
-@dataclass
-class _Port:
-    """A sensor's serial source, node and counters (touched by the I/O thread only, except
-    reads of the counters for status queries)."""
-
-    sensor: SensorConfig
-    source: SerialSource
-    node: CalibrationNode | None
-    keys: dict[str, str] = field(default_factory=dict)  # topic -> Zenoh key, built once
-    raw_publisher: Any = None  # the bus's Publisher of recal/<sensor>/raw, looked up once
-    fd: int | None = None  # registered with the selector
-    polled_s: float = 0.0  # last poll, for the periodic poll of quiet ports
-    pending: list[RawBatch] = field(default_factory=list)  # read this round, not yet handled
-    samples_logged: int = 0
-    batches_logged: int = 0
-    is_open: bool = False
-    ever_opened: bool = False
-    lost_count: int = 0
-    open_failures: int = 0
-    parse_errors: dict[str, int] = field(default_factory=dict)
-    parse_reported: dict[str, int] = field(default_factory=dict)
-    parse_noted: dict[str, int] = field(default_factory=dict)  # as of the last operator line
-    parse_noted_s: float = float("-inf")
-    node_errors: int = 0
-
-    @property
-    def sensor_id(self) -> str:
-        return self.sensor.id
-
-    def status(self) -> dict[str, Any]:
-        return {"port": self.sensor.port, "open": self.is_open, "lost_count": self.lost_count,
-                "samples_logged": self.samples_logged, "batches_logged": self.batches_logged,
-                "parse_errors": dict(self.parse_errors),
-                "parse_errors_total": sum(self.parse_errors.values()),
-                "queue": sum(len(b) for b in list(self.pending)),
-                "node_errors": self.node_errors}
 
 
 class Gateway:
@@ -168,31 +127,25 @@ class Gateway:
                  idle_batch_s: float = 0.0, checkpoints: Checkpoints | None = None,
                  sources: dict[str, SerialSource] | None = None,
                  opened: dict[str, list[SourceEvent]] | None = None) -> None:
-        if batch_s < 0 or idle_batch_s < 0:
-            raise ValueError("batch_s and idle_batch_s must be >= 0")
+        self.ports: dict[str, Port] = {}
+        #: the I/O thread's loop over the ports (its tick: ``batch_s``, ``idle_batch_s``)
+        self.loop = PortLoop(self.ports, bus, batch_s, idle_batch_s, self._handle,
+                             self._source_event, self._gateway_event)
         self.cfg = cfg
         self.writer = writer
         self.bus = bus
         self.out = out
-        self.batch_s = float(batch_s)
-        self.idle_batch_s = float(idle_batch_s)
-        self._listening = True  # until the first check: start out responsive
-        self._next_listen_check_s = 0.0
-        self._stop_reading = threading.Event()
-        self.ports: dict[str, _Port] = {}
         self._opened = opened or {}
         for s in cfg.sensors:
-            src = (sources or {}).get(s.id) or _source(s)
+            src = (sources or {}).get(s.id) or make_source(s)
             node = nodes.get(s.id)
             if node is not None:
                 node.on_note = lambda line, sid=s.id: self.out(f"{NOTE_PREFIX} {sid}: {line}")
-            self.ports[s.id] = _Port(s, src, node)
+            self.ports[s.id] = Port(s, src, node)
         #: why the daemon stopped by itself (a sensor that cannot be calibrated), or None
         self.fatal: str | None = None
         self._stop_event: threading.Event | None = None
         self._io_thread: threading.Thread | None = None
-        self._next_sweep_s = 0.0
-        self._io_errors = 0
         self._publish_reported = 0
         self._started_s = time.monotonic()
         c = cfg.checkpoint
@@ -212,7 +165,7 @@ class Gateway:
         self._gateway_event("start", now, {
             "sensors": {sid: p.sensor.port for sid, p in self.ports.items()},
             "mcap": str(self.writer.paths[0]), "run_nodes": self.cfg.run_nodes,
-            "batch_s": self.batch_s, "idle_batch_s": self.idle_batch_s})
+            "batch_s": self.loop.batch_s, "idle_batch_s": self.loop.idle_batch_s})
         for sid, events in self._opened.items():
             for ev in events:
                 self._source_event(self.ports[sid], ev, now)
@@ -223,12 +176,12 @@ class Gateway:
                 p.keys = {t: key(sid, t) for t in ("raw", "events")}
                 p.raw_publisher = self.bus.publisher(p.keys["raw"])
                 self._declare_queries(sid, p)
-        self._io_thread = threading.Thread(target=self._io_loop, name="recal-io", daemon=True)
+        self._io_thread = threading.Thread(target=self.loop.run, name="recal-io", daemon=True)
         self._io_thread.start()
 
     def run(self, stop: threading.Event) -> None:
         """Checkpoint (each sensor in its turn, and soon after its accepted updates, see
-        recal.node.checkpoints) and report until ``stop`` is set."""
+        recal.daemon.checkpoint_store) and report until ``stop`` is set."""
         self._stop_event = stop
         if self.fatal is not None:
             stop.set()
@@ -251,7 +204,7 @@ class Gateway:
 
         Returns samples logged per sensor.
         """
-        self._stop_reading.set()
+        self.loop.stop_reading.set()
         if self._io_thread is not None:
             self._io_thread.join(STOP_JOIN_S)
         for p in self.ports.values():
@@ -274,135 +227,8 @@ class Gateway:
 
     # -- the I/O thread -----------------------------------------------------------------------
 
-    def _io_loop(self) -> None:
-        """Read every port from one selector; log, publish and calibrate what arrived.
 
-        One thread for all ports: a thread per port costs a wake-up and GIL hand-over per
-        sample and sensor (docs/design.md, one I/O thread). Reading every ready port
-        before handling any batch, and handling all of one port's new samples as one batch,
-        makes batches grow by themselves when the loop falls behind, so the per-batch cost
-        is paid less often exactly when it matters.
-        """
-        sel = selectors.DefaultSelector()
-        try:
-            next_tick = time.monotonic()
-            while not self._stop_reading.is_set():
-                tick = self._tick_s()
-                if tick > 0:  # sleep out the tick, then take what arrived at once
-                    delay = next_tick - time.monotonic()
-                    if delay > 0 and self._stop_reading.wait(delay):
-                        break
-                    next_tick = max(next_tick + tick, time.monotonic())
-                    ready = sel.select(0)
-                else:
-                    ready = sel.select(READ_WAIT_S)
-                    next_tick = time.monotonic()
-                self._guarded_round(sel, [k.data for k, _ in ready])
-            # a last read of every port, not as "readable": an empty read then means nothing
-            # was left, not that the device hung up (a port_lost at every stop, before)
-            self._guarded_round(sel, [], final=True)
-            # a line the device was writing as we stopped gets a moment to end: cut here, its
-            # rest would start the next run's stream and both halves would be lost
-            deadline = time.monotonic() + FINAL_LINE_S
-            while (time.monotonic() < deadline
-                   and any(p.source.parser.partial
-                           for p in self.ports.values() if p.source.is_open)):
-                time.sleep(0.005)
-                self._guarded_round(sel, [], final=True)
-        finally:
-            sel.close()
-
-    def _tick_s(self) -> float:
-        """The loop's tick now: ``batch_s``, else 0 while someone listens live, else
-        ``idle_batch_s`` (who listens is asked every ``LISTEN_CHECK_S``)."""
-        if self.batch_s > 0 or self.idle_batch_s <= 0:
-            return self.batch_s
-        now_s = time.monotonic()
-        if now_s >= self._next_listen_check_s:
-            self._next_listen_check_s = now_s + LISTEN_CHECK_S
-            self._listening = self._anyone_listening()
-        return 0.0 if self._listening else self.idle_batch_s
-
-    def _anyone_listening(self) -> bool:
-        """Whether any subscriber matches a sensor's raw, calibrated or body key."""
-        if self.bus is None:
-            return False
-        from recal.io.bus import key
-
-        try:
-            return any(self.bus.publisher(key(sid, topic)).has_subscribers
-                       for sid in self.ports for topic in LIVE_TOPICS)
-        except RuntimeError:  # the bus closed under us (shutdown)
-            return False
-
-    def _guarded_round(self, sel: selectors.BaseSelector, ready: list[_Port],
-                       final: bool = False) -> None:
-        """A round whose failure (a bug; a full disk does not fail a round, the writer keeps
-        what the disk refuses) is reported and survived: the loop serves every sensor, so it
-        must not end, or all of them would go quiet."""
-        try:
-            self._read_round(sel, ready, final)
-        except Exception as exc:
-            self._io_errors += 1
-            if self._io_errors <= 5 or self._io_errors % 1000 == 0:
-                log.exception("gateway I/O round failed")
-                with contextlib.suppress(Exception):  # the log itself may be what fails
-                    self._gateway_event("io_error", time.time_ns(), {
-                        "error": f"{type(exc).__name__}: {exc}", "count": self._io_errors})
-            self._stop_reading.wait(IO_RETRY_S)  # no hot loop on a lasting failure
-
-    def _read_round(self, sel: selectors.BaseSelector, ready: list[_Port],
-                    final: bool = False) -> None:
-        """Poll the ready ports and those due a poll anyway, then handle what they gave."""
-        now_s = time.monotonic()
-        for p in ready:
-            self._poll(sel, p, now_s, readable=True)
-        polled = ready
-        if final or now_s >= self._next_sweep_s:
-            # Closed ports retry opening on their back-off schedule; quiet open ports are
-            # polled now and then so that their path check notices an unplug. Looking at
-            # every port is O(sensors), so it happens on a timer, not every round.
-            self._next_sweep_s = now_s + SWEEP_S
-            polled = [*ready, *self._sweep(sel, now_s, {id(p) for p in ready}, final)]
-        now_ns = time.time_ns()
-        for p in polled:
-            if p.pending:
-                batches, p.pending = p.pending, []
-                for batch in batches if len(batches) == 1 else join_by_layout(batches):
-                    self._handle(p, batch, now_ns)
-
-    def _sweep(self, sel: selectors.BaseSelector, now_s: float, skip: set[int],
-               final: bool) -> list[_Port]:
-        swept = []
-        for p in self.ports.values():
-            if id(p) in skip:
-                continue
-            due = p.source.next_open_s if p.fd is None else p.polled_s + POLL_QUIET_S
-            if final or now_s >= due:
-                self._poll(sel, p, now_s)
-                swept.append(p)
-        return swept
-
-    def _poll(self, sel: selectors.BaseSelector, p: _Port, now_s: float,
-              readable: bool = False) -> None:
-        p.polled_s = now_s
-        batch, events = p.source.poll(readable)
-        if events:
-            now = time.time_ns()
-            for ev in events:
-                self._source_event(p, ev, now)
-        if len(batch):
-            p.pending.append(batch)
-        fd = p.source.fileno()
-        if fd != p.fd:  # opened, lost or reopened: keep the selector in step
-            if p.fd is not None:
-                with contextlib.suppress(KeyError, ValueError, OSError):
-                    sel.unregister(p.fd)
-            if fd is not None:
-                sel.register(fd, selectors.EVENT_READ, p)
-            p.fd = fd
-
-    def _handle(self, p: _Port, batch: RawBatch, log_ns: int) -> None:
+    def _handle(self, p: Port, batch: RawBatch, log_ns: int) -> None:
         """Log first (nothing lost), then publish the same bytes, then calibrate."""
         self.writer.log_raw(p.sensor_id, batch, log_ns)
         p.samples_logged += len(batch)
@@ -430,7 +256,7 @@ class Gateway:
 
     # -- events -------------------------------------------------------------------------------
 
-    def _source_event(self, p: _Port, ev: SourceEvent, now: int) -> None:
+    def _source_event(self, p: Port, ev: SourceEvent, now: int) -> None:
         if ev.kind == "parse_errors":
             for k, v in ev.detail.items():
                 if k != "port":
@@ -476,7 +302,7 @@ class Gateway:
                 self._sensor_event(sid, "publish_dropped", now, {"new": new, "total": dropped},
                                    publish=False)
 
-    def _note_parse_errors(self, p: _Port, snapshot: dict[str, int]) -> None:
+    def _note_parse_errors(self, p: Port, snapshot: dict[str, int]) -> None:
         """Bad input skipped since the last such line, for the operator, at most every
         PARSE_NOTE_S per sensor (a device that sends garbage for weeks fills no journal)."""
         now_s = time.monotonic()
@@ -532,7 +358,7 @@ class Gateway:
 
     # -- queries and checkpoints --------------------------------------------------------------
 
-    def _declare_queries(self, sid: str, p: _Port) -> None:
+    def _declare_queries(self, sid: str, p: Port) -> None:
         from recal.io.bus import key
 
         self.bus.queryable(key(sid, "status"),
@@ -562,95 +388,6 @@ class Gateway:
 # Entry points
 # ---------------------------------------------------------------------------------------------
 
-def _sensors(cfg: ServiceConfig, ports: Sequence[str], sensor_ids: Sequence[str]
-             ) -> list[SensorConfig]:
-    """The sensors to serve: ports from the command line (ids matched to config entries),
-    else the configured sensors (limited to ``sensor_ids`` if given).
-
-    A device path that does not exist yet is waited for (a deployment may boot before its
-    devices appear, a device may be plugged in later), as is any device unplugged later;
-    one that can never be a serial port (a regular file, a directory, /dev/null, a URL scheme
-    pyserial does not know) is an error now (one another process holds: `claim_ports`)."""
-    if ports:
-        if sensor_ids and len(sensor_ids) != len(ports):
-            raise ConfigError(f"{len(ports)} ports but {len(sensor_ids)} sensor ids")
-        chosen = []
-        for i, port in enumerate(ports):
-            if sensor_ids:
-                sid = sensor_ids[i]
-                base = cfg.sensor(sid) or SensorConfig(id=sid)
-            elif i < len(cfg.sensors):
-                base = cfg.sensors[i]
-            else:  # the device's own name: two devices never share a calibration
-                base = SensorConfig(id=default_sensor_id(port))
-            chosen.append(replace(base, port=port))
-        return _distinct(chosen)
-    chosen = [s for s in cfg.sensors if not sensor_ids or s.id in sensor_ids]
-    missing = sorted(set(sensor_ids) - {s.id for s in chosen})
-    if missing:
-        raise ConfigError(f"sensor {missing[0]!r} is not in the configuration")
-    without = [s.id for s in chosen if s.port is None]
-    if without:
-        raise ConfigError(f"sensor {without[0]!r} has no port")
-    return _distinct(chosen)
-
-
-def _distinct(sensors: list[SensorConfig]) -> list[SensorConfig]:
-    """Each sensor a valid id of its own and a device of its own: two readers of one tty split
-    its bytes between them and each sees the other's reads as a hang-up."""
-    seen_ids: set[str] = set()
-    seen_ports: dict[str, str] = {}
-    for s in sensors:
-        try:  # the config's ids are checked when it is read; --sensor-id ones only here
-            sensor_topic(s.id, "raw")
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
-        assert s.port is not None  # the port first: a device given twice gets one id twice
-        device = s.port if "://" in s.port else os.path.realpath(s.port)
-        if device in seen_ports:
-            raise ConfigError(f"port {s.port} is given to two sensors "
-                              f"({seen_ports[device]!r} and {s.id!r})")
-        seen_ports[device] = s.id
-        if s.id in seen_ids:
-            raise ConfigError(f"sensor id {s.id!r} is given twice")
-        seen_ids.add(s.id)
-    for s in sensors:
-        assert s.port is not None
-        problem = port_problem(s.port)
-        if problem is not None:
-            raise ConfigError(f"port {problem}")
-    return sensors
-
-
-class PortTakenError(RecalError):
-    """A port another process holds (another daemon: it would split the bytes with us)."""
-
-
-def _source(s: SensorConfig) -> SerialSource:
-    assert s.port is not None
-    # a known rate lets records come without a time column where the format allows it
-    # (ASCII lines x,y,z[,aux]); make_parser passes it to such formats only
-    parser = make_parser(s.format, s.aux_names, rate_hz=s.rate_hz)
-    return SerialSource(s.port, parser, s.baudrate, read_timeout_s=0.02)
-
-
-def claim_ports(cfg: ServiceConfig
-                ) -> tuple[dict[str, SerialSource], dict[str, list[SourceEvent]]]:
-    """Every sensor's serial source, opened now where its device exists: (sources, what
-    their opens reported). The exclusive open itself decides who owns a port, so two daemons
-    racing for one cannot both pass; PortTakenError (every source closed) for a port another
-    process holds. A port that is missing (``open_failed``) is retried by the I/O thread."""
-    sources: dict[str, SerialSource] = {}
-    opened: dict[str, list[SourceEvent]] = {}
-    for s in cfg.sensors:
-        src = sources[s.id] = _source(s)
-        opened[s.id] = events = src.open_now()
-        busy = [ev for ev in events if ev.kind == "port_busy"]
-        if busy:
-            for other in sources.values():
-                other.close()
-            raise PortTakenError(f"port {s.port} is {busy[0].detail.get('error', 'in use')}")
-    return sources, opened
 
 
 def _nodes(cfg: ServiceConfig, sink: Sink, model_path: str | Path | None,
@@ -709,7 +446,7 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
         if batch_s is not None and not batch_s >= 0:
             raise ConfigError(f"--batch-ms must be 0 or more, not {batch_s * 1e3:g}")
         cfg = config if isinstance(config, ServiceConfig) else load_config(config)
-        cfg = with_options(cfg.with_sensors(_sensors(cfg, ports, sensor_ids)),
+        cfg = with_options(cfg.with_sensors(select_sensors(cfg, ports, sensor_ids)),
                            sensor_options or SensorOptions())
         if cfg.run_nodes:
             check_model_channels(cfg, model_path)

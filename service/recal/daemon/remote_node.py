@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from recal.config.settings import SensorConfig, ServiceConfig, load_config
+from recal.daemon.checkpoint_store import Checkpoints, SensorLockedError
 from recal.daemon.runtime import (
     ERROR_PREFIX,
     console,
@@ -30,8 +31,7 @@ from recal.daemon.runtime import (
 from recal.errors import ConfigError
 from recal.io import bus as _bus
 from recal.io import messages
-from recal.node.align_requests import align_handler
-from recal.node.checkpoints import Checkpoints, SensorLockedError
+from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, make_node, node_settings
 from recal.node.sinks import BusSink, LoggedBusSink, Sink
 from recal.samples import RawBatch, join_by_layout

@@ -15,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from recal.config.settings import RediscoveryConfig
 from recal.core.pipeline import Pipeline
 
-__all__ = ["Rediscovery"]
+__all__ = ["Rediscovery", "RediscoverySchedule"]
 
 log = logging.getLogger(__name__)
 
@@ -60,3 +61,51 @@ class Rediscovery:
     def result(self) -> Any:
         self._done.wait()
         return self._result
+
+
+class RediscoverySchedule:
+    """When a node reruns discovery: every ``[discovery] every_h`` device hours, one run at a
+    time, its result taken ``adopt_after_s`` device seconds after it started.
+
+    ``next_us``: the device time of the next run (None: scheduled from the data).
+    """
+
+    def __init__(self, cfg: RediscoveryConfig, next_us: int | None = None) -> None:
+        self.cfg = cfg
+        self.next_us = next_us
+        self.run: Rediscovery | None = None  # a run in its thread
+
+    @property
+    def due_us(self) -> int | None:
+        """The next run as a checkpoint keeps it: a run still going is not saved, it is due
+        again at once on restart, rather than every_h after it, which a daemon restarted more
+        often than every_h would otherwise never reach."""
+        return self.run.started_us if self.run is not None else self.next_us
+
+    def poll(self, sensor_id: str, pipe: Pipeline | None, last_t_us: int | None
+             ) -> Rediscovery | None:
+        """Start a run on a copy of ``pipe``'s window buffer when one is due; the run whose
+        result is to be adopted now, else None."""
+        cfg = self.cfg
+        if not cfg.enabled or pipe is None or last_t_us is None:
+            return None
+        if self.run is not None:
+            if last_t_us >= self.run.due_us:
+                run, self.run = self.run, None
+                return run
+            return None  # one run at a time
+        every_us = round(cfg.every_h * 3.6e9)
+        if self.next_us is None:
+            self.next_us = last_t_us + every_us
+        if last_t_us < self.next_us:
+            return None
+        self.next_us = last_t_us + every_us
+        windows = pipe.buffer.windows()  # fresh arrays: the thread's own copy
+        if not pipe.bootstrapped or len(windows) < cfg.min_windows:
+            return None
+        self.run = Rediscovery.start(sensor_id, windows, pipe, last_t_us,
+                                     last_t_us + round(cfg.adopt_after_s * 1e6), cfg.blocks)
+        if cfg.adopt_after_s <= 0:
+            run, self.run = self.run, None
+            return run
+        return None
