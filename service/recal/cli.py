@@ -160,7 +160,7 @@ def _cmd_static(a: argparse.Namespace) -> int:
 def _cmd_discover(a: argparse.Namespace) -> int:
     from recal.commands import discover as dr
     from recal.commands.static import read_static_table
-    from recal.config.settings import load_model_file
+    from recal.config import load_model_file
     from recal.core.discovery import DiscoveryConfig
     from recal.core.discovery_data import data_from_table
 
@@ -190,7 +190,7 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from recal.commands import hindsight as hf
-    from recal.config.settings import load_model_file
+    from recal.config import load_model_file
 
     _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json, a.out)
@@ -318,7 +318,7 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 def _cmd_router(a: argparse.Namespace) -> int:
     import zenoh
 
-    from recal.config.settings import read_config_text
+    from recal.config import read_config_text
     from recal.io.router import run_router
 
     if a.config is not None:  # missing, a directory, binary: said here, naming the file

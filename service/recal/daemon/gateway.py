@@ -46,14 +46,14 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from recal.config.sensor_options import SensorOptions, with_options
-from recal.config.settings import (
+from recal.config import (
     SensorConfig,
     ServiceConfig,
     check_model_channels,
     default_sensor_id,
     load_config,
 )
+from recal.config.sensor_options import SensorOptions, with_options
 from recal.daemon.runtime import (
     ERROR_PREFIX,
     RecordingWatch,
