@@ -150,7 +150,7 @@ def _zenoh(ctx: Place, d: Any) -> ZenohSettings:
 
 def _mcap(ctx: Place, d: Any) -> McapConfig:
     d = table(ctx, d, ("path", "dir", "chunk_size", "flush_interval_s", "rotate_mb",
-                        "rotate_hours", "compression", "fsync", "backlog_mb"))
+                       "rotate_hours", "compression", "fsync", "backlog_mb"))
     return McapConfig(
         path=path_value(ctx, d, "path", None),
         dir=path_value(ctx, d, "dir", ctx.base / "recordings") or ctx.base,
@@ -220,7 +220,7 @@ def _pipeline(ctx: Place, d: Any) -> PipelineSection:
 
 def _alignment(ctx: Place, d: Any) -> AlignmentConfig:
     d = table(ctx, d, ("enabled", "min_still_s", "tilt_limit_deg", "upright_max_deg",
-                        "require_update", "max_offset_sd_mg", "request_interval_s"))
+                       "require_update", "max_offset_sd_mg", "request_interval_s"))
     return AlignmentConfig(boolean(ctx, d, "enabled", True),
                            number(ctx, d, "min_still_s", 10.0, positive=True),
                            number(ctx, d, "tilt_limit_deg", 7.0, positive=True),
@@ -260,8 +260,6 @@ def _discovery(ctx: Place, d: Any) -> RediscoveryConfig:
         raise ctx.error("adopt_after_s", f"expected seconds >= 0, got {adopt!r}")
     return RediscoveryConfig(every, integer(ctx, d, "min_windows", 60, 10),
                              integer(ctx, d, "blocks", 10, 3), adopt)
-
-
 
 
 def load_priors(path: Path) -> dict[str, PriorConfig]:

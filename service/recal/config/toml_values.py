@@ -113,8 +113,6 @@ def numbers_by_name(ctx: Place, d: Mapping, key: str) -> dict[str, float]:
     return {str(k): float(x) for k, x in v.items()}
 
 
-
-
 def read_config_text(path: Path, what: str = "config") -> str:
     """The text of a config file; ConfigError (one line naming the file) for anything that is
     not readable UTF-8 text: missing, a directory, no permission, binary or another encoding."""
