@@ -43,7 +43,7 @@ def table(ctx: Place, d: Any, allowed: Sequence[str]) -> dict[str, Any]:
 
 
 def number(ctx: Place, d: Mapping, key: str, default: Any, *, positive: bool = False,
-         allow_none: bool = False) -> Any:
+           allow_none: bool = False) -> Any:
     if key not in d:
         return default
     v = d[key]
@@ -75,7 +75,7 @@ def boolean(ctx: Place, d: Mapping, key: str, default: bool) -> bool:
 
 
 def string(ctx: Place, d: Mapping, key: str, default: str | None,
-         choices: Sequence[str] | None = None) -> str | None:
+           choices: Sequence[str] | None = None) -> str | None:
     if key not in d:
         return default
     v = d[key]
