@@ -19,7 +19,7 @@ from recal.errors import ConfigError
 __all__ = ["SHIPPED_PRIORS", "SensorOptions", "named_prior", "with_options"]
 
 #: the priors `recal run --prior NAME` looks in without a --config (the shipped ones)
-SHIPPED_PRIORS = Path(__file__).resolve().parents[2] / "configs" / "sensor-priors.toml"
+SHIPPED_PRIORS = Path(__file__).resolve().parents[3] / "configs" / "sensor-priors.toml"
 
 
 @dataclass(frozen=True)
