@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config import PipelineSection, PriorConfig, SensorConfig, model_and_prior
 from recal.core import timebase as tb
 from recal.io.ascii_lines import AsciiLineParser, encode_ascii
 from recal.node.node import CalibrationNode, NodeSettings
@@ -44,9 +44,9 @@ class _Keep(NullSink):
 
 def _error_mg(raw: RawBatch, res: SimResult, rate_hz: float, nominal: float | None) -> float:
     sensor = SensorConfig("s", rate_hz=nominal, prior=PriorConfig(counts_per_g=1024.0))
-    model, prior = model_and_prior(sensor, PipelineSettings())
+    model, prior = model_and_prior(sensor, PipelineSection())
     sink = _Keep()
-    node = CalibrationNode(NodeSettings("s", PipelineSettings(), model, prior, nominal), sink)
+    node = CalibrationNode(NodeSettings("s", PipelineSection(), model, prior, nominal), sink)
     for i in range(0, len(raw), 500):
         node.process(raw[i:i + 500], i)
     node.flush(len(raw))

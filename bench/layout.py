@@ -11,9 +11,12 @@ import importlib
 from types import ModuleType
 
 
-def module(new: str, old: str) -> ModuleType:
-    """Import ``new`` (``recal.sim.wearer``), or ``old`` (``recal.sim``) where ``new`` is absent."""
-    try:
-        return importlib.import_module(new)
-    except ModuleNotFoundError:
-        return importlib.import_module(old)
+def module(new: str, *old: str) -> ModuleType:
+    """Import ``new`` (``recal.sim.wearer``), or the first of ``old`` (``recal.sim``) that is
+    there where ``new`` is absent (a module split later has more than one older name)."""
+    for name in (new, *old[:-1]):
+        try:
+            return importlib.import_module(name)
+        except ModuleNotFoundError:
+            pass
+    return importlib.import_module(old[-1])

@@ -83,14 +83,17 @@ def _node(sink: Any) -> Any:
     from layout import module
 
     cfg = module("recal.config.settings", "recal.config")
-    AlignmentConfig, PipelineSettings = cfg.AlignmentConfig, cfg.PipelineSettings
-    PriorConfig, SensorConfig = cfg.PriorConfig, cfg.SensorConfig
-    model_and_prior = cfg.model_and_prior
+    AlignmentConfig, PriorConfig, SensorConfig = (cfg.AlignmentConfig, cfg.PriorConfig,
+                                                  cfg.SensorConfig)
+    # the [pipeline] section's settings, PipelineSettings in a tree before the name said so
+    PipelineSection = getattr(cfg, "PipelineSection", None) or cfg.PipelineSettings
+    model_and_prior = module("recal.config.model_prior", "recal.config.settings",
+                             "recal.config").model_and_prior
     node_mod = module("recal.node.node", "recal.node")
     CalibrationNode, NodeSettings = node_mod.CalibrationNode, node_mod.NodeSettings
 
     sensor = SensorConfig(SID, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
-    settings = PipelineSettings()
+    settings = PipelineSection()
     model, prior = model_and_prior(sensor, settings)
     ali = AlignmentConfig(min_still_s=10.0, tilt_limit_deg=7.0, upright_max_deg=30.0)
     return CalibrationNode(NodeSettings(SID, settings, model, prior, RATE_HZ, None, ali), sink)

@@ -57,7 +57,8 @@ from recal.samples import RawBatch
 replay = module("recal.commands.replay", "recal.replay").replay
 _settings = module("recal.config.settings", "recal.config")
 SensorConfig, ServiceConfig = _settings.SensorConfig, _settings.ServiceConfig
-model_and_prior = _settings.model_and_prior
+model_and_prior = module("recal.config.model_prior", "recal.config.settings",
+                         "recal.config").model_and_prior
 _wearer = module("recal.sim.wearer", "recal.sim")
 SensorSpec, simulate = _wearer.SensorSpec, _wearer.simulate
 

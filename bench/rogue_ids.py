@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from recal.commands.demo import free_port
-from recal.config.settings import parse_config
+from recal.config import parse_config
 from recal.daemon.remote_node import run_node
 from recal.io import recording as rec
 from recal.io.bus import Bus, key

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from recal.config.settings import PipelineSettings
+from recal.config import PipelineSection
 from recal.core import status
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
@@ -168,7 +168,7 @@ class _Kept:
 
 
 def _settings(model: SensorModel, prior: Prior | None) -> NodeSettings:
-    return NodeSettings("bench", PipelineSettings(), model, prior, RATE_HZ)
+    return NodeSettings("bench", PipelineSection(), model, prior, RATE_HZ)
 
 
 def _feed(node: CalibrationNode, raw: RawBatch, log0: int = 0,

@@ -37,7 +37,7 @@ import time
 from pathlib import Path
 
 from pty_fleet import FleetProcess
-from recal.config.settings import SensorConfig, ServiceConfig, model_and_prior
+from recal.config import SensorConfig, ServiceConfig, model_and_prior
 from recal.core.pipeline import Pipeline
 from recal.io.ascii_lines import encode_ascii
 from recal.io.recording_writer import RecordingWriter

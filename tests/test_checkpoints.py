@@ -33,7 +33,7 @@ import pytest
 from gateway_process import GatewayProcess
 from polling import wait_for
 from recal.commands.demo import free_port
-from recal.config.settings import (
+from recal.config import (
     CheckpointConfig,
     PriorConfig,
     SensorConfig,

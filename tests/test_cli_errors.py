@@ -314,7 +314,7 @@ def test_a_bug_keeps_its_traceback(bug: Exception, capfd: pytest.CaptureFixture[
     def broken(_args: argparse.Namespace) -> int:
         raise bug
 
-    monkeypatch.setattr(cli, "_cmd_repair", broken)
+    monkeypatch.setitem(cli._COMMANDS, "repair", broken)
     with pytest.raises(type(bug)):
         cli.main(["repair", "in.mcap", "--out", "out.mcap"])
     assert "recal: error" not in capfd.readouterr().err
@@ -331,7 +331,7 @@ def test_what_the_user_can_act_on_is_one_line(error: Exception,
     def refused(_args: argparse.Namespace) -> int:
         raise error
 
-    monkeypatch.setattr(cli, "_cmd_repair", refused)
+    monkeypatch.setitem(cli._COMMANDS, "repair", refused)
     status, out, err = _main(["repair", "in.mcap", "--out", "out.mcap"], capfd)
     want = "bad table" if isinstance(error, ValueError) else "in.mcap: No such file"
     _assert_one_error_line(status, out, err, 2, want)

@@ -17,7 +17,7 @@ import pytest
 
 from recal import cli
 from recal.commands import discover as dr
-from recal.config.settings import PipelineSettings, RediscoveryConfig, load_model_file
+from recal.config import PipelineSection, RediscoveryConfig, load_model_file
 from recal.core import discovery as dc
 from recal.core import discovery_data as dd
 from recal.core.effects import Covariates, make_effect
@@ -213,7 +213,7 @@ class _Capture:
 def _rediscovering_node(raw: RawBatch, every_h: float, adopt_after_s: float = 60.0,
                         batch: int = 500) -> tuple[CalibrationNode, _Capture]:
     model = SensorModel.diagonal(1024.0)
-    settings = NodeSettings("s1", PipelineSettings(), model, Prior.default(model), RATE_HZ,
+    settings = NodeSettings("s1", PipelineSection(), model, Prior.default(model), RATE_HZ,
                             rediscovery=RediscoveryConfig(every_h=every_h,
                                                           adopt_after_s=adopt_after_s))
     sink = _Capture()
@@ -287,7 +287,7 @@ def test_discovery_is_off_by_default_in_the_daemon() -> None:
     raw = sim.simulate(0.6, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
     model = SensorModel.diagonal(1024.0)
     sink = _Capture()
-    node = CalibrationNode(NodeSettings("s1", PipelineSettings(), model, Prior.default(model),
+    node = CalibrationNode(NodeSettings("s1", PipelineSection(), model, Prior.default(model),
                                         RATE_HZ), sink)
     for i in range(0, len(raw), 1000):
         node.process(raw[i:i + 1000], 0)

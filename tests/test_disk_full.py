@@ -28,7 +28,7 @@ from gateway_process import GatewayProcess
 from polling import wait_for
 from recal.cli import main as recal_main
 from recal.commands.demo import free_port
-from recal.config.settings import ConfigError, parse_config
+from recal.config import ConfigError, parse_config
 from recal.daemon import runtime
 from recal.daemon.checkpoint_store import load_checkpoint, save_checkpoint
 from recal.daemon.runtime import open_recording

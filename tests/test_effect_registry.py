@@ -9,7 +9,7 @@ import pytest
 
 import recal.core
 from recal.cli import build_parser
-from recal.config.settings import MODELS
+from recal.config import MODELS
 from recal.core.candidates import KIND_ORDER, proposals
 from recal.core.discovery import DiscoveryConfig
 from recal.core.effects import EFFECT_KINDS, TIME, Ratiometric, make_effect, sim_options

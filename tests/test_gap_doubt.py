@@ -11,7 +11,7 @@ import numpy as np
 
 from held_checks import held_until_agreed, held_until_contradicted
 from memory_sink import MemorySink
-from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config import PipelineSection, PriorConfig, SensorConfig, model_and_prior
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import GAP_S, Status
@@ -31,7 +31,7 @@ def _spec(seed: int) -> sim.SensorSpec:
 
 def _node(sink: MemorySink) -> CalibrationNode:
     sensor = SensorConfig(SID, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=S0))
-    settings = PipelineSettings()
+    settings = PipelineSection()
     model, prior = model_and_prior(sensor, settings)
     return CalibrationNode(NodeSettings(SID, settings, model, prior, RATE_HZ), sink)
 
@@ -95,7 +95,7 @@ def test_the_gap_is_seen_at_its_sample_however_the_samples_are_batched() -> None
     raw, k = _same()
     model, prior = model_and_prior(SensorConfig(SID, rate_hz=RATE_HZ,
                                                 prior=PriorConfig(counts_per_g=S0)),
-                                   PipelineSettings())
+                                   PipelineSection())
     outs = []
     for sizes in ([250], [97], [len(raw)]):
         pipe = Pipeline(_config(), model, prior, raw.aux_names)
@@ -122,7 +122,7 @@ def test_every_gap_of_a_joined_batch_is_seen_as_message_by_message() -> None:
     raw = _gapped(raw, k2)
     model, prior = model_and_prior(SensorConfig(SID, rate_hz=RATE_HZ,
                                                 prior=PriorConfig(counts_per_g=S0)),
-                                   PipelineSettings())
+                                   PipelineSection())
     pipe = Pipeline(_config(), model, prior, raw.aux_names)
     one = CalibratedBatch.concat([pipe.step(raw[i:i + 250]).calibrated
                                   for i in range(0, len(raw), 250)])
@@ -137,7 +137,7 @@ def test_every_gap_of_a_joined_batch_is_seen_as_message_by_message() -> None:
 
 
 def _config() -> PipelineConfig:
-    return PipelineSettings().pipeline_config(RATE_HZ)
+    return PipelineSection().pipeline_config(RATE_HZ)
 
 
 def test_a_gap_before_any_estimate_doubts_nothing() -> None:
@@ -145,6 +145,6 @@ def test_a_gap_before_any_estimate_doubts_nothing() -> None:
     probation stays 0."""
     raw, _ = _same()
     pipe = Pipeline(_config(), *model_and_prior(SensorConfig(SID, rate_hz=RATE_HZ),
-                                                PipelineSettings()), raw.aux_names)
+                                                PipelineSection()), raw.aux_names)
     pipe.step(_gapped(raw[:2000], 1000))
     assert pipe.watch.probation == 0

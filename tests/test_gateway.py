@@ -19,7 +19,7 @@ from gateway_process import GatewayProcess, write_config
 from polling import wait_for
 from recal.commands.demo import free_port
 from recal.commands.replay import replay
-from recal.config.settings import ServiceConfig, model_and_prior, parse_config
+from recal.config import ServiceConfig, model_and_prior, parse_config
 from recal.core.pipeline import Pipeline
 from recal.core.status import REOPEN_PROBATION_WINDOWS
 from recal.daemon.checkpoint_store import load_checkpoint
@@ -391,7 +391,7 @@ def test_config_errors_name_the_key(doc: dict) -> None:
 
 
 def test_shipped_configs_load() -> None:
-    from recal.config.settings import load_config
+    from recal.config import load_config
 
     root = Path(__file__).resolve().parents[1] / "configs"
     cfg = load_config(root / "gateway.toml")

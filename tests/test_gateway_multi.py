@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from polling import wait_for
-from recal.config.settings import model_and_prior
+from recal.config import model_and_prior
 from recal.core.pipeline import Pipeline
 from recal.daemon.gateway import Gateway, run_gateway
 from recal.io import recording as rec

@@ -126,3 +126,120 @@ def test_each_module_imports_alone(module: str) -> None:
     done = subprocess.run([sys.executable, "-c", f"import {module}"], capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 0, done.stderr
+
+
+# --- the layers ------------------------------------------------------------------------------
+#: what each package of the service must not import (core: see the test above)
+FORBIDDEN = {
+    "recal.io": ("recal.node", "recal.daemon", "recal.commands", "recal.sim"),
+    "recal.node": ("recal.daemon", "recal.commands", "recal.sim"),
+    "recal.config": ("recal.node", "recal.daemon", "recal.commands", "recal.sim"),
+    "recal.daemon": ("recal.commands", "recal.sim"),
+}
+#: the only modules of the service that may import the simulator (tests and benches may too)
+SIM_USERS = ("recal.commands", "recal.cli", "recal.sim")
+
+
+def _in(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+def layer_violations(edges: dict[str, set[str]]) -> dict[str, list[str]]:
+    """Each module's imports that go against FORBIDDEN or SIM_USERS."""
+    found: dict[str, list[str]] = {}
+    for m, targets in sorted(edges.items()):
+        bad = {t for pkg, banned in FORBIDDEN.items() if _in(m, pkg)
+               for t in targets if any(_in(t, b) for b in banned)}
+        if not any(_in(m, user) for user in SIM_USERS):
+            bad |= {t for t in targets if _in(t, "recal.sim")}
+        if bad:
+            found[m] = sorted(bad)
+    return found
+
+
+def test_the_layer_rule_finds_a_wrong_import() -> None:
+    edges = {"recal.io.bus": {"recal.node.node", "recal.core.model"},
+             "recal.node.node": {"recal.io.bus", "recal.sim.wearer"},
+             "recal.commands.demo": {"recal.sim.wearer", "recal.daemon.gateway"},
+             "recal.daemon.gateway": {"recal.node.node", "recal.config.settings"}}
+    assert layer_violations(edges) == {"recal.io.bus": ["recal.node.node"],
+                                       "recal.node.node": ["recal.sim.wearer"]}
+
+
+def test_each_package_imports_only_the_layers_below_it() -> None:
+    """core <- io, config <- node <- daemon and commands; the simulator only for the commands
+    and the command line (and tests and benches, outside the package)."""
+    edges, _ = import_graph()
+    assert layer_violations(edges) == {}
+
+
+# --- the sizes -------------------------------------------------------------------------------
+MAX_MODULE_LINES = 600
+MAX_CLASS_ATTRIBUTES = 20
+MAX_ROOT_MODULES = 8
+
+
+def _is_dataclass(cls: ast.ClassDef) -> bool:
+    for d in cls.decorator_list:
+        target = d.func if isinstance(d, ast.Call) else d
+        name = target.attr if isinstance(target, ast.Attribute) else getattr(target, "id", "")
+        if name == "dataclass":
+            return True
+    return False
+
+
+def _self_targets(node: ast.AST) -> set[str]:
+    """Names ``x`` of every ``self.x = ...`` (plain, annotated or unpacked) under ``node``."""
+    names: set[str] = set()
+    for n in ast.walk(node):
+        targets: list[ast.expr] = (n.targets if isinstance(n, ast.Assign)
+                                   else [n.target] if isinstance(n, ast.AnnAssign) else [])
+        for t in targets:
+            for e in ast.walk(t):
+                if (isinstance(e, ast.Attribute) and isinstance(e.value, ast.Name)
+                        and e.value.id == "self"):
+                    names.add(e.attr)
+    return names
+
+
+def class_attributes(cls: ast.ClassDef) -> set[str]:
+    """A class's instance attributes: its dataclass fields (annotated names in the class body,
+    ClassVar aside) and every name its own methods assign on ``self``."""
+    attrs: set[str] = set()
+    for item in cls.body:
+        if (_is_dataclass(cls) and isinstance(item, ast.AnnAssign)
+                and isinstance(item.target, ast.Name)
+                and "ClassVar" not in ast.unparse(item.annotation)):
+            attrs.add(item.target.id)
+        if isinstance(item, ast.FunctionDef | ast.AsyncFunctionDef):
+            attrs |= _self_targets(item)
+    return attrs
+
+
+def test_the_attribute_count_sees_fields_and_self() -> None:
+    tree = ast.parse("@dataclass(frozen=True)\nclass A:\n    x: int\n    y: ClassVar[int] = 1\n"
+                     "    def f(self):\n        self.z, self.w = 1, 2\n        self.x: int = 3\n"
+                     "class B:\n    n: int\n    def __init__(self):\n        self.a = 1\n")
+    a, b = (n for n in tree.body if isinstance(n, ast.ClassDef))
+    assert class_attributes(a) == {"x", "z", "w"} and class_attributes(b) == {"a"}
+
+
+def test_no_module_is_too_long() -> None:
+    long = {m: n for m, p in MODULES.items()
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+
+
+def test_no_class_has_too_many_attributes() -> None:
+    big = {}
+    for module, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.ClassDef)
+                    and (n := len(class_attributes(node))) > MAX_CLASS_ATTRIBUTES):
+                big[f"{module}.{node.name}"] = n
+    assert not big, f"classes over {MAX_CLASS_ATTRIBUTES} attributes: {big}"
+
+
+def test_the_package_root_holds_few_modules() -> None:
+    root = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert len(root) <= MAX_ROOT_MODULES, root

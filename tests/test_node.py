@@ -16,9 +16,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from memory_sink import MemorySink
-from recal.config.settings import (
+from recal.config import (
     AlignmentConfig,
-    PipelineSettings,
+    PipelineSection,
     PriorConfig,
     SensorConfig,
     model_and_prior,
@@ -47,7 +47,7 @@ def worn_tilted(tilt_x_deg: float, tilt_y_deg: float, seed: int = 3,
 
 def node_for(limit_deg: float, sink: MemorySink) -> CalibrationNode:
     sensor = SensorConfig(SID, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
-    settings = PipelineSettings()
+    settings = PipelineSection()
     model, prior = model_and_prior(sensor, settings)
     ali = AlignmentConfig(min_still_s=10.0, tilt_limit_deg=limit_deg, upright_max_deg=30.0)
     return CalibrationNode(NodeSettings(SID, settings, model, prior, RATE_HZ, None, ali), sink)
@@ -117,7 +117,7 @@ def test_a_stream_without_the_channel_the_model_needs_is_said_once_not_per_batch
     from recal.core.model import SensorModel
 
     model = SensorModel.diagonal(1024.0).with_effect(Ratiometric("vdd", 3.3), 0.5)
-    settings = NodeSettings(SID, PipelineSettings(), model, Prior.default(model), RATE_HZ,
+    settings = NodeSettings(SID, PipelineSection(), model, Prior.default(model), RATE_HZ,
                             None, AlignmentConfig())
     sink, lines = MemorySink(), []
     node = CalibrationNode(settings, sink)

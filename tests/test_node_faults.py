@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from recal.config.settings import AlignmentConfig, PipelineSettings, SensorConfig, model_and_prior
+from recal.config import AlignmentConfig, PipelineSection, SensorConfig, model_and_prior
 from recal.daemon.checkpoint_store import Checkpoints, checkpoint_path, load_checkpoint
 from recal.node.node import CalibrationNode, NodeSettings, make_node
 from recal.samples import RawBatch
@@ -25,7 +25,7 @@ SID = "wrist"
 def _settings() -> NodeSettings:
     """A sensor without a prior (it bootstraps) and without configured aux names."""
     sensor = SensorConfig(SID, rate_hz=RATE_HZ)
-    pipeline = PipelineSettings()
+    pipeline = PipelineSection()
     model, prior = model_and_prior(sensor, pipeline)
     return NodeSettings(SID, pipeline, model, prior, RATE_HZ, None, AlignmentConfig())
 
@@ -127,7 +127,7 @@ def _configured(sid: str = SID) -> NodeSettings:
     from recal.config.settings import PriorConfig
 
     sensor = SensorConfig(sid, rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=1024.0))
-    pipeline = PipelineSettings()
+    pipeline = PipelineSection()
     model, prior = model_and_prior(sensor, pipeline)
     return NodeSettings(sid, pipeline, model, prior, RATE_HZ, None, AlignmentConfig())
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from memory_sink import MemorySink
-from recal.config.settings import AlignmentConfig, PipelineSettings, SensorConfig, model_and_prior
+from recal.config import AlignmentConfig, PipelineSection, SensorConfig, model_and_prior
 from recal.core import alignment as al
 from recal.core.pipeline import Pipeline
 from recal.daemon.checkpoint_store import Checkpoints, checkpoint_path, lock_sensor
@@ -36,7 +36,7 @@ MAX_ATTRIBUTES = 20
 
 def _settings() -> NodeSettings:
     sensor = SensorConfig(SID, rate_hz=RATE_HZ)
-    pipeline = PipelineSettings()
+    pipeline = PipelineSection()
     model, prior = model_and_prior(sensor, pipeline)
     return NodeSettings(SID, pipeline, model, prior, RATE_HZ, None, AlignmentConfig())
 

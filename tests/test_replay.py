@@ -13,7 +13,7 @@ import pytest
 
 from polling import wait_for
 from recal.commands.replay import replay
-from recal.config.settings import parse_config
+from recal.config import parse_config
 from recal.core.status import Status
 from recal.daemon.gateway import Gateway, run_gateway
 from recal.errors import RecordingError

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from recal.commands import replay as replay_mod
-from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config import PipelineSection, PriorConfig, SensorConfig, model_and_prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
@@ -75,7 +75,7 @@ class Recorder:
 
 
 def _node(prior: bool, sink: Recorder) -> CalibrationNode:
-    settings = PipelineSettings()
+    settings = PipelineSection()
     sensor = SensorConfig(id=SID, prior=PriorConfig(counts_per_g=1024.0) if prior
                           else PriorConfig())
     model, p = model_and_prior(sensor, settings)

@@ -26,7 +26,7 @@ import zenoh
 
 from polling import wait_for
 from recal.commands.demo import free_port
-from recal.config.settings import ConfigError, load_config, parse_config
+from recal.config import ConfigError, load_config, parse_config
 from recal.daemon.checkpoint_store import load_checkpoint
 from recal.daemon.remote_node import REJECT_IDS_KEPT, REJECT_REPORT_S, SensorGate, run_node
 from recal.io import recording as rec

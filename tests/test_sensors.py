@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from recal import cli
-from recal.config.settings import model_and_prior, parse_config
+from recal.config import model_and_prior, parse_config
 from recal.core import static
 from recal.core.bootstrap import locate
 from recal.core.estimator import Prior

@@ -417,8 +417,8 @@ def test_lines_without_time_after_a_break() -> None:
 def test_run_options_set_what_the_config_would(tmp_path: Path) -> None:
     """--rate, --aux-names, --prior NAME (the config's priors, else the shipped ones),
     --counts-per-g and --zero-g, for every sensor served; an unknown name is one error."""
+    from recal.config import ConfigError, SensorConfig, ServiceConfig, load_config
     from recal.config.sensor_options import SensorOptions, with_options
-    from recal.config.settings import ConfigError, SensorConfig, ServiceConfig, load_config
 
     cfg = ServiceConfig(sensors=(SensorConfig("a", port="x"), SensorConfig("b", port="y")))
     got = with_options(cfg, SensorOptions(rate_hz=50.0, aux_names=("vdd",),

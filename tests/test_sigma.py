@@ -11,7 +11,7 @@ from functools import cache
 import numpy as np
 
 from bench_modules import load_bench
-from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config import PipelineSection, PriorConfig, SensorConfig, model_and_prior
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
@@ -213,7 +213,7 @@ class _Kept(EventSink):
 
 def _node(sink: EventSink) -> CalibrationNode:
     sensor = SensorConfig("hip", rate_hz=RATE_HZ, prior=PriorConfig(counts_per_g=S0))
-    settings = PipelineSettings()
+    settings = PipelineSection()
     model, pr = model_and_prior(sensor, settings)
     return CalibrationNode(NodeSettings("hip", settings, model, pr, RATE_HZ), sink)
 

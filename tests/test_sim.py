@@ -278,7 +278,7 @@ def test_upright_only_keeps_the_tilt() -> None:
     tilt = np.degrees(np.arccos(np.clip(a[:, 2], -1, 1)))
     assert tilt[t.still].max() <= 20.5  # sway adds a fraction of a degree
     # movements slerp between upright postures: only the step wobble adds tilt
-    assert tilt.max() <= 20.0 + math.sqrt(2) * w.wobble_deg + 0.5
+    assert tilt.max() <= 20.0 + math.sqrt(2) * w.steps.wobble_deg + 0.5
 
 
 def test_aux_channels_vary_realistically() -> None:
@@ -311,3 +311,21 @@ def test_save_load_round_trip(tmp_path) -> None:
     assert _same(r, back)
     assert back.truth.sensor == r.truth.sensor
     assert WearerSpec.from_dict(back.truth.params["wearer"]) == WearerSpec()
+
+
+def test_wearer_keywords_land_in_their_groups() -> None:
+    """A group's field given to WearerSpec itself changes that group alone; the flat table of
+    ``to_dict`` (the truth file's params["wearer"]) reads back to the same spec."""
+    w = WearerSpec(upright_tilt_deg=2.0, still_s=(20.0, 60.0), temp_wander_c=0.5,
+                   vdd_end_v=3.0, wobble_deg=1.0, always_aux=True)
+    assert (w.postures.upright_tilt_deg, w.postures.still_s) == (2.0, (20.0, 60.0))
+    assert (w.temperature.temp_wander_c, w.supply.vdd_end_v, w.steps.wobble_deg) == (0.5, 3.0, 1.0)
+    assert w.postures.move_s == WearerSpec().postures.move_s and w.always_aux
+    flat = w.to_dict()
+    assert flat["still_s"] == [20.0, 60.0] and "postures" not in flat
+    assert WearerSpec.from_dict(json.loads(json.dumps(flat))) == w
+    assert WearerSpec(postures=w.postures, sway_g=0.0).postures.upright_tilt_deg == 2.0
+    assert replace(w, vdd_end_v=3.5).supply.vdd_end_v == 3.5
+    assert replace(w, vdd_end_v=3.5).temperature == w.temperature
+    with pytest.raises(TypeError, match="stil_s"):
+        WearerSpec(stil_s=(1.0, 2.0))

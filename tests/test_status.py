@@ -18,7 +18,7 @@ from held_checks import held_until_agreed, held_until_contradicted
 from memory_sink import MemorySink
 from recal.cli import main as cli_main
 from recal.commands.replay import replay
-from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config import PipelineSection, PriorConfig, SensorConfig, model_and_prior
 from recal.core.effects import Covariates
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
@@ -47,7 +47,7 @@ def _spec(seed: int) -> sim.SensorSpec:
 def _node(sink: MemorySink, prior: bool = True) -> CalibrationNode:
     sensor = SensorConfig(SID, rate_hz=RATE_HZ,
                           prior=PriorConfig(counts_per_g=S0) if prior else PriorConfig())
-    settings = PipelineSettings()
+    settings = PipelineSection()
     model, pr = model_and_prior(sensor, settings)
     return CalibrationNode(NodeSettings(SID, settings, model, pr, RATE_HZ), sink)
 
@@ -442,7 +442,7 @@ def test_the_gateway_says_when_a_sensor_is_first_calibrated(tmp_path: Path) -> N
     import time
 
     from polling import wait_for
-    from recal.config.settings import parse_config
+    from recal.config import parse_config
     from recal.daemon.gateway import Gateway, run_gateway
     from recal.sim.pty_device import PtyDevice
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from memory_sink import MemorySink
-from recal.config.settings import PipelineSettings, PriorConfig, SensorConfig, model_and_prior
+from recal.config import PipelineSection, PriorConfig, SensorConfig, model_and_prior
 from recal.core import timebase as tb
 from recal.io.ascii_lines import AsciiLineParser, encode_ascii
 from recal.node.node import CalibrationNode, NodeSettings
@@ -27,7 +27,7 @@ def wearer(minutes: float, seed: int, start_us: int = 0, rate_hz: float = RATE_H
 
 def node(rate_hz: float | None, sink: MemorySink) -> CalibrationNode:
     sensor = SensorConfig("s1", rate_hz=rate_hz, prior=PriorConfig(counts_per_g=1024.0))
-    settings = PipelineSettings()
+    settings = PipelineSection()
     model, prior = model_and_prior(sensor, settings)
     return CalibrationNode(NodeSettings("s1", settings, model, prior, rate_hz), sink)
 

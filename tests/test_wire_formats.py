@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recal.config.settings import FORMATS, SensorConfig, parse_config
+from recal.config import FORMATS, SensorConfig, parse_config
 from recal.errors import ConfigError, UsageError
 from recal.io.frames import DelimitedParser, DeviceStyle
 from recal.io.serial_source import SerialSource

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from recal.config.settings import parse_config
+from recal.config import parse_config
 from recal.daemon.gateway import Gateway, run_gateway
 from recal.daemon.runtime import ERROR_PREFIX
 from recal.io import recording as rec

@@ -17,7 +17,7 @@ analysis before and after, the criterion and the input. NaN (a correlation with 
 is written as null.
 
 Model file (``--write-model``): ``{"model": SensorModel dict, "params": {name: value},
-"prior": {"mean", "info"}, "discovery": {...}}``, read by `recal.config.settings.load_model_file`
+"prior": {"mean", "info"}, "discovery": {...}}``, read by `recal.config.model_prior.load_model_file`
 (``recal run --model``, ``recal replay --model``).
 """
 

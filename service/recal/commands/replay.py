@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from recal.config.settings import (
+from recal.config import (
     AlignmentConfig,
     SensorConfig,
     ServiceConfig,
@@ -230,7 +230,7 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
         in_mcap: a finished recording (its rotated parts are read too). A crashed one must be
             repaired first (``recal.io.repair.repair``).
         out_mcap: the new recording (an existing file is an error unless ``overwrite``).
-        model: a model file for every sensor (see ``recal.config.settings.load_model_file``).
+        model: a model file for every sensor (see ``recal.config.model_prior.load_model_file``).
         config: a ServiceConfig or TOML path: per-sensor priors, rates, pipeline settings.
         progress: show a tqdm progress bar (in raw messages) on stderr.
         sensor_ids: only these sensors (default: all with a raw topic).

@@ -12,7 +12,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from recal.config.settings import PriorConfig, SensorConfig, ServiceConfig, load_priors
+from recal.config.loading import load_priors
+from recal.config.settings import PriorConfig, SensorConfig, ServiceConfig
 from recal.errors import ConfigError
 
 __all__ = ["SHIPPED_PRIORS", "SensorOptions", "named_prior", "with_options"]

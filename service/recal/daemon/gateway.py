@@ -43,12 +43,12 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from recal.config.sensor_options import SensorOptions, with_options
-from recal.config.settings import (
+from recal.config import (
     ServiceConfig,
     check_model_channels,
     load_config,
 )
+from recal.config.sensor_options import SensorOptions, with_options
 from recal.daemon.checkpoint_store import Checkpoints, SensorLockedError
 from recal.daemon.ports import (
     Port,

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from recal.config.settings import SensorConfig, ServiceConfig, load_config
+from recal.config import SensorConfig, ServiceConfig, load_config
 from recal.daemon.checkpoint_store import Checkpoints, SensorLockedError
 from recal.daemon.runtime import (
     ERROR_PREFIX,

@@ -34,9 +34,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from recal.config.settings import (
+from recal.config import (
     AlignmentConfig,
-    PipelineSettings,
+    PipelineSection,
     RediscoveryConfig,
     SensorConfig,
     ServiceConfig,
@@ -89,7 +89,7 @@ class NodeSettings:
     """
 
     sensor_id: str
-    pipeline: PipelineSettings
+    pipeline: PipelineSection
     model: SensorModel
     prior: Prior | None
     rate_hz: float | None = None

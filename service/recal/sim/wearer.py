@@ -6,7 +6,8 @@ forward model to give the raw readings the device would send. Pure numpy/scipy, 
 except `save_truth` / `load_truth`. Same seed -> bit-identical result.
 
 The sensor (its forward model, cross-axis matrix and the sensor types people plug in) is
-`recal.sim.sensor`; its names are importable from here too.
+`recal.sim.sensor`, the wearer's settings `recal.sim.wearer_spec`, the temperature and supply
+channels `recal.sim.aux_channels`; the names of the first two are importable from here too.
 
 Wearer model
 ------------
@@ -31,16 +32,16 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation, Slerp
 
 from recal.errors import UsageError
 from recal.samples import RawBatch
+from recal.sim import aux_channels
 from recal.sim.sensor import (
     SENSOR_TYPES,
     SensorSpec,
@@ -51,13 +52,18 @@ from recal.sim.sensor import (
     sensing_axis_angles_deg,
     sensor_type,
 )
+from recal.sim.wearer_spec import PostureSpec, StepSpec, SupplySpec, TemperatureSpec, WearerSpec
 
 __all__ = [
     "POSTURE_KINDS",
     "SENSOR_TYPES",
     "MountSlip",
+    "PostureSpec",
     "SensorSpec",
     "SimResult",
+    "StepSpec",
+    "SupplySpec",
+    "TemperatureSpec",
     "Truth",
     "WearerSpec",
     "error_1s_mg",
@@ -72,118 +78,12 @@ __all__ = [
     "with_sensor",
 ]
 
-Range = tuple[float, float]
 POSTURE_KINDS: tuple[str, ...] = ("upright", "lying", "any")
 _EZ = np.array([0.0, 0.0, 1.0])
-_AUX_GRID_S = 1.0  # slow aux processes are simulated on this grid, then interpolated
 _FORMAT_VERSION = 1
 
 
 # --- wearer ----------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class WearerSpec:
-    """How the simulated wearer moves, and how the aux channels evolve.
-
-    Attributes:
-        still_s: (min, max) still-posture duration in s, uniform.
-        move_s: (min, max) movement duration in s, uniform.
-        p_upright, p_lying, p_any: posture kind probabilities (normalized by their sum).
-        upright_only: every posture upright (then the p_* are ignored).
-        upright_tilt_deg: upright = at-rest reading within this angle of +z.
-        lying_band_deg: lying = at-rest reading within ± this elevation of the x-y plane.
-        sway_g: RMS of the still-posture sway in g (mostly tilt; 0 = perfectly still).
-        sway_max_hz: highest sway frequency in Hz.
-        still_margin_s: samples this close to a still posture's ends are not `still`.
-        step_hz: (min, max) step frequency in Hz, drawn per movement.
-        step_vertical_g: (min, max) vertical step amplitude in g (fundamental).
-        step_forward_ratio: forward amplitude / vertical, at the step frequency.
-        step_lateral_ratio: lateral amplitude / vertical, at half the step frequency.
-        wobble_deg: amplitude of the step-locked orientation wobble in deg.
-        always_aux: generate both aux channels even if the sensor does not need them.
-        temp_mean_c: mean skin/board temperature in °C.
-        temp_range_c: (min, max) °C the temperature is clipped to.
-        temp_wander_c: standard deviation of the slow temperature wander in °C.
-        temp_wander_tau_min: correlation time of the wander in minutes.
-        temp_excursion_every_h: mean interval between outdoor/indoor excursions in h (at least
-            one per recording, so short recordings still see a temperature change).
-        temp_excursion_c: (min, max) magnitude of an excursion in °C (70 % cold, 30 % warm).
-        temp_excursion_min: (min, max) excursion duration in minutes.
-        temp_lag_min: thermal time constant of the board in minutes.
-        temp_noise_c: temperature sensor noise in °C.
-        temp_resolution_c: temperature channel resolution in °C.
-        vdd_start_v, vdd_end_v: battery voltage at the first and last sample in V.
-        vdd_wander_v: standard deviation of slow supply wander in V (5 min correlation).
-        vdd_dip_v: (min, max) depth of load dips in V.
-        vdd_dip_s: (min, max) duration of load dips in s.
-        vdd_dip_every_s: mean interval between load dips in s.
-        vdd_noise_v: supply measurement noise in V.
-        vdd_resolution_v: supply channel resolution in V.
-    """
-
-    still_s: Range = (20.0, 180.0)
-    move_s: Range = (4.0, 30.0)
-    p_upright: float = 0.6
-    p_lying: float = 0.25
-    p_any: float = 0.15
-    upright_only: bool = False
-    upright_tilt_deg: float = 30.0
-    lying_band_deg: float = 30.0
-    sway_g: float = 0.002
-    sway_max_hz: float = 0.3
-    still_margin_s: float = 0.5
-    step_hz: Range = (1.6, 2.2)
-    step_vertical_g: Range = (0.15, 0.35)
-    step_forward_ratio: float = 0.5
-    step_lateral_ratio: float = 0.3
-    wobble_deg: float = 5.0
-    always_aux: bool = False
-    temp_mean_c: float = 31.0
-    temp_range_c: Range = (22.0, 36.0)
-    temp_wander_c: float = 1.5
-    temp_wander_tau_min: float = 20.0
-    temp_excursion_every_h: float = 1.5
-    temp_excursion_c: Range = (3.0, 8.0)
-    temp_excursion_min: Range = (10.0, 45.0)
-    temp_lag_min: float = 3.0
-    temp_noise_c: float = 0.05
-    temp_resolution_c: float = 0.01
-    vdd_start_v: float = 4.1
-    vdd_end_v: float = 3.6
-    vdd_wander_v: float = 0.01
-    vdd_dip_v: Range = (0.03, 0.10)
-    vdd_dip_s: Range = (1.0, 10.0)
-    vdd_dip_every_s: float = 120.0
-    vdd_noise_v: float = 0.002
-    vdd_resolution_v: float = 0.001
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            val = getattr(self, f.name)
-            if isinstance(val, list | np.ndarray):  # from JSON: store tuples again
-                object.__setattr__(self, f.name, tuple(float(x) for x in val))
-        if self.still_s[0] <= 2 * self.still_margin_s or self.move_s[0] <= 0:
-            raise UsageError("still_s must exceed twice still_margin_s, move_s must be > 0")
-        if not self.upright_only and min(self.p_upright, self.p_lying, self.p_any) < 0:
-            raise UsageError("posture probabilities must be >= 0")
-        if not self.upright_only and self.p_upright + self.p_lying + self.p_any <= 0:
-            raise UsageError("posture probabilities must not all be 0")
-
-    @property
-    def kind_probabilities(self) -> np.ndarray:
-        if self.upright_only:
-            return np.array([1.0, 0.0, 0.0])
-        p = np.array([self.p_upright, self.p_lying, self.p_any], np.float64)
-        return p / p.sum()
-
-    def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> WearerSpec:
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
-
 
 @dataclass(frozen=True, eq=False)
 class Truth:
@@ -229,7 +129,7 @@ class _Segment:
     posture: int  # still: its posture; movement: the posture it leads to
 
 
-def _draw_up(kind: str, w: WearerSpec, rng: np.random.Generator) -> np.ndarray:
+def _draw_up(kind: str, w: PostureSpec, rng: np.random.Generator) -> np.ndarray:
     """At-rest reading direction (unit) of a posture of the given kind, uniform in its region."""
     if kind == "upright":
         z = rng.uniform(math.cos(math.radians(w.upright_tilt_deg)), 1.0)
@@ -243,7 +143,7 @@ def _draw_up(kind: str, w: WearerSpec, rng: np.random.Generator) -> np.ndarray:
     return np.array([r * math.cos(az), r * math.sin(az), z])
 
 
-def _schedule(total_s: float, w: WearerSpec,
+def _schedule(total_s: float, w: PostureSpec,
               rng: np.random.Generator) -> tuple[list[_Segment], list[str], np.ndarray]:
     """Alternate still postures and movements until total_s is covered."""
     probs = w.kind_probabilities
@@ -289,7 +189,7 @@ def _sines(tau_s: np.ndarray, freqs_hz: np.ndarray, phases: np.ndarray,
     return amp * np.sin(2 * np.pi * np.outer(tau_s, freqs_hz) + phases).sum(axis=1)
 
 
-def _still_segment(up: np.ndarray, tau_s: np.ndarray, w: WearerSpec,
+def _still_segment(up: np.ndarray, tau_s: np.ndarray, w: PostureSpec,
                    rng: np.random.Generator) -> np.ndarray:
     """Readings (n,3) of a still posture: tilt sway perpendicular to up, plus a vertical part
     at 15 % of sway_g so that | |a| - 1 | <= 0.3 sway_g (bounded, no Gaussian tails)."""
@@ -315,7 +215,7 @@ def _smooth_ramp(x: np.ndarray) -> np.ndarray:
 
 
 def _move_segment(a_from: Rotation, a_to: Rotation, tau_s: np.ndarray, dur_s: float,
-                  w: WearerSpec, rng: np.random.Generator) -> np.ndarray:
+                  w: StepSpec, rng: np.random.Generator) -> np.ndarray:
     """Readings (n,3) of a walking-like movement from one posture orientation to the next."""
     f_hz = rng.uniform(*w.step_hz)
     amp_v = rng.uniform(*w.step_vertical_g)
@@ -351,20 +251,20 @@ def _wearer_motion(segments: list[_Segment], ups: np.ndarray, n: int, rate_hz: f
     still = np.zeros(n, bool)
     posture_id = np.full(n, -1, np.int64)
     orient = [_align_to_up(g) for g in ups]
-    margin = w.still_margin_s
+    margin = w.postures.still_margin_s
     for k, seg in enumerate(segments):
         i0 = min(n, math.ceil(seg.start_s * rate_hz))
         i1 = min(n, math.ceil(seg.stop_s * rate_hz))
         tau = np.arange(i0, i1) / rate_hz - seg.start_s
         if seg.still:
-            a[i0:i1] = _still_segment(ups[seg.posture], tau, w, rng)
+            a[i0:i1] = _still_segment(ups[seg.posture], tau, w.postures, rng)
             posture_id[i0:i1] = seg.posture
             dur = seg.stop_s - seg.start_s
             still[i0:i1] = (tau >= margin) & (tau <= dur - margin)
         else:
             prev = segments[k - 1].posture
             a[i0:i1] = _move_segment(orient[prev], orient[seg.posture], tau,
-                                     seg.stop_s - seg.start_s, w, rng)
+                                     seg.stop_s - seg.start_s, w.steps, rng)
     # a recording that ends inside a still posture loses its end margin too
     last = segments[-1]
     if last.still:
@@ -418,81 +318,6 @@ class MountSlip:
         return a_g
 
 
-# --- aux channels ----------------------------------------------------------------------------
-
-def _ou(n: int, dt_s: float, tau_s: float, sd: float, rng: np.random.Generator) -> np.ndarray:
-    """Stationary Ornstein-Uhlenbeck process (n,) with standard deviation sd."""
-    phi = math.exp(-dt_s / tau_s)
-    w = rng.standard_normal(n) * sd * math.sqrt(1.0 - phi * phi)
-    x0 = rng.standard_normal() * sd
-    return lfilter([1.0], [1.0, -phi], w, zi=[phi * x0])[0]
-
-
-def _boxes(n: int, starts: np.ndarray, stops: np.ndarray, heights: np.ndarray) -> np.ndarray:
-    """Sum of rectangles [start, stop) (indices) of given heights, via a difference array."""
-    d = np.zeros(n + 1)
-    np.add.at(d, np.clip(starts, 0, n), heights)
-    np.add.at(d, np.clip(stops, 0, n), -heights)
-    return np.cumsum(d[:n])
-
-
-def _temperature(t_s: np.ndarray, w: WearerSpec, rng: np.random.Generator) -> np.ndarray:
-    """Board temperature channel (°C): wander + excursions, lagged, clipped, noisy, quantized."""
-    total_s = float(t_s[-1]) if len(t_s) else 0.0
-    n_grid = int(total_s / _AUX_GRID_S) + 2
-    grid = np.arange(n_grid) * _AUX_GRID_S
-    target = w.temp_mean_c + _ou(n_grid, _AUX_GRID_S, 60 * w.temp_wander_tau_min,
-                                 w.temp_wander_c, rng)
-    # going outdoors (cold, mostly) or into the sun: the ambient steps for tens of minutes
-    n_exc = max(1, int(rng.poisson(total_s / 3600 / w.temp_excursion_every_h)))
-    dur = 60 * rng.uniform(*w.temp_excursion_min, n_exc)
-    start = rng.uniform(0.0, max(total_s - dur.min() / 2, 0.0), n_exc)
-    size = rng.uniform(*w.temp_excursion_c, n_exc) * np.where(rng.random(n_exc) < 0.7, -1, 1)
-    i0 = (start / _AUX_GRID_S).astype(np.int64)
-    target += _boxes(n_grid, i0, i0 + (dur / _AUX_GRID_S).astype(np.int64), size)
-    # thermal inertia of skin and board: first-order lag, starting at equilibrium
-    phi = math.exp(-_AUX_GRID_S / (60 * w.temp_lag_min))
-    board = lfilter([1.0 - phi], [1.0, -phi], target, zi=[phi * target[0]])[0]
-    board = np.clip(board, *w.temp_range_c)
-    temp = np.interp(t_s, grid, board) + w.temp_noise_c * rng.standard_normal(len(t_s))
-    return _quantize(temp, w.temp_resolution_c)
-
-
-def _supply(t_s: np.ndarray, rate_hz: float, w: WearerSpec,
-            rng: np.random.Generator) -> np.ndarray:
-    """Supply channel (V): battery discharge + slow wander + load dips, noisy, quantized."""
-    n = len(t_s)
-    total_s = float(t_s[-1]) if n else 0.0
-    # the slow parts live on the coarse grid: fewer full-length temporaries
-    n_grid = int(total_s / _AUX_GRID_S) + 2
-    grid = np.arange(n_grid) * _AUX_GRID_S
-    x = grid / max(total_s, 1e-9)
-    # Li-ion shape: quick initial drop, long slope, knee at the end; 0 at x=0, 1 at x=1
-    shape = 0.25 * (1 - np.exp(-x / 0.08)) + 0.55 * x + 0.2 * x**6
-    shape /= 0.25 * (1 - math.exp(-1 / 0.08)) + 0.75
-    slow = w.vdd_start_v + (w.vdd_end_v - w.vdd_start_v) * shape
-    slow += _ou(n_grid, _AUX_GRID_S, 300.0, w.vdd_wander_v, rng)
-    vdd = np.interp(t_s, grid, slow)
-    # radio / motor load dips: seconds long, tens of mV deep
-    n_dip = int(rng.poisson(total_s / w.vdd_dip_every_s))
-    start = rng.uniform(0.0, total_s, n_dip)
-    dur = rng.uniform(*w.vdd_dip_s, n_dip)
-    depth = rng.uniform(*w.vdd_dip_v, n_dip)
-    i0 = np.floor(start * rate_hz).astype(np.int64)
-    i1 = i0 + np.maximum(1, np.round(dur * rate_hz)).astype(np.int64)
-    vdd -= _boxes(n, i0, i1, depth)
-    vdd += w.vdd_noise_v * rng.standard_normal(n)
-    return _quantize(vdd, w.vdd_resolution_v)
-
-
-def _quantize(x: np.ndarray, step: float) -> np.ndarray:
-    if step > 0:
-        # round to the step, then to the nearest decimal float so the values print cleanly
-        decimals = max(0, -math.floor(math.log10(step)) + 1)
-        x = np.round(np.round(x / step) * step, decimals)
-    return x
-
-
 # --- the simulation --------------------------------------------------------------------------
 
 def _streams(seed: int) -> list[np.random.Generator]:
@@ -523,7 +348,7 @@ def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None 
     t_s = np.arange(n) / rate_hz
     t_us = np.round(t_s * 1e6).astype(np.int64)
     t_us += np.int64(start_us)
-    segments, kinds, ups = _schedule(n / rate_hz, wearer, r_sched)
+    segments, kinds, ups = _schedule(n / rate_hz, wearer.postures, r_sched)
     a_true, still, posture_id = _wearer_motion(segments, ups, n, rate_hz, wearer, r_motion)
     if slip is not None:
         slip.apply(a_true, t_s)
@@ -537,10 +362,10 @@ def simulate(hours: float, rate_hz: float, seed: int, sensor: SensorSpec | None 
     temp = vdd = None
     if sensor.temp_channel in aux_names:
         temp = aux[:, aux_names.index(sensor.temp_channel)]
-        temp[:] = _temperature(t_s, wearer, r_temp)
+        temp[:] = aux_channels.temperature(t_s, wearer.temperature, r_temp)
     if sensor.supply_channel in aux_names:
         vdd = aux[:, aux_names.index(sensor.supply_channel)]
-        vdd[:] = _supply(t_s, rate_hz, wearer, r_vdd)
+        vdd[:] = aux_channels.supply(t_s, rate_hz, wearer.supply, r_vdd)
     t_h = t_s / 3600.0 if sensor.needs_time else None
     del t_s
     v = forward_model(a_true, sensor, temp_c=temp, vdd_v=vdd, t_h=t_h, rng=r_noise)
