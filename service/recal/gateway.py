@@ -56,7 +56,7 @@ from recal.config import (
     load_config,
 )
 from recal.errors import ConfigError, RecalError
-from recal.io import messages
+from recal.io import messages, topics
 from recal.io.recording import sensor_topic
 from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource, SourceEvent, port_problem
@@ -73,7 +73,7 @@ from recal.runtime import (
 )
 from recal.samples import RawBatch, join_by_layout
 from recal.sensor_options import SensorOptions, with_options
-from recal.sinks import LoggedBusSink, RecordingSink, Sink
+from recal.sinks import Sink, make_sink
 
 __all__ = [
     "NOTE_PREFIX",
@@ -91,7 +91,7 @@ POLL_QUIET_S = 0.25  # an open port that sent nothing is polled this often (unpl
 SWEEP_S = 0.05  # how often every port is looked at for a due open retry or quiet poll
 IO_RETRY_S = 0.1  # pause after a failed I/O round
 LISTEN_CHECK_S = 0.5  # how often the loop asks whether anyone subscribes to live data
-LIVE_TOPICS = ("raw", "calibrated", "body")  # a subscriber to any of these wants low latency
+LIVE_TOPICS = topics.live_topics()  # a subscriber to any of these wants low latency
 REPORT_INTERVAL_S = 1.0  # aggregated events (parse errors, dropped publishes) at most this often
 NOTE_PREFIX = "recal gateway:"  # a line for the operator (stdout: the journal under systemd)
 NOTE_KINDS = ("port_opened", "port_found", "port_lost", "port_missing", "port_busy")  # a line each
@@ -775,7 +775,7 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
         writer.close()
         fail(f"{ERROR_PREFIX} cannot open Zenoh: {exc}")
         return 1
-    sink: Sink = RecordingSink(writer) if bus is None else LoggedBusSink(writer, bus)
+    sink: Sink = make_sink(writer, bus)
     problems: list[tuple[str, str, Any]] = []  # until the gateway can log them as events
     checkpoints.set_event(lambda sid, kind, d: problems.append((sid, kind, d)))
     try:

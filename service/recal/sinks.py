@@ -7,6 +7,12 @@ same node then runs in the gateway (:class:`LoggedBusSink`), on a machine of its
 no Zenoh). The sinks are typed against what they use of a recording writer (:class:`Writer`)
 and of a bus (:class:`Bus`), so that replay never loads Zenoh.
 
+Which sink a process gets is :func:`make_sink` (a recording, a bus, both or neither). Each
+suffix is a topic of the registry (`recal.io.topics`: schema, logged, published); a sink
+resolves what it carries when it is built, and a suffix the registry does not know raises
+:class:`recal.io.topics.UnknownTopicError` (a RecalError naming the known topics) at its first
+message, before anything of it is logged or published.
+
 Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
 ``recal/<sensor>/<suffix>`` where the bus layout has one):
 
@@ -35,11 +41,29 @@ from typing import Any, Protocol
 import numpy as np
 
 from recal.core.alignment import to_body
-from recal.io import messages
+from recal.io import messages, topics
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["BodyRotations", "Bus", "BusSink", "EventSink", "LoggedBusSink", "NullSink",
-           "RecordingSink", "Sink", "Writer"]
+           "RecordingSink", "Sink", "Writer", "make_sink"]
+
+#: Suffixes whose messages are sample batches of the calibrated kind (calibrated, body), and
+#: every suffix a node may hand a sink: resolved from the registry once, at import.
+_CALIBRATED = frozenset(t.suffix for t in topics.require(topics.node_outputs())
+                        if t.payload == "calibrated")
+_OUTPUTS = frozenset(topics.node_outputs())
+
+
+def _batch_topic(suffix: str) -> None:
+    """UnknownTopicError unless ``suffix`` is a registered calibrated-batch topic."""
+    if suffix not in _CALIBRATED:
+        topics.require([suffix], "calibrated")
+
+
+def _json_topic(suffix: str) -> None:
+    """UnknownTopicError unless ``suffix`` is a registered output."""
+    if suffix not in _OUTPUTS:
+        topics.require([suffix])
 
 
 class Sink(Protocol):
@@ -206,6 +230,8 @@ class RecordingSink:
                    suffix: str = "calibrated") -> None:
         if suffix == "calibrated":
             self.body.note_calibrated(sensor_id, batch)
+        elif suffix not in _CALIBRATED:
+            _batch_topic(suffix)
         elif suffix == "body":
             found = self.body.of(sensor_id, batch)
             if found is not None:
@@ -218,6 +244,7 @@ class RecordingSink:
         self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        _json_topic(suffix)
         self.body.note_json(sensor_id, suffix, obj)
         self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
 
@@ -225,8 +252,9 @@ class RecordingSink:
 class BusSink:
     """Publishes on a :class:`recal.io.bus.Bus` (``recal/<sensor>/<suffix>``).
 
-    Suffixes without a bus key (plot, setup) are not published. A publish Zenoh refuses, or
-    one after the bus closed, is counted in ``dropped`` and never raises.
+    Suffixes the registry does not publish (plot, setup: log only) are not published. A
+    publish Zenoh refuses, or one after the bus closed, is counted in ``dropped`` and never
+    raises.
     """
 
     def __init__(self, bus: Bus) -> None:
@@ -237,7 +265,7 @@ class BusSink:
         self.bus = bus
         self._key = _bus.key
         self._publishers: dict[tuple[str, str], Publisher] = {}
-        self.topics = frozenset(_bus.TOPICS)
+        self.topics = topics.published_topics()
         self.dropped = 0
 
     def put(self, sensor_id: str, suffix: str, data: bytes | Callable[[], bytes]) -> None:
@@ -262,6 +290,8 @@ class BusSink:
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
+        if suffix not in _CALIBRATED:
+            _batch_topic(suffix)
         self.put(sensor_id, suffix, messages.encode_calibrated(sensor_id, batch))
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
@@ -269,6 +299,7 @@ class BusSink:
         pass  # the plot topic is for the log's Plot panel; the bus carries whole batches
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        _json_topic(suffix)
         if suffix in self.topics:
             self.put(sensor_id, suffix, messages.encode_json(obj))
 
@@ -298,8 +329,22 @@ class LoggedBusSink(RecordingSink):
         self.bus.put(sensor_id, suffix, partial(messages.encode_calibrated, sensor_id, batch))
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        _json_topic(suffix)
         self.body.note_json(sensor_id, suffix, obj)
         data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
         if suffix in self.bus.topics:
             self.bus.put(sensor_id, suffix, data)
 
+
+
+def make_sink(writer: Writer | None, bus: Bus | None) -> Sink:
+    """The sink of a process with this recording and this bus (either may be None): both, a
+    LoggedBusSink (the gateway; a remote node that logs); a recording alone, a RecordingSink;
+    a bus alone, a BusSink; neither, a NullSink."""
+    if writer is not None and bus is not None:
+        return LoggedBusSink(writer, bus)
+    if writer is not None:
+        return RecordingSink(writer)
+    if bus is not None:
+        return BusSink(bus)
+    return NullSink()

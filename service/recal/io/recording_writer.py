@@ -46,7 +46,7 @@ import numpy as np
 
 from recal import __version__
 from recal.errors import UsageError
-from recal.io import messages
+from recal.io import messages, topics
 from recal.io.mcap_file import COMPRESSION_TYPES, LIBRARY, Compression, McapFile
 from recal.io.messages import SchemaSpec
 from recal.io.recording import (
@@ -62,14 +62,9 @@ from recal.samples import CalibratedBatch, RawBatch
 __all__ = ["FILE_TO_FILE_FLUSH_S", "RecordingWriter", "WriteHealth"]
 
 _TOPIC = re.compile(r"/[A-Za-z0-9][A-Za-z0-9_.\-]*/[A-Za-z0-9_.\-]+")
-_SUFFIX_SCHEMAS: dict[str, SchemaSpec] = {
-    "raw": messages.RAW_SCHEMA,
-    "calibrated": messages.CALIBRATED_SCHEMA,
-    "body": messages.CALIBRATED_SCHEMA,
-    "calibration": messages.CALIBRATION_STATE_SCHEMA,
-    "plot": messages.PLOT_SCHEMA,
-    "events": messages.EVENT_SCHEMA,
-}
+# the log's schema of each registered topic; a topic the registry does not know is logged as
+# generic JSON (the writer is also a tool's: `recal import` and tests write topics of their own)
+_SUFFIX_SCHEMAS: dict[str, SchemaSpec] = topics.log_schemas()
 _MAX_U64 = 2**64 - 1
 #: A batch longer than this (a file tool's) is logged in messages of this many samples.
 _MAX_MESSAGE_SAMPLES = 16384
