@@ -31,19 +31,35 @@ def _writer(path: Path) -> RecordingWriter:
     return RecordingWriter(path, background_flush=False, fsync=False)
 
 
+# suffix: (payload, log schema, published, queryable, live, node output): the layout the bus,
+# the writer, the sinks and the gateway each spelt out before the registry
+_LAYOUT = {
+    "raw": ("raw", messages.RAW_SCHEMA, True, False, True, True),
+    "calibrated": ("calibrated", messages.CALIBRATED_SCHEMA, True, False, True, True),
+    "body": ("calibrated", messages.CALIBRATED_SCHEMA, True, False, True, True),
+    "calibration": ("json", messages.CALIBRATION_STATE_SCHEMA, True, False, False, True),
+    "status": ("query", None, False, True, False, False),
+    "events": ("json", messages.EVENT_SCHEMA, True, False, False, True),
+    "align": ("query", None, False, True, False, False),
+    "plot": ("plot", messages.PLOT_SCHEMA, False, False, False, True),
+    "setup": ("json", messages.GENERIC_JSON_SCHEMA, False, False, False, True),
+}
+
+
 def test_the_registry_gives_the_layout_every_component_used_to_spell_out() -> None:
-    assert bus_keys.TOPICS == ("raw", "calibrated", "body", "calibration", "status", "events",
-                               "align")
-    assert bus_keys.QUERYABLE_TOPICS == {"status", "align"}
-    assert topics.live_topics() == ("raw", "calibrated", "body")
-    assert topics.published_topics() == {"raw", "calibrated", "body", "calibration", "events"}
-    assert topics.log_schemas() == {
-        "raw": messages.RAW_SCHEMA, "calibrated": messages.CALIBRATED_SCHEMA,
-        "body": messages.CALIBRATED_SCHEMA, "calibration": messages.CALIBRATION_STATE_SCHEMA,
-        "events": messages.EVENT_SCHEMA, "plot": messages.PLOT_SCHEMA,
-        "setup": messages.GENERIC_JSON_SCHEMA}
+    for name, expected in _LAYOUT.items():
+        t = topics.topic(name)
+        assert (t.payload, t.schema, t.published, t.queryable, t.live, t.node_output) == \
+            expected, name
+    # the sets the components read, in the table's order where order is kept
+    old_keys = ("raw", "calibrated", "body", "calibration", "status", "events", "align")
+    assert [k for k in bus_keys.TOPICS if k in _LAYOUT] == list(old_keys)
+    assert {"status", "align"} <= bus_keys.QUERYABLE_TOPICS
+    assert [k for k in topics.live_topics() if k in _LAYOUT] == ["raw", "calibrated", "body"]
     for t in topics.TOPICS.values():  # a query topic is answered, never logged nor streamed
         assert (t.payload == "query") == (t.queryable and not t.logged and not t.published)
+        assert t.on_bus == (t.suffix in bus_keys.TOPICS)
+        assert topics.log_schemas().get(t.suffix) is t.schema
 
 
 def test_an_unknown_topic_is_a_recal_error_naming_the_known_ones() -> None:

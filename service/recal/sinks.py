@@ -47,23 +47,26 @@ from recal.samples import CalibratedBatch, RawBatch
 __all__ = ["BodyRotations", "Bus", "BusSink", "EventSink", "LoggedBusSink", "NullSink",
            "RecordingSink", "Sink", "Writer", "make_sink"]
 
-#: Suffixes whose messages are sample batches of the calibrated kind (calibrated, body), and
-#: every suffix a node may hand a sink: resolved from the registry once, at import.
-_CALIBRATED = frozenset(t.suffix for t in topics.require(topics.node_outputs())
-                        if t.payload == "calibrated")
-_OUTPUTS = frozenset(topics.node_outputs())
+# What a node may hand a sink, from the registry, resolved once at import (a set lookup per
+# message then): the calibrated-batch outputs the log keeps and those the bus carries, and
+# the JSON outputs (and those the log keeps).
+_OUTPUTS = topics.require(topics.node_outputs())
+_LOGGED_BATCHES = frozenset(t.suffix for t in _OUTPUTS if t.payload == "calibrated" and t.logged)
+_PUBLISHED_BATCHES = frozenset(t.suffix for t in _OUTPUTS
+                               if t.payload == "calibrated" and t.published)
+_JSON = frozenset(t.suffix for t in _OUTPUTS if t.payload == "json")
+_LOGGED_JSON = frozenset(t.suffix for t in _OUTPUTS if t.payload == "json" and t.logged)
 
 
 def _batch_topic(suffix: str) -> None:
     """UnknownTopicError unless ``suffix`` is a registered calibrated-batch topic."""
-    if suffix not in _CALIBRATED:
-        topics.require([suffix], "calibrated")
+    topics.require([suffix], "calibrated")
 
 
 def _json_topic(suffix: str) -> None:
-    """UnknownTopicError unless ``suffix`` is a registered output."""
-    if suffix not in _OUTPUTS:
-        topics.require([suffix])
+    """UnknownTopicError unless ``suffix`` is a registered JSON output."""
+    if suffix not in _JSON:
+        topics.require([suffix], "json")
 
 
 class Sink(Protocol):
@@ -223,6 +226,15 @@ class RecordingSink:
         self.writer = writer
         self.body = BodyRotations()
 
+    @staticmethod
+    def keeps(suffix: str) -> bool:
+        """Whether the log keeps calibrated batches of ``suffix`` (the registry's ``logged``);
+        UnknownTopicError if it is no registered calibrated-batch topic."""
+        if suffix in _LOGGED_BATCHES:
+            return True
+        _batch_topic(suffix)
+        return False
+
     def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
         self.writer.log_raw(sensor_id, batch, log_time_ns)  # (no bus: no per-batch encoding)
 
@@ -230,8 +242,9 @@ class RecordingSink:
                    suffix: str = "calibrated") -> None:
         if suffix == "calibrated":
             self.body.note_calibrated(sensor_id, batch)
-        elif suffix not in _CALIBRATED:
-            _batch_topic(suffix)
+        elif suffix not in _LOGGED_BATCHES:
+            _batch_topic(suffix)  # unknown: raises; else a batch topic the log does not keep
+            return
         elif suffix == "body":
             found = self.body.of(sensor_id, batch)
             if found is not None:
@@ -246,7 +259,8 @@ class RecordingSink:
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
         _json_topic(suffix)
         self.body.note_json(sensor_id, suffix, obj)
-        self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+        if suffix in _LOGGED_JSON:
+            self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
 
 
 class BusSink:
@@ -290,8 +304,9 @@ class BusSink:
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
-        if suffix not in _CALIBRATED:
-            _batch_topic(suffix)
+        if suffix not in _PUBLISHED_BATCHES:
+            _batch_topic(suffix)  # unknown: raises; else a batch topic the bus does not carry
+            return
         self.put(sensor_id, suffix, messages.encode_calibrated(sensor_id, batch))
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
@@ -326,14 +341,16 @@ class LoggedBusSink(RecordingSink):
                    suffix: str = "calibrated") -> None:
         # the log keeps a body batch as times and a rotation when it can; the bus the values
         super().calibrated(sensor_id, batch, log_time_ns, suffix)
-        self.bus.put(sensor_id, suffix, partial(messages.encode_calibrated, sensor_id, batch))
+        if suffix in _PUBLISHED_BATCHES:
+            self.bus.put(sensor_id, suffix, partial(messages.encode_calibrated, sensor_id, batch))
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
         _json_topic(suffix)
         self.body.note_json(sensor_id, suffix, obj)
-        data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+        data = (self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+                if suffix in _LOGGED_JSON else None)
         if suffix in self.bus.topics:
-            self.bus.put(sensor_id, suffix, data)
+            self.bus.put(sensor_id, suffix, messages.encode_json(obj) if data is None else data)
 
 
 
