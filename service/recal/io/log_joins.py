@@ -5,6 +5,7 @@ and the times MCAP gives each message. The writer (`recal.io.recording_writer`) 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,7 +15,7 @@ from recal.io import messages
 from recal.io.messages import SchemaSpec
 from recal.samples import CalibratedBatch, RawBatch
 
-__all__ = ["MAX_U64", "Pending", "check_log_time", "joinable", "joined_messages", "plot_items",
+__all__ = ["MAX_U64", "Joins", "Pending", "check_log_time", "joined_messages", "plot_items",
            "plot_log_times", "publish_ns", "publish_ns_array", "rotation_bytes"]
 
 MAX_U64 = 2**64 - 1
@@ -76,34 +77,41 @@ class Pending:
     sizes: list[int] = field(default_factory=list)  # raw: samples of each arrival
     log_times: list[int] = field(default_factory=list)  # raw: each arrival's log time
 
-    @classmethod
-    def first(cls, sensor_id: str, batch: RawBatch | CalibratedBatch, log_ns: int, raw: bool,
-              rotation: bytes | None) -> Pending:
-        """A message that starts with ``batch`` (its publish time the batch's first stamp)."""
-        first = int(batch.t_us[0]) if len(batch) else None
-        return cls(sensor_id, raw, log_ns, publish_ns(first, log_ns), rotation)
 
-    def add(self, batch: RawBatch | CalibratedBatch, log_ns: int,
-            arrivals: messages.Arrivals | None = None) -> None:
-        """Append a batch (a list append per arrival: the join and the encoding happen once
-        per message)."""
-        self.batches.append(batch)
-        self.samples += len(batch)
-        if self.raw and arrivals is None:  # (a calibrated message keeps no arrivals)
-            self.sizes.append(len(batch))
-            self.log_times.append(log_ns)
-        elif self.raw and arrivals is not None:
+class Joins:
+    """The messages waiting to be logged, one per topic (the writer's lock held)."""
+
+    def __init__(self, log_batch_samples: int) -> None:
+        self.pending: dict[str, Pending] = {}
+        self.log_batch_samples = log_batch_samples
+
+    def hold(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch, log_ns: int,
+             raw: bool, arrivals: messages.Arrivals | None, rotation: bytes | None,
+             emit: Callable[[str], None]) -> None:
+        """Add a batch to its topic's waiting message (a list append per arrival: the join and
+        the encoding happen once per message); ``emit(topic)`` logs a topic's message now
+        (one that is full, or one of another layout or rotation)."""
+        p = self.pending.get(topic)
+        if p is not None and (p.rotation != rotation
+                              or _layout(p.batches[0], raw) != _layout(batch, raw)):
+            emit(topic)  # one message holds one layout (and one rotation)
+            p = None
+        if p is None:
+            first = int(batch.t_us[0]) if len(batch) else None
+            p = self.pending[topic] = Pending(sensor_id, raw, log_ns,
+                                              publish_ns(first, log_ns), rotation)
+        p.batches.append(batch)
+        p.samples += len(batch)
+        if raw and arrivals is None:  # (a calibrated message keeps no arrivals)
+            p.sizes.append(len(batch))
+            p.log_times.append(log_ns)
+        elif raw and arrivals is not None:
             sizes, log_us = arrivals
-            self.sizes += sizes.tolist()
-            self.log_times += ([log_ns] * len(sizes) if log_us is None
-                               else (log_ns + 1000 * log_us).tolist())
-
-
-def joinable(p: Pending, batch: RawBatch | CalibratedBatch, raw: bool,
-             rotation: bytes | None) -> bool:
-    """Whether ``batch`` may join the waiting message: one message holds one layout (and one
-    rotation)."""
-    return p.rotation == rotation and _layout(p.batches[0], raw) == _layout(batch, raw)
+            p.sizes += sizes.tolist()
+            p.log_times += ([log_ns] * len(sizes) if log_us is None
+                            else (log_ns + 1000 * log_us).tolist())
+        if p.samples >= self.log_batch_samples:
+            emit(topic)
 
 
 def joined_messages(p: Pending, log_batch_samples: int) -> tuple[SchemaSpec, list[bytes], int]:

@@ -47,9 +47,8 @@ from recal import __version__
 from recal.io import messages, topics
 from recal.io.log_joins import (
     MAX_U64,
-    Pending,
+    Joins,
     check_log_time,
-    joinable,
     joined_messages,
     plot_items,
     plot_log_times,
@@ -155,7 +154,7 @@ class RecordingWriter:
         self._lock = threading.RLock()
         self._paths: list[Path] = []
         self._topics = TopicBook()
-        self._pending: dict[str, Pending] = {}  # topic -> batches waiting for one message
+        self._joins = Joins(opts.log_batch_samples)  # batches waiting for one message
         self._tally = Tally()
         self._trouble = Trouble()
         self._closed = False
@@ -244,9 +243,9 @@ class RecordingWriter:
         with self._lock:
             self._check_writable()
             for batch, rotation, log_ns in items:
-                self._hold_locked(topic, sensor_id, batch, check_log_time(log_ns), raw=False,
-                                  rotation=None if rotation is None else
-                                  rotation_bytes(rotation))
+                self._joins.hold(topic, sensor_id, batch, check_log_time(log_ns), False, None,
+                                 None if rotation is None else rotation_bytes(rotation),
+                                 self._emit)
             self._maybe_flush()
 
     def log_calibrated_many(self, sensor_id: str, batches: Sequence[CalibratedBatch],
@@ -259,7 +258,8 @@ class RecordingWriter:
         with self._lock:
             self._check_writable()
             for batch, log_ns in zip(batches, log_times_ns, strict=True):
-                self._hold_locked(topic, sensor_id, batch, check_log_time(log_ns), raw=False)
+                self._joins.hold(topic, sensor_id, batch, check_log_time(log_ns), False, None,
+                                 None, self._emit)
             self._maybe_flush()
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes:
@@ -499,34 +499,21 @@ class RecordingWriter:
         and the encoding happen once per message)."""
         with self._lock:
             self._check_writable()
-            self._hold_locked(topic, sensor_id, batch, log_ns, raw, arrivals, rotation)
+            self._joins.hold(topic, sensor_id, batch, log_ns, raw, arrivals, rotation,
+                             self._emit)
             self._maybe_flush()
-
-    def _hold_locked(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch,
-                     log_ns: int, raw: bool, arrivals: messages.Arrivals | None = None,
-                     rotation: bytes | None = None) -> None:
-        """`_hold` without the checks and the flush (lock held)."""
-        p = self._pending.get(topic)
-        if p is not None and not joinable(p, batch, raw, rotation):
-            self._emit(topic)
-            p = None
-        if p is None:
-            p = self._pending[topic] = Pending.first(sensor_id, batch, log_ns, raw, rotation)
-        p.add(batch, log_ns, arrivals)
-        if p.samples >= self._opts.log_batch_samples:
-            self._emit(topic)
 
     def _emit(self, topic: str) -> None:
         """Write a topic's waiting batches as one compact message (lock held)."""
-        p = self._pending.pop(topic)  # first: the write may flush, which emits the rest
+        p = self._joins.pending.pop(topic)  # first: the write may flush, which emits the rest
         spec, datas, samples = joined_messages(p, self._opts.log_batch_samples)
         for data in datas:
             self._write_many(topic, spec, [(data, p.log_ns, p.publish_ns)], p.log_ns,
                              samples=samples)
 
     def _emit_pending(self) -> None:
-        for topic in list(self._pending):
-            if topic in self._pending:
+        for topic in list(self._joins.pending):
+            if topic in self._joins.pending:
                 self._emit(topic)
 
     def _maybe_flush(self) -> None:
