@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-# The codecs' names as they always were (callers use ``messages.encode_raw`` and the like).
+# Besides its own (JSON, plot), every codec's and schema's name as callers always used them
+# (``messages.encode_raw``, ``messages.RAW_SCHEMA``): they are imported here for that.
 from recal.io.batch_codecs import (
     SIGMA_STEP,
     Arrivals,

@@ -4,10 +4,10 @@ occurrences in a message.
 
 The hot path does not use the protobuf runtime: a packed fixed-width field is a tag byte, a
 varint byte length and the raw little-endian values, so numpy writes and reads the arrays
-directly (``protobuf``'s Python runtime is slow for large repeated fields). A ``PlotSample`` is
-The decoder follows protobuf semantics (unknown fields and known fields with an unexpected
-wire type are skipped, packed and unpacked repeated encodings are both accepted, the last
-singular string wins) and raises ``ValueError`` with a reason on malformed input.
+directly (``protobuf``'s Python runtime is slow for large repeated fields). The decoder
+follows protobuf semantics (unknown fields and known fields with an unexpected wire type are
+skipped, packed and unpacked repeated encodings are both accepted, the last singular string
+wins) and raises ``ValueError`` with a reason on malformed input.
 """
 
 from __future__ import annotations
