@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from recal.cli import build_parser
-from recal.io.recording_writer import _SUFFIX_SCHEMAS
+from recal.io.topics import TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
 SERVICE = ROOT / "service"
@@ -82,10 +82,11 @@ def test_the_readme_command_table_lists_every_flag(command: str) -> None:
 
 
 def test_the_readme_topic_table_lists_every_topic_a_sensor_gets() -> None:
-    """The per-sensor topics the recording writer knows and recal.node.sinks documents (``name``
+    """The per-sensor topics the registry logs and recal.node.sinks documents (``name``
     ...) each have a README row."""
     doc = (SERVICE / "recal" / "node" / "sinks.py").read_text().split('"""')[1]
-    suffixes = set(re.findall(r"^\* ``(\w+)``", doc, re.MULTILINE)) | set(_SUFFIX_SCHEMAS)
+    logged = {t.suffix for t in TOPICS.values() if t.logged}
+    suffixes = set(re.findall(r"^\* ``(\w+)``", doc, re.MULTILINE)) | logged
     assert {"raw", "calibrated", "setup"} <= suffixes, suffixes
     readme = (ROOT / "README.md").read_text()
     missing = sorted(s for s in suffixes if f"| `/<sensor>/{s}`" not in readme)

@@ -12,6 +12,7 @@ import pytest
 from recal import cli
 from recal.commands.replay import replay
 from recal.io import messages as m
+from recal.io import protobuf_wire
 from recal.io import recording as rec
 from recal.io.recording_writer import RecordingWriter
 from recal.samples import CalibratedBatch, RawBatch
@@ -233,7 +234,7 @@ def test_zigzag_varints_of_every_width_read_back_by_the_official_runtime() -> No
     for column, data in zip(columns, encoded, strict=True):
         if not len(column):
             continue
-        msg = official.FromString(bytes([12 << 3 | 2]) + m._varint(len(data)) + data)
+        msg = official.FromString(bytes([12 << 3 | 2]) + protobuf_wire._varint(len(data)) + data)
         assert list(msg.dt_us) == column.tolist()  # (field 12, sint64)
         assert m.unzigzag_varints(np.frombuffer(data, np.uint8), "t").tolist() == column.tolist()
     assert len(encoded[3]) == 1 + 1 + 2  # 127 and 126 fit one byte, 128 takes two

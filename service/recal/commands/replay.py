@@ -82,6 +82,8 @@ class _JoiningSink(RecordingSink):
             return
         if suffix == "calibrated":
             self.body.note_calibrated(sensor_id, batch)
+        elif not self.keeps(suffix):  # (the registry's: unknown raises, unlogged is skipped)
+            return
         self._batches.setdefault((sensor_id, suffix), []).append((batch, log_time_ns))
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,

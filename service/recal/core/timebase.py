@@ -54,7 +54,8 @@ class TimebaseConfig:
         jump_s: a forward step longer than this (and than 50 nominal steps) is a jump (counted).
         reboot_max_s: a step back to a device time below this is a reboot, when it is no wrap.
         implausible_s: a step beyond this either way (no wrap, no reboot) is refused as a gap:
-            a day, as far as `recal.node.checkpoint_doc` lets a state's times lie past its last sample.
+            a day, as far as `recal.node.checkpoint_doc` lets a state's times lie past its last
+            sample.
     """
 
     rate_hz: float | None = None

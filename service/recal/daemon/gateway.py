@@ -74,7 +74,7 @@ from recal.io.serial_source import SerialSource, SourceEvent
 from recal.io.wire_formats import wire_format
 from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, make_node, node_settings
-from recal.node.sinks import LoggedBusSink, RecordingSink, Sink
+from recal.node.sinks import Sink, make_sink
 from recal.samples import RawBatch
 
 __all__ = [
@@ -513,7 +513,7 @@ def _serve_locked(cfg: ServiceConfig, mcap_out: str | Path | None,
         writer.close()
         fail(f"{ERROR_PREFIX} cannot open Zenoh: {exc}")
         return 1
-    sink: Sink = RecordingSink(writer) if bus is None else LoggedBusSink(writer, bus)
+    sink: Sink = make_sink(writer, bus)
     problems: list[tuple[str, str, Any]] = []  # until the gateway can log them as events
     checkpoints.set_event(lambda sid, kind, d: problems.append((sid, kind, d)))
     try:

@@ -21,6 +21,7 @@ from typing import Any
 
 from recal.config.settings import SensorConfig, ServiceConfig, default_sensor_id
 from recal.errors import ConfigError, RecalError
+from recal.io import topics
 from recal.io.recording import sensor_topic
 from recal.io.serial_source import SerialSource, SourceEvent, port_problem
 from recal.io.wire_formats import make_parser
@@ -43,7 +44,7 @@ POLL_QUIET_S = 0.25  # an open port that sent nothing is polled this often (unpl
 SWEEP_S = 0.05  # how often every port is looked at for a due open retry or quiet poll
 IO_RETRY_S = 0.1  # pause after a failed I/O round
 LISTEN_CHECK_S = 0.5  # how often the loop asks whether anyone subscribes to live data
-LIVE_TOPICS = ("raw", "calibrated", "body")  # a subscriber to any of these wants low latency
+LIVE_TOPICS = topics.live_topics()  # a subscriber to any of these wants low latency
 FINAL_LINE_S = 0.1  # at stop, how long a partial line may take to end
 
 

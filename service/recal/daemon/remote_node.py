@@ -33,7 +33,7 @@ from recal.io import bus as _bus
 from recal.io import messages
 from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, make_node, node_settings
-from recal.node.sinks import BusSink, LoggedBusSink, Sink
+from recal.node.sinks import Sink, make_sink
 from recal.samples import RawBatch, join_by_layout
 
 __all__ = ["NODE_READY_PREFIX", "NOTE_PREFIX", "REJECT_IDS_KEPT", "SensorGate", "run_node"]
@@ -219,7 +219,7 @@ class _NodeRunner:
         self.cfg, self.bus, self.writer, self.gate = cfg, bus, writer, gate
         self.model_path, self.emit = model_path, emit
         self.nodes: dict[str, CalibrationNode] = {}
-        self.sink: Sink = LoggedBusSink(writer, bus) if writer is not None else BusSink(bus)
+        self.sink: Sink = make_sink(writer, bus)
         self.receiver = bus.receiver(_bus.key_pattern("raw"), capacity=RECV_CAPACITY)
         self.bad_messages = 0
         self.checkpoints = Checkpoints(cfg.checkpoint.dir, cfg.checkpoint.interval_s,

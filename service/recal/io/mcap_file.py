@@ -14,7 +14,7 @@ import tempfile
 import threading
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import IO, Any, Literal, NamedTuple
 
 import lz4.frame
@@ -91,6 +91,55 @@ _SMALL_CHUNK_BYTES = 16 * 1024
 _SMALL_CHUNK_LEVEL = 12
 
 
+@dataclass(slots=True)
+class _OpenChunk:
+    """The chunk being filled: its records, their size, and per channel the log times and
+    offsets its message index will hold."""
+
+    pieces: list[bytes] = field(default_factory=list)
+    size: int = 0
+    times: dict[int, list[int]] = field(default_factory=dict)
+    offsets: dict[int, list[int]] = field(default_factory=dict)
+    start_ns: int = 0
+    end_ns: int = 0
+    defs: list[bytes] = field(default_factory=list)  # schema and channel records in it
+
+
+@dataclass(slots=True)
+class _SummaryState:
+    """What the summary will say: schemas, channels, statistics, chunk and metadata indexes.
+    Chunk indexes go to a temporary file until the summary is written: a week-long recording
+    flushed every second has ~600k chunks, too many to keep in memory."""
+
+    schemas: list[Schema] = field(default_factory=list)
+    channels: list[Channel] = field(default_factory=list)
+    spill: IO[bytes] | None = None
+    chunks: int = 0
+    metadata_indexes: list[MetadataIndex] = field(default_factory=list)
+    counts: dict[int, int] = field(default_factory=dict)
+    messages: int = 0
+    start_ns: int = 0
+    end_ns: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class _Codec:
+    """The chunk compression: its MCAP name and the zstd contexts, reused chunk after chunk."""
+
+    name: str
+    zstd: Any  # zstandard.ZstdCompressor | None
+    # a small chunk (a live log's, ended by the flush every second) at a higher level:
+    # 2 % fewer bytes for ~0.1 ms a chunk; a file tool's full chunks at the default
+    zstd_small: Any
+
+    @classmethod
+    def of(cls, compression: Compression) -> _Codec:
+        if compression != "zstd":
+            return cls(_COMPRESSION_NAMES[compression], None, None)
+        return cls("zstd", zstandard.ZstdCompressor(),
+                   zstandard.ZstdCompressor(level=_SMALL_CHUNK_LEVEL))
+
+
 class McapFile:
     """MCAP records, laid out as ``mcap.writer.Writer`` lays them out: schemas, channels and
     messages in chunks, a message index per channel after each chunk, then a summary
@@ -123,28 +172,10 @@ class McapFile:
             raise ValueError("a write backlog needs the writes on the caller's thread")
         self._out = stream
         self._chunk_size = chunk_size
-        self._compression = _COMPRESSION_NAMES[compression]
-        self._zstd = zstandard.ZstdCompressor() if compression == "zstd" else None
-        # a small chunk (a live log's, ended by the flush every second) at a higher level:
-        # 2 % fewer bytes for ~0.1 ms a chunk; a file tool's full chunks at the default
-        self._zstd_small = (zstandard.ZstdCompressor(level=_SMALL_CHUNK_LEVEL)
-                            if compression == "zstd" else None)
+        self._codec = _Codec.of(compression)
         self.position = 0  # bytes written to the stream (by the thread, if there is one)
-        self._pieces: list[bytes] = []  # records of the open chunk
-        self._size = 0
-        self._times: dict[int, list[int]] = {}  # per channel: log times, chunk offsets
-        self._offsets: dict[int, list[int]] = {}
-        self._chunk_start = self._chunk_end = 0
-        self._schemas: list[Schema] = []
-        self._channels: list[Channel] = []
-        # Chunk indexes go to a temporary file until the summary is written: a week-long
-        # recording flushed every second has ~600k chunks, too many to keep in memory.
-        self._chunk_spill: IO[bytes] | None = None
-        self._chunks = 0
-        self._metadata_indexes: list[MetadataIndex] = []
-        self._counts: dict[int, int] = {}
-        self._messages = 0
-        self._start_ns = self._end_ns = 0
+        self._chunk = _OpenChunk()
+        self._summary = _SummaryState()
         self._error: BaseException | None = None
         # Output waiting for the file, in order; empty except while the file refuses writes.
         self._backlog: collections.deque[_Pending] = collections.deque()
@@ -155,7 +186,6 @@ class McapFile:
         self.dropped_samples = 0  # raw samples in those messages
         self.messages_out = 0  # messages in the file
         self.open_samples = 0  # raw samples in the open chunk (the owner adds them)
-        self._open_defs: list[bytes] = []  # schema and channel records in the open chunk
         self._jobs: queue.Queue[tuple[Callable[..., None], tuple] | None] | None = None
         self._thread: threading.Thread | None = None
         if background:
@@ -241,7 +271,7 @@ class McapFile:
                 self.failure = exc
                 return False
             if entry.metadata_name is not None:
-                self._metadata_indexes.append(MetadataIndex(
+                self._summary.metadata_indexes.append(MetadataIndex(
                     offset=start, length=len(entry.data), name=entry.metadata_name))
             self._backlog.popleft()
             self._backlog_size -= len(entry.data)
@@ -299,44 +329,45 @@ class McapFile:
 
     # -- records inside chunks ----------------------------------------------------------------
     def _append(self, data: bytes) -> None:
-        self._pieces.append(data)
-        self._size += len(data)
+        self._chunk.pieces.append(data)
+        self._chunk.size += len(data)
 
     def _append_definition(self, record: bytes) -> None:
         self._append(record)
-        self._open_defs.append(record)
+        self._chunk.defs.append(record)
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
-        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
-        self._schemas.append(schema)
+        schema = Schema(id=len(self._summary.schemas) + 1, name=name, encoding=encoding, data=data)
+        self._summary.schemas.append(schema)
         self._append_definition(self._record(schema))
         return schema.id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
-        channel = Channel(id=len(self._channels) + 1, topic=topic,
+        channel = Channel(id=len(self._summary.channels) + 1, topic=topic,
                           message_encoding=message_encoding, schema_id=schema_id, metadata={})
-        self._channels.append(channel)
-        self._counts[channel.id] = 0
+        self._summary.channels.append(channel)
+        self._summary.counts[channel.id] = 0
         self._append_definition(self._record(channel))
         return channel.id
 
     def _note(self, channel_id: int, log_times: list[int], offsets: list[int]) -> None:
         """Index and statistics for messages just appended (log times in write order)."""
         lo, hi = min(log_times), max(log_times)
-        if not self._times:  # first message of the chunk
-            self._chunk_start, self._chunk_end = lo, hi
+        chunk, summary = self._chunk, self._summary
+        if not chunk.times:  # first message of the chunk
+            chunk.start_ns, chunk.end_ns = lo, hi
         else:
-            self._chunk_start = min(self._chunk_start, lo)
-            self._chunk_end = max(self._chunk_end, hi)
-        if self._messages == 0:
-            self._start_ns, self._end_ns = lo, hi
+            chunk.start_ns = min(chunk.start_ns, lo)
+            chunk.end_ns = max(chunk.end_ns, hi)
+        if summary.messages == 0:
+            summary.start_ns, summary.end_ns = lo, hi
         else:
-            self._start_ns, self._end_ns = min(self._start_ns, lo), max(self._end_ns, hi)
-        self._times.setdefault(channel_id, []).extend(log_times)
-        self._offsets.setdefault(channel_id, []).extend(offsets)
-        self._counts[channel_id] += len(log_times)
-        self._messages += len(log_times)
-        if self._size > self._chunk_size:
+            summary.start_ns, summary.end_ns = min(summary.start_ns, lo), max(summary.end_ns, hi)
+        chunk.times.setdefault(channel_id, []).extend(log_times)
+        chunk.offsets.setdefault(channel_id, []).extend(offsets)
+        summary.counts[channel_id] += len(log_times)
+        summary.messages += len(log_times)
+        if chunk.size > self._chunk_size:
             self.end_chunk()
 
     def add_messages(self, channel_id: int, items: Sequence[tuple[bytes, int, int]],
@@ -344,8 +375,8 @@ class McapFile:
         """Append (data, log ns, publish ns) messages; returns the next sequence number."""
         if not items:
             return sequence
-        pack, pieces = _MESSAGE_RECORD.pack, self._pieces
-        offsets, log_times, size = [], [], self._size
+        pack, pieces = _MESSAGE_RECORD.pack, self._chunk.pieces
+        offsets, log_times, size = [], [], self._chunk.size
         for data, log_ns, publish_ns in items:
             head = pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence,
                         log_ns, publish_ns)
@@ -355,7 +386,7 @@ class McapFile:
             log_times.append(log_ns)
             size += len(head) + len(data)
             sequence = (sequence + 1) & 0xFFFFFFFF  # MCAP sequence is uint32
-        self._size = size
+        self._chunk.size = size
         self._note(channel_id, log_times, offsets)
         return sequence
 
@@ -375,35 +406,35 @@ class McapFile:
         head["log_time"] = log_times
         head["publish_time"] = publish_times
         records["body"] = payloads
-        offsets = self._size + records.dtype.itemsize * np.arange(n)
+        offsets = self._chunk.size + records.dtype.itemsize * np.arange(n)
         self._append(records.tobytes())
         self._note(channel_id, np.asarray(log_times, np.uint64).tolist(), offsets.tolist())
         return (sequence + n) & 0xFFFFFFFF
 
     def end_chunk(self) -> None:
         """Hand the open chunk and its message indexes to the output (nothing if empty)."""
-        if not self._times:  # schema and channel records alone wait for the next chunk,
+        if not self._chunk.times:  # schema and channel records alone wait for the next chunk,
             return  # as in mcap's Writer (a chunk without messages is not written)
-        self._submit(self._write_chunk, b"".join(self._pieces), self._chunk_start,
-                     self._chunk_end, self._times, self._offsets, self.open_samples,
-                     b"".join(self._open_defs))
-        self._pieces, self._size = [], 0
-        self._times, self._offsets = {}, {}
-        self.open_samples, self._open_defs = 0, []
+        self._submit(self._write_chunk, b"".join(self._chunk.pieces), self._chunk.start_ns,
+                     self._chunk.end_ns, self._chunk.times, self._chunk.offsets, self.open_samples,
+                     b"".join(self._chunk.defs))
+        self._chunk.pieces, self._chunk.size = [], 0
+        self._chunk.times, self._chunk.offsets = {}, {}
+        self.open_samples, self._chunk.defs = 0, []
 
     def _write_chunk(self, data: bytes, start_ns: int, end_ns: int,
                      times: dict[int, list[int]], offsets: dict[int, list[int]],
                      samples: int, defs: bytes) -> None:
         """Compress the chunk (once, whatever happens to the write) and queue it with its
         message indexes; their file offsets are known when it is written."""
-        if self._zstd is not None and self._zstd_small is not None:
-            packed = (self._zstd_small if len(data) <= _SMALL_CHUNK_BYTES
-                      else self._zstd).compress(data)
-        elif self._compression == "lz4":
+        if self._codec.zstd is not None and self._codec.zstd_small is not None:
+            packed = (self._codec.zstd_small if len(data) <= _SMALL_CHUNK_BYTES
+                      else self._codec.zstd).compress(data)
+        elif self._codec.name == "lz4":
             packed = lz4.frame.compress(data)
         else:
             packed = data
-        name = self._compression.encode()
+        name = self._codec.name.encode()
         body_len = 8 + 8 + 8 + 4 + 4 + len(name) + 8 + len(packed)
         pieces = [_CHUNK_FIXED.pack(Opcode.CHUNK, body_len, start_ns, end_ns, len(data),
                                     zlib.crc32(data)),
@@ -427,22 +458,22 @@ class McapFile:
         """The chunk index of a chunk just written at ``start``, to the spill file."""
         info = entry.chunk
         assert info is not None
-        if self._chunk_spill is None:
-            self._chunk_spill = tempfile.TemporaryFile(prefix="recal-chunk-index-")
-        self._chunk_spill.write(_CHUNK_INDEX_SPILL.pack(
+        if self._summary.spill is None:
+            self._summary.spill = tempfile.TemporaryFile(prefix="recal-chunk-index-")
+        self._summary.spill.write(_CHUNK_INDEX_SPILL.pack(
             info.start_ns, info.end_ns, start, info.length, len(entry.data) - info.length,
             info.packed, info.size, len(info.index_offsets)) + b"".join(
                 _CHANNEL_OFFSET.pack(c, start + o) for c, o in info.index_offsets.items()))
-        self._chunks += 1
+        self._summary.chunks += 1
 
     def _chunk_indexes(self) -> Iterator[ChunkIndex]:
         """The spilled chunk indexes, read back in order."""
-        if self._chunk_spill is None:
+        if self._summary.spill is None:
             return
-        spill = self._chunk_spill
+        spill = self._summary.spill
         spill.flush()
         spill.seek(0)
-        for _ in range(self._chunks):
+        for _ in range(self._summary.chunks):
             start, end, offset, length, mi_length, packed, size, n = _CHUNK_INDEX_SPILL.unpack(
                 spill.read(_CHUNK_INDEX_SPILL.size))
             pairs = spill.read(_CHANNEL_OFFSET.size * n)
@@ -450,7 +481,7 @@ class McapFile:
                 message_start_time=start, message_end_time=end, chunk_start_offset=offset,
                 chunk_length=length,
                 message_index_offsets=dict(_CHANNEL_OFFSET.iter_unpack(pairs)),
-                message_index_length=mi_length, compression=self._compression,
+                message_index_length=mi_length, compression=self._codec.name,
                 compressed_size=packed, uncompressed_size=size)
 
     def flush(self) -> None:
@@ -494,22 +525,23 @@ class McapFile:
                 return False
             return True
         finally:
-            if self._chunk_spill is not None:
-                self._chunk_spill.close()
+            if self._summary.spill is not None:
+                self._summary.spill.close()
 
     def _write_summary_section(self) -> None:
         self._write(self._record(DataEnd(data_section_crc=0)))
         summary_start = self.position
+        sm = self._summary
         groups: list[tuple[int, Iterable[Any]]] = [
-            (Opcode.SCHEMA, self._schemas), (Opcode.CHANNEL, self._channels),
+            (Opcode.SCHEMA, sm.schemas), (Opcode.CHANNEL, sm.channels),
             (Opcode.STATISTICS, [Statistics(
-                message_count=self._messages, schema_count=len(self._schemas),
-                channel_count=len(self._channels), attachment_count=0,
-                metadata_count=len(self._metadata_indexes),
-                chunk_count=self._chunks, message_start_time=self._start_ns,
-                message_end_time=self._end_ns, channel_message_counts=dict(self._counts))]),
+                message_count=sm.messages, schema_count=len(sm.schemas),
+                channel_count=len(sm.channels), attachment_count=0,
+                metadata_count=len(sm.metadata_indexes), chunk_count=sm.chunks,
+                message_start_time=sm.start_ns, message_end_time=sm.end_ns,
+                channel_message_counts=dict(sm.counts))]),
             (Opcode.CHUNK_INDEX, self._chunk_indexes()),
-            (Opcode.METADATA_INDEX, self._metadata_indexes)]
+            (Opcode.METADATA_INDEX, sm.metadata_indexes)]
         crc = 0
         offsets = []
         for opcode, records in groups:  # written as they are built: the summary can be big

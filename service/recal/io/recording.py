@@ -1,6 +1,7 @@
 """MCAP recordings: the topic layout every part of recal shares, and reading recordings back.
 
-Topic layout (one MCAP file, or a rotated series ``rec.mcap``, ``rec-0001.mcap``, ...):
+Topic layout (one MCAP file, or a rotated series ``rec.mcap``, ``rec-0001.mcap``, ...; each
+suffix and its schema is a record of the registry, `recal.io.topics`):
 
 | topic                 | schema (encoding)                 | one message is                    |
 |-----------------------|-----------------------------------|-----------------------------------|
@@ -54,7 +55,7 @@ from mcap.writer import MCAP0_MAGIC
 
 from recal.core.alignment import to_body
 from recal.errors import RecordingError, UsageError
-from recal.io import messages
+from recal.io import messages, topics
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = [
@@ -281,8 +282,11 @@ def iter_messages(path: Paths, topic_glob: str = "*") -> Iterator[LoggedMessage]
     return _iter(path, lambda c, _: fnmatch.fnmatchcase(c.topic, topic_glob))
 
 
-def _batch_filter(suffix: str, schema_name: str, sensor_id: str | None
-                  ) -> Callable[[Channel, str], bool]:
+def _batch_filter(suffix: str, sensor_id: str | None) -> Callable[[Channel, str], bool]:
+    """The channels of one registered batch topic (its schema from `recal.io.topics`)."""
+    schema = topics.topic(suffix).schema
+    schema_name = "" if schema is None else schema.name
+
     def want(channel: Channel, name: str) -> bool:
         owner, topic_suffix = split_topic(channel.topic)
         return (topic_suffix == suffix and name == schema_name
@@ -293,7 +297,7 @@ def _batch_filter(suffix: str, schema_name: str, sensor_id: str | None
 def iter_raw(path: Paths, sensor_id: str | None = None
              ) -> Iterator[tuple[str, RawBatch, int]]:
     """(sensor_id, batch, log_time_ns) of every raw batch, in file order."""
-    for m in _iter(path, _batch_filter("raw", messages.RAW_MESSAGE_NAME, sensor_id)):
+    for m in _iter(path, _batch_filter("raw", sensor_id)):
         yield split_topic(m.topic)[0], messages.decode_raw(m.data)[1], m.log_time_ns
 
 
@@ -303,7 +307,7 @@ def iter_raw_logged(path: Paths, sensor_id: str | None = None
     each message read once (`messages.decode_raw_arrivals`; arrivals None for a message of
     one arrival): what replay and hindsight need to hand the node the batches the live node
     had."""
-    for m in _iter(path, _batch_filter("raw", messages.RAW_MESSAGE_NAME, sensor_id)):
+    for m in _iter(path, _batch_filter("raw", sensor_id)):
         _, batch, arrivals = messages.decode_raw_arrivals(m.data)
         yield split_topic(m.topic)[0], batch, m, arrivals
 
@@ -315,12 +319,20 @@ def iter_calibrated(path: Paths, sensor_id: str | None = None,
 
     A body message of the log's form (times and a rotation, `messages.encode_body_rotation`)
     is its samples of the calibrated topic rotated: the first such message reads that
-    sensor's calibrated topic once (held in memory while the body is read)."""
-    want = _batch_filter(topic_suffix, messages.CALIBRATED_MESSAGE_NAME, sensor_id)
+    sensor's calibrated topic once (held in memory while the body is read).
+    UnknownTopicError (at the call) if ``topic_suffix`` is not a registered calibrated-batch
+    topic."""
+    topics.require([topic_suffix], "calibrated")
+    return _iter_calibrated(path, _batch_filter(topic_suffix, sensor_id),
+                            topic_suffix == "body")
+
+
+def _iter_calibrated(path: Paths, want: Callable[[Channel, str], bool], body: bool
+                     ) -> Iterator[tuple[str, CalibratedBatch, int]]:
     calibrated: dict[str, CalibratedBatch] = {}
     for m in _iter(path, want):
         sid = split_topic(m.topic)[0]
-        found = messages.decode_body_rotation(m.data) if topic_suffix == "body" else None
+        found = messages.decode_body_rotation(m.data) if body else None
         if found is None:
             yield sid, messages.decode_calibrated(m.data)[1], m.log_time_ns
             continue
@@ -355,12 +367,15 @@ def iter_json(path: Paths, topic_glob: str) -> Iterator[tuple[str, Any, int]]:
         yield m.topic, messages.decode_json(m.data), m.log_time_ns
 
 
+_PLOT_SCHEMA_NAME = topics.log_schemas()["plot"].name
+
+
 def iter_plot(path: Paths, sensor_id: str | None = None) -> Iterator[tuple[str, dict, int]]:
     """(sensor_id, sample dict, log_time_ns) of every plot message, in file order (protobuf,
     or JSON in recordings written before the plot topic became protobuf)."""
     def want(channel: Channel, name: str) -> bool:
         owner, suffix = split_topic(channel.topic)
-        return (suffix == "plot" and name == messages.PLOT_SCHEMA.name
+        return (suffix == "plot" and name == _PLOT_SCHEMA_NAME
                 and (sensor_id is None or owner == sensor_id))
     for m in _iter(path, want):
         obj = (messages.decode_json(m.data) if m.message_encoding == "json"

@@ -37,7 +37,6 @@ import re
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
@@ -45,9 +44,19 @@ from typing import IO, Any
 import numpy as np
 
 from recal import __version__
-from recal.errors import UsageError
-from recal.io import messages
-from recal.io.mcap_file import COMPRESSION_TYPES, LIBRARY, Compression, McapFile
+from recal.io import messages, topics
+from recal.io.log_joins import (
+    MAX_U64,
+    Joins,
+    check_log_time,
+    joined_messages,
+    plot_items,
+    plot_log_times,
+    publish_ns,
+    publish_ns_array,
+    rotation_bytes,
+)
+from recal.io.mcap_file import LIBRARY, Compression, McapFile
 from recal.io.messages import SchemaSpec
 from recal.io.recording import (
     GATEWAY,
@@ -57,38 +66,23 @@ from recal.io.recording import (
     sensor_topic,
     split_topic,
 )
+from recal.io.writer_state import (
+    OpenPart,
+    Tally,
+    TopicBook,
+    Trouble,
+    WriteHealth,
+    WriterOptions,
+    fsync_and_close,
+)
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["FILE_TO_FILE_FLUSH_S", "RecordingWriter", "WriteHealth"]
 
 _TOPIC = re.compile(r"/[A-Za-z0-9][A-Za-z0-9_.\-]*/[A-Za-z0-9_.\-]+")
-_SUFFIX_SCHEMAS: dict[str, SchemaSpec] = {
-    "raw": messages.RAW_SCHEMA,
-    "calibrated": messages.CALIBRATED_SCHEMA,
-    "body": messages.CALIBRATED_SCHEMA,
-    "calibration": messages.CALIBRATION_STATE_SCHEMA,
-    "plot": messages.PLOT_SCHEMA,
-    "events": messages.EVENT_SCHEMA,
-}
-_MAX_U64 = 2**64 - 1
-#: A batch longer than this (a file tool's) is logged in messages of this many samples.
-_MAX_MESSAGE_SAMPLES = 16384
-
-
-def _publish_ns(t_us: int | None, fallback_ns: int) -> int:
-    if t_us is None:
-        return fallback_ns
-    # MCAP times are unsigned 64-bit; device clocks before their epoch are clamped, not lost.
-    return min(max(int(t_us) * 1000, 0), _MAX_U64)
-
-
-def _publish_ns_array(t_us: np.ndarray) -> np.ndarray:
-    """`_publish_ns` of each device time (us), as uint64."""
-    t = np.clip(np.asarray(t_us, np.int64), 0, None).astype(np.uint64)
-    big = t > np.uint64(_MAX_U64 // 1000)
-    out = t * np.uint64(1000)
-    out[big] = _MAX_U64
-    return out
+# the log's schema of each registered topic; a topic the registry does not know is logged as
+# generic JSON (the writer is also a tool's: `recal import` and tests write topics of their own)
+_SUFFIX_SCHEMAS: dict[str, SchemaSpec] = topics.log_schemas()
 
 
 def _check_calibrated_suffix(topic_suffix: str) -> None:
@@ -96,66 +90,6 @@ def _check_calibrated_suffix(topic_suffix: str) -> None:
     if _SUFFIX_SCHEMAS.get(topic_suffix, messages.CALIBRATED_SCHEMA) is not \
             messages.CALIBRATED_SCHEMA:
         raise ValueError(f"topic suffix {topic_suffix!r} is reserved for another schema")
-
-
-def _rotation_bytes(rotation: np.ndarray) -> bytes:
-    """A body rotation (3 x 3, ``R @ a``) as the float64 bytes a waiting message keeps."""
-    r = np.ascontiguousarray(rotation, np.float64)
-    if r.shape != (3, 3):
-        raise ValueError(f"rotation must be 3 x 3, got shape {r.shape}")
-    return r.tobytes()
-
-
-def _check_log_time(log_time_ns: int) -> int:
-    value = int(log_time_ns)
-    if not 0 <= value <= _MAX_U64:
-        raise ValueError(f"log_time_ns must be an unsigned 64-bit integer, got {log_time_ns}")
-    return value
-
-
-@dataclass
-class _Pending:
-    """Batches of one topic waiting to be logged as one message."""
-
-    sensor_id: str
-    raw: bool  # RawBatch (else CalibratedBatch)
-    log_ns: int  # the first batch's log time: the message's
-    publish_ns: int
-    batches: list[Any]
-    samples: int
-    sizes: list[int]  # raw: samples of each arrival (a batch may hold several)
-    log_times: list[int]  # raw: each arrival's log time (both kept in the message)
-    rotation: bytes | None = None  # body in the log's form: the rotation (float64 bytes)
-
-
-@dataclass(frozen=True)
-class WriteHealth:
-    """Whether the recording is being written, and what a refusing file cost so far.
-
-    Attributes:
-        failing: the file refuses writes (a full disk); messages wait in memory meanwhile.
-        error: the last write or fsync error, as text (None if there was none).
-        failing_since_s: when the current refusal began (the writer's clock), or None.
-        failures: refusals so far (a refusal lasts until everything waiting is written).
-        waiting_bytes: compressed bytes waiting for the file.
-        dropped_messages, dropped_samples: dropped so far, oldest first, because more waited
-            than ``backlog_bytes`` or because the file still refused at a close (raw samples
-            in the dropped messages).
-        fsync_errors: fsyncs that failed (the data may not be on the disk yet).
-        unfinished: parts closed without their index (``recal repair`` reads them).
-    """
-
-    failing: bool
-    error: str | None
-    failing_since_s: float | None
-    failures: int
-    waiting_bytes: int
-    dropped_messages: int
-    dropped_samples: int
-    fsync_errors: int
-    unfinished: tuple[Path, ...]
-
-
 #: flush_interval_s of a command that converts one file into another (replay, hindsight,
 #: simulate, import): chunks end by size alone, not by the wall clock, so the same input
 #: gives the same bytes on any machine; such a file is made again rather than recovered.
@@ -206,55 +140,31 @@ class RecordingWriter:
                  fsync: bool = True, metadata: Mapping[str, str] | None = None,
                  overwrite: bool = False, background_compression: bool = False,
                  backlog_bytes: int | None = None, log_batch_samples: int = 8192) -> None:
-        if compression not in COMPRESSION_TYPES:
-            raise UsageError(f"compression must be one of {sorted(COMPRESSION_TYPES)}")
-        if chunk_size <= 0 or flush_interval_s <= 0:
-            raise UsageError("chunk_size and flush_interval_s must be positive")
-        if (rotate_bytes is not None and rotate_bytes <= 0) or (rotate_s is not None
-                                                               and rotate_s <= 0):
-            raise UsageError("rotate_bytes and rotate_s must be positive (or None)")
-        if log_batch_samples < 1:
-            raise UsageError("log_batch_samples must be >= 1")
-        if backlog_bytes is not None and (backlog_bytes < 0 or background_compression):
-            raise UsageError("backlog_bytes must be >= 0, and not with background_compression")
+        opts = WriterOptions.checked(
+            chunk_size=chunk_size, flush_interval_s=flush_interval_s, rotate_bytes=rotate_bytes,
+            rotate_s=rotate_s, compression=compression, fsync=fsync, metadata=metadata,
+            background_compression=background_compression, backlog_bytes=backlog_bytes,
+            log_batch_samples=log_batch_samples)
         self._base = Path(path)
         self._base.parent.mkdir(parents=True, exist_ok=True)
         self._prepare_target(overwrite)
-        self._chunk_size = chunk_size
-        self._flush_interval_s = float(flush_interval_s)
-        self._rotate_bytes = rotate_bytes
-        self._rotate_ns = None if rotate_s is None else round(rotate_s * 1e9)
-        self._compression: Compression = compression
-        self._background_compression = background_compression
+        self._opts = opts
         self._clock = clock
-        self._fsync = fsync
         self._fsync_due = False  # flushed to the OS, not yet fsynced (see _flush_locked)
-        self._metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._lock = threading.RLock()
         self._paths: list[Path] = []
-        self._topic_specs: dict[str, SchemaSpec] = {}
-        self._sequence: dict[str, int] = {}
-        self._plot_phase: dict[str, int] = {}
-        self._pending: dict[str, _Pending] = {}  # topic -> batches waiting for one message
-        self._log_batch_samples = log_batch_samples
-        self._topics: dict[tuple[str, str], str] = {}  # (sensor, suffix) -> checked topic
-        self._messages_written = 0
-        self._messages_flushed = 0
-        self._flush_count = 0
+        self._topics = TopicBook()
+        self._joins = Joins(opts.log_batch_samples)  # batches waiting for one message
+        self._tally = Tally()
+        self._trouble = Trouble()
         self._closed = False
         self._background_error: BaseException | None = None
-        self._backlog_bytes = backlog_bytes
-        self._parts_out = 0  # messages in the files of finished parts
-        self._parts_dropped = (0, 0)  # messages, samples dropped in finished parts
-        self._unfinished: list[Path] = []
-        self._failures = 0
-        self._failing_since_s: float | None = None
-        self._last_error: str | None = None
-        self._fsync_errors = 0
+        self._part: OpenPart
+        self._last_flush_s = 0.0
         self._open_part()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        if background_flush and self._flush_interval_s != float("inf"):  # (never due)
+        if background_flush and self._opts.flush_interval_s != float("inf"):  # (never due)
             self._thread = threading.Thread(target=self._flush_loop, name="recal-mcap-flush",
                                             daemon=True)
             self._thread.start()
@@ -268,21 +178,21 @@ class RecordingWriter:
 
     @property
     def messages_written(self) -> int:
-        return self._messages_written
+        return self._tally.written
 
     @property
     def messages_flushed(self) -> int:
         """Messages that were in the file at the last flush (what a crash now would keep)."""
-        return self._messages_flushed
+        return self._tally.flushed
 
     @property
     def flush_count(self) -> int:
-        return self._flush_count
+        return self._tally.flushes
 
     @property
     def backlog_bytes(self) -> int | None:
         """How much may wait in memory while the file refuses writes (None: refusals raise)."""
-        return self._backlog_bytes
+        return self._opts.backlog_bytes
 
     def write_raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> bytes:
         """Log a raw batch on ``/<sensor>/raw`` (`log_raw`); returns the batch encoded on its
@@ -298,7 +208,7 @@ class RecordingWriter:
         time of each in us after ``log_time_ns``); kept in the message as the writer keeps
         those it joins itself (replay logs a message's arrivals in one call)."""
         self._hold(self._sensor_topic(sensor_id, "raw"), sensor_id, batch,
-                   _check_log_time(log_time_ns), raw=True, arrivals=arrivals)
+                   check_log_time(log_time_ns), raw=True, arrivals=arrivals)
 
     def write_calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                          topic_suffix: str = "calibrated") -> bytes:
@@ -312,7 +222,7 @@ class RecordingWriter:
         """Log a calibrated batch on ``/<sensor>/<topic_suffix>``, joined like `log_raw`'s."""
         _check_calibrated_suffix(topic_suffix)
         self._hold(self._sensor_topic(sensor_id, topic_suffix), sensor_id, batch,
-                   _check_log_time(log_time_ns), raw=False)
+                   check_log_time(log_time_ns), raw=False)
 
     def log_body(self, sensor_id: str, calibrated: CalibratedBatch, rotation: np.ndarray,
                  log_time_ns: int) -> None:
@@ -322,7 +232,7 @@ class RecordingWriter:
         while the rotation stays (`messages.encode_body_rotation`). The body stream without
         a value the calibrated stream and the alignment already say."""
         self._hold(self._sensor_topic(sensor_id, "body"), sensor_id, calibrated,
-                   _check_log_time(log_time_ns), raw=False, rotation=_rotation_bytes(rotation))
+                   check_log_time(log_time_ns), raw=False, rotation=rotation_bytes(rotation))
 
     def log_body_many(self, sensor_id: str,
                       items: Sequence[tuple[CalibratedBatch, np.ndarray | None, int]]) -> None:
@@ -333,9 +243,9 @@ class RecordingWriter:
         with self._lock:
             self._check_writable()
             for batch, rotation, log_ns in items:
-                self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False,
-                                  rotation=None if rotation is None else
-                                  _rotation_bytes(rotation))
+                self._joins.hold(topic, sensor_id, batch, check_log_time(log_ns), False, None,
+                                 None if rotation is None else rotation_bytes(rotation),
+                                 self._emit)
             self._maybe_flush()
 
     def log_calibrated_many(self, sensor_id: str, batches: Sequence[CalibratedBatch],
@@ -348,7 +258,8 @@ class RecordingWriter:
         with self._lock:
             self._check_writable()
             for batch, log_ns in zip(batches, log_times_ns, strict=True):
-                self._hold_locked(topic, sensor_id, batch, _check_log_time(log_ns), raw=False)
+                self._joins.hold(topic, sensor_id, batch, check_log_time(log_ns), False, None,
+                                 None, self._emit)
             self._maybe_flush()
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int) -> bytes:
@@ -359,7 +270,7 @@ class RecordingWriter:
             raise ValueError(f"topic {topic!r} carries {spec.name}, not JSON")
         data = messages.encode_json(obj)
         t_us = obj.get("t_us") if isinstance(obj, Mapping) else None
-        publish = _publish_ns(t_us if isinstance(t_us, (int, np.integer)) else None,
+        publish = publish_ns(t_us if isinstance(t_us, (int, np.integer)) else None,
                               int(log_time_ns))
         self.write_encoded(topic, data, log_time_ns, publish, schema=spec)
         return data
@@ -374,7 +285,7 @@ class RecordingWriter:
         """Log an event on ``/<sensor>/events``, or ``/gateway/events`` without a sensor."""
         topic = f"/{GATEWAY}/events" if sensor_id is None else sensor_topic(sensor_id, "events")
         data = messages.encode_event(kind, t_us=t_us, sensor_id=sensor_id, detail=detail)
-        self.write_encoded(topic, data, log_time_ns, _publish_ns(t_us, int(log_time_ns)),
+        self.write_encoded(topic, data, log_time_ns, publish_ns(t_us, int(log_time_ns)),
                            schema=messages.EVENT_SCHEMA)
         return data
 
@@ -392,47 +303,21 @@ class RecordingWriter:
         if every_n < 1:
             raise ValueError("every_n must be >= 1")
         topic = self._sensor_topic(sensor_id, "plot")
-        log_ns = _check_log_time(log_time_ns)
+        log_ns = check_log_time(log_time_ns)
         with self._lock:
-            phase = self._plot_phase.get(sensor_id, 0)
-            self._plot_phase[sensor_id] = (phase + len(batch)) % every_n
+            phase = self._topics.plot_phase.get(sensor_id, 0)
+            self._topics.plot_phase[sensor_id] = (phase + len(batch)) % every_n
         first = (-phase) % every_n
         if first >= len(batch):
             return 0  # most calls when samples are handled as they arrive: no numpy at all
         indices = np.arange(first, len(batch), every_n)
-        t_us = batch.t_us[indices]
-        if arrivals is not None:
-            return self._write_plot_arrivals(topic, batch, indices, arrivals)
-        # Spread the samples back from the log time by their device-time distance to the end.
-        last_us = int(batch.t_us[-1])
-        if len(indices) <= 16:  # a few samples: packed one by one (no array set-up)
-            items = [(data, lt, _publish_ns(t, lt)) for data, t in zip(
-                messages.encode_plot(batch, indices), t_us.tolist(), strict=True)
-                for lt in (max(log_ns - (last_us - t) * 1000, 0),)]
+        if arrivals is None and len(indices) <= 16:  # a few samples: packed one by one
+            items = plot_items(batch, indices, log_ns)
             self._write_many(topic, messages.PLOT_SCHEMA, items, log_ns)
             return len(items)
-        log_times = np.clip(log_ns - (last_us - t_us) * 1000, 0, None)
+        log_times, call_log_ns = plot_log_times(batch, indices, log_ns, arrivals)
         self._write_fixed(topic, messages.PLOT_SCHEMA, messages.plot_payloads(batch, indices),
-                          log_times, _publish_ns_array(t_us), log_ns)
-        return len(indices)
-
-    def _write_plot_arrivals(self, topic: str, batch: CalibratedBatch, indices: np.ndarray,
-                             arrivals: tuple[np.ndarray, np.ndarray]) -> int:
-        """`write_plot`'s messages for a batch of several arrivals: each sample's log time
-        from its own arrival's log time and last device time."""
-        sizes = np.asarray(arrivals[0], np.int64)
-        log_ns = np.asarray(arrivals[1], np.int64)
-        if sizes.sum() != len(batch) or len(log_ns) != len(sizes) or (sizes < 0).any():
-            raise ValueError("arrivals do not describe the batch")
-        if len(log_ns) and not (log_ns.min() >= 0 and log_ns.max() <= _MAX_U64):
-            raise ValueError("an arrival's log time is not an unsigned 64-bit integer")
-        ends = np.cumsum(sizes)
-        arrival = np.searchsorted(ends, indices, side="right")  # the arrival of each sample
-        t_us = batch.t_us[indices]
-        last_us = batch.t_us[ends[arrival] - 1]
-        log_times = np.clip(log_ns[arrival] - (last_us - t_us) * 1000, 0, None)
-        self._write_fixed(topic, messages.PLOT_SCHEMA, messages.plot_payloads(batch, indices),
-                          log_times, _publish_ns_array(t_us), int(log_ns[arrival[0]]))
+                          log_times, publish_ns_array(batch.t_us[indices]), call_log_ns)
         return len(indices)
 
     def write_encoded(self, topic: str, data: bytes, log_time_ns: int,
@@ -442,13 +327,13 @@ class RecordingWriter:
 
         The schema defaults to the one the topic suffix implies (see the layout above).
         """
-        log_ns = _check_log_time(log_time_ns)
-        if topic not in self._topic_specs and not _TOPIC.fullmatch(topic):
+        log_ns = check_log_time(log_time_ns)
+        if topic not in self._topics.specs and not _TOPIC.fullmatch(topic):
             raise ValueError(f"invalid topic {topic!r}: expected /<owner>/<name>")
-        spec = schema or self._topic_specs.get(topic) or _SUFFIX_SCHEMAS.get(
+        spec = schema or self._topics.specs.get(topic) or _SUFFIX_SCHEMAS.get(
             split_topic(topic)[1], messages.GENERIC_JSON_SCHEMA)
         publish = log_ns if publish_time_ns is None else min(max(int(publish_time_ns), 0),
-                                                             _MAX_U64)
+                                                             MAX_U64)
         self._write_many(topic, spec, [(data, log_ns, publish)], log_ns)
 
     def flush(self) -> None:
@@ -458,7 +343,7 @@ class RecordingWriter:
             if not self._closed:
                 self._flush_locked()
             fd = self._take_fsync()
-        _fsync_and_close(fd)
+        fsync_and_close(fd)
 
     def close(self) -> None:
         """Flush, write the index (summary) and close the file. Idempotent.
@@ -480,16 +365,7 @@ class RecordingWriter:
     def health(self) -> WriteHealth:
         """Whether writing works now, and what refusals cost so far (for the console)."""
         with self._lock:
-            m = self._mcap
-            # a finished part's drops are in _parts_dropped already
-            open_dropped = (0, 0) if self._closed else (m.dropped_messages, m.dropped_samples)
-            return WriteHealth(
-                failing=m.failure is not None, error=self._last_error,
-                failing_since_s=self._failing_since_s, failures=self._failures,
-                waiting_bytes=m.waiting_bytes,
-                dropped_messages=self._parts_dropped[0] + open_dropped[0],
-                dropped_samples=self._parts_dropped[1] + open_dropped[1],
-                fsync_errors=self._fsync_errors, unfinished=tuple(self._unfinished))
+            return self._trouble.health(self._tally, self._part.mcap, self._closed)
 
     def __enter__(self) -> RecordingWriter:
         return self
@@ -503,9 +379,9 @@ class RecordingWriter:
     def _sensor_topic(self, sensor_id: str, suffix: str) -> str:
         """`sensor_topic`, checked once per (sensor, suffix): a gateway writes each sample as
         it arrives, and the check (a regex) would otherwise run per message."""
-        topic = self._topics.get((sensor_id, suffix))
+        topic = self._topics.names.get((sensor_id, suffix))
         if topic is None:
-            topic = self._topics[(sensor_id, suffix)] = sensor_topic(sensor_id, suffix)
+            topic = self._topics.names[(sensor_id, suffix)] = sensor_topic(sensor_id, suffix)
         return topic
 
     def _prepare_target(self, overwrite: bool) -> None:
@@ -518,71 +394,65 @@ class RecordingWriter:
 
     def _open_part(self) -> None:
         path = part_path(self._base, len(self._paths))
+        o = self._opts
         # Unbuffered: McapFile joins each chunk into one write itself, and a write the disk
         # refuses must leave nothing behind in a buffer (the file is cut back instead).
-        self._file: IO[bytes] = open(path, "wb", buffering=0)  # closed in _finish_part
-        self._mcap = McapFile(self._file, self._chunk_size, self._compression,
-                               self._background_compression, self._backlog_bytes)
-        self._mcap.start(profile="", library=LIBRARY)
-        self._mcap.add_metadata("recal", {"version": __version__,
-                                          "part": str(len(self._paths)), **self._metadata})
+        file: IO[bytes] = open(path, "wb", buffering=0)  # closed in _finish_part
+        mcap = McapFile(file, o.chunk_size, o.compression, o.background_compression,
+                        o.backlog_bytes)
+        mcap.start(profile="", library=LIBRARY)
+        mcap.add_metadata("recal", {"version": __version__, "part": str(len(self._paths)),
+                                    **o.metadata})
         self._paths.append(path)
-        self._schema_ids: dict[str, int] = {}
-        self._channel_ids: dict[str, int] = {}
-        self._part_messages = 0
-        self._part_start_ns = 0
+        self._part = OpenPart(file, mcap)
         self._last_flush_s = self._clock()
 
     def _finish_part(self) -> None:
-        m = self._mcap
+        m = self._part.mcap
         try:
             finished = m.finish()
-            self._file.flush()
-            if self._fsync:
-                self._fsync_checked(self._file.fileno())
+            self._part.file.flush()
+            if self._opts.fsync:
+                self._fsync_checked(self._part.file.fileno())
         finally:
-            self._file.close()
-            self._parts_out += m.messages_out
-            self._parts_dropped = (self._parts_dropped[0] + m.dropped_messages,
-                                   self._parts_dropped[1] + m.dropped_samples)
+            self._part.file.close()
+            self._tally.parts_out += m.messages_out
+            self._tally.parts_dropped = (self._tally.parts_dropped[0] + m.dropped_messages,
+                                   self._tally.parts_dropped[1] + m.dropped_samples)
         if not finished:
-            self._unfinished.append(self._paths[-1])
-            self._note_failure(m.failure)
-        self._messages_flushed = self._parts_out
+            self._trouble.unfinished.append(self._paths[-1])
+            self._trouble.note(m.failure)
+        self._tally.flushed = self._tally.parts_out
 
     def _fsync_checked(self, fd: int) -> None:
         """fsync; with a backlog budget a failure is counted, not raised."""
         try:
             os.fsync(fd)
         except OSError as exc:
-            if self._backlog_bytes is None:
+            if self._opts.backlog_bytes is None:
                 raise
-            self._fsync_errors += 1
-            self._last_error = _describe(exc)
-
-    def _note_failure(self, exc: OSError | None) -> None:
-        if exc is not None:
-            self._last_error = _describe(exc)
+            self._trouble.fsync_failed(exc)
 
     def _rotation_due(self, log_ns: int) -> bool:
-        if self._part_messages == 0 or self._mcap.failure is not None:
+        part, o = self._part, self._opts
+        if part.messages == 0 or part.mcap.failure is not None:
             return False  # never leave an empty part behind, nor finish one the disk refuses
-        if self._rotate_bytes is not None and self._mcap.position >= self._rotate_bytes:
+        if o.rotate_bytes is not None and part.mcap.position >= o.rotate_bytes:
             return True
-        return self._rotate_ns is not None and log_ns - self._part_start_ns >= self._rotate_ns
+        return o.rotate_ns is not None and log_ns - part.start_ns >= o.rotate_ns
 
     def _channel_id(self, topic: str, spec: SchemaSpec) -> int:
-        known = self._topic_specs.setdefault(topic, spec)
+        known = self._topics.specs.setdefault(topic, spec)
         if known.name != spec.name:
             raise ValueError(f"topic {topic!r} carries {known.name}, not {spec.name}")
-        channel_id = self._channel_ids.get(topic)
+        channel_id = self._part.channel_ids.get(topic)
         if channel_id is None:
-            schema_id = self._schema_ids.get(spec.name)
+            schema_id = self._part.schema_ids.get(spec.name)
             if schema_id is None:
-                schema_id = self._mcap.register_schema(spec.name, spec.encoding, spec.data)
-                self._schema_ids[spec.name] = schema_id
-            channel_id = self._mcap.register_channel(topic, spec.message_encoding, schema_id)
-            self._channel_ids[topic] = channel_id
+                schema_id = self._part.mcap.register_schema(spec.name, spec.encoding, spec.data)
+                self._part.schema_ids[spec.name] = schema_id
+            channel_id = self._part.mcap.register_channel(topic, spec.message_encoding, schema_id)
+            self._part.channel_ids[topic] = channel_id
         return channel_id
 
     def _write_many(self, topic: str, spec: SchemaSpec,
@@ -591,34 +461,35 @@ class RecordingWriter:
         """Append (data, log_time_ns, publish_time_ns) messages to one topic, in order;
         ``samples``: raw samples they hold (counted if they are dropped)."""
         self._append(topic, spec, call_log_ns, len(items),
-                     lambda channel_id, seq: self._mcap.add_messages(channel_id, items, seq),
+                     lambda channel_id, seq: self._part.mcap.add_messages(channel_id, items, seq),
                      samples)
 
     def _write_fixed(self, topic: str, spec: SchemaSpec, payloads: np.ndarray,
                      log_times: np.ndarray, publish_times: np.ndarray, call_log_ns: int) -> None:
         """Like `_write_many` for messages that are the rows of a structured array."""
         self._append(topic, spec, call_log_ns, len(payloads),
-                     lambda channel_id, seq: self._mcap.add_fixed(
+                     lambda channel_id, seq: self._part.mcap.add_fixed(
                          channel_id, payloads, log_times, publish_times, seq))
 
     def _append(self, topic: str, spec: SchemaSpec, call_log_ns: int, count: int,
                 add: Callable[[int, int], int], samples: int = 0) -> None:
         """Rotate if due, then ``add(channel_id, first_sequence)`` -> next sequence; ``add``
-        reads ``self._mcap`` when called, i.e. the part open after any rotation."""
+        reads ``self._part.mcap`` when called, i.e. the part open after any rotation."""
         with self._lock:
             self._check_writable()
             if self._rotation_due(call_log_ns):
                 self._finish_part()
                 self._open_part()
-            if self._part_messages == 0:
-                self._part_start_ns = call_log_ns
+            if self._part.messages == 0:
+                self._part.start_ns = call_log_ns
             channel_id = self._channel_id(topic, spec)
-            self._mcap.open_samples += samples  # before add: it may end the chunk
-            self._sequence[topic] = add(channel_id, self._sequence.get(topic, 0))
-            self._part_messages += count
-            self._messages_written += count
-            if self._mcap.failure is not None and self._failing_since_s is None:
-                self._track_failure(self._clock())  # a chunk just ended was refused
+            self._part.mcap.open_samples += samples  # before add: it may end the chunk
+            self._topics.sequence[topic] = add(channel_id, self._topics.sequence.get(topic, 0))
+            self._part.messages += count
+            self._tally.written += count
+            failure = self._part.mcap.failure
+            if failure is not None and self._trouble.since_s is None:
+                self._trouble.track(failure, self._clock())  # a chunk just ended was refused
             self._maybe_flush()
 
     def _hold(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch, log_ns: int,
@@ -628,100 +499,44 @@ class RecordingWriter:
         and the encoding happen once per message)."""
         with self._lock:
             self._check_writable()
-            self._hold_locked(topic, sensor_id, batch, log_ns, raw, arrivals, rotation)
+            self._joins.hold(topic, sensor_id, batch, log_ns, raw, arrivals, rotation,
+                             self._emit)
             self._maybe_flush()
-
-    def _hold_locked(self, topic: str, sensor_id: str, batch: RawBatch | CalibratedBatch,
-                     log_ns: int, raw: bool, arrivals: messages.Arrivals | None = None,
-                     rotation: bytes | None = None) -> None:
-        """`_hold` without the checks and the flush (lock held)."""
-        p = self._pending.get(topic)
-        if p is not None and (p.rotation != rotation
-                              or _layout(p.batches[0], raw) != _layout(batch, raw)):
-            self._emit(topic)  # one message holds one layout (and one rotation)
-            p = None
-        if p is None:
-            first = int(batch.t_us[0]) if len(batch) else None
-            p = self._pending[topic] = _Pending(sensor_id, raw, log_ns,
-                                                _publish_ns(first, log_ns), [], 0, [], [],
-                                                rotation)
-        p.batches.append(batch)
-        p.samples += len(batch)
-        if raw and arrivals is None:  # (a calibrated message keeps no arrivals)
-            p.sizes.append(len(batch))
-            p.log_times.append(log_ns)
-        elif raw and arrivals is not None:
-            sizes, log_us = arrivals
-            p.sizes += sizes.tolist()
-            p.log_times += ([log_ns] * len(sizes) if log_us is None
-                            else (log_ns + 1000 * log_us).tolist())
-        if p.samples >= self._log_batch_samples:
-            self._emit(topic)
 
     def _emit(self, topic: str) -> None:
         """Write a topic's waiting batches as one compact message (lock held)."""
-        p = self._pending.pop(topic)  # first: the write may flush, which emits the rest
-        if p.raw:
-            batch = p.batches[0] if len(p.batches) == 1 else RawBatch.concat(p.batches)
-            # the arrivals, so that a replay gives the node the batches the live node had
-            arrivals = (p.sizes, [(t - p.log_ns) // 1000 for t in p.log_times])
-            data = messages.encode_raw_compact(p.sensor_id, batch, arrivals)
-            spec = messages.RAW_SCHEMA
+        p = self._joins.pending.pop(topic)  # first: the write may flush, which emits the rest
+        spec, datas, samples = joined_messages(p, self._opts.log_batch_samples)
+        for data in datas:
             self._write_many(topic, spec, [(data, p.log_ns, p.publish_ns)], p.log_ns,
-                             samples=len(batch))
-            return
-        if p.rotation is not None:  # the body in the log's form: times and the rotation
-            t_us = np.concatenate([b.t_us for b in p.batches])
-            r = np.frombuffer(p.rotation, np.float64).reshape(3, 3)
-            self._write_many(topic, messages.CALIBRATED_SCHEMA,
-                             [(messages.encode_body_rotation(p.sensor_id, t_us, r), p.log_ns,
-                               p.publish_ns)], p.log_ns)
-            return
-        batch = p.batches[0] if len(p.batches) == 1 else CalibratedBatch.concat(p.batches)
-        step = max(self._log_batch_samples, _MAX_MESSAGE_SAMPLES)  # (a file tool's batches)
-        for i in range(0, max(len(batch), 1), step):
-            part = batch if len(batch) <= step else batch[i:i + step]
-            self._write_many(topic, messages.CALIBRATED_SCHEMA,
-                             [(messages.encode_calibrated_compact(p.sensor_id, part), p.log_ns,
-                               p.publish_ns)], p.log_ns)
+                             samples=samples)
 
     def _emit_pending(self) -> None:
-        for topic in list(self._pending):
-            if topic in self._pending:
+        for topic in list(self._joins.pending):
+            if topic in self._joins.pending:
                 self._emit(topic)
 
-    def _track_failure(self, now_s: float) -> None:
-        """Note when the file began or stopped refusing writes (lock held)."""
-        failure = self._mcap.failure
-        if failure is None:
-            self._failing_since_s = None
-        else:
-            if self._failing_since_s is None:
-                self._failures += 1
-                self._failing_since_s = now_s
-            self._last_error = _describe(failure)
-
     def _maybe_flush(self) -> None:
-        if self._clock() - self._last_flush_s >= self._flush_interval_s:
+        if self._clock() - self._last_flush_s >= self._opts.flush_interval_s:
             self._flush_locked()
 
     def _flush_locked(self) -> None:
         self._last_flush_s = now_s = self._clock()
         self._emit_pending()  # (their writes see the flush just stamped, so do not recurse)
-        m = self._mcap
-        if self._messages_flushed == self._messages_written and not m.waiting_bytes:
+        m = self._part.mcap
+        if self._tally.flushed == self._tally.written and not m.waiting_bytes:
             return  # nothing new: skip the fsync
         m.flush()  # ends the open chunk (and tries again what the disk refused)
-        self._track_failure(now_s)
+        self._trouble.track(m.failure, now_s)
         if m.failure is not None:
             return  # nothing new in the file: no fsync
         # The fsync itself (milliseconds) happens outside the lock, on the flush thread: a
         # writer calling in to log a sample must not wait for the disk (the gateway's
         # latency p99 showed it). The data is with the OS already, so a killed process
         # loses nothing by this; a power cut may lose up to a quarter interval more.
-        self._fsync_due = self._fsync
-        self._messages_flushed = self._parts_out + m.messages_out
-        self._flush_count += 1
+        self._fsync_due = self._opts.fsync
+        self._tally.flushed = self._tally.parts_out + m.messages_out
+        self._tally.flushes += 1
 
     def _take_fsync(self) -> int | None:
         """With the lock held: a duplicate descriptor to fsync if one is due (the duplicate
@@ -729,12 +544,12 @@ class RecordingWriter:
         if not self._fsync_due or self._closed:
             return None
         self._fsync_due = False
-        return os.dup(self._file.fileno())
+        return os.dup(self._part.file.fileno())
 
     def _flush_loop(self) -> None:
         # Wakes several times per interval so a quiet writer is still flushed on time. It
         # outlives errors: a disk that was full takes data again, and fsync is still wanted.
-        while not self._stop.wait(self._flush_interval_s / 4):
+        while not self._stop.wait(self._opts.flush_interval_s / 4):
             fd = None
             with self._lock:
                 if self._closed:
@@ -746,7 +561,7 @@ class RecordingWriter:
                     self._background_failed(exc)
                     continue
             try:
-                _fsync_and_close(fd)
+                fsync_and_close(fd)
             except OSError as exc:
                 with self._lock:
                     self._background_failed(exc)
@@ -754,12 +569,10 @@ class RecordingWriter:
     def _background_failed(self, exc: Exception) -> None:
         """An error on the flush thread (lock held): kept for the owner's next call, or with a
         backlog budget (where write refusals never raise) counted in ``health``."""
-        if self._backlog_bytes is None:
+        if self._opts.backlog_bytes is None:
             self._background_error = exc
             return
-        if isinstance(exc, OSError):
-            self._fsync_errors += 1
-        self._last_error = _describe(exc) if isinstance(exc, OSError) else repr(exc)
+        self._trouble.background(exc)
 
     def _check_writable(self) -> None:
         """Raise what the background thread met, or that the writer is closed (lock held)."""
@@ -772,27 +585,3 @@ class RecordingWriter:
             error, self._background_error = self._background_error, None
             raise RuntimeError("background flush of the recording failed") from error
 
-
-def _layout(batch: RawBatch | CalibratedBatch, raw: bool) -> Any:
-    """What batches must share to be joined: the channels, or which optional columns exist."""
-    if raw:
-        return batch.aux_names  # type: ignore[union-attr]
-    return (batch.t_dev is None, batch.recorded)  # type: ignore[union-attr]
-
-
-def _describe(exc: OSError) -> str:
-    return exc.strerror or str(exc)
-
-
-def _fsync_and_close(fd: int | None) -> None:
-    """fsync a duplicated descriptor (see ``RecordingWriter._take_fsync``) and close it."""
-    if fd is None:
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-# ---------------------------------------------------------------------------------------------
-# Reader

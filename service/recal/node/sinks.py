@@ -7,6 +7,12 @@ same node then runs in the gateway (:class:`LoggedBusSink`), on a machine of its
 no Zenoh). The sinks are typed against what they use of a recording writer (:class:`Writer`)
 and of a bus (:class:`Bus`), so that replay never loads Zenoh.
 
+Which sink a process gets is :func:`make_sink` (a recording, a bus, both or neither). Each
+suffix is a topic of the registry (`recal.io.topics`: schema, logged, published); a sink
+resolves what it carries when it is built, and a suffix the registry does not know raises
+:class:`recal.io.topics.UnknownTopicError` (a RecalError naming the known topics) at its first
+message, before anything of it is logged or published.
+
 Messages, by sink suffix (MCAP topic ``/<sensor>/<suffix>``, Zenoh key
 ``recal/<sensor>/<suffix>`` where the bus layout has one):
 
@@ -35,11 +41,32 @@ from typing import Any, Protocol
 import numpy as np
 
 from recal.core.alignment import to_body
-from recal.io import messages
+from recal.io import messages, topics
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["BodyRotations", "Bus", "BusSink", "EventSink", "LoggedBusSink", "NullSink",
-           "RecordingSink", "Sink", "Writer"]
+           "RecordingSink", "Sink", "Writer", "make_sink"]
+
+# What a node may hand a sink, from the registry, resolved once at import (a set lookup per
+# message then): the calibrated-batch outputs the log keeps and those the bus carries, and
+# the JSON outputs (and those the log keeps).
+_OUTPUTS = topics.require(topics.node_outputs())
+_LOGGED_BATCHES = frozenset(t.suffix for t in _OUTPUTS if t.payload == "calibrated" and t.logged)
+_PUBLISHED_BATCHES = frozenset(t.suffix for t in _OUTPUTS
+                               if t.payload == "calibrated" and t.published)
+_JSON = frozenset(t.suffix for t in _OUTPUTS if t.payload == "json")
+_LOGGED_JSON = frozenset(t.suffix for t in _OUTPUTS if t.payload == "json" and t.logged)
+
+
+def _batch_topic(suffix: str) -> None:
+    """UnknownTopicError unless ``suffix`` is a registered calibrated-batch topic."""
+    topics.require([suffix], "calibrated")
+
+
+def _json_topic(suffix: str) -> None:
+    """UnknownTopicError unless ``suffix`` is a registered JSON output."""
+    if suffix not in _JSON:
+        topics.require([suffix], "json")
 
 
 class Sink(Protocol):
@@ -199,6 +226,15 @@ class RecordingSink:
         self.writer = writer
         self.body = BodyRotations()
 
+    @staticmethod
+    def keeps(suffix: str) -> bool:
+        """Whether the log keeps calibrated batches of ``suffix`` (the registry's ``logged``);
+        UnknownTopicError if it is no registered calibrated-batch topic."""
+        if suffix in _LOGGED_BATCHES:
+            return True
+        _batch_topic(suffix)
+        return False
+
     def raw(self, sensor_id: str, batch: RawBatch, log_time_ns: int) -> None:
         self.writer.log_raw(sensor_id, batch, log_time_ns)  # (no bus: no per-batch encoding)
 
@@ -206,6 +242,9 @@ class RecordingSink:
                    suffix: str = "calibrated") -> None:
         if suffix == "calibrated":
             self.body.note_calibrated(sensor_id, batch)
+        elif suffix not in _LOGGED_BATCHES:
+            _batch_topic(suffix)  # unknown: raises; else a batch topic the log does not keep
+            return
         elif suffix == "body":
             found = self.body.of(sensor_id, batch)
             if found is not None:
@@ -218,15 +257,18 @@ class RecordingSink:
         self.writer.write_plot(sensor_id, batch, log_time_ns, every_n)
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        _json_topic(suffix)
         self.body.note_json(sensor_id, suffix, obj)
-        self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+        if suffix in _LOGGED_JSON:
+            self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
 
 
 class BusSink:
     """Publishes on a :class:`recal.io.bus.Bus` (``recal/<sensor>/<suffix>``).
 
-    Suffixes without a bus key (plot, setup) are not published. A publish Zenoh refuses, or
-    one after the bus closed, is counted in ``dropped`` and never raises.
+    Suffixes the registry does not publish (plot, setup: log only) are not published. A
+    publish Zenoh refuses, or one after the bus closed, is counted in ``dropped`` and never
+    raises.
     """
 
     def __init__(self, bus: Bus) -> None:
@@ -237,7 +279,7 @@ class BusSink:
         self.bus = bus
         self._key = _bus.key
         self._publishers: dict[tuple[str, str], Publisher] = {}
-        self.topics = frozenset(_bus.TOPICS)
+        self.topics = topics.published_topics()
         self.dropped = 0
 
     def put(self, sensor_id: str, suffix: str, data: bytes | Callable[[], bytes]) -> None:
@@ -262,6 +304,9 @@ class BusSink:
 
     def calibrated(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
                    suffix: str = "calibrated") -> None:
+        if suffix not in _PUBLISHED_BATCHES:
+            _batch_topic(suffix)  # unknown: raises; else a batch topic the bus does not carry
+            return
         self.put(sensor_id, suffix, messages.encode_calibrated(sensor_id, batch))
 
     def plot(self, sensor_id: str, batch: CalibratedBatch, log_time_ns: int,
@@ -269,6 +314,7 @@ class BusSink:
         pass  # the plot topic is for the log's Plot panel; the bus carries whole batches
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        _json_topic(suffix)
         if suffix in self.topics:
             self.put(sensor_id, suffix, messages.encode_json(obj))
 
@@ -295,11 +341,27 @@ class LoggedBusSink(RecordingSink):
                    suffix: str = "calibrated") -> None:
         # the log keeps a body batch as times and a rotation when it can; the bus the values
         super().calibrated(sensor_id, batch, log_time_ns, suffix)
-        self.bus.put(sensor_id, suffix, partial(messages.encode_calibrated, sensor_id, batch))
+        if suffix in _PUBLISHED_BATCHES:
+            self.bus.put(sensor_id, suffix, partial(messages.encode_calibrated, sensor_id, batch))
 
     def json(self, sensor_id: str, suffix: str, obj: dict[str, Any], log_time_ns: int) -> None:
+        _json_topic(suffix)
         self.body.note_json(sensor_id, suffix, obj)
-        data = self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+        data = (self.writer.write_json(f"/{sensor_id}/{suffix}", obj, log_time_ns)
+                if suffix in _LOGGED_JSON else None)
         if suffix in self.bus.topics:
-            self.bus.put(sensor_id, suffix, data)
+            self.bus.put(sensor_id, suffix, messages.encode_json(obj) if data is None else data)
 
+
+
+def make_sink(writer: Writer | None, bus: Bus | None) -> Sink:
+    """The sink of a process with this recording and this bus (either may be None): both, a
+    LoggedBusSink (the gateway; a remote node that logs); a recording alone, a RecordingSink;
+    a bus alone, a BusSink; neither, a NullSink."""
+    if writer is not None and bus is not None:
+        return LoggedBusSink(writer, bus)
+    if writer is not None:
+        return RecordingSink(writer)
+    if bus is not None:
+        return BusSink(bus)
+    return NullSink()
