@@ -153,13 +153,17 @@ def _sink_suffixes(path: Path) -> set[str]:
 
 
 def test_every_topic_a_node_hands_its_sink_is_a_registered_output() -> None:
-    """The node names its outputs as literals: an unregistered one fails here, at test time,
-    not once per batch in a running node."""
+    """The node names its outputs as literals: each is among those it declares (``EMITS``,
+    checked against the registry when the node module loads, so a process with an
+    unregistered one stops at start), and each is a registered node output."""
+    from recal.node.node import EMITS
+
     suffixes = set()
-    for module in ("node.py", "remote_node.py"):
-        path = SERVICE / module
-        if not path.exists():  # (after the package move: node/node.py, daemon/remote_node.py)
-            path = next(SERVICE.rglob(module))
+    for path in [*(SERVICE / "node").glob("*.py"), SERVICE / "daemon" / "remote_node.py"]:
         suffixes |= _sink_suffixes(path)
+    declared = {name for names in EMITS.values() for name in names}
     assert {"setup", "calibration", "events"} <= suffixes
-    assert suffixes <= set(topics.node_outputs()), suffixes - set(topics.node_outputs())
+    assert suffixes <= declared, suffixes - declared
+    assert declared <= set(topics.node_outputs()), declared - set(topics.node_outputs())
+    for payload, names in EMITS.items():
+        assert all(topics.topic(n).payload == payload for n in names), (payload, names)

@@ -50,6 +50,7 @@ from recal.core.model import SensorModel
 from recal.core.outputs import StepOutput
 from recal.core.pipeline import Pipeline
 from recal.core.status import REOPEN_PROBATION_WINDOWS, Status
+from recal.io import topics
 from recal.node.alignment import Aligner
 from recal.node.checkpoint_doc import checkpoint_document, restore_document
 from recal.node.device_time import DeviceClock
@@ -72,6 +73,13 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+# What a node emits through its sink, by payload, checked against the topic registry when this
+# module loads: a name the registry lacks stops the process at start, not at the first message.
+EMITS = {"calibrated": ("calibrated", "body"), "json": ("events", "setup", "calibration"),
+         "plot": ("plot",)}
+for _payload, _names in EMITS.items():
+    topics.require(_names, _payload)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
