@@ -18,7 +18,7 @@ from recal.core.effects import Covariates
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.residuals import misfit
 from recal.core.status import Status, predicted_sigma_mg
-from recal.core.windowing import window_means
+from recal.core.window_means import window_means
 from recal.discovery_report import format_table
 from recal.hindsight_file import Corrected, fit_summary, summary_lines
 from recal.samples import rebatch

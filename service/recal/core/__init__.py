@@ -6,7 +6,7 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 - `detector`: quasi-static detection, a band-passed norm against a threshold (Lötters eq. 1-2),
   and `channels`: which samples may enter a window (the model's channels finite);
 - `windower`: cuts the gated runs into windows, its state passed in and returned (the one
-  windower of the pipeline and of the batch `windowing`);
+  windower of the pipeline and of the batch `window_means`);
 - `buffer`: the bounded set of window means the estimator fits, spread over orientations;
 - `refit`: whether the new windows call for a re-fit (most repeat what the buffer says);
 - `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
@@ -19,7 +19,7 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 
 Beside it:
 
-- `windowing`: a whole recording's window means at once, by the pipeline's windower;
+- `window_means`: a whole recording's window means at once, by the pipeline's windower;
 - `discovery` (with `discovery_data`, `model_fit`, `residuals`): which effects a recording
   needs, chosen by held-out error;
 - `hindsight`: one fit on a whole recording, every sample corrected with it;
@@ -81,8 +81,8 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
     from recal.core.static import StaticFit, fit_known_orientations, fit_unknown_orientations
     from recal.core.status import Status
     from recal.core.timebase import TimebaseConfig, TimebaseState
+    from recal.core.window_means import Windowing, window_means
     from recal.core.windower import WindowerState, WindowSums, cut
-    from recal.core.windowing import Windowing, window_means
 
 #: Each public name and the core module it lives in. Loaded on first use (PEP 562), so a
 #: command imports only the core modules it runs (replay needs neither discovery nor static).
@@ -126,7 +126,7 @@ _HOMES = {
     "WindowBuffer": "buffer",
     "WindowSums": "windower",
     "WindowerState": "windower",
-    "Windowing": "windowing",
+    "Windowing": "window_means",
     "Windows": "buffer",
     "cut": "windower",
     "data_from_batch": "discovery_data",
@@ -142,7 +142,7 @@ _HOMES = {
     "init_state": "detector",
     "make_effect": "effects",
     "missing_channels": "channels",
-    "window_means": "windowing",
+    "window_means": "window_means",
 }
 
 
