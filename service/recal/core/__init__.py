@@ -9,7 +9,8 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
   windower of the pipeline and of the batch `window_means`);
 - `buffer`: the bounded set of window means the estimator fits, spread over orientations;
 - `refit`: whether the new windows call for a re-fit (most repeat what the buffer says);
-- `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
+- `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b), its
+  records (prior, settings, estimate, report) in `estimate`;
 - `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...),
   with `triaxial` for the per-axis arithmetic on (N, 3) readings;
 - `correction`, `status`: each sample corrected with the parameters in force when it arrived,
@@ -71,7 +72,7 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
         Scale,
         make_effect,
     )
-    from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
+    from recal.core.estimate import Estimate, EstimatorConfig, Prior, UpdateReport
     from recal.core.hindsight import HindsightFit
     from recal.core.model import AffineCorrection, SensorModel
     from recal.core.outputs import StepOutput, UpdateEvent, WatchEvent
@@ -101,8 +102,8 @@ _HOMES = {
     "DiscoveryResult": "discovery",
     "EFFECT_KINDS": "effects",
     "Effect": "effects",
-    "Estimate": "estimator",
-    "EstimatorConfig": "estimator",
+    "Estimate": "estimate",
+    "EstimatorConfig": "estimate",
     "Gain": "effects",
     "HindsightFit": "hindsight",
     "Lifecycle": "pipeline",
@@ -110,7 +111,7 @@ _HOMES = {
     "Offset": "effects",
     "Pipeline": "pipeline",
     "PipelineConfig": "pipeline_config",
-    "Prior": "estimator",
+    "Prior": "estimate",
     "Ratiometric": "effects",
     "Scale": "effects",
     "SensorModel": "model",
@@ -121,7 +122,7 @@ _HOMES = {
     "TimebaseConfig": "timebase",
     "TimebaseState": "timebase",
     "UpdateEvent": "outputs",
-    "UpdateReport": "estimator",
+    "UpdateReport": "estimate",
     "WatchEvent": "outputs",
     "WindowBuffer": "buffer",
     "WindowSums": "windower",
