@@ -33,7 +33,9 @@ Beside it:
 The names below are the core's public API; each lives in the module named above.
 """
 
+import sys
 from importlib import import_module
+from types import ModuleType
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its module on use
@@ -145,6 +147,20 @@ _HOMES = {
     "missing_channels": "channels",
     "window_means": "window_means",
 }
+
+
+class _Core(ModuleType):
+    """The package's module type: `window_means` names both a module and the function it
+    defines, and importing the module sets the module on its package; the public name stays
+    the function (`from recal.core import window_means`, whatever was imported first)."""
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if isinstance(value, ModuleType) and _HOMES.get(name) == name:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Core
 
 
 def __getattr__(name: str) -> object:
