@@ -64,7 +64,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from recal.core.buffer import WindowBuffer, Windows, cell_of
+from recal.core.buffer import Window, WindowBuffer, Windows, cell_of
 from recal.core.effects import Covariates
 from recal.core.misfit import ACROSS_SPHERE, CHANCE_SDS, excess_g2
 from recal.core.model import SensorModel
@@ -379,7 +379,7 @@ class Watch:
         triggers: how many times the watch fired (each fires a reset).
         jump_us: when the estimator last fitted a new offset jump (None: none since a reset).
         alarm_us: device time until which an alarm holds the suspect status at least.
-        recent: the windows since the onset (v, aux, t_us, n, var), at most RECENT_MAX,
+        recent: the windows since the onset (`buffer.Window`), at most RECENT_MAX,
             whatever the norm gate said of them: a reset re-fits them.
         probation: orientation cells whose still windows must still agree before output is
             calibrated (after a moment of doubt, `doubt`); agreed: the cells that did.
@@ -394,7 +394,7 @@ class Watch:
     good_run: int = 0
     suspect: bool = False
     triggers: int = 0
-    recent: list[tuple] | None = None
+    recent: list[Window] | None = None
     jump_us: int | None = None
     alarm_us: int | None = None
     probation: int = 0
@@ -408,13 +408,13 @@ class Watch:
         if cells > self.probation:
             self.probation, self.agreed = cells, []
 
-    def see(self, bad: bool, window: tuple, grossly: bool = False,
+    def see(self, bad: bool, window: Window, grossly: bool = False,
             cell: int = -1) -> str | None:
         """One window in order (grossly: it contradicts grossly, `gross`); returns "trigger"
         when the contradiction became sustained, "clear" when a suspect status ends, "gross"
         when a gross contradiction made the status suspect now, "trusted" when a probation
         ended, else None."""
-        t_us = int(window[2])
+        t_us = int(window.t_us)
         said = None
         # a gross contradiction that passes the norm gate counts as agreeing for the
         # sustained test (which resets the estimate: the norm gate's alone), not for clearing
@@ -456,7 +456,7 @@ class Watch:
         self.alarm_us = max(self.alarm_us or 0, int(t_us + hold_s * 1e6))
         return not was
 
-    def fired(self, t_us: int) -> list[tuple]:
+    def fired(self, t_us: int) -> list[Window]:
         """A reset at t_us: suspect from now, a new stretch; the windows to re-fit."""
         recent = self.recent or []
         self.suspect, self.alarm_us = True, int(t_us + CLEAR_AFTER_S * 1e6)  # a fresh start
@@ -478,17 +478,17 @@ class Watch:
         self.jump_us = step_us
         return "suspect" if self.alarm(now_us, JUMP_REPEAT_S) else None
 
-    def to_refit(self, buffered: Windows, now_us: int) -> list[tuple]:
+    def to_refit(self, buffered: Windows, now_us: int) -> list[Window]:
         """A reset at now_us (`fired`): the windows to re-fit, each once: the contradiction's,
         and after a jump the buffer's (``buffered``) since the first jump."""
         since = self.jump_us
         recent = self.fired(now_us)
         if since is not None:
             keep = buffered.t_us >= since
-            recent = [(buffered.v[i], buffered.aux[i], int(buffered.t_us[i]),
-                       int(buffered.n[i]), float(buffered.var[i]))
+            recent = [Window(buffered.v[i], buffered.aux[i], int(buffered.t_us[i]),
+                             int(buffered.n[i]), float(buffered.var[i]))
                       for i in np.flatnonzero(keep).tolist()] + recent
-            recent = list({int(r[2]): r for r in recent}.values())  # each window once
+            recent = list({int(r.t_us): r for r in recent}.values())  # each window once
         return recent
 
     def to_dict(self) -> dict:
@@ -499,8 +499,8 @@ class Watch:
                 "calm_run": self.calm_run,
                 "misfit": self.misfit.to_dict(),
                 "recent": None if self.recent is None else [
-                    [list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]),
-                     float(w[4])] for w in self.recent]}
+                    [list(map(float, w.v)), list(map(float, w.aux)), int(w.t_us), int(w.n),
+                     float(w.var)] for w in self.recent]}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> Watch:
@@ -517,25 +517,27 @@ class Watch:
                    int(d.get("calm_run", d.get("good_run", 0))))
 
 
-def _window(w: Sequence) -> tuple:
-    return (list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]), float(w[4]))
+def _window(w: Sequence) -> Window:
+    """A recent window as a checkpoint holds it (its raw values as Python floats)."""
+    return Window(list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]),
+                  float(w[4]))
 
 
 def refill(buffer: WindowBuffer, n_aux: int, model: SensorModel, p: np.ndarray,
-           covariates: Callable[[np.ndarray, np.ndarray], Covariates], recent: list[tuple],
+           covariates: Callable[[np.ndarray, np.ndarray], Covariates], recent: list[Window],
            norm_tol_g: float | None, grid: int) -> int:
     """After a reset: the recent windows whose calibrated norm (parameters p) is within
     norm_tol_g of 1 g (None: all finite ones) into the buffer, each a slot of its own, oldest
     first; returns how many."""
     if not recent:
         return 0
-    recent = sorted(recent, key=lambda r: r[2])
+    recent = sorted(recent, key=lambda r: r.t_us)
     m, k = len(recent), n_aux
-    w = Windows(np.array([r[0] for r in recent], float).reshape(m, 3),
-                np.array([r[1] for r in recent], float).reshape(m, k),
-                np.array([r[2] for r in recent], np.int64),
-                np.array([r[3] for r in recent], np.int64),
-                np.array([r[4] for r in recent], float))
+    w = Windows(np.array([r.v for r in recent], float).reshape(m, 3),
+                np.array([r.aux for r in recent], float).reshape(m, k),
+                np.array([r.t_us for r in recent], np.int64),
+                np.array([r.n for r in recent], np.int64),
+                np.array([r.var for r in recent], float))
     a = model.correct(p, w.v, covariates(w.t_us, w.aux))
     norm = norm3(a)
     ok = np.abs(norm - 1.0) <= norm_tol_g if norm_tol_g is not None else np.isfinite(norm)
