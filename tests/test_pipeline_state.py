@@ -13,7 +13,7 @@ from recal.core.buffer import Window
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
-from recal.core.pipeline_config import PipelineConfig
+from recal.core.pipeline_config import DETECTOR_KEYS, KEYS, PipelineConfig
 from recal.core.pipeline_state import restore, snapshot
 from recal.sim import SensorSpec, simulate
 
@@ -24,12 +24,31 @@ RATE_HZ = 50.0
 CHECKPOINT_KEYS = ["version", "config", "model", "prior", "estimate", "bootstrapped",
                    "from_prior", "centre0", "aux_names", "t0_us", "buffer", "detector", "open",
                    "pending", "fresh", "last_t_us", "last_gate", "counts", "last_report"]
-DETECTOR_KEYS = ["s0", "zero_raw", "zi_hp", "zi_lp", "last_v", "same_run", "started"]
+DETECTOR_DOC_KEYS = ["s0", "zero_raw", "zi_hp", "zi_lp", "last_v", "same_run", "started"]
 
 
 def _raw(hours: float = 0.2, seed: int = 3):
     rng = np.random.default_rng(seed)
     return simulate(hours, RATE_HZ, seed, SensorSpec.random(rng, offset_mg=50, gain_pct=3)).raw
+
+
+def test_the_detectors_settings_nest_in_the_config_and_its_keys_stay_flat() -> None:
+    """A config file's [pipeline] keys and a checkpoint's "config" are flat (threshold_g beside
+    window_s); the detector's are the nested DetectorConfig's, at the pipeline's rate."""
+    cfg = PipelineConfig.of(rate_hz=100.0, threshold_g=0.02, flat_s=2.0, hp_hz=0.4,
+                            lp_hz=0.3, window_s=3.0, full_scale_g=8.0)
+    d = cfg.detection
+    assert (d.rate_hz, d.threshold_g, d.flat_s, d.hp_hz, d.lp_hz) == (100.0, 0.02, 2.0, 0.4, 0.3)
+    doc = cfg.to_dict()
+    assert list(doc) == [*KEYS, "estimator", "buffer"]
+    assert [doc[k] for k in DETECTOR_KEYS] == [0.02, 2.0, 0.4, 0.3]
+    assert PipelineConfig.from_dict(json.loads(json.dumps(doc))) == cfg
+    # the sensor's detector: the nested settings with its scale, zero-g and clip level
+    sensor = cfg.detector(1024.0, (1.0, 2.0, 3.0))
+    assert (sensor.threshold_g, sensor.rate_hz, sensor.s0) == (0.02, 100.0, 1024.0)
+    assert sensor.clip_raw == 0.98 * 8.0 * 1024.0 and sensor.zero_raw == (1.0, 2.0, 3.0)
+    # another rate, the detector's with it
+    assert PipelineConfig(rate_hz=25.0).detection.rate_hz == 25.0
 
 
 def test_detector_state_round_trips_through_json_bit_for_bit() -> None:
@@ -50,7 +69,7 @@ def test_detector_state_round_trips_through_json_bit_for_bit() -> None:
 def test_a_detector_before_its_first_sample_writes_none_for_its_last_sample() -> None:
     d = det.Detector(PipelineConfig(rate_hz=RATE_HZ).detector(256.0))
     doc = d.to_dict()
-    assert list(doc) == DETECTOR_KEYS
+    assert list(doc) == DETECTOR_DOC_KEYS
     assert doc["last_v"] == [None, None, None] and doc["started"] is False
     assert np.isnan(det.DetectorState.from_dict(doc).last_v).all()
 
@@ -71,7 +90,7 @@ def test_checkpoint_keeps_its_keys_in_order_and_resumes_exactly() -> None:
     a = ref.step(raw[:20_000]).calibrated
     doc = ref.state_dict()
     assert list(doc)[:len(CHECKPOINT_KEYS)] == CHECKPOINT_KEYS
-    assert list(doc["detector"]) == DETECTOR_KEYS
+    assert list(doc["detector"]) == DETECTOR_DOC_KEYS
     assert ref.counts["updates"] > 0 and doc["fresh"] == [w.to_list() for w in ref.fresh]
     back = Pipeline.from_state_dict(json.loads(json.dumps(doc)))
     assert json.dumps(back.state_dict()) == json.dumps(doc)

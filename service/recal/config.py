@@ -54,6 +54,7 @@ from recal.core.buffer import BufferConfig
 from recal.core.channels import missing_channels
 from recal.core.estimator import EstimatorConfig, Prior
 from recal.core.model import SensorModel
+from recal.core.pipeline_config import KEYS as PIPELINE_KEYS
 from recal.core.pipeline_config import PipelineConfig
 from recal.errors import ConfigError
 
@@ -278,9 +279,9 @@ class PipelineSettings:
                         ) -> PipelineConfig:
         """The core PipelineConfig for one sensor."""
         est = EstimatorConfig(**{"mode": self.mode, **self.estimator})
-        return PipelineConfig(**{**self.options, "rate_hz": float(rate_hz),
-                                 "full_scale_g": full_scale_g},
-                              estimator=est, buffer=BufferConfig(**self.buffer))
+        return PipelineConfig.of(**{**self.options, "rate_hz": float(rate_hz),
+                                    "full_scale_g": full_scale_g},
+                                 estimator=est, buffer=BufferConfig(**self.buffer))
 
     def plot_every(self, rate_hz: float) -> int:
         """Decimation factor that gives about ``plot_hz`` plot messages per second."""
@@ -577,8 +578,7 @@ def _checkpoint(ctx: _Ctx, d: Any) -> CheckpointConfig:
 
 
 _PIPELINE_OWN = ("model", "mode", "plot_hz", "estimator", "buffer")
-_PIPELINE_FIELDS = tuple(f.name for f in fields(PipelineConfig)
-                         if f.name not in ("rate_hz", "full_scale_g", "estimator", "buffer"))
+_PIPELINE_FIELDS = tuple(k for k in PIPELINE_KEYS if k not in ("rate_hz", "full_scale_g"))
 
 
 def _typed(ctx: _Ctx, d: Mapping[str, Any], cls: type, names: Sequence[str]) -> dict[str, Any]:
