@@ -13,10 +13,13 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
   records (prior, settings, estimate, report) in `estimate`;
 - `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...),
   with `triaxial` for the per-axis arithmetic on (N, 3) readings;
-- `correction`, `status`: each sample corrected with the parameters in force when it arrived,
-  with its status and predicted error; the self-watch that doubts the estimate;
+- `correction`, `status`, `sigma`: each sample corrected with the parameters in force when it
+  arrived, with its status and predicted error; the self-watch that doubts the estimate;
 - `outputs`: what a step gives back (`StepOutput`), per batch also for joined batches;
-- `pipeline_config`: the settings of all of it.
+- `pipeline_config`: the settings of all of it;
+- the pipeline's parts: `pipeline_windows` (windows committed, re-fits due), `pipeline_watch`
+  (the self-watch at work), `pipeline_fit` (updates, bootstrap), `pipeline_state` (its
+  checkpoint, the snapshot a step rolls back to).
 
 Beside it:
 
