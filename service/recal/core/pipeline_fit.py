@@ -31,7 +31,7 @@ from recal.core.status import (
 from recal.core.triaxial import norm3
 
 if TYPE_CHECKING:
-    from recal.core.pipeline import Pipeline
+    from recal.core.pipeline_state import PipelineParts
 
 __all__ = ["redirect", "refill_buffer", "try_bootstrap", "update_at"]
 
@@ -40,7 +40,7 @@ __all__ = ["redirect", "refill_buffer", "try_bootstrap", "update_at"]
 FEW_WINDOWS = 20
 
 
-def update_at(pipe: Pipeline, idx: int, now_us: int,
+def update_at(pipe: PipelineParts, idx: int, now_us: int,
               windows: Windows | None = None) -> UpdateEvent:
     """An update of the estimate at sample idx (device time now_us) from the buffer's windows
     (or ``windows``), and what it tells the self-watch and the status."""
@@ -87,7 +87,7 @@ def update_at(pipe: Pipeline, idx: int, now_us: int,
     return UpdateEvent(idx, now_us, rep)
 
 
-def _watch_jump(pipe: Pipeline, before: Estimate, idx: int, now_us: int) -> None:
+def _watch_jump(pipe: PipelineParts, before: Estimate, idx: int, now_us: int) -> None:
     """An accepted update that fitted a new offset jump (`estimator._jump`): suspect for
     JUMP_REPEAT_S at least. A knock fits one and the windows agree again; a sensor whose
     gains differ too (another sensor under this id, another sensor's checkpoint) jumps
@@ -103,7 +103,7 @@ def _watch_jump(pipe: Pipeline, before: Estimate, idx: int, now_us: int) -> None
             "reason": "the offsets jumped", "jump_t_us": step_us}))
 
 
-def try_bootstrap(pipe: Pipeline, idx: int, now_us: int) -> UpdateEvent | None:
+def try_bootstrap(pipe: PipelineParts, idx: int, now_us: int) -> UpdateEvent | None:
     _relocate(pipe, idx)
     slots = pipe.buffer.slots()  # windows that turned are no poses (`still_poses`)
     pipe.buffer.drop(slots[~still_poses(pipe.buffer.windows().var, pipe.model.s0)])
@@ -145,7 +145,7 @@ def try_bootstrap(pipe: Pipeline, idx: int, now_us: int) -> UpdateEvent | None:
     return replace(ev, bootstrap=True)
 
 
-def _sphere_due(pipe: Pipeline) -> bool:
+def _sphere_due(pipe: PipelineParts) -> bool:
     """Whether a sphere fit of the buffer runs at this window: at every one while the
     buffer holds few (a lab's six positions may give no more), then every update_every
     windows (a wearer who never turns costs little)."""
@@ -153,7 +153,7 @@ def _sphere_due(pipe: Pipeline) -> bool:
             or pipe.counts["windows"] % pipe.cfg.update_every == 0)
 
 
-def _relocate(pipe: Pipeline, idx: int) -> None:
+def _relocate(pipe: PipelineParts, idx: int) -> None:
     """Before a bootstrap: if the still windows pin down zero-g and scale, roughly
     (`bootstrap.locate`: half-axes and cells of their centred directions), and the ones
     in use are materially wrong (`bootstrap.off_by`), use the found ones from the next
@@ -181,7 +181,7 @@ def _relocate(pipe: Pipeline, idx: int) -> None:
     pipe._work.restart_at = idx
 
 
-def redirect(pipe: Pipeline, a_windows: np.ndarray | None = None) -> None:
+def redirect(pipe: PipelineParts, a_windows: np.ndarray | None = None) -> None:
     """Re-bin nothing, but refresh stored gravity directions with the new calibration.
     a_windows: the buffer's windows (`WindowBuffer.windows`, oldest first) corrected with
     the parameters now, if the caller has them (an update: the same numbers row by row)."""
@@ -196,7 +196,7 @@ def redirect(pipe: Pipeline, a_windows: np.ndarray | None = None) -> None:
     pipe.buffer.redirect(a / norm3(a)[:, None])
 
 
-def refill_buffer(pipe: Pipeline, recent: list[Window], gate: bool = True) -> int:
+def refill_buffer(pipe: PipelineParts, recent: list[Window], gate: bool = True) -> int:
     """`status.refill` of a new buffer under the estimate now (no norm gate: all)."""
     return refill(pipe.buffer, len(pipe.aux_names), pipe.model, pipe.params,
                   pipe.covariates, recent, pipe.cfg.norm_tol_g if gate else None,

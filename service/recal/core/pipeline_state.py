@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import asdict
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
@@ -22,10 +22,13 @@ from recal.core.windower import WindowerState
 
 if TYPE_CHECKING:
     from recal.core.correction import Segment
+    from recal.core.effects import Covariates
     from recal.core.outputs import Marks, WatchEvent
-    from recal.core.pipeline import Pipeline
+    from recal.core.pipeline_config import PipelineConfig
+    from recal.core.status import Status
 
-__all__ = ["Snapshot", "Work", "load_state", "restore", "snapshot", "state_dict"]
+__all__ = ["PipelineParts", "Snapshot", "Work", "load_state", "restore", "snapshot",
+           "state_dict"]
 
 
 class Work:
@@ -49,6 +52,49 @@ class Work:
         self.finite_estimate: Estimate | None = None
         # (estimate, model, `status.unsettled`, unobserved, `converging`)
         self.converging: tuple | None = None
+
+
+class PipelineParts(Protocol):
+    """The pipeline (`pipeline.Pipeline`) as its parts' modules read and change it: they are
+    typed against this, so they need not import the pipeline that imports them."""
+
+    cfg: PipelineConfig
+    model: SensorModel
+    prior: Prior | None
+    aux_names: tuple[str, ...]
+    t0_us: int | None
+    estimate: Estimate | None
+    bootstrapped: bool
+    from_prior: bool
+    centre0: np.ndarray
+    buffer: WindowBuffer
+    fresh: list[Window]
+    detector: det.Detector | None
+    windower: WindowerState
+    counts: dict[str, int]
+    last_report: UpdateReport | None
+    refit: RefitState
+    informed: bool
+    watch: Watch
+    unobserved: tuple[str, ...]
+    _work: Work
+
+    @property
+    def params(self) -> np.ndarray: ...
+
+    @property
+    def status(self) -> Status: ...
+
+    @property
+    def det_cfg(self) -> det.DetectorConfig | None: ...
+
+    def covariates(self, t_us: np.ndarray, aux: np.ndarray) -> Covariates: ...
+
+    def _segment(self, idx: int) -> Segment: ...
+
+    def _segment_cache(self) -> tuple: ...
+
+    def _reach(self, idx: int) -> None: ...
 
 
 class Snapshot(NamedTuple):
@@ -76,7 +122,7 @@ class Snapshot(NamedTuple):
     reset_due: str | None
 
 
-def snapshot(pipe: Pipeline) -> Snapshot:
+def snapshot(pipe: PipelineParts) -> Snapshot:
     """The state to go back to (`restore`) when a step must be redone in two (a detector
     restart inside a batch, `Pipeline._stepped_whole`)."""
     d = pipe.detector
@@ -88,7 +134,7 @@ def snapshot(pipe: Pipeline) -> Snapshot:
                     pipe._work.reset_due)
 
 
-def restore(pipe: Pipeline, s: Snapshot) -> None:
+def restore(pipe: PipelineParts, s: Snapshot) -> None:
     """The pipeline as it was at `snapshot` (which it may not be restored from twice)."""
     pipe.model, pipe.prior, pipe.estimate = s.model, s.prior, s.estimate
     pipe.bootstrapped, pipe.from_prior, pipe.centre0, pipe.t0_us = (
@@ -100,7 +146,7 @@ def restore(pipe: Pipeline, s: Snapshot) -> None:
     pipe._work.reset_due, pipe._work.restart_at = s.reset_due, None
 
 
-def state_dict(pipe: Pipeline) -> dict:
+def state_dict(pipe: PipelineParts) -> dict:
     """Everything needed to resume exactly where `pipe` stopped (JSON-able)."""
     rep = pipe.last_report
     win = pipe.windower.to_dict()
@@ -131,7 +177,7 @@ def state_dict(pipe: Pipeline) -> dict:
     }
 
 
-def load_state(pipe: Pipeline, d: dict) -> None:
+def load_state(pipe: PipelineParts, d: dict) -> None:
     """The state `state_dict` wrote into a pipeline made with its config, model, prior, aux
     names and t0 (`pipeline.from_state_dict`); it continues bit for bit. Keys absent in older
     checkpoints take what those checkpoints meant."""

@@ -21,12 +21,13 @@ from recal.core.sigma import predicted_sigma_mg
 from recal.core.status import Watch, gross
 
 if TYPE_CHECKING:
-    from recal.core.pipeline import Pipeline
+    from recal.core.pipeline_state import PipelineParts
 
 __all__ = ["contradicts", "heal_if_not_finite", "reset_estimate", "watch_window"]
 
 
-def contradicts(pipe: Pipeline, chunk: WindowChunk, i: int, ok: bool, n: int, var: float) -> bool:
+def contradicts(pipe: PipelineParts, chunk: WindowChunk, i: int, ok: bool, n: int,
+                var: float) -> bool:
     """Window i of the chunk against the estimate: whether it contradicts grossly
     (`status.gross`); if not and it passed the norm gate, its residual feeds the misfit
     (`status.Misfit`), which goes on the output from this window on when it moved."""
@@ -52,7 +53,7 @@ def contradicts(pipe: Pipeline, chunk: WindowChunk, i: int, ok: bool, n: int, va
     return False
 
 
-def watch_window(pipe: Pipeline, bad: bool, window: Window, idx: int, grossly: bool = False,
+def watch_window(pipe: PipelineParts, bad: bool, window: Window, idx: int, grossly: bool = False,
                  cell: int = -1) -> bool:
     """One committed window through the self-watch (`core.status.Watch`; bad: it failed
     the norm gate, its calibrated norm more than norm_tol_g from 1 g or not finite;
@@ -81,7 +82,7 @@ def watch_window(pipe: Pipeline, bad: bool, window: Window, idx: int, grossly: b
     return False
 
 
-def reset_estimate(pipe: Pipeline, idx: int, now_us: int) -> UpdateEvent | None:
+def reset_estimate(pipe: PipelineParts, idx: int, now_us: int) -> UpdateEvent | None:
     """The windows contradict the estimate beyond what the estimator absorbs: it is not
     this sensor's (another sensor under the same id, another sensor's checkpoint) or the
     sensor changed too much. Back to the prior, with a buffer of the recent windows only
@@ -111,7 +112,7 @@ def reset_estimate(pipe: Pipeline, idx: int, now_us: int) -> UpdateEvent | None:
     return update_at(pipe, idx, now_us)
 
 
-def heal_if_not_finite(pipe: Pipeline, t_us: int) -> None:
+def heal_if_not_finite(pipe: PipelineParts, t_us: int) -> None:
     """An estimate that is not finite (a damaged checkpoint) would make every sample NaN
     and every window fail the norm gate, for good: back to the prior if it is finite
     (status held), else to no estimate at all (a bootstrap from the data)."""

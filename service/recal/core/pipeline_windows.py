@@ -22,12 +22,13 @@ from recal.core.windower import WindowSums, cut
 from recal.samples import RawBatch
 
 if TYPE_CHECKING:
-    from recal.core.pipeline import Pipeline
+    from recal.core.pipeline_state import PipelineParts
 
 __all__ = ["windows"]
 
 
-def windows(pipe: Pipeline, b: RawBatch, gate: np.ndarray) -> tuple[list[UpdateEvent], list[int]]:
+def windows(pipe: PipelineParts, b: RawBatch,
+            gate: np.ndarray) -> tuple[list[UpdateEvent], list[int]]:
     """Cut the gated runs into windows (`core.windower`) and commit the finished ones.
 
     Which windows finish and when they commit depends on the gates and times alone, so it
@@ -37,7 +38,7 @@ def windows(pipe: Pipeline, b: RawBatch, gate: np.ndarray) -> tuple[list[UpdateE
     return _commit_all(pipe, b, c.due, c.sums)
 
 
-def _commit_all(pipe: Pipeline, b: RawBatch, due: list[tuple[int, bool]],
+def _commit_all(pipe: PipelineParts, b: RawBatch, due: list[tuple[int, bool]],
                 table: WindowSums | None) -> tuple[list[UpdateEvent], list[int]]:
     """Commit the scheduled windows in order. Between updates the parameters hold, so the
     norm gate, directions and cells of the windows are worked out a chunk at a time
@@ -85,7 +86,7 @@ def _commit_all(pipe: Pipeline, b: RawBatch, due: list[tuple[int, bool]],
     return events, at
 
 
-def _enter(pipe: Pipeline, chunk: WindowChunk, c0: int, c1: int, due: list[tuple[int, bool]],
+def _enter(pipe: PipelineParts, chunk: WindowChunk, c0: int, c1: int, due: list[tuple[int, bool]],
            slot: list[int], done: int) -> tuple[int, int | None]:
     """Windows c0..c1 of the batch enter the buffer (or count as rejected by their norm),
     each after the short windows scheduled before it. Returns the due entries handled,
@@ -133,7 +134,7 @@ def _enter(pipe: Pipeline, chunk: WindowChunk, c0: int, c1: int, due: list[tuple
     return done, None
 
 
-def _axis_newly_covered(pipe: Pipeline) -> bool:
+def _axis_newly_covered(pipe: PipelineParts) -> bool:
     """An axis the buffer now sees from both sides whose scale the last update could not
     observe (a sphere fitted to five half-axes, then the sixth): worth an update at once,
     whatever the window count (a six-pose stream ends right after its last pose)."""
@@ -146,7 +147,7 @@ def _axis_newly_covered(pipe: Pipeline) -> bool:
     return any(c and not o for c, o in zip(covered, seen, strict=True))
 
 
-def _reject_short(pipe: Pipeline, due: list[tuple[int, bool]], done: int, stop: int) -> int:
+def _reject_short(pipe: PipelineParts, due: list[tuple[int, bool]], done: int, stop: int) -> int:
     """Due entries done..stop are windows too short to keep (`_finish`): counted."""
     if stop <= done:
         return done
@@ -159,7 +160,7 @@ def _reject_short(pipe: Pipeline, due: list[tuple[int, bool]], done: int, stop: 
     return max(done, stop)
 
 
-def _scan(pipe: Pipeline, chunk: WindowChunk, c0: int, t_us: np.ndarray,
+def _scan(pipe: PipelineParts, chunk: WindowChunk, c0: int, t_us: np.ndarray,
           at: list[int]) -> int | None:
     """The first window from c0 in the chunk after which an update runs (`core.refit`).
     None: none in it. Before the bootstrap: every window that passes the norm gate."""
