@@ -390,7 +390,7 @@ class WindowBuffer:
         new.last = self.last
         return new
 
-    def state_dict(self) -> dict:
+    def to_dict(self) -> dict:
         return {"grid": self.cfg.grid, "per_cell": self.cfg.per_cell,
                 "merge_max": self.cfg.merge_max, "merge_deg": self.cfg.merge_deg,
                 "added": self.added, "cells_opened": self.cells_opened,
@@ -399,7 +399,7 @@ class WindowBuffer:
                    ("v", "aux", "t_us", "n", "var", "dir", "filled", "k", "nmean", "nm2")}}
 
     @classmethod
-    def from_state_dict(cls, d: dict) -> WindowBuffer:
+    def from_dict(cls, d: dict) -> WindowBuffer:
         cfg = BufferConfig(int(d["grid"]), int(d["per_cell"]), int(d.get("merge_max", 1)),
                            float(d.get("merge_deg", 0.0)))
         aux = np.asarray(d["aux"], np.float64)

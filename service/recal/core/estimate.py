@@ -5,7 +5,7 @@ eq. 11b) and what an update did (`UpdateReport`). The fit that makes them is `co
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -130,6 +130,14 @@ class UpdateReport:
     condition: float = float("nan")
     observable: tuple[bool, ...] = ()
     free: tuple[bool, ...] = field(default=())
+
+    def record(self) -> dict:
+        """Every field, JSON-able (a checkpoint's "last_report"; `to_dict` is for people)."""
+        return asdict(self)
+
+    @classmethod
+    def from_record(cls, d: dict) -> UpdateReport:
+        return cls(**{**d, "observable": tuple(d["observable"]), "free": tuple(d["free"])})
 
     def to_dict(self, names: tuple[str, ...]) -> dict:
         return {"accepted": self.accepted, "reason": self.reason, "n_windows": self.n_windows,

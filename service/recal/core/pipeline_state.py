@@ -7,7 +7,6 @@ pipeline keeps only while a step runs or not to work it out again (`Work`), whic
 from __future__ import annotations
 
 import copy
-from dataclasses import asdict
 from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
@@ -161,7 +160,7 @@ def state_dict(pipe: PipelineParts) -> dict:
         "centre0": pipe.centre0.tolist(),
         "aux_names": list(pipe.aux_names),
         "t0_us": pipe.t0_us,
-        "buffer": pipe.buffer.state_dict(),
+        "buffer": pipe.buffer.to_dict(),
         "detector": pipe.detector.to_dict() if pipe.detector is not None else None,
         "open": win["open"],
         "pending": win["pending"],
@@ -169,7 +168,7 @@ def state_dict(pipe: PipelineParts) -> dict:
         "last_t_us": win["last_t_us"],
         "last_gate": win["last_gate"],
         "counts": dict(pipe.counts),
-        "last_report": asdict(rep) if rep is not None else None,
+        "last_report": rep.record() if rep is not None else None,
         **pipe.refit.to_dict(),
         "informed": pipe.informed,
         "watch": pipe.watch.to_dict(),
@@ -186,7 +185,7 @@ def load_state(pipe: PipelineParts, d: dict) -> None:
     pipe.bootstrapped = bool(d["bootstrapped"])
     pipe.from_prior = bool(d.get("from_prior", prior is not None and pipe.bootstrapped))
     pipe.centre0 = np.asarray(d.get("centre0", [0.0] * 3), np.float64)
-    pipe.buffer = WindowBuffer.from_state_dict(d["buffer"])
+    pipe.buffer = WindowBuffer.from_dict(d["buffer"])
     ds = d["detector"]
     pipe.detector = (None if ds is None else det.Detector(
         pipe.cfg.detector(float(ds["s0"]), np.asarray(ds.get("zero_raw", [0.0] * 3), float)),
@@ -201,5 +200,4 @@ def load_state(pipe: PipelineParts, d: dict) -> None:
     pipe.watch = Watch.from_dict(d.get("watch"))
     pipe.unobserved = tuple(str(x) for x in d.get("unobserved", ()))  # absent in older ones
     rep = d.get("last_report")
-    pipe.last_report = (UpdateReport(**{**rep, "observable": tuple(rep["observable"]),
-                                        "free": tuple(rep["free"])}) if rep else None)
+    pipe.last_report = UpdateReport.from_record(rep) if rep else None
