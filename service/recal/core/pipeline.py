@@ -7,7 +7,11 @@ buffer (`core.buffer`) and, when a re-fit can tell anything new (`core.refit`), 
 updates (`core.estimator`, Lötters eq. 11a/11b); samples are corrected with the parameters in
 force when they arrived (`core.correction`), with their status and predicted error
 (`core.status`); the self-watch (`core.status.Watch`) marks the output suspect or resets the
-estimate when the still windows keep contradicting it. This module only orchestrates them.
+estimate when the still windows keep contradicting it. This module only orchestrates them:
+the step, one sample or a batch, and what is in force; the pipeline's own parts are functions
+of it in `core.pipeline_windows` (windows committed, re-fits due), `core.pipeline_watch` (the
+self-watch at work), `core.pipeline_fit` (updates, bootstrap) and `core.pipeline_state` (the
+checkpoint, the snapshot a step rolls back to, a step's scratch and caches).
 
 Everything is driven by the sample sequence alone (never by batch boundaries or clocks), so
 feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
@@ -305,7 +309,7 @@ class Pipeline:
         self._work.segs = [self._segment(0)]
         if marks:
             self._work.marks = Marks(list(marks), gate, self.counts["samples"],
-                                 self.counts["quasi_static"])
+                                     self.counts["quasi_static"])
         try:
             events, commits = windows(self, batch, gate)
             self._reach(n)  # the marks no later change came before
@@ -402,8 +406,8 @@ class Pipeline:
         if (last is not None and last.index == idx and last.p is cache[2]
                 and last.status is status and last.extra_mg2 == extra):
             return last
-        seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4], status,
-                                           extra, cache[5])
+        seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4],
+                                                status, extra, cache[5])
         return seg
 
     def _segment_cache(self) -> tuple:
