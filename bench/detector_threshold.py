@@ -77,7 +77,7 @@ def err_1s_mg(cal: np.ndarray, truth: np.ndarray, t_us: np.ndarray, after_s: flo
 
 def run_pipeline(raw: RawBatch, model: SensorModel, rate_hz: float,
                  threshold_g: float) -> tuple[np.ndarray, Pipeline]:
-    pipe = Pipeline(PipelineConfig(rate_hz=rate_hz, threshold_g=threshold_g), model,
+    pipe = Pipeline(PipelineConfig.of(rate_hz=rate_hz, threshold_g=threshold_g), model,
                     Prior.default(model), raw.aux_names)
     step = 1000
     cal = np.concatenate([pipe.step(raw[i:i + step]).calibrated.a_g

@@ -13,7 +13,7 @@ Timed:
   replay      `recal replay` end to end of a 2 h 100 Hz simulation logged in messages of 100
               samples (bench/replay_throughput.py's recording): replay's own time (its --json
               "seconds") and the command's wall time (interpreter start and imports included)
-  windowing   `recal.core.windowing.window_means` over the 24 h 50 Hz recording (1000-sample
+  windowing   `recal.core.window_means` over the 24 h 50 Hz recording (1000-sample
               messages, as `recal simulate` logs them)
   hindsight   `recal hindsight` of that recording (wall time of the command)
   discover    `recal discover` of that recording (wall time of the command)
@@ -194,7 +194,7 @@ def child_core(a: dict[str, Any]) -> dict[str, Any]:
 
 
 def child_windowing(a: dict[str, Any]) -> dict[str, Any]:
-    from recal.core.windowing import window_means
+    from recal.core import window_means
     _, PipelineConfig, _, _ = _core_names()
     raw = _load(a["npz"])
     batches = [raw[i:i + 1000] for i in range(0, len(raw), 1000)]

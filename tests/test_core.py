@@ -196,7 +196,7 @@ def test_buffer_merges_a_still_run_into_slots_and_nothing_else():
     buf.add(np.zeros(3), np.zeros(1), 100, 100, 4.0, tilted, run=1)  # 2 deg away: new slot
     buf.add(np.zeros(3), np.zeros(1), 110, 100, 4.0, tilted, run=2)  # another run: new slot
     assert list(buf.windows().merged) == [1, 1]  # the cell's two newest slots
-    restored = WindowBuffer.from_state_dict(json.loads(json.dumps(buf.state_dict())))
+    restored = WindowBuffer.from_dict(json.loads(json.dumps(buf.to_dict())))
     restored.add(np.zeros(3), np.zeros(1), 120, 100, 4.0, tilted, run=2)
     assert list(restored.windows().merged) == [1, 2]  # the checkpoint resumes the merge
 
@@ -214,7 +214,7 @@ def test_buffer_arrays_read_between_merges_are_current_and_copies_stay_apart():
         mean = (v[:i + 1] * n[:i + 1, None]).sum(0) / n[:i + 1].sum()
         assert np.allclose(buf.v[slot], mean, rtol=0, atol=1e-9) and buf.k[slot] == i + 1
         assert buf.n[slot] == n[:i + 1].sum() and np.allclose(buf.windows().v[0], mean)
-        assert buf.state_dict()["k"][slot] == i + 1
+        assert buf.to_dict()["k"][slot] == i + 1
     snap = buf.copy()
     buf.add(np.array([0.0, 0.0, 900.0]), np.array([0.0]), 4000, 100, 4.0, up, run=7)
     assert snap.k[slot] == 3 and buf.k[slot] == 4  # the copy does not see later merges

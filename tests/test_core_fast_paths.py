@@ -9,7 +9,7 @@ import pytest
 from recal.core.candidates import proposals
 from recal.core.effects import Covariates, CrossAxis, Effect, Gain, Offset, Ratiometric
 from recal.core.model import SensorModel
-from recal.core.status import _chain_jacobian, correction_jacobian, predicted_sigma_mg
+from recal.core.sigma import _chain_jacobian, correction_jacobian, predicted_sigma_mg
 
 S0 = 1024.0
 CHANNELS = ("vdd", "temp", "vref")

@@ -1,6 +1,6 @@
 """A sensor without a prior turned through a few clean poses: the lab six-position stream (each
 pose held a few seconds, one after another) and data covering only five half-axes. The
-bootstrap (core/bootstrap.py, Pipeline._try_bootstrap) must calibrate from them to the noise
+bootstrap (core/bootstrap.py, pipeline_fit.try_bootstrap) must calibrate from them to the noise
 floor: six poses determine the diagonal model's six parameters exactly, five half-axes a sphere.
 """
 

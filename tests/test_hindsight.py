@@ -1,4 +1,4 @@
-"""Batch use of the core: a recording's windows as arrays (`core.windowing`), the calibration
+"""Batch use of the core: a recording's windows as arrays (`core.window_means`), the calibration
 with hindsight (`core.hindsight`), and the shortcuts they rely on (`SensorModel.affine`,
 `triaxial.per_axis`), against the live pipeline and the simulator's truth."""
 
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from recal.core import hindsight
+from recal.core.batch_windows import Windowing, window_means
 from recal.core.effects import Covariates, Gain, Nonlinearity, Offset, Ratiometric
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
@@ -17,7 +18,6 @@ from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.refit import fresh_windows
 from recal.core.triaxial import per_axis
-from recal.core.windowing import Windowing, window_means
 from recal.samples import RawBatch, batch_groups, rebatch
 from recal.sim.wearer import SensorSpec, WearerSpec, error_1s_mg, simulate
 
@@ -84,7 +84,7 @@ def test_windows_as_arrays_are_the_live_pipelines_bit_for_bit_in_any_batches() -
 
 def test_windows_of_readings_in_g_agree_with_the_live_pipelines_to_the_last_bit() -> None:
     """Readings that are not integers (a CSV in g): sums are no longer exact, so a window a
-    batch end cuts may differ in its last bit (module doc of core.windowing), never more; in
+    batch end cuts may differ in its last bit (module doc of core.window_means), never more; in
     one batch nothing is cut and the windows are the pipeline's bit for bit."""
     raw = _awkward_recording()
     raw = replace(raw, v=raw.v / 1000.3)

@@ -14,13 +14,13 @@ from bench_modules import load_bench
 from recal.commands.discover import format_table
 from recal.commands.hindsight import Corrected, fit_summary, summary_lines
 from recal.core import hindsight
+from recal.core.batch_windows import window_means
 from recal.core.discovery import DiscoveryConfig, discover
 from recal.core.discovery_data import data_from_windows, rate_and_scale
 from recal.core.effects import Covariates
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.residuals import misfit
 from recal.core.status import Status, predicted_sigma_mg
-from recal.core.windowing import window_means
 from recal.samples import rebatch
 from recal.sim.wearer import error_1s_mg
 

@@ -80,7 +80,7 @@ def test_one_sample_per_call_cuts_the_windows_of_large_batches(seed: int, n_aux:
     """A live sensor's one-sample batches (`windower._cut_one`, scalars) against batches of
     up to 3000 samples (arrays): the same events, the same windows and the same state.
     Integer readings (ADC counts), so that a window's sums do not depend on where batches
-    cut it (`core.windowing`)."""
+    cut it (`core.window_means`)."""
     t, v, aux, gate = _stream(seed, 12_000, n_aux)
     v, aux = np.round(v * 1024.0), np.round(aux * 100.0)
     rng = np.random.default_rng(seed + 10)

@@ -228,7 +228,7 @@ def rebatch(batches: Iterable[RawBatch], min_samples: int = REBATCH_SAMPLES
     Batch work in numpy costs per call as well as per sample, so fewer, larger batches cost
     less (docs/performance.md), with the same windows (their state carries across batches;
     bit for bit on integer readings such as ADC counts, else a window cut by a batch end may
-    differ in its last bit, `core.windowing`). `recal hindsight` and `recal discover` read
+    differ in its last bit, `core.window_means`). `recal hindsight` and `recal discover` read
     recordings this way.
     """
     for group in batch_groups(((b, None) for b in batches), min_samples):

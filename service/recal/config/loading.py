@@ -74,6 +74,7 @@ from recal.config.toml_values import (
 from recal.core.buffer import BufferConfig
 from recal.core.estimator import EstimatorConfig
 from recal.core.model import NAMED_MODELS
+from recal.core.pipeline_config import KEYS as PIPELINE_KEYS
 from recal.core.pipeline_config import PipelineConfig
 from recal.io.wire_formats import DEFAULT_FORMAT, WIRE_FORMATS
 
@@ -176,8 +177,7 @@ def _checkpoint(ctx: Place, d: Any) -> CheckpointConfig:
 
 
 _PIPELINE_OWN = ("model", "mode", "plot_hz", "estimator", "buffer")
-_PIPELINE_FIELDS = tuple(f.name for f in fields(PipelineConfig)
-                         if f.name not in ("rate_hz", "full_scale_g", "estimator", "buffer"))
+_PIPELINE_FIELDS = tuple(k for k in PIPELINE_KEYS if k not in ("rate_hz", "full_scale_g"))
 
 
 def _typed(ctx: Place, d: Mapping[str, Any], cls: type, names: Sequence[str]) -> dict[str, Any]:

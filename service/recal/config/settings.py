@@ -223,9 +223,9 @@ class PipelineSection:
                         ) -> PipelineConfig:
         """The core PipelineConfig for one sensor."""
         est = EstimatorConfig(**{"mode": self.mode, **self.estimator})
-        return PipelineConfig(**{**self.options, "rate_hz": float(rate_hz),
-                                 "full_scale_g": full_scale_g},
-                              estimator=est, buffer=BufferConfig(**self.buffer))
+        return PipelineConfig.of(**{**self.options, "rate_hz": float(rate_hz),
+                                    "full_scale_g": full_scale_g},
+                                 estimator=est, buffer=BufferConfig(**self.buffer))
 
     def plot_every(self, rate_hz: float) -> int:
         """Decimation factor that gives about ``plot_hz`` plot messages per second."""

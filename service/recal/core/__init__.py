@@ -6,21 +6,25 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 - `detector`: quasi-static detection, a band-passed norm against a threshold (Lötters eq. 1-2),
   and `channels`: which samples may enter a window (the model's channels finite);
 - `windower`: cuts the gated runs into windows, its state passed in and returned (the one
-  windower of the pipeline and of the batch `windowing`);
+  windower of the pipeline and of the batch `batch_windows`);
 - `buffer`: the bounded set of window means the estimator fits, spread over orientations;
 - `refit`: whether the new windows call for a re-fit (most repeat what the buffer says);
-- `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b);
+- `estimator`: the Bayesian re-fit of the parameters (Lötters 1998, eq. 11a/11b), its
+  records (prior, settings, estimate, report) in `estimate`;
 - `model`, `effects`: the sensor model as a chain of effects (offset, scale, cross-axis, ...;
   the registry `EFFECT_KINDS`, whose classes are public names here by their own),
   with `triaxial` for the per-axis arithmetic on (N, 3) readings;
-- `correction`, `status`: each sample corrected with the parameters in force when it arrived,
-  with its status and predicted error; the self-watch that doubts the estimate;
+- `correction`, `status`, `sigma`: each sample corrected with the parameters in force when it
+  arrived, with its status and predicted error; the self-watch that doubts the estimate;
 - `outputs`: what a step gives back (`StepOutput`), per batch also for joined batches;
-- `pipeline_config`: the settings of all of it.
+- `pipeline_config`: the settings of all of it;
+- the pipeline's parts: `pipeline_windows` (windows committed, re-fits due), `pipeline_watch`
+  (the self-watch at work), `pipeline_fit` (updates, bootstrap), `pipeline_state` (its
+  checkpoint, the snapshot a step rolls back to).
 
 Beside it:
 
-- `windowing`: a whole recording's window means at once, by the pipeline's windower;
+- `batch_windows`: a whole recording's window means at once, by the pipeline's windower;
 - `discovery` (with `candidates`, `discovery_data`, `model_fit`, `residuals`): which effects a
   recording needs, chosen by held-out error among the forms each registered effect proposes;
 - `hindsight`: one fit on a whole recording, every sample corrected with it;
@@ -41,6 +45,7 @@ from recal.core.effects import EFFECT_KINDS as _EFFECT_KINDS
 
 if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its module on use
     from recal.core.alignment import Alignment
+    from recal.core.batch_windows import Windowing, window_means
     from recal.core.buffer import BufferConfig, Coverage, WindowBuffer, Windows
     from recal.core.channels import missing_channels
     from recal.core.covariates import TIME, Covariates
@@ -65,7 +70,7 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
     )
     from recal.core.effects import *  # noqa: F403  (the effect classes, as below)
     from recal.core.effects import EFFECT_KINDS, Effect, make_effect
-    from recal.core.estimator import Estimate, EstimatorConfig, Prior, UpdateReport
+    from recal.core.estimate import Estimate, EstimatorConfig, Prior, UpdateReport
     from recal.core.hindsight import HindsightFit
     from recal.core.model import AffineCorrection, SensorModel
     from recal.core.outputs import StepOutput, UpdateEvent, WatchEvent
@@ -76,7 +81,6 @@ if TYPE_CHECKING:  # for type checkers and readers; at run time a name loads its
     from recal.core.status import Status
     from recal.core.timebase import TimebaseConfig, TimebaseState
     from recal.core.windower import WindowerState, WindowSums, cut
-    from recal.core.windowing import Windowing, window_means
 
 #: Each public name and the core module it lives in. Loaded on first use (PEP 562), so a
 #: command imports only the core modules it runs (replay needs neither discovery nor static).
@@ -94,13 +98,13 @@ _HOMES = {
     "DiscoveryResult": "discovery",
     "EFFECT_KINDS": "effects",
     "Effect": "effects",
-    "Estimate": "estimator",
-    "EstimatorConfig": "estimator",
+    "Estimate": "estimate",
+    "EstimatorConfig": "estimate",
     "HindsightFit": "hindsight",
     "Lifecycle": "pipeline",
     "Pipeline": "pipeline",
     "PipelineConfig": "pipeline_config",
-    "Prior": "estimator",
+    "Prior": "estimate",
     "SensorModel": "model",
     "StaticFit": "static",
     "Status": "status",
@@ -109,12 +113,12 @@ _HOMES = {
     "TimebaseConfig": "timebase",
     "TimebaseState": "timebase",
     "UpdateEvent": "outputs",
-    "UpdateReport": "estimator",
+    "UpdateReport": "estimate",
     "WatchEvent": "outputs",
     "WindowBuffer": "buffer",
     "WindowSums": "windower",
     "WindowerState": "windower",
-    "Windowing": "windowing",
+    "Windowing": "batch_windows",
     "Windows": "buffer",
     "cut": "windower",
     "data_from_batch": "discovery_data",
@@ -130,7 +134,7 @@ _HOMES = {
     "init_state": "detector",
     "make_effect": "effects",
     "missing_channels": "channels",
-    "window_means": "windowing",
+    "window_means": "batch_windows",
 }
 
 

@@ -245,7 +245,7 @@ def zero_and_scale(v: np.ndarray) -> tuple[np.ndarray, float]:
     sensor), unless a sphere through them (`locate`, orientations covered) shows those
     materially wrong (`off_by`: an analog part on an unsigned ADC), then its centre and
     radius. The batch tools' rule (discover, hindsight, static); the live pipeline's is the
-    same, applied as the windows come (`Pipeline._relocate`)."""
+    same, applied as the windows come (`pipeline_fit._relocate`)."""
     v = np.asarray(v, np.float64).reshape(-1, 3)
     s0 = float(np.median(np.linalg.norm(v, axis=1))) if len(v) else 1.0
     loc = locate(v) if len(v) else None

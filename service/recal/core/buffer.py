@@ -23,12 +23,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from recal.errors import ConfigError, InputError
 
-__all__ = ["BufferConfig", "Coverage", "WindowBuffer", "Windows", "cell_of"]
+__all__ = ["BufferConfig", "Coverage", "Window", "WindowBuffer", "Windows", "cell_of"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,29 @@ class BufferConfig:
     @property
     def cells(self) -> int:
         return 6 * self.grid * self.grid
+
+
+class Window(NamedTuple):
+    """One committed window's mean as it travels on its own (the windows since the last
+    update, the self-watch's recent ones, a refill): raw v (3,), aux (K,), mid time t_us,
+    sample count n, the mean per-axis variance of its raw samples var. `Windows` holds many
+    as arrays."""
+
+    v: np.ndarray | list[float]
+    aux: np.ndarray | list[float]
+    t_us: int
+    n: int
+    var: float
+
+    def to_list(self) -> list:
+        """JSON-able: [v, aux, t_us, n, var]."""
+        return [np.asarray(self.v).tolist(), np.asarray(self.aux).tolist(), int(self.t_us),
+                int(self.n), float(self.var)]
+
+    @classmethod
+    def from_list(cls, w: Sequence) -> Window:
+        return cls(np.asarray(w[0], float), np.asarray(w[1], float), int(w[2]), int(w[3]),
+                   float(w[4]))
 
 
 @dataclass(frozen=True, eq=False)
@@ -366,7 +390,7 @@ class WindowBuffer:
         new.last = self.last
         return new
 
-    def state_dict(self) -> dict:
+    def to_dict(self) -> dict:
         return {"grid": self.cfg.grid, "per_cell": self.cfg.per_cell,
                 "merge_max": self.cfg.merge_max, "merge_deg": self.cfg.merge_deg,
                 "added": self.added, "cells_opened": self.cells_opened,
@@ -375,7 +399,7 @@ class WindowBuffer:
                    ("v", "aux", "t_us", "n", "var", "dir", "filled", "k", "nmean", "nm2")}}
 
     @classmethod
-    def from_state_dict(cls, d: dict) -> WindowBuffer:
+    def from_dict(cls, d: dict) -> WindowBuffer:
         cfg = BufferConfig(int(d["grid"]), int(d["per_cell"]), int(d.get("merge_max", 1)),
                            float(d.get("merge_deg", 0.0)))
         aux = np.asarray(d["aux"], np.float64)

@@ -1,5 +1,5 @@
 """Which auxiliary channels a sensor model reads, and which samples may enter a window: one rule
-for the pipeline, the batch windowing, the node's start and the gateway's start check.
+for the pipeline, the batch window means, the node's start and the gateway's start check.
 """
 
 from __future__ import annotations

@@ -12,7 +12,8 @@ import numpy as np
 
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
-from recal.core.status import Status, predicted_sigma_mg, sigma_one_mg
+from recal.core.sigma import predicted_sigma_mg, sigma_one_mg
+from recal.core.status import Status
 from recal.samples import RawBatch
 
 __all__ = ["Segment", "calibrate"]
@@ -21,7 +22,7 @@ __all__ = ["Segment", "calibrate"]
 @dataclass(frozen=True, eq=False)
 class Segment:
     """From sample `index` of the batch on: the model and parameters in force, the status and
-    how to predict each sample's error (`core.status.sigma_form`, or None: the covariance
+    how to predict each sample's error (`core.sigma.sigma_form`, or None: the covariance
     sample by sample)."""
 
     index: int

@@ -24,7 +24,7 @@ import numpy as np
 from recal.core.sos_filter import butter_sos, sos_rows, sos_zi, sosfilt, sosfilt_one
 from recal.core.triaxial import all3, any3, norm3
 
-__all__ = ["DetectorConfig", "DetectorOutput", "DetectorState", "detect", "init_state"]
+__all__ = ["Detector", "DetectorConfig", "DetectorOutput", "DetectorState", "detect", "init_state"]
 
 #: Default threshold on the detector output, in g: the middle of the range that works on both
 #: simulated wearers and the Xsens multi-position recording (lower, still postures' own noise
@@ -87,6 +87,35 @@ class DetectorState:
     last_v: np.ndarray
     same_run: int
     started: bool
+
+
+    def to_dict(self) -> dict:
+        """JSON-able (NaN in last_v, before a first sample, as None)."""
+        return {"zi_hp": self.zi_hp.tolist(), "zi_lp": self.zi_lp.tolist(),
+                "last_v": [None if np.isnan(x) else float(x) for x in self.last_v],
+                "same_run": self.same_run, "started": self.started}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DetectorState:
+        return cls(np.asarray(d["zi_hp"], float), np.asarray(d["zi_lp"], float),
+                   np.array([np.nan if x is None else x for x in d["last_v"]], float),
+                   int(d["same_run"]), bool(d["started"]))
+
+
+class Detector:
+    """A detector at work on one sensor: its settings (`cfg`, for the sensor's scale and zero-g)
+    and its filter state (`state`, replaced at every batch: `detect`)."""
+
+    __slots__ = ("cfg", "state")
+
+    def __init__(self, cfg: DetectorConfig, state: DetectorState | None = None) -> None:
+        self.cfg = cfg
+        self.state = init_state(cfg) if state is None else state
+
+    def to_dict(self) -> dict:
+        """The scale and zero-g it runs at (the other settings are the pipeline's) and the
+        state (`DetectorState.to_dict`)."""
+        return {"s0": self.cfg.s0, "zero_raw": list(self.cfg.zero_raw), **self.state.to_dict()}
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,7 +1,7 @@
 """Effect discovery: fit, look at what is left, find the effect the model lacks, add it.
 
 A still sensor reads 1 g (Lötters 1998, eq. 8 and 14: xi = 1 g - |a|). On the quasi-static
-window means of a recording (the live detector and windowing, `windowing.window_means`) or on
+window means of a recording (the live detector and windowing, `window_means.window_means`) or on
 the rows of a static table, `discover`:
 
 1. fits the current model by the batch form of Lötters eq. 11a (`model_fit.fit_model`,

@@ -1,6 +1,6 @@
 """What discovery fits: a recording's quasi-static window means, or a static table's rows.
 
-The windows come from the live detector and windowing (`windowing.window_means`), scaled by
+The windows come from the live detector and windowing (`window_means.window_means`), scaled by
 the recording's median sample norm measured from counts in one pass (`rate_and_scale`), and are
 cut into contiguous time blocks for held-out scoring (`time_blocks`, `scorable`). See
 docs/design.md (effect discovery).
@@ -15,11 +15,11 @@ from itertools import pairwise
 
 import numpy as np
 
+from recal.core.batch_windows import window_means
 from recal.core.bootstrap import off_by, zero_and_scale
 from recal.core.buffer import Windows
 from recal.core.effects import Covariates
 from recal.core.pipeline_config import PipelineConfig
-from recal.core.windowing import window_means
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 

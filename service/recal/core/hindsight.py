@@ -7,7 +7,7 @@ temperature channel, ...), and the parameters the poses cannot determine held at
 and reported. The live service streams instead (`pipeline`: each sample corrected with what
 was known when it arrived); this module is for a recording already on disk.
 
-1. windows: `windowing.Windowing`, the live detector (Lötters eq. 1-2) and windowing;
+1. windows: `window_means.Windowing`, the live detector (Lötters eq. 1-2) and windowing;
 2. the fit (`fit`): from an ellipsoid or sphere fit of the window means (`model_fit.start_params`),
    Lötters eq. 11a iterated to convergence (`estimator.solve`, the prior rows at the start
    values with the model's default spreads), over the parameters the poses determine (the
@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recal.core.batch_windows import Windowing
 from recal.core.bootstrap import off_by
 from recal.core.buffer import Windows
 from recal.core.discovery_data import data_from_windows
@@ -44,7 +45,6 @@ from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.residuals import MisfitProfile, misfit
-from recal.core.windowing import Windowing
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 

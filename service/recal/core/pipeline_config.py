@@ -1,12 +1,15 @@
 """The settings of the whole in-use calibration (`PipelineConfig`): detector, windows, buffer,
-estimator and re-fit rules in one frozen record, as a config file's [pipeline] table gives them.
+estimator and re-fit rules in one frozen record. A config file's [pipeline] table and a
+checkpoint's "config" give them as flat keys (`PipelineConfig.of`, `to_dict`, `KEYS`): the
+detector's (`DETECTOR_KEYS`) are its nested `DetectorConfig`'s.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields, replace
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -16,7 +19,11 @@ from recal.core.estimator import EstimatorConfig
 from recal.core.windower import WindowConfig
 from recal.errors import ConfigError
 
-__all__ = ["PipelineConfig"]
+__all__ = ["DETECTOR_KEYS", "KEYS", "PipelineConfig"]
+
+#: The flat keys (a config file's, a checkpoint's) that are the detector's settings, fields of
+#: `DetectorConfig` of the same names, in the order a checkpoint writes them.
+DETECTOR_KEYS = ("threshold_g", "flat_s", "hp_hz", "lp_hz")
 
 
 @dataclass(frozen=True)
@@ -25,7 +32,9 @@ class PipelineConfig:
 
     Attributes:
         rate_hz: nominal sample rate (filters, gap detection).
-        threshold_g, flat_s, hp_hz, lp_hz: detector settings (see `detector.DetectorConfig`).
+        detection: the detector's settings (`detector.DetectorConfig`: threshold_g, flat_s,
+            hp_hz, lp_hz, the filters' order); its rate is rate_hz, and the sensor's scale,
+            zero-g and clip level are the sensor's (`detector`).
         full_scale_g: the sensor's range; samples at 98 % of it count as clipped. None = off.
         window_s: length of a window mean. guard_s: how long a run must go on past a window.
         min_fill: fraction of a window's nominal samples it must hold.
@@ -41,10 +50,7 @@ class PipelineConfig:
     """
 
     rate_hz: float = 50.0
-    threshold_g: float = det.DEFAULT_THRESHOLD_G
-    flat_s: float = 1.0
-    hp_hz: float = 0.5
-    lp_hz: float = 0.5
+    detection: det.DetectorConfig = field(default_factory=lambda: det.DetectorConfig(50.0))
     full_scale_g: float | None = None
     window_s: float = 2.0
     guard_s: float = 1.0
@@ -57,17 +63,20 @@ class PipelineConfig:
     buffer: BufferConfig = field(default_factory=BufferConfig)
 
     def __post_init__(self) -> None:
+        if self.detection.rate_hz is not self.rate_hz:  # the detector runs at the pipeline's rate
+            object.__setattr__(self, "detection", replace(self.detection, rate_hz=self.rate_hz))
         if not 0 < self.guard_s < self.window_s:
             raise ConfigError("guard_s must be positive and shorter than window_s")
         if self.rate_hz <= 0:
             raise ConfigError("rate_hz must be positive")
-        positive = {"threshold_g": self.threshold_g, "flat_s": self.flat_s,
+        d = self.detection
+        positive = {"threshold_g": d.threshold_g, "flat_s": d.flat_s,
                     "norm_tol_g": self.norm_tol_g, "full_scale_g": self.full_scale_g or 1.0}
         bad = [k for k, v in positive.items() if not v > 0]  # inf: no limit (window_means)
         if bad:
             raise ConfigError(f"{', '.join(bad)} must be positive")
         nyquist = self.rate_hz / 2
-        if not (0 < self.hp_hz < nyquist and 0 < self.lp_hz < nyquist):
+        if not (0 < d.hp_hz < nyquist and 0 < d.lp_hz < nyquist):
             raise ConfigError(f"hp_hz and lp_hz must lie between 0 and half the sample rate "
                              f"({nyquist:g} Hz)")
         if not 0 < self.min_fill <= 1:
@@ -88,16 +97,33 @@ class PipelineConfig:
         0 g (None: zero)."""
         clip = None if self.full_scale_g is None else 0.98 * self.full_scale_g * s0
         zero = (0.0, 0.0, 0.0) if zero_raw is None else tuple(float(x) for x in zero_raw)
-        return det.DetectorConfig(rate_hz=self.rate_hz, threshold_g=self.threshold_g,
-                                  hp_hz=self.hp_hz, lp_hz=self.lp_hz, s0=s0, clip_raw=clip,
-                                  flat_s=self.flat_s, zero_raw=zero)  # type: ignore[arg-type]
+        return replace(self.detection, s0=s0, clip_raw=clip, zero_raw=zero)
+
+    @classmethod
+    def of(cls, **keys: Any) -> PipelineConfig:
+        """From flat keys (`KEYS`: a config file's [pipeline] table with the sensor's rate_hz
+        and full_scale_g), the estimator's and buffer's settings as their records."""
+        detection = {k: keys.pop(k) for k in DETECTOR_KEYS if k in keys}
+        rate_hz = keys.get("rate_hz", 50.0)
+        return cls(**keys, detection=det.DetectorConfig(rate_hz, **detection))
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """Flat keys (`KEYS`, in that order), the estimator's and buffer's as tables: what a
+        checkpoint has always held."""
+        d = asdict(self)
+        detection = d.pop("detection")
+        return {"rate_hz": d.pop("rate_hz"), **{k: detection[k] for k in DETECTOR_KEYS}, **d}
 
     @classmethod
     def from_dict(cls, d: dict) -> PipelineConfig:
         d = dict(d)
         est = EstimatorConfig(**d.pop("estimator", {}))
         buf = BufferConfig(**d.pop("buffer", {}))
-        return cls(**d, estimator=est, buffer=buf)
+        return cls.of(**d, estimator=est, buffer=buf)
+
+
+#: The flat keys of `PipelineConfig.of` and `to_dict` besides the estimator's and the buffer's
+#: tables, in a checkpoint's order.
+KEYS = ("rate_hz", *DETECTOR_KEYS, *(f.name for f in fields(PipelineConfig)
+                                     if f.name not in ("rate_hz", "detection", "estimator",
+                                                       "buffer")))

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from recal.core.buffer import Windows, cell_of
+from recal.core.buffer import Window, Windows, cell_of
 from recal.core.effects import Covariates
 from recal.core.estimator import Estimate, EstimatorConfig, consistent_many, innovations
 from recal.core.model import SensorModel
@@ -80,15 +80,15 @@ def after_update(before: Estimate, after: Estimate, accepted: bool,
     return RefitState(accepted and settled(before, after), cells_opened)
 
 
-def fresh_windows(rows: list[tuple], n_aux: int) -> Windows:
-    """Committed windows kept as (v, aux, t_us, n, var) rows (the pipeline's since the last
-    update, which the consistency tests read), as arrays."""
+def fresh_windows(rows: list[Window], n_aux: int) -> Windows:
+    """Committed windows kept one by one (the pipeline's since the last update, which the
+    consistency tests read), as arrays."""
     m = len(rows)
-    return Windows(np.array([f[0] for f in rows]).reshape(m, 3),
-                   np.array([f[1] for f in rows]).reshape(m, n_aux),
-                   np.array([f[2] for f in rows], np.int64),
-                   np.array([f[3] for f in rows], np.int64),
-                   np.array([f[4] for f in rows], float))
+    return Windows(np.array([f.v for f in rows]).reshape(m, 3),
+                   np.array([f.aux for f in rows]).reshape(m, n_aux),
+                   np.array([f.t_us for f in rows], np.int64),
+                   np.array([f.n for f in rows], np.int64),
+                   np.array([f.var for f in rows], float))
 
 
 def must_update(state: RefitState, estimate: Estimate | None,

@@ -45,7 +45,7 @@ A calibration whose offsets or scales the data never observed (a wearer who neve
 the scale along the never-vertical axis) is ``held``, not calibrated, however long it runs;
 the calibration state names the unobserved parameters (``unobserved``).
 
-The predicted error (`predicted_sigma_mg`) is the 1-sigma length of the error of the
+The predicted error (`predicted_sigma_mg`, `core.sigma`) is the 1-sigma length of the error of the
 calibrated vector that the parameters' uncertainty causes: the estimate's covariance C_e
 (Lötters eq. 11b) through the correction's Jacobian J = da/dp at each sample,
 sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`RunningMisfit`: the still
@@ -61,14 +61,19 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any
 
 import numpy as np
 
-from recal.core.buffer import WindowBuffer, Windows, cell_of
+from recal.core.buffer import Window, WindowBuffer, Windows, cell_of
 from recal.core.effects import Covariates
 from recal.core.misfit import ACROSS_SPHERE, CHANCE_SDS, excess_g2
 from recal.core.model import SensorModel
+from recal.core.sigma import (  # the predicted error, importable from here too
+    correction_jacobian,
+    predicted_sigma_mg,
+    sigma_form,
+    sigma_one_mg,
+)
 from recal.core.triaxial import norm3
 
 __all__ = ["CLEAR_AFTER_S", "CLEAR_GOOD_WINDOWS", "GAP_S", "GROSS_MIN_MG", "GROSS_SIGMAS",
@@ -361,125 +366,6 @@ def gross(r_g: float, sigma2_mg2: float) -> bool:
     return r_mg > GROSS_MIN_MG and r_mg > GROSS_SIGMAS * math.sqrt(max(sigma2_mg2, 0.0))
 
 
-def correction_jacobian(model: SensorModel, p: np.ndarray, v: np.ndarray,
-                        cov: Covariates) -> np.ndarray:
-    """J = da/dp (N, 3, P) of the corrected readings a = f(v; p), by the chain rule through
-    the model's stages (each stage's vector-Jacobian product with the unit rows of da/da)."""
-    stages = [(e, model.slice(e)) for e in model.effects]
-    xs = [np.asarray(v, np.float64)]
-    for e, sl in stages:
-        xs.append(e.apply(xs[-1], cov, p[sl]))
-    n = len(xs[0])
-    if model.axes_apart:
-        return _unit_jacobian(stages, xs, cov, p, n, model.size)
-    return _chain_jacobian(stages, xs, cov, p, n, model.size)
-
-
-def _chain_jacobian(stages: list, xs: list[np.ndarray], cov: Covariates, p: np.ndarray,
-                    n: int, size: int) -> np.ndarray:
-    """`correction_jacobian` by every stage's full `vjp`, each unit row of da/da in turn
-    (the general chain rule; `_unit_jacobian` is its short form for stages that keep the axes
-    apart)."""
-    J = np.empty((n, 3, size))
-    for j in range(3):
-        g = np.zeros((n, 3))
-        g[:, j] = 1.0
-        for k in range(len(stages) - 1, -1, -1):
-            e, sl = stages[k]
-            J[:, j, sl], g_in = e.vjp(g, xs[k], cov, p[sl], k > 0)
-            g = g_in if k else g
-    return J
-
-
-def _unit_jacobian(stages: list, xs: list[np.ndarray], cov: Covariates, p: np.ndarray, n: int,
-                   size: int) -> np.ndarray:
-    """`correction_jacobian` for stages that keep the axes apart (`Effect.unit_vjp`): row j of
-    J seeded with the unit vector e_j stays one column wide through every stage, so each stage
-    gives its nonzero part alone. The same products as the full chain rule, to the bit (that
-    adds only zeros to them; a non-finite reading's row has zeros where it had 0 x inf, and
-    its sigma is NaN all the same), at a third of the work, without (N, 3, 3) arrays."""
-    J = np.zeros((n, 3, size))
-    for j in range(3):
-        s: float | np.ndarray = 1.0
-        for k in range(len(stages) - 1, -1, -1):
-            e, sl = stages[k]
-            b, s_in = e.unit_vjp(j, s, xs[k], cov, p[sl], k > 0)
-            if e.per_axis_params:
-                J[:, j, sl.start + j] = b
-            else:
-                J[:, j, sl] = b
-            s = s_in if k else s
-    return J
-
-
-_BASIS = np.vstack([np.zeros(3), np.eye(3)])  # v = 0, then each axis
-_NO_COVARIATES = Covariates(np.zeros(4), np.zeros((4, 0)))
-
-
-def _quadratic_form(model: SensorModel, p: np.ndarray, cov_p: np.ndarray) -> np.ndarray:
-    """Q (4, 4) with sigma^2(v) = [1, v] Q [1, v]^T, for a model whose correction is affine in
-    v and reads no covariate: J(v) = G_0 + sum_k v_k G_k then, exactly."""
-    J = correction_jacobian(model, p, _BASIS, _NO_COVARIATES)
-    G = np.concatenate([J[:1], J[1:] - J[:1]]).reshape(4, -1)  # G_0, G_1..G_3, flattened
-    # Q_mn = trace(G_m C G_n^T): the (3, P) blocks' rows against C
-    C = np.kron(np.eye(3), cov_p)
-    return G @ C @ G.T
-
-
-def predicted_sigma_mg(model: SensorModel, p: np.ndarray, cov_p: np.ndarray, v: np.ndarray,
-                       cov: Covariates, form: np.ndarray | None = None) -> np.ndarray:
-    """The predicted 1-sigma error (mg) of each corrected reading: sqrt(trace(J C_e J^T)),
-    J = da/dp at the sample, C_e the parameters' covariance (Lötters eq. 11b).
-
-    ``form``: `sigma_form(model, p, cov_p)` when the caller has it (it depends only on the
-    estimate); None computes it, or, for a model that reads covariates, uses the full
-    per-sample Jacobian."""
-    v = np.asarray(v, np.float64)
-    if form is None:
-        form = sigma_form(model, p, cov_p)
-    with np.errstate(invalid="ignore", over="ignore"):  # a NaN reading: NaN (the shell's)
-        if form is not None:
-            # element by element, in a fixed order: each sample's sigma is the same bits
-            # whatever batch it came in (a matrix product's rounding depends on its size);
-            # a few samples (a live sensor's) as Python floats, the same operations
-            q = form.tolist()
-            if len(v) <= SMALL_BATCH:
-                return np.array([sigma_one_mg(q, x, y, z) for x, y, z in v.tolist()],
-                                np.float64).reshape(-1)
-            s2 = _s2(q, v[:, 0], v[:, 1], v[:, 2])
-        else:
-            J = correction_jacobian(model, p, v, cov)
-            s2 = np.einsum("nip,nip->n", np.matmul(J, cov_p), J)
-        return 1e3 * np.sqrt(np.maximum(s2, 0.0))
-
-
-#: Up to this many samples `predicted_sigma_mg` works in Python floats (fewer calls).
-SMALL_BATCH = 32
-
-
-def sigma_one_mg(q: list[list[float]], x: float, y: float, z: float) -> float:
-    """`predicted_sigma_mg` of one reading (x, y, z) as a Python float, from its form as
-    nested lists (``sigma_form(...).tolist()``)."""
-    return 1e3 * math.sqrt(max(_s2(q, x, y, z), 0.0))
-
-
-def _s2(q: list[list[float]], x: Any, y: Any, z: Any) -> Any:
-    """[1, v] Q [1, v]^T for floats or arrays alike (the same operations in the same order)."""
-    return (q[0][0] + 2.0 * (x * q[0][1] + y * q[0][2] + z * q[0][3])
-            + x * x * q[1][1] + y * y * q[2][2] + z * z * q[3][3]
-            + 2.0 * (x * y * q[1][2] + x * z * q[1][3] + y * z * q[2][3]))
-
-
-def sigma_form(model: SensorModel, p: np.ndarray, cov_p: np.ndarray) -> np.ndarray | None:
-    """`_quadratic_form` when the model's correction is affine in v without covariates
-    (offsets, scales, cross-axis terms), else None (`predicted_sigma_mg` then goes sample by
-    sample)."""
-    # what `SensorModel.affine` accepts without divisors, asked of the stages (cheaper)
-    if model.covariates or not all(e.affine and not e.divides_rows for e in model.effects):
-        return None
-    return _quadratic_form(model, p, cov_p)
-
-
 @dataclass
 class Watch:
     """The self-watch's state: is the current contradiction (if any) sustained?
@@ -493,7 +379,7 @@ class Watch:
         triggers: how many times the watch fired (each fires a reset).
         jump_us: when the estimator last fitted a new offset jump (None: none since a reset).
         alarm_us: device time until which an alarm holds the suspect status at least.
-        recent: the windows since the onset (v, aux, t_us, n, var), at most RECENT_MAX,
+        recent: the windows since the onset (`buffer.Window`), at most RECENT_MAX,
             whatever the norm gate said of them: a reset re-fits them.
         probation: orientation cells whose still windows must still agree before output is
             calibrated (after a moment of doubt, `doubt`); agreed: the cells that did.
@@ -508,7 +394,7 @@ class Watch:
     good_run: int = 0
     suspect: bool = False
     triggers: int = 0
-    recent: list[tuple] | None = None
+    recent: list[Window] | None = None
     jump_us: int | None = None
     alarm_us: int | None = None
     probation: int = 0
@@ -522,13 +408,13 @@ class Watch:
         if cells > self.probation:
             self.probation, self.agreed = cells, []
 
-    def see(self, bad: bool, window: tuple, grossly: bool = False,
+    def see(self, bad: bool, window: Window, grossly: bool = False,
             cell: int = -1) -> str | None:
         """One window in order (grossly: it contradicts grossly, `gross`); returns "trigger"
         when the contradiction became sustained, "clear" when a suspect status ends, "gross"
         when a gross contradiction made the status suspect now, "trusted" when a probation
         ended, else None."""
-        t_us = int(window[2])
+        t_us = int(window.t_us)
         said = None
         # a gross contradiction that passes the norm gate counts as agreeing for the
         # sustained test (which resets the estimate: the norm gate's alone), not for clearing
@@ -570,7 +456,7 @@ class Watch:
         self.alarm_us = max(self.alarm_us or 0, int(t_us + hold_s * 1e6))
         return not was
 
-    def fired(self, t_us: int) -> list[tuple]:
+    def fired(self, t_us: int) -> list[Window]:
         """A reset at t_us: suspect from now, a new stretch; the windows to re-fit."""
         recent = self.recent or []
         self.suspect, self.alarm_us = True, int(t_us + CLEAR_AFTER_S * 1e6)  # a fresh start
@@ -592,17 +478,17 @@ class Watch:
         self.jump_us = step_us
         return "suspect" if self.alarm(now_us, JUMP_REPEAT_S) else None
 
-    def to_refit(self, buffered: Windows, now_us: int) -> list[tuple]:
+    def to_refit(self, buffered: Windows, now_us: int) -> list[Window]:
         """A reset at now_us (`fired`): the windows to re-fit, each once: the contradiction's,
         and after a jump the buffer's (``buffered``) since the first jump."""
         since = self.jump_us
         recent = self.fired(now_us)
         if since is not None:
             keep = buffered.t_us >= since
-            recent = [(buffered.v[i], buffered.aux[i], int(buffered.t_us[i]),
-                       int(buffered.n[i]), float(buffered.var[i]))
+            recent = [Window(buffered.v[i], buffered.aux[i], int(buffered.t_us[i]),
+                             int(buffered.n[i]), float(buffered.var[i]))
                       for i in np.flatnonzero(keep).tolist()] + recent
-            recent = list({int(r[2]): r for r in recent}.values())  # each window once
+            recent = list({int(r.t_us): r for r in recent}.values())  # each window once
         return recent
 
     def to_dict(self) -> dict:
@@ -613,8 +499,8 @@ class Watch:
                 "calm_run": self.calm_run,
                 "misfit": self.misfit.to_dict(),
                 "recent": None if self.recent is None else [
-                    [list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]),
-                     float(w[4])] for w in self.recent]}
+                    [list(map(float, w.v)), list(map(float, w.aux)), int(w.t_us), int(w.n),
+                     float(w.var)] for w in self.recent]}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> Watch:
@@ -631,25 +517,27 @@ class Watch:
                    int(d.get("calm_run", d.get("good_run", 0))))
 
 
-def _window(w: Sequence) -> tuple:
-    return (list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]), float(w[4]))
+def _window(w: Sequence) -> Window:
+    """A recent window as a checkpoint holds it (its raw values as Python floats)."""
+    return Window(list(map(float, w[0])), list(map(float, w[1])), int(w[2]), int(w[3]),
+                  float(w[4]))
 
 
 def refill(buffer: WindowBuffer, n_aux: int, model: SensorModel, p: np.ndarray,
-           covariates: Callable[[np.ndarray, np.ndarray], Covariates], recent: list[tuple],
+           covariates: Callable[[np.ndarray, np.ndarray], Covariates], recent: list[Window],
            norm_tol_g: float | None, grid: int) -> int:
     """After a reset: the recent windows whose calibrated norm (parameters p) is within
     norm_tol_g of 1 g (None: all finite ones) into the buffer, each a slot of its own, oldest
     first; returns how many."""
     if not recent:
         return 0
-    recent = sorted(recent, key=lambda r: r[2])
+    recent = sorted(recent, key=lambda r: r.t_us)
     m, k = len(recent), n_aux
-    w = Windows(np.array([r[0] for r in recent], float).reshape(m, 3),
-                np.array([r[1] for r in recent], float).reshape(m, k),
-                np.array([r[2] for r in recent], np.int64),
-                np.array([r[3] for r in recent], np.int64),
-                np.array([r[4] for r in recent], float))
+    w = Windows(np.array([r.v for r in recent], float).reshape(m, 3),
+                np.array([r.aux for r in recent], float).reshape(m, k),
+                np.array([r.t_us for r in recent], np.int64),
+                np.array([r.n for r in recent], np.int64),
+                np.array([r.var for r in recent], float))
     a = model.correct(p, w.v, covariates(w.t_us, w.aux))
     norm = norm3(a)
     ok = np.abs(norm - 1.0) <= norm_tol_g if norm_tol_g is not None else np.isfinite(norm)

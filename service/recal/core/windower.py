@@ -1,5 +1,5 @@
 """Cutting gated samples into windows: the one windower of the streaming pipeline and the batch
-windowing (`core.windowing`), so both see the same windows bit for bit for the same batches.
+windowing (`core.window_means`), so both see the same windows bit for bit for the same batches.
 
 Runs of gated samples without time gaps are cut into windows of window_s from each run's start;
 a window is committed only once its run has gone on guard_s past its end (the detector's
