@@ -31,15 +31,15 @@ CUTS = (1234, 40_000, 120_000)
 
 
 def _cases() -> Iterator[tuple[str, Any, Callable[[], Any]]]:
+    from layout import module
     from recal.core.estimator import Prior
     from recal.core.model import SensorModel
     from recal.core.pipeline import Pipeline
     from recal.core.pipeline_config import PipelineConfig
-    from recal.sim.wearer import SensorSpec, simulate
-    try:
-        from recal.sim.sensor import sensor_type
-    except ImportError:  # the package layout
-        from recal.sim.sensor import sensor_type  # type: ignore[no-redef]
+
+    wearer = module("recal.sim.wearer", "recal.sim")
+    SensorSpec, simulate = wearer.SensorSpec, wearer.simulate
+    sensor_type = module("recal.sim.sensor", "recal.simulated_sensor").sensor_type
 
     raw = simulate(1.0, 50, 11, SensorSpec.random(np.random.default_rng(11), offset_mg=50,
                                                   gain_pct=3)).raw
