@@ -76,8 +76,11 @@ log = logging.getLogger(__name__)
 
 # What a node emits through its sink, by payload, checked against the topic registry when this
 # module loads: a name the registry lacks stops the process at start, not at the first message.
-EMITS = {"calibrated": ("calibrated", "body"), "json": ("events", "setup", "calibration"),
-         "plot": ("plot",)}
+EMITS = {
+    "calibrated": ("calibrated", "body"),
+    "json": ("events", "setup", "calibration"),
+    "plot": ("plot",),
+}
 for _payload, _names in EMITS.items():
     topics.require(_names, _payload)  # type: ignore[arg-type]
 
