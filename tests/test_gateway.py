@@ -278,8 +278,12 @@ def test_kill9_repair_then_restart_resumes_from_checkpoint(tmp_path: Path,
                 return bool(doc) and doc["pipeline"]["counts"]["updates"] >= 1
             assert wait_for(updated_checkpoint, 10)
             more, _ = stream(dev, raw[first:24000], 2000.0, stop_after_s=2.0)
-            os.kill(gp.proc.pid, signal.SIGKILL)  # right after the last write: it is mid-run
             sent = first + more
+            # the daemon has read what was written (on a loaded machine it may lag behind the
+            # writer, and what it has not read would be the restart's, not the repair's)
+            assert wait_for(lambda: get_json(bus, key(SID, "status"))["node"]["samples"]
+                            >= sent, 30)
+            os.kill(gp.proc.pid, signal.SIGKILL)  # no clean close: the file is cut mid-run
             gp.kill()
         finally:
             bus.close()
