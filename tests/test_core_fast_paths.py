@@ -38,22 +38,33 @@ MODELS = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(MODELS))
-def test_per_axis_jacobian_is_the_chain_rule_to_the_bit(name: str) -> None:
-    model = MODELS[name]()
-    assert model.axes_apart  # the fast path
-    rng = np.random.default_rng(3)
-    n = 2000
+def _inputs(model: SensorModel, rng: np.random.Generator, n: int
+            ) -> tuple[np.ndarray, Covariates, np.ndarray]:
+    """n random readings, the three channels around their references, parameters near
+    nominal (drawn from ``rng`` in that order)."""
     v = rng.normal(0, S0, (n, 3))
     aux = np.column_stack([3.3 + rng.normal(0, 0.3, n), 20 + rng.normal(0, 5, n),
                            1.2 + rng.normal(0, 0.01, n)])
     cov = Covariates.from_samples(np.arange(n) * 20_000, aux, CHANNELS, 0)
     p = model.nominal() + rng.normal(size=model.size) * model.prior_sd() * 0.3
-    J = correction_jacobian(model, p, v, cov)
-    ref = _chain_rule(model, p, v, cov)
-    assert np.array_equal(J, ref)  # -0.0 == 0.0: the full rule's zero columns may be -0.0
+    return v, cov, p
+
+
+def _assert_same_bits(J: np.ndarray, ref: np.ndarray) -> None:
+    """Equal to the bit, where -0.0 == 0.0 (the full rule's zero columns may be -0.0)."""
+    assert np.array_equal(J, ref)
     nonzero = J != 0
     assert np.array_equal(J[nonzero].view(np.uint64), ref[nonzero].view(np.uint64))
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_per_axis_jacobian_is_the_chain_rule_to_the_bit(name: str) -> None:
+    model = MODELS[name]()
+    assert model.axes_apart  # the fast path
+    rng = np.random.default_rng(3)
+    v, cov, p = _inputs(model, rng, 2000)
+    ref = _chain_rule(model, p, v, cov)
+    _assert_same_bits(correction_jacobian(model, p, v, cov), ref)
     if not model.covariates:
         return  # its sigma is a quadratic form (`status.sigma_form`), not J sample by sample
     a = rng.normal(size=(model.size, model.size)) * model.prior_sd()
@@ -72,18 +83,8 @@ REGISTERED = {e.label: (e, sp) for e, sp in proposals(
 def test_every_registered_effect_gives_the_chain_rule_to_the_bit(label: str) -> None:
     """Whichever path `correction_jacobian` takes for it (axis by axis or the full rule)."""
     model = SensorModel.diagonal(S0).with_effect(*REGISTERED[label])
-    rng = np.random.default_rng(6)
-    n = 500
-    v = rng.normal(0, S0, (n, 3))
-    aux = np.column_stack([3.3 + rng.normal(0, 0.3, n), 20 + rng.normal(0, 5, n),
-                           1.2 + rng.normal(0, 0.01, n)])
-    cov = Covariates.from_samples(np.arange(n) * 20_000, aux, CHANNELS, 0)
-    p = model.nominal() + rng.normal(size=model.size) * model.prior_sd() * 0.3
-    J = correction_jacobian(model, p, v, cov)
-    ref = _chain_rule(model, p, v, cov)
-    assert np.array_equal(J, ref)
-    nonzero = J != 0
-    assert np.array_equal(J[nonzero].view(np.uint64), ref[nonzero].view(np.uint64))
+    v, cov, p = _inputs(model, np.random.default_rng(6), 500)
+    _assert_same_bits(correction_jacobian(model, p, v, cov), _chain_rule(model, p, v, cov))
 
 
 def test_a_stage_that_mixes_axes_takes_the_chain_rule() -> None:
