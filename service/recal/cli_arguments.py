@@ -146,12 +146,14 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                ("recal static ../shared/data/static_positions/phone1.csv --fit-rows 1-20",)),
     "hindsight": ("Calibrates a recording already on disk as the batch tools do (one fit on "
                   "the whole recording, every sample corrected with it), with the live "
-                  "detector and windows and any model (--model from recal discover: "
-                  "cross-axis terms, a supply or temperature channel...). Parameters the "
-                  "recording's poses cannot determine are held at nominal and named. Writes "
-                  "raw, calibrated and the fit (MCAP) or t_us,x_g,y_g,z_g,status,sigma_mg "
-                  "(CSV: the status of each sample, calibrated or held, and its predicted "
-                  "error in mg).",
+                  "detector and windows. Without --model it first selects the effects the "
+                  "recording shows as recal discover does (same windows, same held-out rule: "
+                  "cross-axis terms, a supply or temperature channel, drift...) and reports "
+                  "them with the held-out error before -> after; --model fixes the model. "
+                  "Parameters the recording's poses cannot determine are held at nominal and "
+                  "named. Writes raw, calibrated and the fit (MCAP) or "
+                  "t_us,x_g,y_g,z_g,status,sigma_mg (CSV: the status of each sample, "
+                  "calibrated or held, and its predicted error in mg).",
                   ("recal hindsight recordings/wearer-10min.mcap --out calibrated.mcap",
                    "recal hindsight in.mcap --out out.csv --model model.json --json fit.json")),
     "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
@@ -303,10 +305,10 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
     s.add_argument("input", help="recording (.mcap) or CSV time series (t_us/t_ms/t_s, x, y, z, "
                    "channels)")
     s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or FILE.csv")
-    s.add_argument("--model", help="model file (recal discover --write-model); default offsets "
-                   "and gains")
+    s.add_argument("--model", help="model file (recal discover --write-model): fixes the model; "
+                   "default: the effects recal discover selects on the same windows")
     s.add_argument("--sensor-id", help="which sensor of a recording (default: the only one)")
-    s.add_argument("--json", help="write the fit (parameters, sd, held, windows) here")
+    s.add_argument("--json", help="write the fit (parameters, sd, held, windows, discovery) here")
     s.add_argument("--rate", type=float, help="sample rate of a CSV without a time column")
     s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
     s.add_argument("--quiet", action="store_true", help="no progress bar")

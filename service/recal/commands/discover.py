@@ -152,13 +152,35 @@ def _analysis_dict(a: ResidualAnalysis) -> dict[str, Any]:
 
 def criterion_text(cfg: dc.DiscoveryConfig, n_blocks: int) -> str:
     return (f"add the candidate whose held-out sum of squares of |a|-1g falls by R > "
-            f"max({100 * cfg.min_gain:g} %, {dc.n_se_for(cfg, n_blocks):.2f} bootstrap SE); "
+            f"max({100 * cfg.min_gain:g} %, {dc.n_se_for(cfg, n_blocks):.2f} bootstrap SE) and "
+            f"explains more than {cfg.noise_floor:g}x the noise of a window mean; "
             f"{n_blocks} contiguous time blocks, each predicted by a fit on the others; "
             + ("a simpler passing candidate wins unless the best beats it by the same test; "
                if cfg.prefer_simpler else "")
             + (f"if none passes alone, pairs of the top {cfg.pairs} by score test; "
                if cfg.pairs > 1 else "")
+            + ("none is added where a step in time leaves as little (a swapped sensor); "
+               if cfg.time_step else "")
             + "an earlier effect a later one made redundant is removed by the same test")
+
+
+def step_in_time_dict(result: dc.DiscoveryResult) -> dict[str, Any] | None:
+    """The step in time that stopped the search (`DiscoveryResult.step_in_time`), or None."""
+    st = result.step_in_time
+    if st is None:
+        return None
+    return {"t_h": st.t_h, "rms_mg": st.rms_mg, "instead_of": result.stepped}
+
+
+def step_in_time_line(result: dc.DiscoveryResult) -> str | None:
+    """A person's line for the step in time that stopped the search (None: none did)."""
+    d = step_in_time_dict(result)
+    if d is None:
+        return None
+    return (f"stop: a step in time at {d['t_h']:.2f} h (the model fitted apart before and "
+            f"after it leaves {d['rms_mg']:.3f} mg) explains the residual as well as "
+            f"{d['instead_of']}: a sensor swapped, knocked or re-mounted, not an effect of a "
+            "covariate; nothing more is added")
 
 
 def misfit_dict(mis: MisfitProfile | None) -> dict[str, Any] | None:
@@ -216,6 +238,7 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
     report = {
         "source": source,
         "misfit": misfit_dict(mis),
+        "step_in_time": step_in_time_dict(result),
         "held_at_start": list(result.held_at_start()),
         "input": {"kind": data.source, "windows": len(data), "dropped_moving": data.dropped,
                   "aux_names": list(data.aux_names), "s0": data.s0,
@@ -223,7 +246,8 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
                   "span_h": float(np.ptp(t_h)) if data.has_time and len(t_h) else None,
                   "blocks": int(result.blocks.max()) + 1},
         "criterion": {"text": criterion_text(cfg, n_blocks), "min_gain": cfg.min_gain,
-                      "n_se": dc.n_se_for(cfg, n_blocks),
+                      "n_se": dc.n_se_for(cfg, n_blocks), "noise_floor": cfg.noise_floor,
+                      "noise_mg": dc.noise_mg(data, result.scored),
                       "prefer_simpler": cfg.prefer_simpler, "pairs": cfg.pairs,
                       "blocks": cfg.blocks, "bootstrap": cfg.bootstrap,
                       "seed": cfg.seed},
@@ -278,12 +302,17 @@ def format_table(result: dc.DiscoveryResult) -> str:
         label = " + ".join([s.effect.label, *(e.label for e in s.together)])
         rows.append(f"{i:>4}  {s.action:<7} {label:<32} {change:>16}  "
                     f"{100 * s.gain:>6.1f}% ({100 * s.se:.1f})  {_short(s.effect.params)}")
-    if result.last_round:
+    stepped = step_in_time_line(result)
+    if stepped:
+        rows.append(stepped)
+    elif result.last_round:
         best = max(result.last_round, key=lambda c: c.gain)
-        k = dc.n_se_for(result.config, int(result.blocks.max()) + 1)
+        cfg = result.config
+        k = dc.n_se_for(cfg, int(result.blocks.max()) + 1)
+        floor = cfg.noise_floor * dc.noise_mg(data, result.scored)
         rows.append(f"stop: no candidate passes; best {best.label}: R {100 * best.gain:.1f} % "
-                    f"(SE {100 * best.se:.1f} %; needs > {100 * result.config.min_gain:g} % "
-                    f"and > {k:.2f} SE)")
+                    f"(SE {100 * best.se:.1f} %; needs > {100 * cfg.min_gain:g} % "
+                    f"and > {k:.2f} SE, and to explain > {floor:.3f} mg)")
     rows.append(f"held-out error: {result.heldout_base_mg:.3f} mg -> "
                 f"{result.heldout_final_mg:.3f} mg; in-sample {result.fit_base_mg:.3f} -> "
                 f"{result.fit_final_mg:.3f} mg")

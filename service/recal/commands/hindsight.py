@@ -7,7 +7,9 @@ windows, about 100 bytes each, not for its samples):
    sensitivity unless a model file gives one), from counts (`discovery_data.rate_and_scale`);
 2. the quasi-static windows, and one fit of the model on all of them (when the windows show
    zero-g far from 0 or another scale, as an analog part on an unsigned ADC does, the windows
-   once more by a detector centred there: `hindsight.calibrate`);
+   once more by a detector centred there: `hindsight.calibrate`); without a model given, the
+   effects first selected on those windows as `recal discover` selects them
+   (`hindsight.discover_and_calibrate`), reported with the held-out error before and after;
 3. every sample corrected with that fit and written out: an MCAP gets the raw topic copied as
    logged, a calibrated topic (with the detector's gate and output per sample, as the live
    node writes them) and the fit as a calibration message; a CSV gets t_us, x_g, y_g, z_g.
@@ -23,10 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from recal.commands.discover import misfit_dict, misfit_words
+from recal.commands.discover import misfit_dict, misfit_words, step_in_time_dict
 from recal.core import detector as det
 from recal.core import hindsight
 from recal.core.channels import usable
+from recal.core.discovery import DiscoveryResult
 from recal.core.discovery_data import rate_and_scale
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
@@ -80,14 +83,22 @@ def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float |
 def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
                    overwrite: bool = False, progress: Callable[[int], None] | None = None
                    ) -> dict[str, Any]:
-    """Fit ``model`` (default: offsets and gains in the input's units) to the source with
-    hindsight and write every sample corrected; returns the summary (`summary_lines`).
+    """Fit ``model`` to the source with hindsight and write every sample corrected; without
+    a model, the one `recal discover`'s selection finds on the same windows (from offsets and
+    gains in the input's units). Returns the summary (`summary_lines`).
     progress(n): called with the samples of each batch of each pass."""
     t0 = time.perf_counter()
     rate_hz, median_norm = rate_and_scale(_counted(src.batches(), progress))
-    model = model or SensorModel.diagonal(median_norm)
     cfg = PipelineConfig(rate_hz=rate_hz)
-    fit = hindsight.calibrate(lambda: _counted(src.batches(), progress), model, cfg)
+
+    def batches() -> Iterator[RawBatch]:
+        return _counted(src.batches(), progress)
+
+    found = None
+    if model is None:
+        fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg)
+    else:
+        fit = hindsight.calibrate(batches, model, cfg)
     corrected = Corrected(fit, cfg)
     if Path(out).suffix.lower() == ".csv":
         samples = _write_csv(src, corrected, out, progress)
@@ -96,8 +107,40 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
     seconds = time.perf_counter() - t0
     return {"in": src.name, "out": str(out), "sensor_id": src.sensor_id, "samples": samples,
             "seconds": seconds, "samples_per_s": samples / seconds if seconds > 0 else None,
-            "rate_hz": rate_hz, **fit_summary(fit),
+            "rate_hz": rate_hz, **fit_summary(fit), "discovery": discovery_summary(found),
             "samples_suspect": corrected.samples_suspect}
+
+
+def discovery_summary(found: DiscoveryResult | None) -> dict[str, Any] | None:
+    """What discovery chose (None: the model was given): the effects found with their
+    values, held-out error before -> after (mg), the steps, a step in time that stopped it."""
+    if found is None:
+        return None
+    return {"effects_found": [{"label": e.label, "kind": e.kind, "covariate": e.covariate,
+                               "params": e.params} for e in found.selected],
+            "heldout_error_mg": {"base": found.heldout_base_mg, "final": found.heldout_final_mg},
+            "steps": [{"action": s.action,
+                       "effect": " + ".join([s.effect.label, *(e.label for e in s.together)]),
+                       "heldout_before_mg": s.heldout_before_mg,
+                       "heldout_after_mg": s.heldout_after_mg, "gain": s.gain, "se": s.se}
+                      for s in found.steps],
+            "step_in_time": step_in_time_dict(found), "windows": len(found.data)}
+
+
+def _discovery_lines(d: dict[str, Any] | None) -> list[str]:
+    if d is None:
+        return []
+    err = d["heldout_error_mg"]
+    found = ", ".join(e["label"] for e in d["effects_found"])
+    lines = [f"  discovered on {d['windows']} windows as `recal discover`: "
+             + (f"{found} (held-out error {err['base']:.3f} -> {err['final']:.3f} mg)" if found
+                else f"nothing beyond offsets and gains (held-out error {err['base']:.3f} mg)")]
+    st = d.get("step_in_time")
+    if st is not None:
+        lines.append(f"  a step in time at {st['t_h']:.2f} h explains the residual as well as "
+                     f"{st['instead_of']}: a sensor swapped, knocked or re-mounted? not "
+                     "taken for an effect")
+    return lines
 
 
 def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
@@ -119,6 +162,7 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
              f"{s['seconds']:.2f} s into {s['out']}: one fit on {s['windows']} quasi-static "
              f"windows ({s['windows_dropped']} dropped as movement), residual "
              f"{s['residual_rms_mg']:.2f} mg"]
+    lines += _discovery_lines(s.get("discovery"))
     for effect, values in s["described"].items():
         lines.append(f"  {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
     ref = s.get("gain_reference")
@@ -137,9 +181,10 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
         lines.append(
             f"  poor fit: it {misfit_words(mis)}. sigma carries it; {suspect} samples where "
             "it exceeds "
-            f"{1e3 * hindsight.SUSPECT_EXCESS_G:g} mg are marked suspect. Next: "
-            f"`recal discover {s['in']}` finds the effect, then `recal hindsight` with "
-            f"--model of the model it writes")
+            f"{1e3 * hindsight.SUSPECT_EXCESS_G:g} mg are marked suspect. "
+            + (f"No candidate effect explained it: `recal discover {s['in']} --json` lists "
+               "how close each came" if s.get("discovery") is not None else
+               f"Next: `recal hindsight {s['in']}` without --model selects effects"))
     return lines
 
 

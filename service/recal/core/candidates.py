@@ -19,7 +19,7 @@ from recal.core.discovery_data import DiscoveryData, covariate_spread, usable_ch
 from recal.core.effects import EFFECT_KINDS, TIME, Effect, Proposals, make_effect
 from recal.core.model import SensorModel
 
-__all__ = ["KIND_ORDER", "candidates", "proposals"]
+__all__ = ["KIND_ORDER", "candidates", "proposals", "smaller_models"]
 
 #: Kinds that discovery proposes, by what each declares of itself.
 _PROPOSED: dict[str, Proposals] = {k: cls.proposed for k, cls in EFFECT_KINDS.items()
@@ -66,3 +66,21 @@ def candidates(model: SensorModel, data: DiscoveryData, kinds: tuple[str, ...] =
     if time and data.has_time and len(t_h) and covariate_spread(t_h) > 0:
         in_time = (float(np.median(t_h)), covariate_spread(t_h))
     return proposals(model, usable_channels(data), in_time, kinds)
+
+
+def smaller_models(model: SensorModel, eff: Effect, data: DiscoveryData
+                   ) -> list[tuple[str, SensorModel, Effect | None]]:
+    """Smaller models than `model` without `eff`: "reduce" (a ratiometric effect with a
+    reference back to one of its channels, tried first) and "remove"."""
+    rest = [(e, sp) for e, sp in zip(model.effects, model.spreads, strict=True) if e != eff]
+    without = SensorModel(tuple(e for e, _ in rest), model.s0, tuple(sp for _, sp in rest))
+    out: list[tuple[str, SensorModel, Effect | None]] = []
+    ref_channel = getattr(eff, "reference", None)
+    if eff.kind == "ratiometric" and ref_channel is not None:
+        chans = usable_channels(data)
+        for ch in (eff.covariate, ref_channel):
+            if ch in chans:
+                single = make_effect("ratiometric", ch, chans[ch][0])
+                out.append(("reduce", without.with_effect(single, chans[ch][1]), single))
+    out.append(("remove", without, None))
+    return out

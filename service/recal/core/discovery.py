@@ -26,19 +26,20 @@ the rows of a static table, `discover`:
    can be tested where the others cannot see the gain;
 5. accepts by this criterion: the relative reduction of the held-out sum of squares of xi,
    R = 1 - SS_candidate / SS_model, must exceed both t bootstrap standard errors (blocks
-   resampled with replacement, so the spread is the block-to-block variation of the paired
-   improvement; t is Student's 97.5 % quantile for blocks - 1 degrees of freedom, 2.26 for 10
-   blocks, since an SE from a handful of blocks is itself uncertain) and `min_gain` (5 %: a
-   gain below that is not worth a parameter in the live estimator). Of the candidates that
-   pass, the largest R wins, unless a simpler one passes too (fewer directions the data
-   determine, then KIND_ORDER) and the winner does not beat it by the same criterion: of two
-   effects that explain the same residual, the smaller (ratiometric (1) rather than gain (3)
-   in the supply). When no candidate passes alone, pairs of the candidates the score test
-   ranks highest are tried (two effects whose channels drift together can each fail alone);
-6. adds the winner, then removes an earlier addition that no longer passes the same test
-   against the model without it (or reduces a ratiometric effect with a reference to one
-   channel), and repeats until nothing passes. On data without an extra effect no
-   candidate's held-out improvement stands out from its spread, and nothing is added.
+   resampled with replacement; t is Student's 97.5 % quantile for blocks - 1 degrees of
+   freedom, 2.26 for 10 blocks) and `min_gain` (5 %); and what it explains, in mg, must exceed
+   `noise_floor` (1.5) times the noise of a window mean (`noise_mg`: below that the folds' own
+   scatter reaches it, and an effect that small moves no output the user sees). Of the
+   candidates that pass, the largest R wins, unless a simpler one passes too (fewer directions
+   the data determine, then KIND_ORDER) and the winner does not beat it by the same criterion.
+   When no candidate passes alone, pairs of the candidates the score test ranks highest are
+   tried (two effects whose channels drift together can each fail alone);
+6. the winner must not leave clearly more (by min_gain) than a step in time (`best_step`: the
+   model in force fitted apart before and after a block boundary, a swapped or knocked
+   sensor): if not, nothing more is added (`DiscoveryResult.step_in_time`). Else it is added,
+   an earlier addition that no longer passes the same test against the model without it is
+   removed (or a ratiometric effect with a reference reduced to one channel), and the search
+   repeats until nothing passes.
 
 The result carries the extended model with its fitted values and a `Prior` (the fitted values,
 the model's default spreads) for the live estimator to start from. Why held-out blocks and this
@@ -54,16 +55,16 @@ import numpy as np
 from scipy import stats
 
 from recal.core.buffer import Windows
-from recal.core.candidates import KIND_ORDER
+from recal.core.candidates import KIND_ORDER, smaller_models
 from recal.core.candidates import candidates as proposed_on
+from recal.core.discovery_criterion import explained_mg, noise_mg, paired_gain
 from recal.core.discovery_data import (
     DiscoveryData,
     data_from_windows,
     scorable,
     time_blocks,
-    usable_channels,
 )
-from recal.core.effects import Effect, make_effect
+from recal.core.effects import Effect
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.model_fit import (
@@ -83,6 +84,7 @@ from recal.core.residuals import (
     misfit,
     residual_analysis,
 )
+from recal.core.time_step import TimeStep, best_step, in_sample_ss
 from recal.errors import ConfigError, InputError
 
 __all__ = [
@@ -95,6 +97,7 @@ __all__ = [
     "discover",
     "discover_pipeline",
     "n_se_for",
+    "noise_mg",
 ]
 
 
@@ -104,7 +107,11 @@ class DiscoveryConfig:
 
     Attributes:
         blocks: contiguous time blocks (k-fold over blocks) for held-out scoring.
-        min_gain: smallest relative reduction of the held-out sum of squares worth an effect.
+        min_gain: smallest relative reduction of the held-out sum of squares worth an effect
+            (also the margin by which the model with it must leave less than a step in time).
+        noise_floor: what an effect explains of the held-out error (RMS over the scored
+            windows, mg) must exceed this many times the noise of a window mean.
+        time_step: test each winner against a step in time (`time_step.best_step`).
         n_se: the reduction must also exceed this many bootstrap standard errors; None:
             Student's t 97.5 % quantile for (blocks - 1) degrees of freedom.
         prefer_simpler: of the passing candidates, prefer a simpler one (fewer observed
@@ -127,6 +134,8 @@ class DiscoveryConfig:
 
     blocks: int = 10
     min_gain: float = 0.05
+    noise_floor: float = 1.5
+    time_step: bool = True
     n_se: float | None = None
     prefer_simpler: bool = True
     pairs: int = 4
@@ -143,9 +152,9 @@ class DiscoveryConfig:
     def __post_init__(self) -> None:
         if self.blocks < 3:
             raise ConfigError("discovery needs at least 3 blocks for held-out scoring")
-        if not (self.min_gain >= 0 and (self.n_se is None or self.n_se >= 0)
-                and self.bootstrap >= 10):
-            raise ConfigError("min_gain and n_se must be >= 0 and bootstrap >= 10")
+        if not (self.min_gain >= 0 and self.noise_floor >= 0
+                and (self.n_se is None or self.n_se >= 0) and self.bootstrap >= 10):
+            raise ConfigError("min_gain, noise_floor and n_se must be >= 0 and bootstrap >= 10")
 
     def fit(self) -> FitConfig:
         """The settings of each fit."""
@@ -239,6 +248,8 @@ class DiscoveryResult:
         heldout_base_mg / heldout_final_mg: their RMS over the scored windows in mg;
             fit_*_mg: in-sample RMS.
         analysis_base / analysis_final: residual analysis before and after.
+        step_in_time: the step in time that left less than the best candidate (`stepped`)
+            and stopped the search; None: no step did.
     """
 
     data: DiscoveryData
@@ -258,6 +269,8 @@ class DiscoveryResult:
     scored: np.ndarray
     analysis_base: ResidualAnalysis
     analysis_final: ResidualAnalysis
+    step_in_time: TimeStep | None = None
+    stepped: str = ""
 
     @property
     def heldout_base_mg(self) -> float:
@@ -304,16 +317,6 @@ def _rms_mg(xi: np.ndarray) -> float:
     return 1e3 * float(np.sqrt(np.mean(xi**2))) if len(xi) else float("nan")
 
 
-def _paired_gain(ss_m: np.ndarray, ss_c: np.ndarray, n_boot: int,
-                 seed: int) -> tuple[float, float]:
-    """R = 1 - SS_c / SS_m over blocks, and its standard error by resampling blocks (the same
-    resamples for every comparison: a forward and a backward test of one pair agree)."""
-    r = 1.0 - float(ss_c.sum()) / max(float(ss_m.sum()), 1e-300)
-    idx = np.random.default_rng(seed).integers(0, len(ss_m), (n_boot, len(ss_m)))
-    rb = 1.0 - ss_c[idx].sum(axis=1) / np.maximum(ss_m[idx].sum(axis=1), 1e-300)
-    return r, float(np.std(rb, ddof=1))
-
-
 #: Two candidates with as many observed directions whose R differ by less than this explain
 #: the residual equally (a single pose: a temperature offset or a temperature scaling of |a|).
 TIE_GAIN = 0.01
@@ -342,8 +345,10 @@ def n_se_for(cfg: DiscoveryConfig, n_blocks: int) -> float:
     return float(stats.t.ppf(0.975, max(n_blocks - 1, 1)))
 
 
-def _passes(gain: float, se: float, cfg: DiscoveryConfig, n_blocks: int) -> bool:
-    return gain > max(cfg.min_gain, n_se_for(cfg, n_blocks) * se)
+def _passes(gain: float, se: float, cfg: DiscoveryConfig, n_blocks: int,
+            explained_mg: float = np.inf, noise_mg: float = 0.0) -> bool:
+    return (gain > max(cfg.min_gain, n_se_for(cfg, n_blocks) * se)
+            and explained_mg > cfg.noise_floor * noise_mg)
 
 
 @dataclass
@@ -356,6 +361,10 @@ class _Search:
     base: SensorModel
     current: Scored
     scored: np.ndarray
+    noise_mg: float = 0.0
+    step_in_time: TimeStep | None = None
+    stepped: str = ""
+    _step_of: tuple[SensorModel, TimeStep | None] | None = None
 
     @property
     def n_blocks(self) -> int:
@@ -369,8 +378,26 @@ class _Search:
 
     def compare(self, small: Scored, big: Scored) -> tuple[float, float, bool]:
         """R of big over small, its SE, and whether big passes the criterion."""
-        gain, se = _paired_gain(self.ss(small), self.ss(big), self.cfg.bootstrap, self.cfg.seed)
-        return gain, se, _passes(gain, se, self.cfg, self.n_blocks)
+        ss_s, ss_b = self.ss(small), self.ss(big)
+        gain, se = paired_gain(ss_s, ss_b, self.cfg.bootstrap, self.cfg.seed)
+        explained = explained_mg(ss_s, ss_b, int(self.scored.sum()))
+        return gain, se, _passes(gain, se, self.cfg, self.n_blocks, explained, self.noise_mg)
+
+    def beaten_by_step(self, new: Scored, label: str) -> bool:
+        """Whether a step in time of the model in force (`time_step`) leaves clearly less, by
+        min_gain, than the model with the new effect(s), in-sample; remembered."""
+        cur = self.current
+        if not self.cfg.time_step:
+            return False
+        if self._step_of is None or self._step_of[0] is not cur.model:
+            self._step_of = (cur.model, best_step(cur.model, cur.fit.p, self.data, self.blocks,
+                                                  self.cfg.fit()))
+        step = self._step_of[1]
+        if step is None or step.ss_g2 >= (1.0 - self.cfg.min_gain) * in_sample_ss(
+                new.model, new.fit.p, self.data):
+            return False
+        self.step_in_time, self.stepped = step, label
+        return True
 
     def rescore(self, model: SensorModel) -> Scored:
         """`model` scored, each fit started from the current one's (shared effects)."""
@@ -422,6 +449,8 @@ class _Search:
                 sc.fit.n_observed - cur.fit.n_observed, self.rms(sc), gain, se,
                 explained_fraction(cur.model, cur.fit.p, data, xi_now, eff, spread), ok))
         pick = self._choose(scores, scored)
+        if pick is not None and self.beaten_by_step(scored[pick], cands[pick][0].label):
+            return None, tuple(scores)
         if pick is not None:
             new, eff = scored[pick], cands[pick][0]
             step = Step(_selected(new.model, new.fit, eff, cfg), self.rms(cur), self.rms(new),
@@ -464,6 +493,8 @@ class _Search:
         if best is None:
             return None
         gain, se, new, e1, e2 = best
+        if self.beaten_by_step(new, f"{e1.label} + {e2.label}"):
+            return None
         step = Step(_selected(new.model, new.fit, e1, cfg), self.rms(cur), self.rms(new), gain,
                     se, tuple(scores), together=(_selected(new.model, new.fit, e2, cfg),))
         self.current = new
@@ -478,7 +509,7 @@ class _Search:
         for eff in cur.model.effects:
             if eff.key in base_keys or eff.label in keep:
                 continue
-            for action, alt, remaining in _alternatives(cur.model, eff, self.data):
+            for action, alt, remaining in smaller_models(cur.model, eff, self.data):
                 sc = self.rescore(alt)
                 gain, se, ok = self.compare(sc, cur)
                 if not ok:
@@ -489,24 +520,6 @@ class _Search:
                     return Step(_selected(model, fit, shown, self.cfg), self.rms(cur),
                                 self.rms(sc), gain, se, (), action)
         return None
-
-
-def _alternatives(model: SensorModel, eff: Effect, data: DiscoveryData
-                  ) -> list[tuple[str, SensorModel, Effect | None]]:
-    """Smaller models than `model` without `eff`: "reduce" (a ratiometric effect with a
-    reference back to one of its channels, tried first) and "remove"."""
-    rest = [(e, sp) for e, sp in zip(model.effects, model.spreads, strict=True) if e != eff]
-    without = SensorModel(tuple(e for e, _ in rest), model.s0, tuple(sp for _, sp in rest))
-    out: list[tuple[str, SensorModel, Effect | None]] = []
-    ref_channel = getattr(eff, "reference", None)
-    if eff.kind == "ratiometric" and ref_channel is not None:
-        chans = usable_channels(data)
-        for ch in (eff.covariate, ref_channel):
-            if ch in chans:
-                single = make_effect("ratiometric", ch, chans[ch][0])
-                out.append(("reduce", without.with_effect(single, chans[ch][1]), single))
-    out.append(("remove", without, None))
-    return out
 
 
 def discover(data: DiscoveryData, model: SensorModel | None = None,
@@ -531,7 +544,7 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
     scored = scorable(data, blocks, model.correct(base.fit.p, data.windows.v, data.cov))
     if not scored.any():
         raise InputError("no held-out window lies in a pose the other blocks saw")
-    search = _Search(data, blocks, cfg, model, base, scored)
+    search = _Search(data, blocks, cfg, model, base, scored, noise_mg(data, scored))
     steps: list[Step] = []
     last_round: tuple[CandidateScore, ...] = ()
     added = 0
@@ -561,7 +574,8 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
         heldout_xi_base=base.heldout_xi, heldout_xi_final=search.current.heldout_xi,
         scored=scored,
         analysis_base=residual_analysis(model, base.fit.p, data, candidates(model, data, cfg)),
-        analysis_final=residual_analysis(final_model, final.p, data))
+        analysis_final=residual_analysis(final_model, final.p, data),
+        step_in_time=search.step_in_time, stepped=search.stepped)
 
 
 def discover_pipeline(windows: Windows, aux_names: tuple[str, ...], t0_us: int,

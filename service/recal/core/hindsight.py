@@ -24,6 +24,9 @@ was known when it arrived); this module is for a recording already on disk.
    grows (`HindsightFit.sigma_mg`); where that residual is far above the noise the samples
    are suspect (`HindsightFit.poor`).
 
+Without a model given, `discover_and_calibrate` first selects the effects as `recal discover`
+does (`discovery.discover` on the same windows, the same rule), then fits the model found.
+
 Why and how it compares with the batch tools: docs/design.md and docs/performance.md
 ("Calibration with hindsight").
 """
@@ -39,6 +42,7 @@ import numpy as np
 from recal.core.batch_windows import Windowing
 from recal.core.bootstrap import off_by
 from recal.core.buffer import Windows
+from recal.core.discovery import DiscoveryConfig, DiscoveryResult, discover
 from recal.core.discovery_data import data_from_windows
 from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
@@ -48,7 +52,7 @@ from recal.core.residuals import MisfitProfile, misfit
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
-__all__ = ["SUSPECT_EXCESS_G", "HindsightFit", "calibrate", "fit"]
+__all__ = ["SUSPECT_EXCESS_G", "HindsightFit", "calibrate", "discover_and_calibrate", "fit"]
 
 #: Most fits of `fit`: each drops the windows the one before put beyond norm_tol_g.
 MAX_PASSES = 5
@@ -183,6 +187,22 @@ def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
         model = SensorModel(model.effects, data.s0, model.spreads)
         windows, aux_names, t0_us = _windows(batches, cfg, model, data.s0, data.zero)
     return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g)
+
+
+def discover_and_calibrate(batches: Callable[[], Iterable[RawBatch]], s0: float,
+                           cfg: PipelineConfig, dcfg: DiscoveryConfig | None = None
+                           ) -> tuple[HindsightFit, DiscoveryResult]:
+    """`calibrate` of the model `discovery.discover` selects on the recording's windows (from
+    offsets and gains at s0 raw units per g, as `recal discover`): the windows once (twice for
+    an analog part, as `calibrate`), discovery on them, one fit of the model it found."""
+    base = SensorModel.diagonal(s0)
+    windows, aux_names, t0_us = _windows(batches, cfg, base, s0, None)
+    data = data_from_windows(windows, aux_names, t0_us)
+    if off_by(data.zero, data.s0, np.zeros(3), s0):
+        windows, aux_names, t0_us = _windows(batches, cfg, base, data.s0, data.zero)
+        data = data_from_windows(windows, aux_names, t0_us)
+    found = discover(data, cfg=dcfg or DiscoveryConfig())
+    return fit(windows, aux_names, t0_us, found.model, cfg.norm_tol_g), found
 
 
 def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
