@@ -34,12 +34,12 @@ the rows of a static table, `discover`:
    the data determine, then KIND_ORDER) and the winner does not beat it by the same criterion.
    When no candidate passes alone, pairs of the candidates the score test ranks highest are
    tried (two effects whose channels drift together can each fail alone);
-6. the winner must not leave clearly more (by min_gain) than a step in time (`best_step`: the
-   model in force fitted apart before and after a block boundary, a swapped or knocked
-   sensor): if not, nothing more is added (`DiscoveryResult.step_in_time`). Else it is added,
-   an earlier addition that no longer passes the same test against the model without it is
-   removed (or a ratiometric effect with a reference reduced to one channel), and the search
-   repeats until nothing passes.
+6. adds the winner, then removes an earlier addition that no longer passes the same test
+   against the model without it (or reduces a ratiometric effect with a reference to one
+   channel), and repeats until nothing passes. Last, a step in time of the model given
+   (`time_step.best_step`: it fitted apart before and after a block boundary, a sensor swapped
+   or knocked) must not leave clearly less (by min_gain, in-sample) than the model found: if
+   it does, the additions explained a step, and none is kept (`DiscoveryResult.step_in_time`).
 
 The result carries the extended model with its fitted values and a `Prior` (the fitted values,
 the model's default spreads) for the live estimator to start from. Why held-out blocks and this
@@ -248,8 +248,8 @@ class DiscoveryResult:
         heldout_base_mg / heldout_final_mg: their RMS over the scored windows in mg;
             fit_*_mg: in-sample RMS.
         analysis_base / analysis_final: residual analysis before and after.
-        step_in_time: the step in time that left less than the best candidate (`stepped`)
-            and stopped the search; None: no step did.
+        step_in_time: the step in time that left clearly less than the effects found
+            (`stepped`), which were then dropped; None: no step did.
     """
 
     data: DiscoveryData
@@ -362,9 +362,6 @@ class _Search:
     current: Scored
     scored: np.ndarray
     noise_mg: float = 0.0
-    step_in_time: TimeStep | None = None
-    stepped: str = ""
-    _step_of: tuple[SensorModel, TimeStep | None] | None = None
 
     @property
     def n_blocks(self) -> int:
@@ -382,22 +379,6 @@ class _Search:
         gain, se = paired_gain(ss_s, ss_b, self.cfg.bootstrap, self.cfg.seed)
         explained = explained_mg(ss_s, ss_b, int(self.scored.sum()))
         return gain, se, _passes(gain, se, self.cfg, self.n_blocks, explained, self.noise_mg)
-
-    def beaten_by_step(self, new: Scored, label: str) -> bool:
-        """Whether a step in time of the model in force (`time_step`) leaves clearly less, by
-        min_gain, than the model with the new effect(s), in-sample; remembered."""
-        cur = self.current
-        if not self.cfg.time_step:
-            return False
-        if self._step_of is None or self._step_of[0] is not cur.model:
-            self._step_of = (cur.model, best_step(cur.model, cur.fit.p, self.data, self.blocks,
-                                                  self.cfg.fit()))
-        step = self._step_of[1]
-        if step is None or step.ss_g2 >= (1.0 - self.cfg.min_gain) * in_sample_ss(
-                new.model, new.fit.p, self.data):
-            return False
-        self.step_in_time, self.stepped = step, label
-        return True
 
     def rescore(self, model: SensorModel) -> Scored:
         """`model` scored, each fit started from the current one's (shared effects)."""
@@ -449,8 +430,6 @@ class _Search:
                 sc.fit.n_observed - cur.fit.n_observed, self.rms(sc), gain, se,
                 explained_fraction(cur.model, cur.fit.p, data, xi_now, eff, spread), ok))
         pick = self._choose(scores, scored)
-        if pick is not None and self.beaten_by_step(scored[pick], cands[pick][0].label):
-            return None, tuple(scores)
         if pick is not None:
             new, eff = scored[pick], cands[pick][0]
             step = Step(_selected(new.model, new.fit, eff, cfg), self.rms(cur), self.rms(new),
@@ -493,8 +472,6 @@ class _Search:
         if best is None:
             return None
         gain, se, new, e1, e2 = best
-        if self.beaten_by_step(new, f"{e1.label} + {e2.label}"):
-            return None
         step = Step(_selected(new.model, new.fit, e1, cfg), self.rms(cur), self.rms(new), gain,
                     se, tuple(scores), together=(_selected(new.model, new.fit, e2, cfg),))
         self.current = new
@@ -520,6 +497,19 @@ class _Search:
                     return Step(_selected(model, fit, shown, self.cfg), self.rms(cur),
                                 self.rms(sc), gain, se, (), action)
         return None
+
+
+def _step_instead(search: _Search, base: Scored) -> TimeStep | None:
+    """The step in time of the given model (`time_step.best_step`) when it leaves clearly less,
+    by min_gain, than the model discovery arrived at (in-sample), else None."""
+    if not search.cfg.time_step:
+        return None
+    step = best_step(base.model, base.fit.p, search.data, search.blocks, search.cfg.fit())
+    cur = search.current
+    if step is None or step.ss_g2 >= (1.0 - search.cfg.min_gain) * in_sample_ss(
+            cur.model, cur.fit.p, search.data):
+        return None
+    return step
 
 
 def discover(data: DiscoveryData, model: SensorModel | None = None,
@@ -563,8 +553,13 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
             if back is None:
                 break
             steps.append(back)
+    new_effects = [e for e in search.current.model.effects
+                   if e.key not in {b.key for b in model.effects}]
+    step = _step_instead(search, base) if new_effects else None
+    stepped = " + ".join(e.label for e in new_effects) if step is not None else ""
+    if step is not None:  # the additions explained a step in time: none is kept
+        search.current, steps, last_round, new_effects = base, [], (), []
     final_model, final = search.current.model, search.current.fit
-    new_effects = [e for e in final_model.effects if e.key not in {b.key for b in model.effects}]
     return DiscoveryResult(
         data=data, blocks=blocks, config=cfg, base_model=model, base_p=base.fit.p,
         model=final_model, p=final.p, cov=final.cov,
@@ -575,7 +570,7 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
         scored=scored,
         analysis_base=residual_analysis(model, base.fit.p, data, candidates(model, data, cfg)),
         analysis_final=residual_analysis(final_model, final.p, data),
-        step_in_time=search.step_in_time, stepped=search.stepped)
+        step_in_time=step, stepped=stepped)
 
 
 def discover_pipeline(windows: Windows, aux_names: tuple[str, ...], t0_us: int,

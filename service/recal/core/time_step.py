@@ -5,8 +5,9 @@ moment. Any covariate that trends with time (a board warming for an hour, a batt
 down, time itself) then "explains" part of that step as a slope, and passes a held-out test
 that only compares models with and without the term. `best_step` fits the model in force apart
 before and after each boundary between discovery's time blocks and keeps the boundary whose
-two fits leave the least; discovery adds no effect whose model leaves clearly more (in-sample,
-by min_gain) than that: a step is the self-watch's business, never a new term's. A real
+two fits leave the least; where that leaves clearly less (in-sample, by min_gain) than the model
+discovery found, discovery keeps none of its additions: a step is the self-watch's business,
+never a new term's. A real
 effect of a covariate follows the covariate up and down, which one step cannot; a step leaves
 the two halves' own residuals to the noise, which a slope cannot. See docs/design.md (effect
 discovery, step 6).
