@@ -94,7 +94,7 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
     def batches() -> Iterator[RawBatch]:
         return _counted(src.batches(), progress)
 
-    found = None
+    found: DiscoveryResult | str | None = None
     if model is None:
         fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg)
     else:
@@ -111,11 +111,14 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
             "samples_suspect": corrected.samples_suspect}
 
 
-def discovery_summary(found: DiscoveryResult | None) -> dict[str, Any] | None:
+def discovery_summary(found: DiscoveryResult | str | None) -> dict[str, Any] | None:
     """What discovery chose (None: the model was given): the effects found with their
-    values, held-out error before -> after (mg), the steps, a step in time that stopped it."""
+    values, held-out error before -> after (mg), the steps, a step in time that stopped it;
+    or why it could not run (``skipped``)."""
     if found is None:
         return None
+    if isinstance(found, str):
+        return {"skipped": found, "effects_found": []}
     return {"effects_found": [{"label": e.label, "kind": e.kind, "covariate": e.covariate,
                                "params": e.params} for e in found.selected],
             "heldout_error_mg": {"base": found.heldout_base_mg, "final": found.heldout_final_mg},
@@ -130,6 +133,8 @@ def discovery_summary(found: DiscoveryResult | None) -> dict[str, Any] | None:
 def _discovery_lines(d: dict[str, Any] | None) -> list[str]:
     if d is None:
         return []
+    if "skipped" in d:
+        return [f"  no effect discovery ({d['skipped']}): offsets and gains"]
     err = d["heldout_error_mg"]
     found = ", ".join(e["label"] for e in d["effects_found"])
     lines = [f"  discovered on {d['windows']} windows as `recal discover`: "
@@ -183,7 +188,7 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
             "it exceeds "
             f"{1e3 * hindsight.SUSPECT_EXCESS_G:g} mg are marked suspect. "
             + (f"No candidate effect explained it: `recal discover {s['in']} --json` lists "
-               "how close each came" if s.get("discovery") is not None else
+               "how close each came" if "heldout_error_mg" in (s.get("discovery") or {}) else
                f"Next: `recal hindsight {s['in']}` without --model selects effects"))
     return lines
 

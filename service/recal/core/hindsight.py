@@ -191,18 +191,24 @@ def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
 
 def discover_and_calibrate(batches: Callable[[], Iterable[RawBatch]], s0: float,
                            cfg: PipelineConfig, dcfg: DiscoveryConfig | None = None
-                           ) -> tuple[HindsightFit, DiscoveryResult]:
+                           ) -> tuple[HindsightFit, DiscoveryResult | str]:
     """`calibrate` of the model `discovery.discover` selects on the recording's windows (from
     offsets and gains at s0 raw units per g, as `recal discover`): the windows once (twice for
-    an analog part, as `calibrate`), discovery on them, one fit of the model it found."""
+    an analog part, as `calibrate`), discovery on them, one fit of the model it found. Where
+    discovery cannot score (too few windows, no pose two blocks share), the fit of offsets and
+    gains, and why in place of the discovery."""
     base = SensorModel.diagonal(s0)
     windows, aux_names, t0_us = _windows(batches, cfg, base, s0, None)
     data = data_from_windows(windows, aux_names, t0_us)
     if off_by(data.zero, data.s0, np.zeros(3), s0):
         windows, aux_names, t0_us = _windows(batches, cfg, base, data.s0, data.zero)
         data = data_from_windows(windows, aux_names, t0_us)
-    found = discover(data, cfg=dcfg or DiscoveryConfig())
-    return fit(windows, aux_names, t0_us, found.model, cfg.norm_tol_g), found
+    try:
+        found: DiscoveryResult | str = discover(data, cfg=dcfg or DiscoveryConfig())
+    except InputError as exc:
+        found = str(exc)
+    model = found.model if isinstance(found, DiscoveryResult) else base
+    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g), found
 
 
 def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
