@@ -28,8 +28,9 @@ the rows of a static table, `discover`:
    R = 1 - SS_candidate / SS_model, must exceed both t bootstrap standard errors (blocks
    resampled with replacement; t is Student's 97.5 % quantile for blocks - 1 degrees of
    freedom, 2.26 for 10 blocks) and `min_gain` (5 %); and what it explains, in mg, must exceed
-   `noise_floor` (1.5) times the noise of a window mean (`noise_mg`: below that the folds' own
-   scatter reaches it, and an effect that small moves no output the user sees). Of the
+   the noise of a window mean (`noise_mg`; times sqrt(2) for a pair: each of its effects must
+   explain as much): below that the folds' own scatter reaches it, and an effect that small
+   moves no output the user sees. Of the
    candidates that pass, the largest R wins, unless a simpler one passes too (fewer directions
    the data determine, then KIND_ORDER) and the winner does not beat it by the same criterion.
    When no candidate passes alone, pairs of the candidates the score test ranks highest are
@@ -110,7 +111,8 @@ class DiscoveryConfig:
         min_gain: smallest relative reduction of the held-out sum of squares worth an effect
             (also the margin by which the model with it must leave less than a step in time).
         noise_floor: what an effect explains of the held-out error (RMS over the scored
-            windows, mg) must exceed this many times the noise of a window mean.
+            windows, mg) must exceed this many times the noise of a window mean (times the
+            square root of the effects added at once).
         time_step: test each winner against a step in time (`time_step.best_step`).
         n_se: the reduction must also exceed this many bootstrap standard errors; None:
             Student's t 97.5 % quantile for (blocks - 1) degrees of freedom.
@@ -134,7 +136,7 @@ class DiscoveryConfig:
 
     blocks: int = 10
     min_gain: float = 0.05
-    noise_floor: float = 1.5
+    noise_floor: float = 1.0
     time_step: bool = True
     n_se: float | None = None
     prefer_simpler: bool = True
@@ -378,7 +380,9 @@ class _Search:
         ss_s, ss_b = self.ss(small), self.ss(big)
         gain, se = paired_gain(ss_s, ss_b, self.cfg.bootstrap, self.cfg.seed)
         explained = explained_mg(ss_s, ss_b, int(self.scored.sum()))
-        return gain, se, _passes(gain, se, self.cfg, self.n_blocks, explained, self.noise_mg)
+        added = max(1, len(big.model.effects) - len(small.model.effects))
+        return gain, se, _passes(gain, se, self.cfg, self.n_blocks, explained,
+                                 self.noise_mg * np.sqrt(added))
 
     def rescore(self, model: SensorModel) -> Scored:
         """`model` scored, each fit started from the current one's (shared effects)."""
