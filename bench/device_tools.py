@@ -31,7 +31,10 @@ Tools, each in a process of its own (bench/device_tools_runner.py; time is the f
 correction of every sample, peak memory the process's VmHWM):
   raw                       the file's readings in g, as given (its factory scaling)
   actipy calibrate_gravity  van Hees et al. 2014 with the device temperature when the file has
-                            one (in bench/.venvs/actipy, built by bench/compare_tools.py)
+                            one (in bench/.venvs/actipy, built by bench/compare_tools.py); it
+                            refuses (keeps the input) unless its still windows reach beyond
+                            +-0.3 g on every axis
+  actipy, sphere criterion off   the same with calib_cube=0: the fit it would make anyway
   recal hindsight           offsets and gains (`recal hindsight` without --model)
   recal discover+hindsight  `recal discover` then `recal hindsight --model` of the model it
                             writes; "calibrated" is the share of samples hindsight marks
@@ -65,8 +68,9 @@ WINDOW_US = 10_000_000  # GGIR's and actipy's 10 s windows
 BLOCK_US = 1_800_000_000  # held-out blocks: 30 min
 STILL_SD_G = 0.013  # GGIR's sdCriter: every axis's SD under 13 mg
 MIN_FILL = 0.9  # a window counts with at least 90 % of its samples
-TOOLS = ("actipy", "recal-hindsight", "recal-discover")
+TOOLS = ("actipy", "actipy-nocube", "recal-hindsight", "recal-discover")
 LABELS = {"raw": "raw (file's scaling)", "actipy": "actipy calibrate_gravity",
+          "actipy-nocube": "actipy, sphere criterion off",
           "recal-hindsight": "recal hindsight", "recal-discover": "recal discover+hindsight"}
 TIMEOUT_S = 900
 
@@ -319,11 +323,11 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     wanted = a.tools.split(",")
     pythons: dict[str, Path] = {t: Path(sys.executable) for t in wanted if t.startswith("recal")}
-    if "actipy" in wanted:
+    if any(t.startswith("actipy") for t in wanted):
         venv = next(v for v in VENV_SPECS if v.name == "actipy")
         ok, what = ensure_venv(venv)
         if ok:
-            pythons["actipy"] = venv.python
+            pythons.update({t: venv.python for t in wanted if t.startswith("actipy")})
         print(f"actipy: {what}")
     workdir = a.workdir or Path(tempfile.mkdtemp(prefix="recal-devices-"))
     rows: list[Row] = []

@@ -38,11 +38,17 @@ from child_process import status_mb  # this directory is on sys.path: the script
 BATCH = 100_000  # samples per RawBatch handed to recal, as a device reader yields them
 
 
-def _actipy(v: np.ndarray, t_us: np.ndarray, temp: np.ndarray | None, train: np.ndarray,
-            aux: tuple[np.ndarray, tuple[str, ...]]) -> tuple[Callable[[], tuple], str]:
+def _actipy(cube_g: float) -> Callable[..., tuple[Callable[[], tuple], str]]:
     """van Hees et al. 2014 as actipy has it (with temperature when the file has it), fitted on
     the training samples; its coefficients then correct every sample
-    (intercept + slope * x + slopeT * T, actipy's own formula)."""
+    (intercept + slope * x + slopeT * T, actipy's own formula). cube_g: its sphere criterion
+    (still windows beyond +-cube_g on every axis, else it refuses); 0 turns it off."""
+    return lambda *args: _actipy_call(cube_g, *args)
+
+
+def _actipy_call(cube_g: float, v: np.ndarray, t_us: np.ndarray, temp: np.ndarray | None,
+                 train: np.ndarray, aux: tuple[np.ndarray, tuple[str, ...]]
+                 ) -> tuple[Callable[[], tuple], str]:
     import pandas as pd
     from actipy.processing import calibrate_gravity
 
@@ -55,7 +61,7 @@ def _actipy(v: np.ndarray, t_us: np.ndarray, temp: np.ndarray | None, train: np.
     def call() -> tuple[np.ndarray, str, str, float | None]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            _, info = calibrate_gravity(frame, calib_cube=0.3)
+            _, info = calibrate_gravity(frame, calib_cube=cube_g)
         if not info.get("CalibOK", 0):
             why = (f"{info.get('CalibNumSamples')} still windows, iterations "
                    f"{info.get('CalibNumIters')}, error after {info.get('CalibErrorAfter(mg)')}")
@@ -147,7 +153,7 @@ def _installed(name: str) -> bool:
     return True
 
 
-TOOLS = {"actipy": _actipy, "recal-hindsight": _recal(False),
+TOOLS = {"actipy": _actipy(0.3), "actipy-nocube": _actipy(0.0), "recal-hindsight": _recal(False),
          "recal-discover": _recal(True)}
 
 
