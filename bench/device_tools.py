@@ -295,6 +295,43 @@ def describe(rec: Recording, w: Windows) -> str:
             + (f"; {'; '.join(rec.notes)}" if rec.notes else ""))
 
 
+def still_means(rec: Recording, w: Windows) -> tuple[np.ndarray, np.ndarray]:
+    """The still windows' means in g (S,3) and their share of each aux channel (S,K)."""
+    n = np.maximum(np.bincount(w.index), 1).astype(np.float64)  # a gap's windows are empty
+    mean = np.stack([np.bincount(w.index, rec.v_g[:, k]) for k in range(3)], 1) / n[:, None]
+    aux = np.stack([np.bincount(w.index, rec.aux[:, k], minlength=len(n))
+                    for k in range(rec.aux.shape[1])], 1) / n[:, None] if rec.aux.shape[1] \
+        else np.zeros((len(n), 0))
+    return mean[w.still], aux[w.still]
+
+
+def diagonal_on_still(rec: Recording, w: Windows) -> str:
+    """What offsets and gains fitted to the judged windows themselves reach, by least squares
+    (as recal fits) and by mean absolute error (the metric's own loss, near actipy's
+    weighted one): how much of a gap between tools is the loss, not the windows."""
+    from scipy.optimize import least_squares, minimize
+
+    m, _ = still_means(rec, w)
+
+    def xi(p: np.ndarray) -> np.ndarray:
+        return np.linalg.norm((m - p[:3]) * p[3:], axis=1) - 1.0
+
+    l2 = least_squares(xi, np.r_[0.0, 0, 0, 1, 1, 1]).x
+    l1 = minimize(lambda p: np.mean(np.abs(xi(p))), l2, method="Nelder-Mead",
+                  options={"maxiter": 20_000, "xatol": 1e-7, "fatol": 1e-9}).x
+    lo, hi = m.min(axis=0), m.max(axis=0)
+    temp = rec.temp_c
+    span = ""
+    if temp is not None:
+        t = still_means(rec, w)[1][:, rec.aux_names.index(
+            next(n for n in rec.aux_names if n.startswith("temp")))]
+        span = f"; their temperature {t.min():.1f}-{t.max():.1f} deg C"
+    return (f"  still windows' means reach x {lo[0]:+.2f}..{hi[0]:+.2f}, y {lo[1]:+.2f}.."
+            f"{hi[1]:+.2f}, z {lo[2]:+.2f}..{hi[2]:+.2f} g{span}; offsets and gains fitted "
+            f"to them: {1e3 * np.mean(np.abs(xi(l2))):.2f} mg by least squares, "
+            f"{1e3 * np.mean(np.abs(xi(l1))):.2f} mg by mean absolute error")
+
+
 def _f(x: float | None, digits: int = 2) -> str:
     return "-" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
 
@@ -305,8 +342,10 @@ def table(rows: list[Row]) -> str:
     for r in rows:
         cal = f"{100 * r.calibrated:.1f} %" if r.calibrated is not None else "-"
         mem = f"{_f(r.peak_mb, 0)} ({_f(r.before_mb, 0)})" if np.isfinite(r.peak_mb) else "-"
+        folds = ("" if all(f.endswith(": calibrated") for f in r.folds[1:])
+                 else f" (held-out fits: {', '.join(r.folds[1:])})")
         lines.append(f"| {r.file} | {r.tool} | {_f(r.in_mg)} | {_f(r.held_mg)} | "
-                     f"{_f(r.seconds)} | {mem} | {cal} | {r.status}: {r.detail} |")
+                     f"{_f(r.seconds)} | {mem} | {cal} | {r.status}: {r.detail}{folds} |")
     return "\n".join(lines)
 
 
@@ -339,6 +378,7 @@ def main(argv: list[str] | None = None) -> int:
                 rec.t_us, rec.v_g, rec.aux = rec.t_us[keep], rec.v_g[keep], rec.aux[keep]
             w = windows(rec)
             print(describe(rec, w), flush=True)
+            print(diagonal_on_still(rec, w), flush=True)
             rows += run_file(rec, w, pythons, workdir)
     finally:
         if a.workdir is None:
