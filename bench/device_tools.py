@@ -264,8 +264,10 @@ def run_file(rec: Recording, w: Windows, pythons: dict[str, Path], workdir: Path
             _log(f"[{rec.name}] {tool} fit on {fold}")
             res, out = run_child(pythons[tool], tool, case, fold)
             row.folds.append(f"{fold}: {res['status']}")
-            if out is None:
-                row.status, row.detail = res["status"], res["detail"]
+            if out is None:  # the in-sample result stays; the folds column says why
+                if fold == "all":
+                    row.status, row.detail = res["status"], res["detail"]
+                row.folds[-1] += f" ({res['detail']})"
                 break
             if fold == "all":
                 row.in_mg = still_error_mg(out, w)
