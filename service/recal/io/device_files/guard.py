@@ -21,6 +21,7 @@ from __future__ import annotations
 import gzip
 import os
 import re
+import struct
 import tempfile
 import zipfile
 import zlib
@@ -28,8 +29,8 @@ from pathlib import Path
 
 from recal.errors import DeviceFileError
 
-__all__ = ["MAX_EXPANDED_BYTES", "MAX_RATIO", "check_geneactiv_pages", "check_zip", "gunzip_to",
-           "is_gzip", "read_head"]
+__all__ = ["MAX_EXPANDED_BYTES", "MAX_RATIO", "ZIP_DAMAGE", "check_geneactiv_pages",
+           "check_zip", "gunzip_to", "is_gzip", "read_head"]
 
 #: an expanded file (a .cwa.gz, a .gt3x's log.bin) may be at most this many times its
 #: compressed size, and never more than MAX_EXPANDED_BYTES (a month at 100 Hz fits both)
@@ -37,6 +38,9 @@ MAX_RATIO = 200
 MAX_EXPANDED_BYTES = 8 << 30
 CHUNK_BYTES = 1 << 20
 GZIP_MAGIC = b"\x1f\x8b"
+#: what zipfile raises on a damaged archive (a bad offset seeks before the start: OSError)
+ZIP_DAMAGE = (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, OSError,
+              ValueError, struct.error, KeyError, IndexError, OverflowError)
 #: a GENEActiv page holds 300 samples as 3600 hex digits plus its header lines
 GENEACTIV_PAGE_MIN_BYTES = 3600
 #: pages a plausible GENEActiv recording holds whatever its size: 14 days at 100 Hz
@@ -114,7 +118,7 @@ def check_zip(path: Path, entries: tuple[str, ...]) -> None:
             for info in infos:
                 if info.filename in entries:
                     _expand_counting(z, info, path, cap)
-    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as e:
+    except ZIP_DAMAGE as e:
         raise DeviceFileError(f"{path}: ActiGraph .gt3x is not a readable zip ({e})") from None
 
 

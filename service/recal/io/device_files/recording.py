@@ -29,6 +29,8 @@ __all__ = ["DeviceRecording", "is_device_file", "open_device"]
 
 #: device times outside these years are no clock a device keeps (a damaged or crafted file)
 _MIN_NS, _MAX_NS = 0, (2200 - 1970) * 365 * 86400 * 10**9
+#: no worn accelerometer samples faster (AX3: 3200 Hz); a faster header is damaged
+MAX_RATE_HZ = 10_000.0
 
 
 class DeviceRecording:
@@ -39,6 +41,9 @@ class DeviceRecording:
     def __init__(self, path: Path, kind: registry.DeviceKind, parsed: Parsed) -> None:
         self.path, self.kind, self._p = path, kind.kind, parsed
         self.sensor_id = _sensor_id(parsed.device_id or path.name.split(".")[0])
+        if not 0.1 <= parsed.nominal_rate_hz <= MAX_RATE_HZ:
+            raise DeviceFileError(f"{path}: {kind.name} with a sample rate of "
+                                  f"{parsed.nominal_rate_hz:g} Hz: refused (a damaged header)")
         nominal_ns = 1e9 / parsed.nominal_rate_hz
         starts = bt.block_starts(parsed.file_t_ns, nominal_ns, parsed.known_starts_ns)
         self._blocks = bt.block_times(parsed.file_t_ns, starts, nominal_ns)
