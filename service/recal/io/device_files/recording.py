@@ -101,10 +101,10 @@ def _time_notes(p: Parsed, b: bt.BlockTimes) -> list[str]:
                  f"(measured rate {1e9 / b.measured_period_ns:.4f} Hz, nominal "
                  f"{p.nominal_rate_hz:g} Hz)")
     if b.gaps:
-        notes.append(f"{b.gaps} gaps ({b.gap_s:.1f} s in all) kept as gaps (device off, idle "
+        notes.append(f"{b.gaps} gap(s) ({b.gap_s:.1f} s in all) kept as gaps (device off, idle "
                      "sleep or missing blocks; a forward clock change looks the same)")
     if b.clock_changes:
-        notes.append(f"{b.clock_changes} clock changes (the file's time went back "
+        notes.append(f"{b.clock_changes} clock change(s) (the file's time went back "
                      f"{b.clock_change_s:.1f} s in all): the samples continue at the measured "
                      "rate; the file's own stamps are kept")
     return notes
