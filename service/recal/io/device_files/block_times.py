@@ -66,7 +66,8 @@ def block_starts(file_t_ns: np.ndarray, nominal_period_ns: float,
     if n == 0:
         return np.zeros(0, np.int64)
     step = np.diff(file_t_ns)
-    by_stamp = np.flatnonzero(np.abs(step - nominal_period_ns) > STAMP_TOLERANCE_NS) + 1
+    off = step - np.int64(round(nominal_period_ns))  # in integers: no float copy of N steps
+    by_stamp = np.flatnonzero((off > STAMP_TOLERANCE_NS) | (off < -STAMP_TOLERANCE_NS)) + 1
     parts = [np.zeros(1, np.int64), by_stamp.astype(np.int64)]
     if known_starts_ns is not None and len(known_starts_ns):
         idx = np.searchsorted(file_t_ns, np.asarray(known_starts_ns, np.int64), side="left")
