@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recal.io.device_files.parsed import Parsed, actfast_read, number, table
+from recal.io.device_files.parsed import Parsed, actfast_read, number, table, warning_notes
 from recal.io.device_files.probe import Probe
 
 __all__ = ["read", "sniff_cwa"]
@@ -31,29 +31,38 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
     hf, lf = ts.get("high_frequency", {}), ts.get("low_frequency", {})
     meta_in = r.get("metadata", {})
     dev, conf = meta_in.get("device", {}), meta_in.get("configuration", {})
-    hw = str(dev.get("hardware_type") or "AX3")
+    hw = str(dev.get("hardware_type") or "")
+    named = hw.startswith("AX")  # actfast names 0x00, 0xFF (AX3) and 0x64 (AX6) only
+    hw = hw if named else "AX"
     tz_min = number(dev.get("time_zone"))
     tz = None if tz_min is None or tz_min == -1 else 60.0 * tz_min
     rate = number(conf.get("sample_rate_hz")) or 100.0
-    meta = {"device_type": f"Axivity {hw}", "device_id": dev.get("device_id"),
+    kind = f"Axivity {hw}" if named else "Axivity (a hardware code the reader does not name)"
+    meta = {"device_type": kind, "device_id": dev.get("device_id"),
             "session_id": dev.get("session_id"), "firmware": dev.get("firmware_revision"),
             "nominal_rate_hz": rate, "range_g": number(conf.get("accelerometer_range_g")),
             "logging_start": conf.get("logging_start"), "logging_end": conf.get("logging_end"),
             "values": "acceleration in g as the reader scales the counts (AX3: 1/256 g a step)"}
     notes = []
+    notes += warning_notes(r)
     if "gyroscope" in hf:
         meta["gyroscope"] = "ignored"
         notes.append(f"{hw}: the gyroscope's channels are not used (ignored)")
     sectors_read = len(lf.get("datetime", ()))
-    sectors_in_file = max(0, (path.stat().st_size - HEADER_BYTES) // SECTOR_BYTES)
+    data_bytes = max(0, path.stat().st_size - HEADER_BYTES)
+    sectors_in_file = data_bytes // SECTOR_BYTES
     skipped = max(0, sectors_in_file - sectors_read)
     if skipped:
         notes.append(f"{skipped} of {sectors_in_file} sectors skipped (corrupt, cut short or "
                      "not samples)")
+    if data_bytes % SECTOR_BYTES:
+        notes.append(f"the file ends in a partial sector ({data_bytes % SECTOR_BYTES} bytes: "
+                     "cut short), skipped")
     low = [t for n in ("temperature", "battery_voltage", "light") if (t := table(lf, n, hw))]
     t = np.asarray(hf.get("datetime", np.zeros(0, np.int64)), np.int64)
     return Parsed("axivity_cwa", t, np.asarray(hf.get("acceleration", np.zeros((0, 3))),
                                                 np.float32).reshape(-1, 3),
                   rate, np.asarray(lf.get("datetime", ()), np.int64), low, {}, meta,
                   f"{hw}-{dev['device_id']}" if dev.get("device_id") else None, tz, notes,
-                  {"sectors": skipped, "reader_warnings": len(r.get("warnings", []))})
+                  {"sectors": skipped, "partial_sector": int(data_bytes % SECTOR_BYTES > 0),
+                   "reader_warnings": len(r.get("warnings", []))})
