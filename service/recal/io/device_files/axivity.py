@@ -45,15 +45,20 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
         meta["gyroscope"] = "ignored"
         notes.append(f"{hw}: the gyroscope's channels are not used (ignored)")
     sectors_read = len(lf.get("datetime", ()))
-    sectors_in_file = max(0, (path.stat().st_size - HEADER_BYTES) // SECTOR_BYTES)
+    data_bytes = max(0, path.stat().st_size - HEADER_BYTES)
+    sectors_in_file = data_bytes // SECTOR_BYTES
     skipped = max(0, sectors_in_file - sectors_read)
     if skipped:
         notes.append(f"{skipped} of {sectors_in_file} sectors skipped (corrupt, cut short or "
                      "not samples)")
+    if data_bytes % SECTOR_BYTES:
+        notes.append(f"the file ends in a partial sector ({data_bytes % SECTOR_BYTES} bytes: "
+                     "cut short), skipped")
     low = [t for n in ("temperature", "battery_voltage", "light") if (t := table(lf, n, hw))]
     t = np.asarray(hf.get("datetime", np.zeros(0, np.int64)), np.int64)
     return Parsed("axivity_cwa", t, np.asarray(hf.get("acceleration", np.zeros((0, 3))),
                                                 np.float32).reshape(-1, 3),
                   rate, np.asarray(lf.get("datetime", ()), np.int64), low, {}, meta,
                   f"{hw}-{dev['device_id']}" if dev.get("device_id") else None, tz, notes,
-                  {"sectors": skipped, "reader_warnings": len(r.get("warnings", []))})
+                  {"sectors": skipped, "partial_sector": int(data_bytes % SECTOR_BYTES > 0),
+                   "reader_warnings": len(r.get("warnings", []))})

@@ -18,18 +18,19 @@ given.
 
 from __future__ import annotations
 
-import gzip
 import os
 import re
+import struct
 import tempfile
 import zipfile
 import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 from recal.errors import DeviceFileError
 
-__all__ = ["MAX_EXPANDED_BYTES", "MAX_RATIO", "check_geneactiv_pages", "check_zip", "gunzip_to",
-           "is_gzip", "read_head"]
+__all__ = ["MAX_EXPANDED_BYTES", "MAX_RATIO", "ZIP_DAMAGE", "check_geneactiv_pages",
+           "check_zip", "gunzip_to", "is_gzip", "read_head"]
 
 #: an expanded file (a .cwa.gz, a .gt3x's log.bin) may be at most this many times its
 #: compressed size, and never more than MAX_EXPANDED_BYTES (a month at 100 Hz fits both)
@@ -37,6 +38,9 @@ MAX_RATIO = 200
 MAX_EXPANDED_BYTES = 8 << 30
 CHUNK_BYTES = 1 << 20
 GZIP_MAGIC = b"\x1f\x8b"
+#: what zipfile raises on a damaged archive (a bad offset seeks before the start: OSError)
+ZIP_DAMAGE = (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, OSError,
+              ValueError, struct.error, KeyError, IndexError, OverflowError)
 #: a GENEActiv page holds 300 samples as 3600 hex digits plus its header lines
 GENEACTIV_PAGE_MIN_BYTES = 3600
 #: pages a plausible GENEActiv recording holds whatever its size: 14 days at 100 Hz
@@ -67,31 +71,42 @@ def read_head(path: Path, n: int = 4096) -> bytes:
 
 def gunzip_to(path: Path, folder: str | None = None) -> Path:
     """The gzip file expanded into a new temporary file (the caller deletes it); a
-    DeviceFileError when the expansion would pass the cap or the stream is damaged (a cut
-    short stream keeps what was whole: the reader then skips the last partial block)."""
+    DeviceFileError when the expansion would pass the cap or the stream is damaged. A stream
+    cut short keeps what it expanded to (the reader then skips the last partial block)."""
     cap = _cap(path.stat().st_size)
     fd, name = tempfile.mkstemp(suffix=".cwa", dir=folder)
     out = Path(name)
-    written = 0
     try:
-        with os.fdopen(fd, "wb") as dst, gzip.open(path, "rb") as src:
-            try:
-                while chunk := src.read(CHUNK_BYTES):
-                    written += len(chunk)
-                    if written > cap:
-                        raise DeviceFileError(
-                            f"{path}: gzip-compressed file expands beyond {cap >> 20} MiB "
-                            f"({MAX_RATIO}x its size or {MAX_EXPANDED_BYTES >> 30} GiB): refused")
-                    dst.write(chunk)
-            except EOFError:  # cut short: what was whole is kept
-                pass
-    except (OSError, zlib.error) as e:
+        with os.fdopen(fd, "wb") as dst, open(path, "rb") as src:
+            _expand(src, dst, cap, path)
+    except zlib.error as e:
         out.unlink(missing_ok=True)
         raise DeviceFileError(f"{path}: damaged gzip stream ({e})") from None
     except BaseException:
         out.unlink(missing_ok=True)
         raise
     return out
+
+
+def _expand(src: BinaryIO, dst: BinaryIO, cap: int, path: Path) -> None:
+    """zlib in bounded steps (at most CHUNK_BYTES out per call, whatever the input), member
+    after member."""
+    written = 0
+    d = zlib.decompressobj(wbits=31)
+    while chunk := src.read(CHUNK_BYTES):
+        while chunk:
+            piece = d.decompress(chunk, CHUNK_BYTES)
+            written += len(piece)
+            if written > cap:
+                raise DeviceFileError(
+                    f"{path}: gzip-compressed file expands beyond {cap >> 20} MiB "
+                    f"({MAX_RATIO}x its size or {MAX_EXPANDED_BYTES >> 30} GiB): refused")
+            dst.write(piece)
+            if d.eof:  # another member may follow
+                chunk = d.unused_data
+                d = zlib.decompressobj(wbits=31)
+            else:
+                chunk = d.unconsumed_tail
 
 
 def check_zip(path: Path, entries: tuple[str, ...]) -> None:
@@ -114,7 +129,7 @@ def check_zip(path: Path, entries: tuple[str, ...]) -> None:
             for info in infos:
                 if info.filename in entries:
                     _expand_counting(z, info, path, cap)
-    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as e:
+    except ZIP_DAMAGE as e:
         raise DeviceFileError(f"{path}: ActiGraph .gt3x is not a readable zip ({e})") from None
 
 

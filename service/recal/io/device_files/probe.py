@@ -4,7 +4,6 @@ zip, its entry names and the first log records of its log.bin. Each is read once
 from __future__ import annotations
 
 import zipfile
-import zlib
 from functools import cached_property
 from pathlib import Path
 
@@ -45,7 +44,7 @@ class Probe:
         try:
             with zipfile.ZipFile(self.path) as z:
                 return frozenset(z.namelist()[:10_000])
-        except (zipfile.BadZipFile, OSError, ValueError):
+        except guard.ZIP_DAMAGE:  # not a zip after all: no names
             return frozenset()
 
     @cached_property
@@ -57,8 +56,7 @@ class Probe:
         try:
             with zipfile.ZipFile(self.path) as z, z.open("log.bin") as f:
                 data = f.read(LOG_PREFIX_BYTES)
-        except (zipfile.BadZipFile, OSError, ValueError, zlib.error, EOFError,
-                NotImplementedError):
+        except guard.ZIP_DAMAGE:
             return frozenset()
         found: set[int] = set()
         i = 0

@@ -29,6 +29,8 @@ __all__ = ["DeviceRecording", "is_device_file", "open_device"]
 
 #: device times outside these years are no clock a device keeps (a damaged or crafted file)
 _MIN_NS, _MAX_NS = 0, (2200 - 1970) * 365 * 86400 * 10**9
+#: no worn accelerometer samples faster (AX3: 3200 Hz); a faster header is damaged
+MAX_RATE_HZ = 10_000.0
 
 
 class DeviceRecording:
@@ -39,6 +41,9 @@ class DeviceRecording:
     def __init__(self, path: Path, kind: registry.DeviceKind, parsed: Parsed) -> None:
         self.path, self.kind, self._p = path, kind.kind, parsed
         self.sensor_id = _sensor_id(parsed.device_id or path.name.split(".")[0])
+        if not 0.1 <= parsed.nominal_rate_hz <= MAX_RATE_HZ:
+            raise DeviceFileError(f"{path}: {kind.name} with a sample rate of "
+                                  f"{parsed.nominal_rate_hz:g} Hz: refused (a damaged header)")
         nominal_ns = 1e9 / parsed.nominal_rate_hz
         starts = bt.block_starts(parsed.file_t_ns, nominal_ns, parsed.known_starts_ns)
         self._blocks = bt.block_times(parsed.file_t_ns, starts, nominal_ns)
@@ -96,10 +101,10 @@ def _time_notes(p: Parsed, b: bt.BlockTimes) -> list[str]:
                  f"(measured rate {1e9 / b.measured_period_ns:.4f} Hz, nominal "
                  f"{p.nominal_rate_hz:g} Hz)")
     if b.gaps:
-        notes.append(f"{b.gaps} gaps ({b.gap_s:.1f} s in all) kept as gaps (device off, idle "
+        notes.append(f"{b.gaps} gap(s) ({b.gap_s:.1f} s in all) kept as gaps (device off, idle "
                      "sleep or missing blocks; a forward clock change looks the same)")
     if b.clock_changes:
-        notes.append(f"{b.clock_changes} clock changes (the file's time went back "
+        notes.append(f"{b.clock_changes} clock change(s) (the file's time went back "
                      f"{b.clock_change_s:.1f} s in all): the samples continue at the measured "
                      "rate; the file's own stamps are kept")
     return notes
