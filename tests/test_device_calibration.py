@@ -82,6 +82,8 @@ def test_hindsight_calibrates_the_device_file(files: Files, kind: str, tmp_path:
     cal = _calibrated(out)
     sig = w.signal
     assert len(cal["t_us"]) == len(sig)  # every sample, in order
+    # the device named as its header names it (an AX3 of hardware type 0x17, cwa.h)
+    assert fit["sensor_id"] == {"cwa": "AX3-43210", "bin": "GENEActiv-054321"}[kind]
     # times: in UTC (the file's zone +1 h); true to what the stamps allow: a .cwa sector's
     # stamp is for a sample up to 144 after its first, which the reader (actfast's sector
     # time) reaches back to at the nominal period

@@ -12,12 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
+from recal.io.device_files import guard
 from recal.io.device_files.parsed import Parsed, actfast_read, number, table
 from recal.io.device_files.probe import Probe
 
 __all__ = ["read", "sniff_cwa"]
 
 HEADER_BYTES, SECTOR_BYTES = 1024, 512
+#: header byte 4 (hardwareType) that actfast does not name, as cwa.h does
+_HARDWARE = {b"\x17": "AX3"}
 
 
 def sniff_cwa(p: Probe) -> bool:
@@ -32,6 +35,8 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
     meta_in = r.get("metadata", {})
     dev, conf = meta_in.get("device", {}), meta_in.get("configuration", {})
     hw = str(dev.get("hardware_type") or "AX3")
+    if hw == "Unknown":  # actfast knows 0x00, 0xFF (AX3) and 0x64 (AX6); cwa.h adds 0x17
+        hw = _HARDWARE.get(guard.read_head(path, HEADER_BYTES)[4:5], hw)
     tz_min = number(dev.get("time_zone"))
     tz = None if tz_min is None or tz_min == -1 else 60.0 * tz_min
     rate = number(conf.get("sample_rate_hz")) or 100.0
