@@ -34,8 +34,8 @@ import numpy as np
 from recal.sim.sensor import SensorSpec, forward_model
 from recal.sim.wearer import SimResult, WearerSpec, simulate
 
-__all__ = ["DeviceRun", "Signal", "Written", "cwa_time", "device_signal", "write_cwa",
-           "write_geneactiv_bin"]
+__all__ = ["DeviceRun", "Signal", "Written", "cwa_time", "device_signal", "idle_sleep_seconds",
+           "write_cwa", "write_geneactiv_bin", "write_gt3x"]
 
 _US = 1_000_000
 _START = np.datetime64("2024-03-04T09:00:00", "us")
@@ -386,3 +386,125 @@ def _subset(sig: Signal, take: np.ndarray) -> Signal:
     return Signal(sig.t_us[take], sig.counts[take], sig.a_true_g[take], sig.still[take],
                   sig.temp_c[take], sig.vdd_v[take], sig.sim_index[take],
                   list(itertools.pairwise(edges)), sig.sim, sig.run)
+
+
+# --- ActiGraph .gt3x -------------------------------------------------------------------------
+
+_GT3X_SCALE = 256.0  # LSB per g of a wGT3X-BT ("MOS"), ±8 g
+_TICKS_AT_1970 = 621_355_968_000_000_000  # .NET ticks (100 ns since 0001-01-01) at 1970
+_IDLE_AFTER_S = 10  # idle sleep: the accelerometer sleeps after this long without movement
+
+
+def _ssp(value: float) -> int:
+    """A positive float in the PARAMETERS record's encoding (Parameters.md): a 24-bit two's
+    complement fraction, 2^23 times the mantissa in [0.5, 1), and an 8-bit exponent."""
+    mantissa, exponent = math.frexp(value)
+    return ((exponent & 0xFF) << 24) | (round(mantissa * 2**23) & 0xFFFFFF)
+
+
+def _records(kind: np.ndarray, stamp_s: np.ndarray, payload: np.ndarray) -> np.ndarray:
+    """Log records of one payload size, (R, 9 + size) bytes: separator 0x1E, type, Unix
+    time, size, payload, and the 1's complement of the XOR of all of them."""
+    r, size = payload.shape
+    out = np.zeros((r, 9 + size), np.uint8)
+    out[:, 0] = 0x1E
+    out[:, 1] = kind
+    out[:, 2:6] = stamp_s.astype("<u4").view(np.uint8).reshape(r, 4)
+    out[:, 6:8] = np.frombuffer(struct.pack("<H", size), np.uint8)
+    out[:, 8:-1] = payload
+    out[:, -1] = ~np.bitwise_xor.reduce(out[:, :-1], axis=1)
+    return out
+
+
+def _activity_payloads(v: np.ndarray, rate: int) -> np.ndarray:
+    """(S, rate, 3) counts -> (S, bytes) ACTIVITY payloads: y, x, z as 12-bit two's
+    complement, most significant bits first, a spare nibble after an odd count (Activity.md)."""
+    y, x, z = (v[..., j].astype(np.int64) & 0xFFF for j in (1, 0, 2))
+    word = (y << 24) | (x << 12) | z  # 36 bits a sample
+    nib = (word[..., None] >> np.arange(32, -1, -4)) & 0xF  # (S, rate, 9)
+    nib = nib.reshape(len(v), rate * 9)
+    if nib.shape[1] % 2:
+        nib = np.concatenate([nib, np.zeros((len(v), 1), np.int64)], axis=1)
+    return ((nib[:, 0::2] << 4) | nib[:, 1::2]).astype(np.uint8)
+
+
+def idle_sleep_seconds(still: np.ndarray, rate: int, after_s: int = _IDLE_AFTER_S) -> np.ndarray:
+    """(S,) bool per whole second: asleep, i.e. every sample of it at least after_s into a
+    still stretch (the device wakes at the first movement; a second it wakes in is logged)."""
+    n = len(still) // rate * rate
+    s = still[:n]
+    # samples since the last moving sample (vectorized running count of a bool run)
+    idx = np.arange(n)
+    last_move = np.maximum.accumulate(np.where(~s, idx, -1))
+    asleep = (idx - last_move) > after_s * rate
+    return asleep.reshape(-1, rate).all(axis=1)
+
+
+def write_gt3x(path: str | Path, sig: Signal, *, serial: str = "MOS2E22180349",
+               idle_sleep: bool = True, time_zone: str = "01:00:00") -> Written:
+    """A wGT3X-BT ``.gt3x`` (GT3X-File-Format): a zip of info.txt and log.bin, whose
+    records are PARAMETERS (sample rate, acceleration scale, idle sleep on or off), an ACTIVITY
+    record a second of `rate` samples, BATTERY once a minute, and EVENT 0x08 / 0x09 where the
+    device enters and leaves idle sleep (no ACTIVITY records in between). An ActiGraph samples
+    on its RTC: ``sig.run.real_hz`` must be the nominal rate, starting on a whole second."""
+    import zipfile
+
+    run = sig.run
+    rate = run.nominal_hz
+    if run.real_hz != rate or sig.t_us[0] % _US:
+        raise ValueError("an ActiGraph's samples are whole seconds of exactly the nominal rate")
+    v = np.clip(sig.counts, -2048, 2047)
+    # whole seconds of each run (the device off between runs)
+    firsts = np.concatenate([np.arange(a, b - rate + 1, rate) for a, b in sig.runs])
+    asleep = np.zeros(len(firsts), bool)
+    if idle_sleep:
+        for a, b in sig.runs:
+            sel = (firsts >= a) & (firsts < b)
+            asleep[sel] = idle_sleep_seconds(sig.still[a:b], rate)[:sel.sum()]
+    sec = sig.t_us[firsts] // _US
+    awake = firsts[~asleep]
+    take = (awake[:, None] + np.arange(rate)).reshape(-1)
+    activity = _records(np.zeros(len(awake)), sec[~asleep],
+                        _activity_payloads(v[take].reshape(-1, rate, 3), rate))
+    # entering / leaving idle sleep: EVENT 0x08 at the first asleep second, 0x09 at waking
+    edge = np.diff(np.concatenate([[False], asleep, [False]]).astype(np.int8))
+    enter, leave = np.flatnonzero(edge == 1), np.flatnonzero(edge == -1)
+    ev_t = np.concatenate([sec[enter], sec[np.minimum(leave, len(sec) - 1)]])
+    ev_p = np.concatenate([np.full(len(enter), 8), np.full(len(leave), 9)])[:, None]
+    events = _records(np.full(len(ev_t), 3), ev_t, ev_p.astype(np.uint8))
+    minute = firsts[sec % 60 == 0]
+    mv = np.round(sig.vdd_v[minute] * 1000).astype("<u2").view(np.uint8).reshape(-1, 2)
+    battery = _records(np.full(len(minute), 2), sig.t_us[minute] // _US, mv)
+    # ACCEL_SCALE (space 0, id 55), SAMPLE_RATE (1, 10), FEATURE_ENABLE (1, 2; bit 2 sleep)
+    params = struct.pack("<IIIIII", (55 << 16) | 0, _ssp(_GT3X_SCALE), (10 << 16) | 1, rate,
+                         (2 << 16) | 1, 4 if idle_sleep else 0)
+    head = _records(np.array([0x15]), sec[:1], np.frombuffer(params, np.uint8)[None, :])
+    # every record in time order (at one second: EVENT, then ACTIVITY, then BATTERY)
+    rows = [head[0].tobytes()]
+    keyed = ([(t, 0, r.tobytes()) for t, r in zip(ev_t, events, strict=True)]
+             + [(t, 1, r.tobytes()) for t, r in zip(sec[~asleep], activity, strict=True)]
+             + [(t, 2, r.tobytes()) for t, r in zip(sig.t_us[minute] // _US, battery,
+                                                    strict=True)])
+    keyed.sort(key=lambda k: (k[0], k[1]))
+    rows += [r for _, _, r in keyed]
+    ticks = lambda t_s: int(t_s) * 10_000_000 + _TICKS_AT_1970  # noqa: E731
+    info = "\r\n".join([
+        f"Serial Number: {serial}", "Device Type: wGT3XBT", "Firmware: 1.9.2",
+        f"Battery Voltage: {sig.vdd_v[-1]:.2f}", f"Sample Rate: {rate}",
+        f"Start Date: {ticks(sec[0])}", "Stop Date: 0", f"Last Sample Time: {ticks(sec[-1] + 1)}",
+        f"TimeZone: {time_zone}", f"Download Date: {ticks(sec[-1] + 600)}", "Board Revision: 4",
+        "Unexpected Resets: 0", f"Acceleration Scale: {_GT3X_SCALE:.1f}",
+        "Acceleration Min: -8.0", "Acceleration Max: 8.0", "Subject Name: wearer01",
+        "Serial Prefix: MOS"]) + "\r\n"
+    path = Path(path)
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("info.txt", info)
+        z.writestr("log.bin", b"".join(rows))
+    sub = _subset(sig, take)
+    return Written(path, sub, v[take], {
+        "first": np.arange(len(awake)) * rate, "count": np.full(len(awake), rate),
+        "stamp_index": np.zeros(len(awake), np.int64), "stamp_us": sec[~asleep] * _US,
+        "stored_stamp_ns": sec[~asleep] * 10**9, "asleep_s": sec[asleep],
+        "events": np.column_stack([ev_t, ev_p[:, 0]])},
+        {"serial": serial, "rate_hz": rate, "time_zone": time_zone,
+         "seconds_asleep": int(asleep.sum()), "seconds": len(sec)})

@@ -1,6 +1,7 @@
 """Device files written as the devices write them (`device_writers`: an AX3 .cwa and a GENEActiv
 .bin of a simulated wearer whose offset follows the temperature, on a clock 0.3 % fast, with a
-stretch on a table and a gap with the device off) through the commands, against the
+stretch on a table and a gap with the device off; an ActiGraph .gt3x with idle sleep) through
+the commands, against the
 simulator's truth: `recal hindsight` reads them, finds the still windows a perfect clock would
 give, and with the model `recal discover` writes calibrates every sample; `recal replay`
 streams every sample through the node."""
@@ -9,13 +10,20 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from device_writers import DeviceRun, Written, device_signal, write_cwa, write_geneactiv_bin
+from device_writers import (
+    DeviceRun,
+    Written,
+    device_signal,
+    write_cwa,
+    write_geneactiv_bin,
+    write_gt3x,
+)
 from recal import cli
 from recal.commands.hindsight import calibrate_file
 from recal.io import recording
@@ -107,11 +115,12 @@ def _time_bound_us(w: Written) -> float:
     return (reach + 1) * 1e6 * abs(1 / RUN.nominal_hz - 1 / RUN.real_hz) + 1e3
 
 
-def _perfect_clock_windows(w: Written) -> int:
+def _perfect_clock_windows(w: Written, aux: bool = True) -> int:
     """Windows hindsight finds in the file's readings stamped at the real rate exactly."""
     sig = w.signal
     g = w.counts / 256.0
-    raw = RawBatch(sig.t_us, g, sig.temp_c[:, None], ("temperature",))
+    raw = (RawBatch(sig.t_us, g, sig.temp_c[:, None], ("temperature",)) if aux
+           else RawBatch(sig.t_us, g, np.zeros((len(g), 0))))
     src = Source("reference", "reference", lambda: [raw])
     return calibrate_file(src, Path(str(w.path) + ".reference.csv"))["windows"]
 
@@ -133,3 +142,32 @@ def test_replay_streams_every_sample(files: Files, tmp_path: Path) -> None:
     np.testing.assert_array_equal(raw.v * 256.0, w.counts)
     assert np.all(np.diff(raw.t_us) > 0)
     assert np.abs(raw.t_us + 3600e6 - w.signal.t_us).max() < _time_bound_us(w)
+
+
+def test_hindsight_on_an_actigraph_with_idle_sleep(tmp_path: Path) -> None:
+    """Idle sleep leaves gaps where the wearer was still longest: recal keeps them as gaps
+    (never as stillness or repeated samples), finds the windows a perfect clock gives in what
+    is left, and calibrates every sample written, though far fewer windows remain."""
+    run = replace(RUN, nominal_hz=30, real_hz=30.0,
+                  sensor=replace(RUN.sensor, offset_tc_g_per_c=(0.0, 0.0, 0.0)))
+    sig = device_signal(run)
+    w = write_gt3x(tmp_path / "wearer.gt3x", sig)
+    out, fit_json = tmp_path / "cal.csv", tmp_path / "fit.json"
+    assert cli.main(["hindsight", str(w.path), "--out", str(out), "--json", str(fit_json),
+                     "--quiet"]) == 0
+    fit = json.loads(fit_json.read_text())
+    cal = _calibrated(out)
+    assert len(cal["t_us"]) == len(w.signal)
+    sleeps = int(np.sum(np.diff(np.concatenate([[0], np.isin(
+        np.arange(w.meta["seconds"]), w.blocks["asleep_s"] - w.blocks["asleep_s"].min()
+    ).astype(int)])) == 1))
+    assert fit["device"]["gaps"] >= sleeps + 1  # each sleep and the device off
+    # the zone: .NET writes one east of UTC unsigned ("01:00:00"); read as +1 h or not at all
+    # (local), the times are the true ones, sleeps and all
+    shift_us = cal["t_us"] - w.signal.t_us
+    assert shift_us[0] in (0.0, -3600e6)
+    assert np.abs(shift_us - shift_us[0]).max() < 1e3
+    assert fit["windows"] >= 0.98 * _perfect_clock_windows(w, aux=False)
+    a_g = np.column_stack([cal["x_g"], cal["y_g"], cal["z_g"]])
+    assert error_1s_mg(a_g, w.signal.a_true_g, 30.0) < 2.0
+    assert np.mean(cal["status"] == 3) >= 0.95

@@ -1,9 +1,10 @@
-"""The synthetic device files (`device_writers`) read back by actfast, an independent reader,
-value by value against what was written: so the writers and recal's own reader cannot share a
-misreading of the formats."""
+"""The synthetic device files (`device_writers`: .cwa, .bin, .gt3x) read back by actfast, an
+independent reader, value by value against what was written: so the writers and recal's own
+reader cannot share a misreading of the formats."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import actfast
@@ -16,8 +17,10 @@ from device_writers import (
     _pack_ax3,
     cwa_time,
     device_signal,
+    idle_sleep_seconds,
     write_cwa,
     write_geneactiv_bin,
+    write_gt3x,
 )
 from recal.sim.sensor import SensorSpec
 
@@ -191,3 +194,59 @@ def test_geneactiv_read_back_by_actfast(tmp_path: Path, signal: Signal, newline:
     step_s = np.diff(lf["datetime"]) / 1e9
     assert np.sum(step_s > 300 / 50 + 1) == 1
     assert step_s.max() == pytest.approx(45.0 + 300 / RUN.real_hz, abs=300 / RUN.real_hz)
+
+
+GT3X_RUN = replace(RUN, nominal_hz=30, real_hz=30.0)
+
+
+def test_idle_sleep_seconds_follow_stillness() -> None:
+    rate = 10
+    still = np.zeros(100 * rate, bool)
+    still[50:700] = True  # still from 5.0 s to 69.9 s
+    asleep = idle_sleep_seconds(still, rate, after_s=10)
+    # asleep from the first whole second 10 s into the stillness (15 s), awake again in the
+    # second the movement starts (70 s)
+    assert np.flatnonzero(asleep).tolist() == list(range(15, 70))
+
+
+def test_gt3x_read_back_by_actfast(tmp_path: Path) -> None:
+    sig = device_signal(GT3X_RUN)
+    w = write_gt3x(tmp_path / "dev.gt3x", sig)
+    got = actfast.read(w.path)  # strict: a bad separator or record raises
+    assert got["format"] == "Actigraph GT3X"
+    info = got["metadata"]["info"]
+    assert info["Serial Number"] == w.meta["serial"] and info["Sample Rate"] == "30"
+    assert info["TimeZone"] == w.meta["time_zone"]
+    assert got["metadata"]["device_feature_enabled"]["sleep_mode"] == "true"
+    acc = got["timeseries"]["acceleration"]
+    # every sample written, to the bit (ACCEL_SCALE 256 from the PARAMETERS record)
+    np.testing.assert_array_equal(acc["acceleration"].astype(np.float64) * 256.0, w.counts)
+    np.testing.assert_array_equal(w.counts, np.clip(w.signal.counts, -2048, 2047))
+    # the samples a second apart from their record's whole second, at the nominal rate
+    assert np.abs(acc["datetime"] - w.signal.t_us * NS).max() < 1_000
+    # idle sleep: most of the still time is not in the file, and no record is for a second
+    # the device slept
+    assert w.meta["seconds_asleep"] > 0.4 * w.meta["seconds"]
+    written_s = np.unique(acc["datetime"] // 10**9)
+    assert not np.isin(w.blocks["asleep_s"], written_s).any()
+    assert len(written_s) + w.meta["seconds_asleep"] == w.meta["seconds"]
+    assert not w.signal.still.all() and w.signal.still.mean() < sig.still.mean()
+    # a BATTERY record a minute, in mV
+    bat = got["timeseries"]["battery_voltage"]
+    assert len(bat["datetime"]) == pytest.approx(w.meta["seconds"] / 60, abs=1)
+    assert np.all((bat["battery_voltage"] > 3500) & (bat["battery_voltage"] < 4200))
+
+
+def test_gt3x_without_idle_sleep_keeps_every_second(tmp_path: Path) -> None:
+    sig = device_signal(GT3X_RUN)
+    w = write_gt3x(tmp_path / "dev.gt3x", sig, idle_sleep=False)
+    got = actfast.read(w.path)
+    assert got["metadata"]["device_feature_enabled"]["sleep_mode"] == "false"
+    acc = got["timeseries"]["acceleration"]
+    assert len(acc["datetime"]) == len(w.signal) == w.meta["seconds"] * 30
+    np.testing.assert_array_equal(acc["acceleration"].astype(np.float64) * 256.0, w.counts)
+
+
+def test_gt3x_needs_the_rtc_rate(tmp_path: Path, signal: Signal) -> None:
+    with pytest.raises(ValueError, match="nominal rate"):
+        write_gt3x(tmp_path / "dev.gt3x", signal)  # 50.15 Hz on a 50 Hz device
