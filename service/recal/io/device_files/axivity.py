@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from recal.io.device_files import guard
-from recal.io.device_files.parsed import Parsed, actfast_read, number, table
+from recal.io.device_files.parsed import LowRate, Parsed, actfast_read, number, table
 from recal.io.device_files.probe import Probe
 
 __all__ = ["read", "sniff_cwa"]
@@ -26,6 +26,13 @@ _HARDWARE = {b"\x17": "AX3"}
 def sniff_cwa(p: Probe) -> bool:
     """The header packet: "MD" and its length 1020 (little-endian)."""
     return p.head[:2] == b"MD" and p.head[2:4] == b"\xfc\x03"
+
+
+def _cwa_battery(t: LowRate) -> LowRate:
+    """Battery volts as cwa.h converts the sector's byte b: (b + 512) · 6 / 1024 V. actfast
+    1.3 gives 3 (b / 256 + 1) V, twice the slope (5.2 V for a 4.1 V cell); its byte back."""
+    byte = np.rint((t.values / 3.0 - 1.0) * 256.0)
+    return LowRate(t.name, t.t_ns, (byte + 512.0) * 6.0 / 1024.0)
 
 
 def read(path: Path, shown: Path, lenient: bool) -> Parsed:
@@ -59,7 +66,8 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
     if data_bytes % SECTOR_BYTES:
         notes.append(f"the file ends in a partial sector ({data_bytes % SECTOR_BYTES} bytes: "
                      "cut short), skipped")
-    low = [t for n in ("temperature", "battery_voltage", "light") if (t := table(lf, n, hw))]
+    low = [_cwa_battery(t) if t.name == "battery_voltage" else t
+           for n in ("temperature", "battery_voltage", "light") if (t := table(lf, n, hw))]
     t = np.asarray(hf.get("datetime", np.zeros(0, np.int64)), np.int64)
     return Parsed("axivity_cwa", t, np.asarray(hf.get("acceleration", np.zeros((0, 3))),
                                                 np.float32).reshape(-1, 3),
