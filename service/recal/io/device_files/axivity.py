@@ -29,8 +29,9 @@ def sniff_cwa(p: Probe) -> bool:
 
 
 def _cwa_battery(t: LowRate) -> LowRate:
-    """Battery volts as cwa.h converts the sector's byte b: (b + 512) · 6 / 1024 V. actfast
-    1.3 gives 3 (b / 256 + 1) V, twice the slope (5.2 V for a 4.1 V cell); its byte back."""
+    """Battery volts as cwa.h and omapi convert the sector's byte b: (b + 512) · 6 / 1024 V
+    (the AX3 and AX6 firmware store the 10-bit reading less 512). actfast 1.3 doubles b first
+    (an older scaling): 5.2 V for a 4.1 V cell. Its byte back, then converted."""
     byte = np.rint((t.values / 3.0 - 1.0) * 256.0)
     return LowRate(t.name, t.t_ns, (byte + 512.0) * 6.0 / 1024.0)
 
