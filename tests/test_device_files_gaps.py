@@ -117,3 +117,15 @@ def test_block_times_spread_each_block_to_the_next() -> None:
     assert t[11] == 88_000_000 + 33_000_000 and t[12] == 1_088_000_000
     assert b.gaps == 1 and b.gap_s == pytest.approx(1.088 - 0.088 - 0.044)
     np.testing.assert_array_equal(b.times_ns(5, 7), t[5:7])  # any slice, the same times
+
+
+def test_block_starts_are_the_same_in_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The steps are looked at a chunk at a time (bounded memory): a boundary at a chunk's
+    edge is still found."""
+    rng = np.random.default_rng(3)
+    file_t = np.cumsum(rng.choice([10_000_000] * 5 + [23_000_000], size=500)).astype(np.int64)
+    whole = bt.block_starts(file_t, 1e7)
+    monkeypatch.setattr(bt, "CHUNK", 7)
+    np.testing.assert_array_equal(bt.block_starts(file_t, 1e7), whole)
+    step = np.diff(file_t)
+    np.testing.assert_array_equal(whole, np.r_[0, np.flatnonzero(step != 10_000_000) + 1])
