@@ -1,10 +1,9 @@
 """Device files written as the devices write them (`device_writers`: an AX3 .cwa and a GENEActiv
 .bin of a simulated wearer whose offset follows the temperature, on a clock 0.3 % fast, with a
 stretch on a table and a gap with the device off; an ActiGraph .gt3x with idle sleep) through
-the commands, against the
-simulator's truth: `recal hindsight` reads them, finds the still windows a perfect clock would
-give, and with the model `recal discover` writes calibrates every sample; `recal replay`
-streams every sample through the node."""
+the commands, against the simulator's truth: `recal hindsight` reads them, finds the still
+windows a perfect clock would give, and with the model `recal discover` writes calibrates every
+sample; `recal replay` streams every sample through the node."""
 
 from __future__ import annotations
 
