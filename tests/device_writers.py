@@ -85,6 +85,7 @@ class Signal:
         sim_index: (N,) index of each sample in the uncut simulation.
         runs: list of (first, stop) index ranges of samples logged without a break.
         sim: the uncut simulation.
+        run: what the device and wearer did.
     """
 
     t_us: np.ndarray
