@@ -77,6 +77,10 @@ def test_discover_finds_the_temperature_offset(files: Files, kind: str) -> None:
     assert [s["effect"] for s in added] == ["offset[temperature]"]
     got = np.array([added[0]["values"][f"o_temperature_{a}"] for a in "xyz"])
     np.testing.assert_allclose(got, TC_G_PER_C, rtol=0.05)
+    # and as reported, mg per degree of the data's own scale (not of a median norm that holds
+    # the 50 mg vertical offset: that read 6 % low)
+    mg = np.array([added[0]["params"][f"{a}_mg_per_temperature"] for a in "xyz"])
+    np.testing.assert_allclose(mg, 1e3 * np.array(TC_G_PER_C), rtol=0.05)
 
 
 @pytest.mark.parametrize("kind", list(WRITERS))
