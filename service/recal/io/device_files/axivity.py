@@ -1,0 +1,64 @@
+"""Axivity AX3 / AX6 .cwa (also gzip-compressed, .cwa.gz), read by actfast.
+
+A .cwa starts with a 1024-byte header packet "MD" (length 0x03FC), then 512-byte data sectors
+"AX", each with its own time and one row of light, temperature and battery (openmovement's
+Docs/ax3/cwa.h). actfast gives the samples (``high_frequency``) and one row per sector
+(``low_frequency``): the sector times mark the blocks.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from recal.io.device_files.parsed import Parsed, actfast_read, number, table
+from recal.io.device_files.probe import Probe
+
+__all__ = ["read", "sniff_cwa"]
+
+HEADER_BYTES, SECTOR_BYTES = 1024, 512
+
+
+def sniff_cwa(p: Probe) -> bool:
+    """The header packet: "MD" and its length 1020 (little-endian)."""
+    return p.head[:2] == b"MD" and p.head[2:4] == b"\xfc\x03"
+
+
+def read(path: Path, shown: Path, lenient: bool) -> Parsed:
+    r = actfast_read(path, shown, lenient, "Axivity .cwa")
+    ts = r.get("timeseries", {})
+    hf, lf = ts.get("high_frequency", {}), ts.get("low_frequency", {})
+    meta_in = r.get("metadata", {})
+    dev, conf = meta_in.get("device", {}), meta_in.get("configuration", {})
+    hw = str(dev.get("hardware_type") or "AX3")
+    tz_min = number(dev.get("time_zone"))
+    tz = None if tz_min is None or tz_min == -1 else 60.0 * tz_min
+    rate = number(conf.get("sample_rate_hz")) or 100.0
+    meta = {"device_type": f"Axivity {hw}", "device_id": dev.get("device_id"),
+            "session_id": dev.get("session_id"), "firmware": dev.get("firmware_revision"),
+            "nominal_rate_hz": rate, "range_g": number(conf.get("accelerometer_range_g")),
+            "logging_start": conf.get("logging_start"), "logging_end": conf.get("logging_end"),
+            "values": "acceleration in g as the reader scales the counts (AX3: 1/256 g a step)"}
+    notes = []
+    if "gyroscope" in hf:
+        meta["gyroscope"] = "ignored"
+        notes.append(f"{hw}: the gyroscope's channels are not used (ignored)")
+    sectors_read = len(lf.get("datetime", ()))
+    data_bytes = max(0, path.stat().st_size - HEADER_BYTES)
+    sectors_in_file = data_bytes // SECTOR_BYTES
+    skipped = max(0, sectors_in_file - sectors_read)
+    if skipped:
+        notes.append(f"{skipped} of {sectors_in_file} sectors skipped (corrupt, cut short or "
+                     "not samples)")
+    if data_bytes % SECTOR_BYTES:
+        notes.append(f"the file ends in a partial sector ({data_bytes % SECTOR_BYTES} bytes: "
+                     "cut short), skipped")
+    low = [t for n in ("temperature", "battery_voltage", "light") if (t := table(lf, n, hw))]
+    t = np.asarray(hf.get("datetime", np.zeros(0, np.int64)), np.int64)
+    return Parsed("axivity_cwa", t, np.asarray(hf.get("acceleration", np.zeros((0, 3))),
+                                                np.float32).reshape(-1, 3),
+                  rate, np.asarray(lf.get("datetime", ()), np.int64), low, {}, meta,
+                  f"{hw}-{dev['device_id']}" if dev.get("device_id") else None, tz, notes,
+                  {"sectors": skipped, "partial_sector": int(data_bytes % SECTOR_BYTES > 0),
+                   "reader_warnings": len(r.get("warnings", []))})
