@@ -1,5 +1,5 @@
 """Mutated .gt3x files (damaged records inside a good zip, and damaged zips): the decoder reads
-them or says one `InputError`, never another exception, in bounded time and memory."""
+them or says one `DeviceFileError`, never another exception, in bounded time and memory."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gt3x_writers import LogFile, nhanes_entries, zip_gt3x
-from recal.errors import InputError
+from recal.errors import DeviceFileError
 from recal.io.gt3x import read_gt3x
 
 FUZZ = settings(max_examples=60, deadline=None, derandomize=True,
@@ -49,7 +49,7 @@ def _read_bounded(path: Path) -> None:
     try:
         d = read_gt3x(path)
         assert len(d.t_us) == len(d.acc_g) and np.all(np.isfinite(d.acc_g))
-    except InputError as exc:
+    except DeviceFileError as exc:
         assert "\n" not in str(exc)
     finally:
         peak = tracemalloc.get_traced_memory()[1]

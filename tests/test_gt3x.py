@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gt3x_writers import LogFile, nhanes_entries, zip_gt3x
-from recal.errors import InputError
+from recal.errors import DeviceFileError
 from recal.io.gt3x import read_gt3x
 from recal.io.gt3x import records as rec
 
@@ -136,7 +136,7 @@ def test_a_cut_short_log_reads_what_is_whole(tmp_path: Path) -> None:
     assert 8 <= whole < 20 and len(d.t_us) == whole * 30
     np.testing.assert_array_equal(d.acc_g, lf.expected_counts()[: whole * 30] / 256.0)
     assert d.metadata["truncated"] and "cut short" in " ".join(d.notes)
-    with pytest.raises(InputError, match="damaged"):
+    with pytest.raises(DeviceFileError, match="damaged"):
         read_gt3x(path, lenient=False)
 
 
@@ -169,18 +169,18 @@ def _patch_sizes(path: Path, name: bytes, file_size: int) -> None:
 def test_a_lying_size_is_one_line(tmp_path: Path, declared: int) -> None:
     path = _activity2().write(tmp_path / "lie.gt3x")
     _patch_sizes(path, b"log.bin", declared)
-    with pytest.raises(InputError, match=r"log.bin"):
+    with pytest.raises(DeviceFileError, match=r"log.bin"):
         read_gt3x(path)
 
 
 def test_not_a_gt3x_is_one_line(tmp_path: Path) -> None:
     junk = tmp_path / "junk.gt3x"
     junk.write_bytes(b"PK\x03\x04" + bytes(100))
-    with pytest.raises(InputError, match="not a readable"):
+    with pytest.raises(DeviceFileError, match="not a readable"):
         read_gt3x(junk)
-    with pytest.raises(InputError, match=r"neither log.bin nor activity.bin"):
+    with pytest.raises(DeviceFileError, match=r"neither log.bin nor activity.bin"):
         read_gt3x(zip_gt3x(tmp_path / "empty.gt3x", {"info.txt": b"Sample Rate: 30\n"}))
-    with pytest.raises(InputError, match="Sample Rate"):
+    with pytest.raises(DeviceFileError, match="Sample Rate"):
         read_gt3x(zip_gt3x(tmp_path / "rate.gt3x", {"info.txt": b"Sample Rate: 0\n",
                                                      "log.bin": b""}))
 
@@ -203,5 +203,5 @@ def test_zip_entries_are_refused_before_inflating(tmp_path: Path) -> None:
     with zipfile.ZipFile(path) as z:
         assert z.getinfo("log.bin").file_size < 1 << 20
     _patch_sizes(path, b"info.txt", 1 << 20)
-    with pytest.raises(InputError, match=r"info.txt declares"):
+    with pytest.raises(DeviceFileError, match=r"info.txt declares"):
         read_gt3x(path)

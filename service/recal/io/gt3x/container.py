@@ -1,5 +1,5 @@
 """The ``.gt3x`` zip as untrusted input: entry sizes checked before anything is inflated, entries
-read in bounded chunks, ``info.txt`` parsed, and every damage said as one `InputError` line.
+read in bounded chunks, ``info.txt`` parsed, and every damage said as one `DeviceFileError` line.
 
 A ``.gt3x`` is a zip (``actigraph/GT3X-File-Format`` README; ``NHANES-GT3X-File-Format`` README).
 Nothing here trusts a size the file states: each entry's declared size is checked against a
@@ -15,7 +15,7 @@ import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from recal.errors import InputError
+from recal.errors import DeviceFileError
 
 INFO_MAX_BYTES = 1 << 16          # a real info.txt is under 1 kB
 SIDE_MAX_BYTES = 1 << 20          # calibration.json, and the like
@@ -33,7 +33,7 @@ def open_zip(path: Path) -> zipfile.ZipFile:
     try:
         return zipfile.ZipFile(path)
     except (zipfile.BadZipFile, ValueError, EOFError) as exc:
-        raise InputError(f"{path}: not a readable .gt3x (zip) file: {exc}") from None
+        raise DeviceFileError(f"{path}: not a readable .gt3x (zip) file: {exc}") from None
 
 
 def entry_info(zf: zipfile.ZipFile, name: str, max_bytes: int) -> zipfile.ZipInfo | None:
@@ -44,14 +44,14 @@ def entry_info(zf: zipfile.ZipFile, name: str, max_bytes: int) -> zipfile.ZipInf
     except KeyError:
         return None
     if info.file_size > max_bytes:
-        raise InputError(f"{zf.filename}: {name} declares {info.file_size} bytes, over the "
+        raise DeviceFileError(f"{zf.filename}: {name} declares {info.file_size} bytes, over the "
                          f"{max_bytes}-byte limit for it: refused without inflating it")
     if info.file_size > max(MAX_EXPANSION * info.compress_size, 1 << 16):
-        raise InputError(f"{zf.filename}: {name} declares {info.file_size} bytes from "
+        raise DeviceFileError(f"{zf.filename}: {name} declares {info.file_size} bytes from "
                          f"{info.compress_size} compressed, more than any deflate expands "
                          "(a zip bomb or a lying size): refused without inflating it")
     if info.flag_bits & 0x1:
-        raise InputError(f"{zf.filename}: {name} is encrypted")
+        raise DeviceFileError(f"{zf.filename}: {name} is encrypted")
     return info
 
 
@@ -65,13 +65,13 @@ def read_entry(zf: zipfile.ZipFile, name: str, max_bytes: int) -> bytes | None:
 
 def iter_entry(zf: zipfile.ZipFile, info: zipfile.ZipInfo,
                chunk_bytes: int = CHUNK_BYTES) -> Iterator[bytes]:
-    """An entry's bytes in chunks; a corrupt or lying member is one `InputError`."""
+    """An entry's bytes in chunks; a corrupt or lying member is one `DeviceFileError`."""
     try:
         with zf.open(info) as f:
             while chunk := f.read(chunk_bytes):
                 yield chunk
     except _ZIP_ERRORS as exc:
-        raise InputError(f"{zf.filename}: {info.filename} is damaged: {exc}") from None
+        raise DeviceFileError(f"{zf.filename}: {info.filename} is damaged: {exc}") from None
 
 
 def parse_info(text: bytes) -> dict[str, str]:
@@ -91,7 +91,7 @@ def info_float(info: dict[str, str], key: str, where: str) -> float | None:
     try:
         return float(info[key])
     except ValueError:
-        raise InputError(f"{where}: info.txt {key} is {info[key]!r}, not a number") from None
+        raise DeviceFileError(f"{where}: info.txt {key} is {info[key]!r}, not a number") from None
 
 
 def ticks_to_unix_us(ticks: int) -> int:
@@ -107,7 +107,7 @@ def info_time_us(info: dict[str, str], key: str, where: str) -> int | None:
     try:
         ticks = int(raw)
     except ValueError:
-        raise InputError(f"{where}: info.txt {key} is {raw!r}, not .NET ticks") from None
+        raise DeviceFileError(f"{where}: info.txt {key} is {raw!r}, not .NET ticks") from None
     if not 0 <= ticks - DOTNET_TICKS_AT_UNIX_EPOCH < 200 * 365 * 864 * 10**9:
-        raise InputError(f"{where}: info.txt {key} {ticks} is not a date between 1970 and 2170")
+        raise DeviceFileError(f"{where}: info.txt {key} {ticks} is not a date in 1970-2170")
     return ticks_to_unix_us(ticks)

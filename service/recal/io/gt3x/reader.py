@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recal.errors import InputError
+from recal.errors import DeviceFileError
 from recal.io.gt3x import container as zc
 from recal.io.gt3x import records as rec
 
@@ -89,7 +89,7 @@ class Gt3xReader:
         self._zf = zc.open_zip(self.path)
         raw_info = zc.read_entry(self._zf, "info.txt", zc.INFO_MAX_BYTES)
         if raw_info is None:
-            raise InputError(f"{self.path}: not an ActiGraph .gt3x: no info.txt")
+            raise DeviceFileError(f"{self.path}: not an ActiGraph .gt3x: no info.txt")
         self.info = zc.parse_info(raw_info)
         self.serial = self.info.get("Serial Number", "")
         self.notes: list[str] = []
@@ -101,7 +101,7 @@ class Gt3xReader:
         log = zc.entry_info(self._zf, "log.bin", zc.DATA_MAX_BYTES)
         nhanes = None if log else zc.entry_info(self._zf, "activity.bin", zc.DATA_MAX_BYTES)
         if log is None and nhanes is None:
-            raise InputError(f"{self.path}: not an ActiGraph .gt3x: neither log.bin nor "
+            raise DeviceFileError(f"{self.path}: not an ActiGraph .gt3x: neither log.bin nor "
                              "activity.bin")
         self.layout = "log.bin" if log else "nhanes"
         self.rate_hz = self._rate(zc.info_float(self.info, "Sample Rate", str(self.path)))
@@ -121,9 +121,9 @@ class Gt3xReader:
     # --- what must be known before the samples ------------------------------------------------
     def _rate(self, rate: float | None) -> float:
         if rate is None:
-            raise InputError(f"{self.path}: info.txt has no Sample Rate")
+            raise DeviceFileError(f"{self.path}: info.txt has no Sample Rate")
         if not RATE_RANGE_HZ[0] <= rate <= RATE_RANGE_HZ[1]:
-            raise InputError(f"{self.path}: info.txt Sample Rate {rate} Hz is not a rate "
+            raise DeviceFileError(f"{self.path}: info.txt Sample Rate {rate} Hz is not a rate "
                              f"between {RATE_RANGE_HZ[0]:g} and {RATE_RANGE_HZ[1]:g} Hz")
         return rate
 
@@ -147,7 +147,7 @@ class Gt3xReader:
             scale = _serial_default(self.serial, DEFAULT_SCALE_BY_SERIAL)
             self.metadata["scale_from"] = "the serial number's device default"
         if scale is None or not 1.0 <= scale <= 1e5:
-            raise InputError(f"{self.path}: no acceleration scale: no PARAMETERS ACCEL_SCALE, "
+            raise DeviceFileError(f"{self.path}: no acceleration scale: no PARAMETERS ACCEL_SCALE, "
                              f"no info.txt Acceleration Scale, unknown serial {self.serial!r}")
         sleep_mode = params.get(rec.PARAM_FEATURE_ENABLE, 0) & rec.FEATURE_SLEEP_MODE_BIT
         self.metadata["idle_sleep_mode"] = bool(sleep_mode)
@@ -162,7 +162,8 @@ class Gt3xReader:
         if not offset and rec.PARAM_UTC_OFFSET in params:
             seconds = params[rec.PARAM_UTC_OFFSET]
             seconds -= 1 << 32 if seconds >= 1 << 31 else 0
-            offset = f"{seconds} s"
+            sign, seconds = ("-" if seconds < 0 else "+"), abs(seconds)
+            offset = f"{sign}{seconds // 3600:02d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
         self.metadata["utc_offset"] = offset
         self.notes.append("times are " + ("UTC (the file says it was initialised in UTC)"
                                           if used_utc else "the device's local clock as stored"
@@ -172,7 +173,7 @@ class Gt3xReader:
         """NHANES-era file: times from info.txt's Start Date, the NHANES scale (341 LSB/g)."""
         start = zc.info_time_us(self.info, "Start Date", str(self.path))
         if start is None:
-            raise InputError(f"{self.path}: NHANES .gt3x without an info.txt Start Date")
+            raise DeviceFileError(f"{self.path}: NHANES .gt3x without an info.txt Start Date")
         self._start_us, self._n_done = start, 0
         self.metadata.update(time_is_utc=False, utc_offset="")
         self.notes.append("times are the device's local clock from info.txt's Start Date")
@@ -222,7 +223,7 @@ class Gt3xReader:
         d.bad_checksums, d.stray_bytes = d.bad_checksums + bad, d.stray_bytes + idx.stray_bytes
         d.truncated |= idx.truncated
         if not self.lenient and (bad or idx.stray_bytes or idx.truncated):
-            raise InputError(f"{self.path}: log.bin is damaged ({bad} records with a bad "
+            raise DeviceFileError(f"{self.path}: log.bin is damaged ({bad} records with a bad "
                              f"checksum, {idx.stray_bytes} stray bytes"
                              + (", cut short" if idx.truncated else "") + "); lenient reads it")
         self._imu_records += int(np.count_nonzero(np.isin(idx.kind, IMU_KINDS)))
