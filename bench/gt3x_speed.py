@@ -10,7 +10,8 @@ pygt3x only). Each reader reads each file ``--repeats`` times; the best wall tim
 (samples / s). pygt3x is timed inside its own process, from opening the file to its data
 frame, so that its start-up is not counted. Samples are as each reader returns them (a reader
 that fills idle sleep is not credited with its fill: these files have none); the counts are
-printed so that a reader that returned less is seen.
+printed so that a reader that returned less is seen, and the largest difference of its values
+from recal's.
 
     python bench/gt3x_speed.py [--hours 24] [--repeats 3] [--pygt3x /tmp/pyg/bin/python]
 """
@@ -34,11 +35,14 @@ DOTNET_TICKS_AT_UNIX_EPOCH = 621_355_968_000_000_000
 START_S = 1_700_000_000
 PYGT3X_SCRIPT = """
 import sys, time
+import numpy as np
 from pygt3x.reader import FileReader
 t0 = time.perf_counter()
 with FileReader(sys.argv[1]) as reader:
     df = reader.to_pandas()
-print(len(df), time.perf_counter() - t0)
+seconds = time.perf_counter() - t0
+np.save(sys.argv[2], df[["X", "Y", "Z"]].to_numpy())
+print(len(df), seconds)
 """
 
 
@@ -84,43 +88,47 @@ def write_synthetic(path: Path, hours: float, kind: int, rate: int = 30) -> int:
             "Acceleration Max: 8.0\n")
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
         z.writestr("info.txt", info)
-        z.writestr("log.bin", _records(kind, payload))
+        # PARAMETERS with ACCEL_SCALE 256 (Parameters.md's float 0x09400000) and the rate, as
+        # devices write it first (actfast 1.3 scales wrongly without it)
+        params = np.array([[0, 55, 0x0000, 0x0940], [1, 10, rate, 0]], "<u2").view(np.uint8)
+        z.writestr("log.bin", _records(0x15, params.reshape(1, -1)) + _records(kind, payload))
     return len(c)
 
 
-def _best(fn: Callable[[Path], int], path: Path, inner: int,
-          repeats: int) -> tuple[float, int]:
-    """Best of ``repeats`` of the mean time of ``inner`` reads; the samples read."""
-    best, n = float("inf"), 0
+Result = tuple[float, np.ndarray]    # best seconds per read, the (N, 3) values in g
+
+
+def _best(fn: Callable[[Path], np.ndarray], path: Path, inner: int, repeats: int) -> Result:
+    """Best of ``repeats`` of the mean time of ``inner`` reads; the values read."""
+    best, v = float("inf"), np.zeros((0, 3))
     for _ in range(repeats):
         t0 = time.perf_counter()
         for _ in range(inner):
-            n = fn(path)
+            v = fn(path)
         best = min(best, (time.perf_counter() - t0) / inner)
-    return best, n
+    return best, v
 
 
-def _recal(path: Path) -> int:
-    return len(read_gt3x(path).t_us)
+def _recal(path: Path) -> np.ndarray:
+    return read_gt3x(path).acc_g
 
 
-def _actfast(path: Path) -> int:
+def _actfast(path: Path) -> np.ndarray:
     import actfast
 
-    return len(actfast.read(str(path))["timeseries"]["acceleration"]["datetime"])
+    return np.asarray(actfast.read(str(path))["timeseries"]["acceleration"]["acceleration"])
 
 
-def _pygt3x(python: str, path: Path, repeats: int) -> tuple[float, int] | None:
-    best, n = float("inf"), 0
+def _pygt3x(python: str, path: Path, repeats: int) -> Result | None:
+    best, out = float("inf"), path.with_suffix(".pygt3x.npy")
     for _ in range(repeats):
-        r = subprocess.run([python, "-c", PYGT3X_SCRIPT, str(path)], capture_output=True,
-                           text=True, timeout=600)
+        r = subprocess.run([python, "-c", PYGT3X_SCRIPT, str(path), str(out)],
+                           capture_output=True, text=True, timeout=600)
         if r.returncode != 0:
             print(f"    pygt3x failed: {r.stderr.strip().splitlines()[-1:]}")
             return None
-        rows, seconds = r.stdout.split()
-        n, best = int(rows), min(best, float(seconds))
-    return best, n
+        best = min(best, float(r.stdout.split()[1]))
+    return best, np.load(out)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,18 +145,23 @@ def main(argv: list[str] | None = None) -> int:
             p = Path(tmp) / f"{name}.gt3x"
             n = write_synthetic(p, a.hours, kind)
             files.append((f"synthetic {name} {a.hours:g} h ({n} samples)", p, 1))
-        print(f"{'file':44s} {'reader':8s} {'samples':>10s} {'s':>8s} {'samples/s':>12s}")
+        print(f"{'file':44s} {'reader':8s} {'samples':>10s} {'s':>8s} {'samples/s':>12s} "
+              "max|diff| to recal (g)")
         for label, path, inner in files:
-            readers: list[tuple[str, tuple[float, int] | None]] = [
+            readers: list[tuple[str, Result | None]] = [
                 ("recal", _best(_recal, path, inner, a.repeats))]
             if "ACTIVITY2" not in label:
                 readers.append(("actfast", _best(_actfast, path, inner, a.repeats)))
             if has_pyg:
                 readers.append(("pygt3x", _pygt3x(a.pygt3x, path, a.repeats)))
+            ours = readers[0][1][1] if readers[0][1] is not None else np.zeros((0, 3))
             for name, res in readers:
                 if res is not None:
-                    sec, n = res
-                    print(f"{label:44s} {name:8s} {n:10d} {sec:8.3f} {n / sec:12.3g}")
+                    sec, v = res
+                    diff = (f"{np.abs(v - ours).max():.2g}" if v.shape == ours.shape
+                            else "different counts")
+                    print(f"{label:44s} {name:8s} {len(v):10d} {sec:8.3f} {len(v) / sec:12.3g} "
+                          f"{diff}")
         if not has_pyg:
             print(f"pygt3x not measured: no {a.pygt3x} (install it in a throwaway venv)")
     return 0

@@ -97,6 +97,7 @@ class LogFile:
     bad_checksum_seconds: tuple[int, ...] = ()
     imu_records: int = 0
     zero_padding: bool = True       # the description allows it; actfast 1.3 stops at it
+    parameters: bool = True         # a PARAMETERS record (ACCEL_SCALE, rate, sleep mode on)
 
     def seconds(self) -> list[int]:
         """The seconds that hold samples, in order."""
@@ -121,7 +122,8 @@ class LogFile:
         meta = json.dumps({"MetadataType": "Bio", "SubjectName": "synthetic"}).encode()
         params = {(0, 55): ssp_encode(self.scale), (1, 10): self.rate_hz, (1, 2): 1 << 2}
         out = [record(0x06, self.start_s, meta), b"\0\0\0" if self.zero_padding else b"",
-               record(0x15, self.start_s, parameters_payload(params))]
+               record(0x15, self.start_s, parameters_payload(params)) if self.parameters
+               else b""]
         pack = pack16_xyz if self.kind == 0x1A else pack12_yxz
         by_sec = dict(zip(self.seconds(), self.counts.reshape(-1, self.rate_hz, 3), strict=True))
         last = max(self.seconds(), default=0)

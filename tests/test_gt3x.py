@@ -82,6 +82,21 @@ def test_activity2_reads_back_value_by_value(tmp_path: Path) -> None:
     assert "IMU records" in notes and "not applied" in notes and "nothing repeated" in notes
 
 
+def test_the_scale_falls_back_to_info_txt_then_the_serial(tmp_path: Path) -> None:
+    """Activity2.md: ACCEL_SCALE where PARAMETERS has it; else info.txt's Acceleration Scale;
+    else the device's default by serial (NEO/CLE 341, MOS 256)."""
+    lf = _activity2(parameters=False, bad_checksum_seconds=())
+    d = read_gt3x(lf.write(tmp_path / "info_scale.gt3x"))
+    assert d.metadata["scale_from"] == "info.txt Acceleration Scale"
+    np.testing.assert_array_equal(d.acc_g, lf.expected_counts() / 999.0)
+    e = lf.entries()
+    e["info.txt"] = e["info.txt"].replace(b"Acceleration Scale: 999.0\n", b"").replace(
+        b"TAS1E23456789", b"CLE2A14151617")
+    d = read_gt3x(zip_gt3x(tmp_path / "serial_scale.gt3x", e))
+    assert d.metadata["scale_lsb_per_g"] == 341.0
+    np.testing.assert_array_equal(d.acc_g, lf.expected_counts() / 341.0)
+
+
 def test_idle_sleep_is_a_gap_not_repeated_samples(tmp_path: Path) -> None:
     lf = _activity2(bad_checksum_seconds=())
     d = read_gt3x(lf.write(tmp_path / "sleep.gt3x"))
@@ -113,16 +128,30 @@ def test_activity_12_bit_reads_as_actfast_reads_it(tmp_path: Path) -> None:
 
 
 def test_nhanes_reads_back_value_by_value(tmp_path: Path) -> None:
-    counts = _counts(31 * 4 + 1, -2046, 2046, 3)            # an odd total: the last nibble spare
+    counts = _counts(31 * 60 + 1, -2046, 2046, 3)          # an odd total: the last nibble spare
     lux_raw = [0, 19, 20, 0xFFFF, 2200, 1100]
     path = zip_gt3x(tmp_path / "nhanes.gt3x", nhanes_entries(counts, 31, 1_200_000_000, lux_raw))
-    d = read_gt3x(path)
-    np.testing.assert_array_equal(d.acc_g, counts / 341.0)
     i = np.arange(len(counts))
-    np.testing.assert_array_equal(d.t_us, 1_200_000_000_000_000 + np.rint(i * 1e6 / 31))
+    for d in (read_gt3x(path, chunk_bytes=1000), read_gt3x(path)):   # chunks cut samples apart
+        np.testing.assert_array_equal(d.acc_g, counts / 341.0)
+        np.testing.assert_array_equal(d.t_us, 1_200_000_000_000_000 + np.rint(i * 1e6 / 31))
     t, lux = d.aux["lux"]
     assert lux.tolist() == [0.0, 0.0, 25.0, 0.0, 2500.0, 1375.0]
     assert np.diff(t).tolist() == [1_000_000] * 5 and d.metadata["layout"] == "nhanes"
+
+
+@pytest.mark.parametrize("kind", [0x00, 0x1A])
+def test_long_runs_and_small_chunks_read_the_same(tmp_path: Path, kind: int) -> None:
+    """Over 4096 equal records (more than one run probe) and chunks that cut records apart."""
+    lim = 2046 if kind == 0x00 else 32767
+    lf = LogFile(counts=_counts(2 * 5000, -lim, lim, 4), rate_hz=2, kind=kind, asleep=(4500,),
+                 battery_mv={4200: 3900})
+    path = lf.write(tmp_path / "long.gt3x")
+    whole, cut = read_gt3x(path), read_gt3x(path, chunk_bytes=1000)
+    for d in (whole, cut):
+        np.testing.assert_array_equal(d.t_us, lf.expected_t_us())
+        np.testing.assert_array_equal(d.acc_g, lf.expected_counts() / 256.0)
+        assert d.metadata["gaps"] == 1 and d.aux["battery_v"][1].tolist() == [3.9]
 
 
 # --- damage ------------------------------------------------------------------------------------
