@@ -4,10 +4,10 @@ CentrePoint; actfast 1.3 returns no samples for them) and the NHANES-era zip wit
 and no log.bin (actigraph/GT3X-File-Format and NHANES-GT3X-File-Format describe both).
 
 Each ACTIVITY record holds one second of samples at the sample rate, stamped with its whole
-second: the seconds are the blocks. In idle sleep mode the device writes no record (or an
-empty one) for the seconds it sleeps; actfast adds no samples for them, so they stay a gap
-(never repeated samples: the repeat the format's description suggests would look like a
-perfectly still sensor).
+second: the seconds are the blocks. In idle sleep mode the device writes no ACTIVITY record for
+the seconds it sleeps (EVENT records 0x08 and 0x09 mark entering and leaving it); actfast adds
+no samples for them, so they stay a gap. Some readers fill them with the last sample repeated,
+which would look like a perfectly still sensor; nothing here does.
 """
 
 from __future__ import annotations
@@ -56,6 +56,9 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
             "idle_sleep_mode": features.get("sleep_mode"),
             "values": "acceleration in g: the counts divided by the file's acceleration scale"}
     notes = []
+    if str(serial).startswith("MOS") and str(info.get("Firmware")) == "1.6.0":
+        notes.append("firmware 1.6.0 of a wGT3X-BT swaps x and y (ActiGraph's note on "
+                     "ACTIVITY records): the values are as written")
     if str(features.get("sleep_mode")).lower() == "true":
         notes.append("idle sleep mode was on: the seconds the device slept are gaps, not "
                      "repeated samples")

@@ -18,7 +18,6 @@ given.
 
 from __future__ import annotations
 
-import gzip
 import os
 import re
 import struct
@@ -26,6 +25,7 @@ import tempfile
 import zipfile
 import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 from recal.errors import DeviceFileError
 
@@ -71,31 +71,42 @@ def read_head(path: Path, n: int = 4096) -> bytes:
 
 def gunzip_to(path: Path, folder: str | None = None) -> Path:
     """The gzip file expanded into a new temporary file (the caller deletes it); a
-    DeviceFileError when the expansion would pass the cap or the stream is damaged (a cut
-    short stream keeps what was whole: the reader then skips the last partial block)."""
+    DeviceFileError when the expansion would pass the cap or the stream is damaged. A stream
+    cut short keeps what it expanded to (the reader then skips the last partial block)."""
     cap = _cap(path.stat().st_size)
     fd, name = tempfile.mkstemp(suffix=".cwa", dir=folder)
     out = Path(name)
-    written = 0
     try:
-        with os.fdopen(fd, "wb") as dst, gzip.open(path, "rb") as src:
-            try:
-                while chunk := src.read(CHUNK_BYTES):
-                    written += len(chunk)
-                    if written > cap:
-                        raise DeviceFileError(
-                            f"{path}: gzip-compressed file expands beyond {cap >> 20} MiB "
-                            f"({MAX_RATIO}x its size or {MAX_EXPANDED_BYTES >> 30} GiB): refused")
-                    dst.write(chunk)
-            except EOFError:  # cut short: what was whole is kept
-                pass
-    except (OSError, zlib.error) as e:
+        with os.fdopen(fd, "wb") as dst, open(path, "rb") as src:
+            _expand(src, dst, cap, path)
+    except zlib.error as e:
         out.unlink(missing_ok=True)
         raise DeviceFileError(f"{path}: damaged gzip stream ({e})") from None
     except BaseException:
         out.unlink(missing_ok=True)
         raise
     return out
+
+
+def _expand(src: BinaryIO, dst: BinaryIO, cap: int, path: Path) -> None:
+    """zlib in bounded steps (at most CHUNK_BYTES out per call, whatever the input), member
+    after member."""
+    written = 0
+    d = zlib.decompressobj(wbits=31)
+    while chunk := src.read(CHUNK_BYTES):
+        while chunk:
+            piece = d.decompress(chunk, CHUNK_BYTES)
+            written += len(piece)
+            if written > cap:
+                raise DeviceFileError(
+                    f"{path}: gzip-compressed file expands beyond {cap >> 20} MiB "
+                    f"({MAX_RATIO}x its size or {MAX_EXPANDED_BYTES >> 30} GiB): refused")
+            dst.write(piece)
+            if d.eof:  # another member may follow
+                chunk = d.unused_data
+                d = zlib.decompressobj(wbits=31)
+            else:
+                chunk = d.unconsumed_tail
 
 
 def check_zip(path: Path, entries: tuple[str, ...]) -> None:
