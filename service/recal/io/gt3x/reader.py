@@ -29,6 +29,7 @@ NHANES_SCALE_LSB_PER_G = 341.0      # activity.bin.md
 NHANES_LUX = {"NEO": (1.25, 2500.0), "MRA": (3.25, 6000.0)}   # lux.bin.md: factor, maximum
 RATE_RANGE_HZ = (1.0, 1000.0)
 IMU_KINDS = (rec.SENSOR_SCHEMA, rec.SENSOR_DATA)
+HEAD_BYTES = 1 << 16          # METADATA and PARAMETERS come first (Parameters.md)
 
 
 @dataclass
@@ -84,7 +85,8 @@ def _serial_default(serial: str, table: tuple[tuple[str, float], ...]) -> float 
 class Gt3xReader:
     """One ``.gt3x`` opened for reading; see the module docstring."""
 
-    def __init__(self, path: str | Path, lenient: bool = True) -> None:
+    def __init__(self, path: str | Path, lenient: bool = True,
+                 chunk_bytes: int = zc.CHUNK_BYTES) -> None:
         self.path, self.lenient = Path(path), lenient
         self._zf = zc.open_zip(self.path)
         raw_info = zc.read_entry(self._zf, "info.txt", zc.INFO_MAX_BYTES)
@@ -105,7 +107,7 @@ class Gt3xReader:
                              "activity.bin")
         self.layout = "log.bin" if log else "nhanes"
         self.rate_hz = self._rate(zc.info_float(self.info, "Sample Rate", str(self.path)))
-        self._chunks = zc.iter_entry(self._zf, log or nhanes)
+        self._chunks = zc.iter_entry(self._zf, log or nhanes, max(chunk_bytes, 1 << 10))
         self._first = next(self._chunks, b"")
         self.scale_lsb_per_g = (self._open_log() if self.layout == "log.bin"
                                 else self._open_nhanes())
@@ -129,11 +131,12 @@ class Gt3xReader:
 
     def _open_log(self) -> float:
         """METADATA and PARAMETERS from the first chunk; the scale the samples are read with."""
-        idx = rec.index_records(self._first, final=False)
+        head = self._first[:HEAD_BYTES]
+        idx = rec.index_records(head, final=False)
         params: dict[tuple[int, int], int] = {}
         for i in np.flatnonzero(idx.ok & (idx.kind == rec.PARAMETERS))[:4]:
-            params.update(rec.parameters(rec.record_payload(self._first, idx, int(i))))
-        meta = [rec.metadata_json(rec.record_payload(self._first, idx, int(i)))
+            params.update(rec.parameters(rec.record_payload(head, idx, int(i))))
+        meta = [rec.metadata_json(rec.record_payload(head, idx, int(i)))
                 for i in np.flatnonzero(idx.ok & (idx.kind == rec.METADATA))[:32]]
         self._time_basis({m.get("MetadataType"): m for m in meta if m}, params)
         scale = None
@@ -304,9 +307,11 @@ class Gt3xData:
     rate_hz: float
 
 
-def read_gt3x(path: str | Path, lenient: bool = True) -> Gt3xData:
-    """Every sample of a ``.gt3x`` of either layout, in memory."""
-    r = Gt3xReader(path, lenient=lenient)
+def read_gt3x(path: str | Path, lenient: bool = True,
+              chunk_bytes: int = zc.CHUNK_BYTES) -> Gt3xData:
+    """Every sample of a ``.gt3x`` of either layout, in memory (read ``chunk_bytes`` of the
+    zip entry at a time)."""
+    r = Gt3xReader(path, lenient=lenient, chunk_bytes=chunk_bytes)
     parts = list(r.chunks())
     t = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
     a = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, 3))

@@ -60,12 +60,37 @@ class RecordIndex:
     truncated: bool
 
 
-def _walk(buf: bytes, final: bool) -> tuple[list[int], int, int, bool]:
+RUN_PROBE = 4096   # records checked at once when guessing that a run of equal records goes on
+
+
+def _run_after(arr: np.ndarray, pos: int, stride: int, lo: int, hi: int) -> int:
+    """How many records follow the one at ``pos`` back to back with the same size bytes
+    (``lo``, ``hi``), each then followed by a separator: checked RUN_PROBE at a time, so a
+    file of one record a second is framed with a few numpy calls per run, not a loop step per
+    record. The last record of the run is left for the careful walk to check."""
+    total = 0
+    while True:
+        m = min(RUN_PROBE, (len(arr) - 1 - pos) // stride)
+        if m <= 1:
+            return total
+        at = pos + stride * np.arange(1, m + 1)
+        good = (arr[at] == SEPARATOR) & (arr[np.minimum(at + 6, len(arr) - 1)] == lo) & (
+            arr[np.minimum(at + 7, len(arr) - 1)] == hi)
+        k = int(np.argmin(good)) if not good.all() else m
+        if k < m or m < RUN_PROBE:
+            return total + max(k - 1, 0)
+        total, pos = total + m - 1, pos + stride * (m - 1)
+
+
+def _walk(buf: bytes, final: bool) -> tuple[list[np.ndarray], int, int, bool]:
     """Record offsets by following each record's size; resynchronises on the next separator
     where a record's framing is implausible (its end is not followed by a separator or the
-    description's zero padding), so one damaged size costs a record, not the rest of the file."""
+    description's zero padding), so one damaged size costs a record, not the rest of the file.
+    Runs of records of one size are taken whole (`_run_after`)."""
+    arr = np.frombuffer(buf, dtype=np.uint8)
     n, pos, stray, truncated = len(buf), 0, 0, False
-    found: list[int] = []
+    found: list[np.ndarray] = []
+    single: list[int] = []
     find = buf.find
     while pos < n:
         if buf[pos] != SEPARATOR:
@@ -81,11 +106,19 @@ def _walk(buf: bytes, final: bool) -> tuple[list[int], int, int, bool]:
                 break              # the next chunk completes it
             truncated = True       # cut short, or a damaged size: look for a later record
         elif end == n or buf[end] == SEPARATOR or buf[end] == 0:
-            found.append(pos)
-            pos = end
+            single.append(pos)
+            stride = end - pos
+            run = _run_after(arr, pos, stride, buf[pos + 6], buf[pos + 7]) if (
+                end < n and buf[end] == SEPARATOR) else 0
+            if run:
+                found += [np.asarray(single, np.int64),
+                          pos + stride * np.arange(1, run + 1, dtype=np.int64)]
+                single = []
+            pos = end + stride * run
             continue
         stray += 1
         pos += 1
+    found.append(np.asarray(single, np.int64))
     return found, stray, (n if final else pos), truncated
 
 
@@ -96,18 +129,20 @@ def index_records(buf: bytes, final: bool) -> RecordIndex:
     the next chunk (``end``)."""
     found, stray, end, truncated = _walk(buf, final)
     arr = np.frombuffer(buf, dtype=np.uint8)
-    pos = np.asarray(found, dtype=np.int64)
+    pos = np.concatenate(found)
     size = arr[pos + 6].astype(np.int64) | (arr[pos + 7].astype(np.int64) << 8)
     time_s = np.zeros(len(pos), dtype=np.int64)
     for k in range(4):                     # little-endian uint32, vectorized over records
         time_s |= arr[pos + 2 + k].astype(np.int64) << (8 * k)
     ok = np.zeros(len(pos), dtype=bool)
     if len(pos):
-        # XOR of bytes [pos, pos + 8 + size) from one running XOR of the chunk (O(bytes)).
-        run = np.bitwise_xor.accumulate(arr[: int(pos[-1] + HEADER_BYTES + size[-1])])
-        last = pos + HEADER_BYTES + size - 1
-        before = np.where(pos > 0, run[np.maximum(pos - 1, 0)], 0).astype(np.uint8)
-        ok = (~(run[last] ^ before) & 0xFF) == arr[last + 1]
+        # XOR of each record's header and payload: one reduceat over [pos, checksum) spans
+        # (the odd spans, checksum and padding, are not used).
+        last = pos + HEADER_BYTES + size
+        spans = np.empty(2 * len(pos), np.int64)
+        spans[0::2], spans[1::2] = pos, last
+        x = np.bitwise_xor.reduceat(arr, spans)[0::2]
+        ok = (~x & 0xFF) == arr[last]
     return RecordIndex(pos=pos, kind=arr[pos + 1].copy(), time_s=time_s, size=size, ok=ok,
                        stray_bytes=stray, end=end, truncated=truncated)
 
@@ -115,7 +150,15 @@ def index_records(buf: bytes, final: bool) -> RecordIndex:
 def payload_rows(buf: bytes, pos: np.ndarray, size: int) -> np.ndarray:
     """(len(pos), size) uint8: the payloads of records of one size, gathered in one step."""
     arr = np.frombuffer(buf, dtype=np.uint8)
-    return arr[pos[:, None] + HEADER_BYTES + np.arange(size)]
+    if not len(pos):
+        return np.zeros((0, size), np.uint8)
+    stride = size + HEADER_BYTES + 1
+    first = int(pos[0]) + HEADER_BYTES
+    if np.all(np.diff(pos) == stride):      # back to back (the usual run): a strided view
+        return np.lib.stride_tricks.as_strided(arr[first:], shape=(len(pos), size),
+                                               strides=(stride, 1), writeable=False)
+    # rows of a strided window view: one contiguous copy per record, no per-byte index array
+    return np.lib.stride_tricks.sliding_window_view(arr, size)[pos + HEADER_BYTES]
 
 
 def unpack12_yxz(rows: np.ndarray) -> np.ndarray:
@@ -170,15 +213,20 @@ def decode_activity(buf: bytes, idx: RecordIndex, rate_hz: float) -> Samples:
     counts = np.empty((int(start[-1]), 3), dtype=np.int16)
     t_us = np.empty(int(start[-1]), dtype=np.int64)
     step_us = 1e6 / rate_hz
-    for kind, unpack in ((ACTIVITY, unpack12_yxz), (ACTIVITY2, unpack16_xyz)):
-        for size in np.unique(sizes[kinds == kind]):
-            grp = np.flatnonzero((kinds == kind) & (sizes == size))
-            v = unpack(payload_rows(buf, idx.pos[sel[grp]], int(size)))
-            n = v.shape[1]
-            rows = start[grp][:, None] + np.arange(n)
-            counts[rows] = v
-            offs = np.rint(np.arange(n) * step_us).astype(np.int64)
-            t_us[rows] = idx.time_s[sel[grp]][:, None] * 1_000_000 + offs
+    groups = [(kind, unpack, size) for kind, unpack in ((ACTIVITY, unpack12_yxz),
+                                                        (ACTIVITY2, unpack16_xyz))
+              for size in np.unique(sizes[kinds == kind])]
+    for kind, unpack, size in groups:
+        grp = np.flatnonzero((kinds == kind) & (sizes == size))
+        v = unpack(payload_rows(buf, idx.pos[sel[grp]], int(size)))
+        n = v.shape[1]
+        t = (idx.time_s[sel[grp]][:, None] * 1_000_000
+             + np.rint(np.arange(n) * step_us).astype(np.int64))
+        if len(groups) == 1:          # the usual chunk: every record alike, already in order
+            counts, t_us = v.reshape(-1, 3), t.reshape(-1)
+            break
+        rows = start[grp][:, None] + np.arange(n)
+        counts[rows], t_us[rows] = v, t
     return Samples(t_us=t_us, counts=counts, record_time_s=idx.time_s[sel])
 
 
