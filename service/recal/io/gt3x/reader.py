@@ -114,11 +114,9 @@ class Gt3xReader:
         self.metadata.update(rate_hz=self.rate_hz, scale_lsb_per_g=self.scale_lsb_per_g,
                              layout=self.layout)
         self._calibration_json()
-        self._swap_xy = (self.serial.upper().startswith("MOS")
-                         and self.metadata["firmware"] == "1.6.0")
-        if self._swap_xy:
-            self.notes.append("wGT3X-BT firmware 1.6.0: x and y swapped back as ActiGraph "
-                              "describes (x = y, y = -x)")
+        if self.serial.upper().startswith("MOS") and self.metadata["firmware"] == "1.6.0":
+            self.notes.append("firmware 1.6.0 of a wGT3X-BT swaps x and y (ActiGraph's note on "
+                              "ACTIVITY records): the values are as written")
 
     # --- what must be known before the samples ------------------------------------------------
     def _rate(self, rate: float | None) -> float:
@@ -199,10 +197,7 @@ class Gt3xReader:
         once this is exhausted."""
         parts = self._log_chunks() if self.layout == "log.bin" else self._nhanes_chunks()
         for t_us, counts in parts:
-            acc = counts.astype(np.float64) / self.scale_lsb_per_g
-            if self._swap_xy:
-                acc = np.stack([acc[:, 1], -acc[:, 0], acc[:, 2]], axis=1)
-            yield t_us, acc
+            yield t_us, counts.astype(np.float64) / self.scale_lsb_per_g
         self._close()
 
     def _log_chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
