@@ -202,6 +202,14 @@ def test_a_lying_size_is_one_line(tmp_path: Path, declared: int) -> None:
         read_gt3x(path)
 
 
+def test_a_log_of_undocumented_sample_records_says_so(tmp_path: Path) -> None:
+    """CentrePoint's .agdc writes samples in record type 0x1B, which ActiGraph's description does
+    not cover: one line that names the types, not an empty recording."""
+    lf = LogFile(counts=_counts(30 * 3, -2046, 2046, 9), rate_hz=30, kind=0x1B)
+    with pytest.raises(DeviceFileError, match="0x1B x4"):
+        read_gt3x(lf.write(tmp_path / "agdc.gt3x"))
+
+
 def test_not_a_gt3x_is_one_line(tmp_path: Path) -> None:
     junk = tmp_path / "junk.gt3x"
     junk.write_bytes(b"PK\x03\x04" + bytes(100))

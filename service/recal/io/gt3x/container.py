@@ -77,7 +77,7 @@ def iter_entry(zf: zipfile.ZipFile, info: zipfile.ZipInfo,
 def parse_info(text: bytes) -> dict[str, str]:
     """info.txt's ``Key: Value`` lines (info.txt.md)."""
     out: dict[str, str] = {}
-    for line in text.decode("utf-8", errors="replace").splitlines():
+    for line in text.decode("utf-8-sig", errors="replace").splitlines():
         key, sep, value = line.partition(":")
         if sep and key.strip():
             out[key.strip()] = value.strip()

@@ -34,9 +34,14 @@ HEAD_BYTES = 1 << 16          # METADATA and PARAMETERS come first (Parameters.m
 
 @dataclass
 class _Damage:
+    """What was skipped or not used, counted over the chunks."""
+
     bad_checksums: int = 0
     stray_bytes: int = 0
     truncated: bool = False
+    imu_records: int = 0
+    samples: int = 0
+    undocumented: dict[int, int] = field(default_factory=dict)   # record type -> count
 
 
 @dataclass
@@ -99,7 +104,7 @@ class Gt3xReader:
                                             "device_type": self.info.get("Device Type", ""),
                                             "firmware": self.info.get("Firmware", "")}
         self._series: dict[str, _Series] = {}
-        self._damage, self._gaps, self._imu_records = _Damage(), _Gaps(), 0
+        self._damage, self._gaps = _Damage(), _Gaps()
         log = zc.entry_info(self._zf, "log.bin", zc.DATA_MAX_BYTES)
         nhanes = None if log else zc.entry_info(self._zf, "activity.bin", zc.DATA_MAX_BYTES)
         if log is None and nhanes is None:
@@ -197,6 +202,7 @@ class Gt3xReader:
         once this is exhausted."""
         parts = self._log_chunks() if self.layout == "log.bin" else self._nhanes_chunks()
         for t_us, counts in parts:
+            self._damage.samples += len(t_us)
             yield t_us, counts.astype(np.float64) / self.scale_lsb_per_g
         self._close()
 
@@ -224,7 +230,11 @@ class Gt3xReader:
             raise DeviceFileError(f"{self.path}: log.bin is damaged ({bad} records with a bad "
                              f"checksum, {idx.stray_bytes} stray bytes"
                              + (", cut short" if idx.truncated else "") + "); lenient reads it")
-        self._imu_records += int(np.count_nonzero(np.isin(idx.kind, IMU_KINDS)))
+        d.imu_records += int(np.count_nonzero(np.isin(idx.kind, IMU_KINDS)))
+        kinds, counts = np.unique(idx.kind[~np.isin(idx.kind, rec.DOCUMENTED_KINDS)],
+                                  return_counts=True)
+        for k, c in zip(kinds.tolist(), counts.tolist(), strict=True):
+            d.undocumented[k] = d.undocumented.get(k, 0) + c
 
     def _log_aux(self, buf: bytes, idx: rec.RecordIndex) -> None:
         for name, (t_s, v) in (("battery_v", rec.decode_u16_records(buf, idx, rec.BATTERY)),
@@ -278,10 +288,18 @@ class Gt3xReader:
                               "missing records): left as gaps, nothing repeated")
         if g.backwards:
             self.notes.append(f"the record clock went backwards {g.backwards} times")
-        if self._imu_records:
-            self.notes.append(f"{self._imu_records} IMU records (gyroscope, magnetometer) not "
+        if d.imu_records:
+            self.notes.append(f"{d.imu_records} IMU records (gyroscope, magnetometer) not "
                               "used")
         self._zf.close()
+        other = ", ".join(f"0x{k:02X} x{c}" for k, c in sorted(d.undocumented.items()))
+        if other and not d.samples:
+            raise DeviceFileError(f"{self.path}: ActiGraph log.bin without ACTIVITY or ACTIVITY2 "
+                                  f"samples; its records are of types ActiGraph's published "
+                                  f"description does not cover ({other}): not readable")
+        if other:
+            self.notes.append(f"records of types the published description does not cover, "
+                              f"not read: {other}")
 
     @property
     def aux(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:

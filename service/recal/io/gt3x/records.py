@@ -31,6 +31,8 @@ PARAM_FEATURE_ENABLE = (1, 2)
 PARAM_SAMPLE_RATE = (1, 10)
 PARAM_UTC_OFFSET = (1, 40)
 FEATURE_SLEEP_MODE_BIT = 1 << 2
+# the record types README's tables describe (samples, aux, epochs, diagnostics, IMU)
+DOCUMENTED_KINDS = (0, 2, 3, 4, 5, 6, 7, 9, 11, 12, 13, 14, 15, 16, 19, 20, 21, 24, 25, 26)
 
 
 @dataclass(frozen=True)
