@@ -62,44 +62,67 @@ class RecordIndex:
     truncated: bool
 
 
-RUN_PROBE = 4096   # records checked at once when guessing that a run of equal records goes on
+RUN_PROBE = (16, 4096)   # periods checked at once when guessing that a run goes on: first, most
+MAX_PERIOD = 3           # records in a repeating pattern (ACTIVITY2 then CAPSENSE every second)
 
 
-def _run_after(arr: np.ndarray, pos: int, stride: int, lo: int, hi: int) -> int:
-    """How many records follow the one at ``pos`` back to back with the same size bytes
-    (``lo``, ``hi``), each then followed by a separator: checked RUN_PROBE at a time, so a
-    file of one record a second is framed with a few numpy calls per run, not a loop step per
-    record. The last record of the run is left for the careful walk to check."""
-    total = 0
+def _run_after(arr: np.ndarray, base: int, offs: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+               period: int) -> int:
+    """How many more periods of a pattern of records (at ``base + offs``, ``period`` bytes in
+    all, size bytes ``lo``, ``hi``) follow back to back, every record where the pattern puts it
+    with a separator and the same size. Checked a probe at a time, the probe doubling from 16 to
+    4096 periods while the run goes on: a file of one record a second is framed with a few
+    numpy calls per run. The last period found is left for the careful walk to check."""
+    total, probe, last = 0, RUN_PROBE[0], len(arr) - 1
     while True:
-        m = min(RUN_PROBE, (len(arr) - 1 - pos) // stride)
+        m = min(probe, (last - base - int(offs[-1])) // period)
         if m <= 1:
             return total
-        at = pos + stride * np.arange(1, m + 1)
-        good = (arr[at] == SEPARATOR) & (arr[np.minimum(at + 6, len(arr) - 1)] == lo) & (
-            arr[np.minimum(at + 7, len(arr) - 1)] == hi)
-        k = int(np.argmin(good)) if not good.all() else m
-        if k < m or m < RUN_PROBE:
+        at = base + period * np.arange(1, m + 1)[:, None] + offs[None, :]
+        good = ((arr[at] == SEPARATOR) & (arr[np.minimum(at + 6, last)] == lo)
+                & (arr[np.minimum(at + 7, last)] == hi)).all(axis=1)
+        k = m if good.all() else int(np.argmin(good))
+        if k < m or m < probe:
             return total + max(k - 1, 0)
-        total, pos = total + m - 1, pos + stride * (m - 1)
+        total, base, probe = total + m - 1, base + period * (m - 1), min(2 * probe, RUN_PROBE[1])
+
+
+def _pattern_runs(buf: bytes, arr: np.ndarray, recent: list[int], end: int
+                  ) -> tuple[np.ndarray, int, list[int]]:
+    """Records found by repeating the last 1..MAX_PERIOD records (``recent``: back to back,
+    ending at ``end``): their offsets, where the careful walk resumes, the new ``recent``."""
+    for p in range(1, min(MAX_PERIOD, len(recent)) + 1):
+        first = recent[-p]
+        if buf[end + 6: end + 8] != buf[first + 6: first + 8]:
+            continue                     # the next record does not start the pattern again
+        period = end - first
+        offs = np.asarray(recent[-p:], np.int64) - first
+        lo, hi = arr[first + offs + 6], arr[first + offs + 7]
+        run = _run_after(arr, first, offs, lo, hi, period)
+        if run:
+            found = (first + period * np.arange(1, run + 1, dtype=np.int64)[:, None]
+                     + offs[None, :]).reshape(-1)
+            return found, end + period * run, [int(x) for x in found[-p:]]
+    return np.zeros(0, np.int64), end, recent
 
 
 def _walk(buf: bytes, final: bool) -> tuple[list[np.ndarray], int, int, bool]:
     """Record offsets by following each record's size; resynchronises on the next separator
     where a record's framing is implausible (its end is not followed by a separator or the
     description's zero padding), so one damaged size costs a record, not the rest of the file.
-    Runs of records of one size are taken whole (`_run_after`)."""
+    Runs of a repeating pattern of records are taken whole (`_pattern_runs`)."""
     arr = np.frombuffer(buf, dtype=np.uint8)
     n, pos, stray, truncated = len(buf), 0, 0, False
     found: list[np.ndarray] = []
     single: list[int] = []
+    recent: list[int] = []               # the last records found, back to back
     find = buf.find
     while pos < n:
         if buf[pos] != SEPARATOR:
             nxt = find(b"\x1e", pos + 1)
             nxt = n if nxt < 0 else nxt
             stray += (nxt - pos) - buf.count(0, pos, nxt)
-            pos = nxt
+            pos, recent = nxt, []
             continue
         end = pos + HEADER_BYTES + 1 + (
             buf[pos + 6] | buf[pos + 7] << 8 if pos + HEADER_BYTES <= n else 0)
@@ -109,17 +132,16 @@ def _walk(buf: bytes, final: bool) -> tuple[list[np.ndarray], int, int, bool]:
             truncated = True       # cut short, or a damaged size: look for a later record
         elif end == n or buf[end] == SEPARATOR or buf[end] == 0:
             single.append(pos)
-            stride = end - pos
-            run = _run_after(arr, pos, stride, buf[pos + 6], buf[pos + 7]) if (
-                end < n and buf[end] == SEPARATOR) else 0
-            if run:
-                found += [np.asarray(single, np.int64),
-                          pos + stride * np.arange(1, run + 1, dtype=np.int64)]
-                single = []
-            pos = end + stride * run
+            recent = [*recent[-(MAX_PERIOD - 1):], pos]
+            pos = end
+            if end + HEADER_BYTES < n and buf[end] == SEPARATOR:
+                run, pos, recent = _pattern_runs(buf, arr, recent, end)
+                if len(run):
+                    found += [np.asarray(single, np.int64), run]
+                    single = []
             continue
         stray += 1
-        pos += 1
+        pos, recent = pos + 1, []
     found.append(np.asarray(single, np.int64))
     return found, stray, (n if final else pos), truncated
 
