@@ -154,6 +154,20 @@ def test_long_runs_and_small_chunks_read_the_same(tmp_path: Path, kind: int) -> 
         assert d.metadata["gaps"] == 1 and d.aux["battery_v"][1].tolist() == [3.9]
 
 
+def test_records_interleaved_every_second_read_the_same(tmp_path: Path) -> None:
+    """ACTIVITY2 then LUX every second, and a battery record now and then: runs of a two-record
+    pattern, broken and taken up again."""
+    lf = LogFile(counts=_counts(2 * 3000, -32768, 32767, 5), rate_hz=2,
+                 lux={s: s % 1000 for s in range(3001)}, battery_mv={700: 4000, 2900: 3800},
+                 asleep=(1500, 1501))
+    path = lf.write(tmp_path / "interleaved.gt3x")
+    for d in (read_gt3x(path), read_gt3x(path, chunk_bytes=5000)):
+        np.testing.assert_array_equal(d.t_us, lf.expected_t_us())
+        np.testing.assert_array_equal(d.acc_g, lf.expected_counts() / 256.0)
+        lux = d.aux["lux"][1]
+        assert len(lux) == 3001 and lux[1234] == 234 and d.aux["battery_v"][1].tolist() == [4, 3.8]
+
+
 # --- damage ------------------------------------------------------------------------------------
 def test_a_cut_short_log_reads_what_is_whole(tmp_path: Path) -> None:
     lf = _activity2(asleep=(), bad_checksum_seconds=())

@@ -241,8 +241,8 @@ class Gt3xReader:
                                ("lux", rec.decode_u16_records(buf, idx, rec.LUX)),
                                ("worn", rec.decode_capsense_worn(buf, idx)),
                                ("idle_sleep", rec.idle_sleep_events(buf, idx))):
-            scale = 1e-3 if name == "battery_v" else 1.0
-            self._series.setdefault(name, _Series()).add(t_s * 1_000_000, v * scale)
+            per = 1000.0 if name == "battery_v" else 1.0      # BATTERY is in millivolts
+            self._series.setdefault(name, _Series()).add(t_s * 1_000_000, v / per)
 
     def _nhanes_chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """activity.bin: 9 bytes hold two 36-bit YXZ samples; chunks are cut on 9-byte bounds."""
