@@ -37,6 +37,18 @@ def test_recording_kind_reads_content(tmp_path: Path, cwa: Path) -> None:
     csv = tmp_path / "x.mcap"  # a CSV under an MCAP name is a CSV
     csv.write_text("t_us,x,y,z\n0,0,0,1\n")
     assert recording_kind(cwa) == "device" and recording_kind(csv) == "csv"
+    junk = tmp_path / "junk.cwa"  # a device's extension, not its content
+    junk.write_bytes(np.random.default_rng(0).bytes(3000))
+    assert recording_kind(junk) == "unknown"
+
+
+def test_hindsight_of_bytes_of_no_kind_says_so(tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    junk = tmp_path / "junk.cwa"
+    junk.write_bytes(np.random.default_rng(0).bytes(3000))
+    assert main(["hindsight", str(junk), "--out", str(tmp_path / "o.mcap"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "neither an MCAP recording, a device file" in err[0], err
 
 
 def test_import_writes_the_samples_and_the_device(tmp_path: Path, cwa: Path,

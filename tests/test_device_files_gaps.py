@@ -117,3 +117,52 @@ def test_block_times_spread_each_block_to_the_next() -> None:
     assert t[11] == 88_000_000 + 33_000_000 and t[12] == 1_088_000_000
     assert b.gaps == 1 and b.gap_s == pytest.approx(1.088 - 0.088 - 0.044)
     np.testing.assert_array_equal(b.times_ns(5, 7), t[5:7])  # any slice, the same times
+
+
+def test_block_starts_are_the_same_in_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The steps are looked at a chunk at a time (bounded memory): a boundary at a chunk's
+    edge is still found."""
+    rng = np.random.default_rng(3)
+    file_t = np.cumsum(rng.choice([10_000_000] * 5 + [23_000_000], size=500)).astype(np.int64)
+    whole = bt.block_starts(file_t, 1e7)
+    monkeypatch.setattr(bt, "CHUNK", 7)
+    np.testing.assert_array_equal(bt.block_starts(file_t, 1e7), whole)
+    step = np.diff(file_t)
+    np.testing.assert_array_equal(whole, np.r_[0, np.flatnonzero(step != 10_000_000) + 1])
+
+
+def _log_records(log: bytes) -> list[bytes]:
+    """ActiGraph log.bin split into its records (0x1E, type, 4-byte time, 2-byte size,
+    payload, checksum)."""
+    out, i = [], 0
+    while i + 8 <= len(log) and log[i] == 0x1E:
+        end = i + 8 + int.from_bytes(log[i + 6:i + 8], "little") + 1
+        out.append(log[i:end])
+        i = end
+    assert i == len(log)
+    return out
+
+
+def test_actigraph_seconds_without_records_stay_a_gap(tmp_path: Path) -> None:
+    """Idle sleep: the device writes no ACTIVITY record for the seconds it sleeps. Five such
+    seconds are a gap of five seconds, not samples repeated or spread over them."""
+    import zipfile
+
+    src = DEVICES / "actfast_actigraph.gt3x"
+    with zipfile.ZipFile(src) as z:
+        entries = {n: z.read(n) for n in z.namelist()}
+    records = _log_records(entries["log.bin"])
+    activity = [i for i, r in enumerate(records) if r[1] == 0x00]
+    asleep = set(activity[30:35])
+    entries["log.bin"] = b"".join(r for i, r in enumerate(records) if i not in asleep)
+    slept = tmp_path / "slept.gt3x"
+    with zipfile.ZipFile(slept, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, data in entries.items():
+            z.writestr(name, data)
+    rec = open_device(slept)
+    t = RawBatch.concat(list(rec.batches())).t_us
+    assert len(t) == 4860 - 5 * 60
+    step = np.diff(t)
+    big = np.flatnonzero(step > 2 * np.median(step))
+    assert len(big) == 1 and step[big[0]] == pytest.approx(6e6 - 1e6 / 60 * 59, abs=2)
+    assert rec.skipped["gaps"] == 1

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from recal.errors import RecordingError
+from recal.errors import InputError, RecordingError
 from recal.io import device_files
 from recal.samples import RawBatch
 
@@ -18,7 +18,7 @@ __all__ = ["MCAP_MAGIC", "Source", "open_recording", "recording_kind", "source_l
            "string_metadata"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-Kind = Literal["mcap", "device", "csv"]
+Kind = Literal["mcap", "device", "csv", "unknown"]
 
 
 @dataclass(frozen=True)
@@ -62,8 +62,7 @@ def string_metadata(src: Source) -> dict[str, str]:
 
 def recording_kind(path: str | Path) -> Kind:
     """'mcap' (the MCAP magic, or a file cut before it), 'device' (a device file recal
-    recognises), else 'csv' for text; other bytes are 'mcap' too, so that the MCAP reader says
-    what the file is not. OSError for a file that cannot be opened."""
+    recognises), 'csv' (text), else 'unknown'. OSError for a file that cannot be opened."""
     path = Path(path)
     with open(path, "rb") as f:
         head = f.read(512)
@@ -71,7 +70,7 @@ def recording_kind(path: str | Path) -> Kind:
         return "mcap"
     if device_files.sniff(path) is not None:
         return "device"
-    return "csv" if _is_text(head) else "mcap"
+    return "csv" if _is_text(head) else "unknown"
 
 
 def _is_text(head: bytes) -> bool:
@@ -93,6 +92,9 @@ def open_recording(path: str | Path, sensor_id: str | None = None, rate_hz: floa
     once, kept in memory as its reader gives it) or a CSV time series, by content."""
     path = Path(path)
     kind = recording_kind(path)
+    if kind == "unknown":
+        raise InputError(f"{path} is neither an MCAP recording, a device file recal reads "
+                         "(Axivity .cwa, GENEActiv .bin, ActiGraph .gt3x) nor a CSV")
     if kind == "device":
         rec = device_files.open_device(path, lenient=lenient)
         return Source(str(path), sensor_id or rec.sensor_id, rec.batches, kind="device",

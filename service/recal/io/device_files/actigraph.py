@@ -26,7 +26,7 @@ ACTIVITY, ACTIVITY2 = 0x00, 0x1A
 
 
 def sniff_gt3x(p: Probe) -> bool:
-    return "log.bin" in p.zip_names and "info.txt" in p.zip_names
+    return "log.bin" in p.zip_names
 
 
 def sniff_activity2(p: Probe) -> bool:

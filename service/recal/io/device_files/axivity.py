@@ -31,11 +31,14 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
     hf, lf = ts.get("high_frequency", {}), ts.get("low_frequency", {})
     meta_in = r.get("metadata", {})
     dev, conf = meta_in.get("device", {}), meta_in.get("configuration", {})
-    hw = str(dev.get("hardware_type") or "AX3")
+    hw = str(dev.get("hardware_type") or "")
+    named = hw.startswith("AX")  # actfast names 0x00, 0xFF (AX3) and 0x64 (AX6) only
+    hw = hw if named else "AX"
     tz_min = number(dev.get("time_zone"))
     tz = None if tz_min is None or tz_min == -1 else 60.0 * tz_min
     rate = number(conf.get("sample_rate_hz")) or 100.0
-    meta = {"device_type": f"Axivity {hw}", "device_id": dev.get("device_id"),
+    kind = f"Axivity {hw}" if named else "Axivity (a hardware code the reader does not name)"
+    meta = {"device_type": kind, "device_id": dev.get("device_id"),
             "session_id": dev.get("session_id"), "firmware": dev.get("firmware_revision"),
             "nominal_rate_hz": rate, "range_g": number(conf.get("accelerometer_range_g")),
             "logging_start": conf.get("logging_start"), "logging_end": conf.get("logging_end"),

@@ -32,6 +32,8 @@ SPAN_LOW, SPAN_HIGH = 0.5, 1.5
 #: a step between two samples that differs from the nominal period by more than this (ns)
 #: starts a block (actfast's stamps in a block step by the nominal period rounded to 1 ns)
 STAMP_TOLERANCE_NS = 2_000
+#: samples whose steps are looked at together
+CHUNK = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -65,9 +67,12 @@ def block_starts(file_t_ns: np.ndarray, nominal_period_ns: float,
     n = len(file_t_ns)
     if n == 0:
         return np.zeros(0, np.int64)
-    step = np.diff(file_t_ns)
-    by_stamp = np.flatnonzero(np.abs(step - nominal_period_ns) > STAMP_TOLERANCE_NS) + 1
-    parts = [np.zeros(1, np.int64), by_stamp.astype(np.int64)]
+    nominal = np.int64(round(nominal_period_ns))
+    parts = [np.zeros(1, np.int64)]
+    for lo in range(0, n - 1, CHUNK):  # in chunks: a week's steps never all in memory at once
+        off = np.diff(file_t_ns[lo:lo + CHUNK + 1]) - nominal
+        parts.append(np.flatnonzero((off > STAMP_TOLERANCE_NS) | (off < -STAMP_TOLERANCE_NS))
+                     .astype(np.int64) + lo + 1)
     if known_starts_ns is not None and len(known_starts_ns):
         idx = np.searchsorted(file_t_ns, np.asarray(known_starts_ns, np.int64), side="left")
         ok = idx < n
