@@ -41,7 +41,8 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
             "calibration_json_applied": m["calibration_json_applied"],
             "reader": "recal's .gt3x decoder (ActiGraph's published format)",
             "values": "acceleration in g: the counts divided by the file's acceleration scale"}
-    notes = [n for n in d.notes if not n.startswith("times are")]
+    # times and gaps are said by DeviceRecording, from the stamps it makes
+    notes = [n for n in d.notes if not n.startswith("times are") and "left as gaps" not in n]
     skipped = {"bad_records": int(m.get("bad_records", 0)),
                "stray_bytes": int(m.get("stray_bytes", 0)),
                "truncated": int(bool(m.get("truncated", False)))}
