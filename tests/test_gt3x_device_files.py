@@ -37,6 +37,13 @@ def test_an_activity2_file_opens_with_its_samples_gaps_and_channels(tmp_path: Pa
     assert any("calibration.json" in n and "not applied" in n for n in rec.notes)
 
 
+def test_zero_padding_between_records_does_not_hide_the_kind(tmp_path: Path) -> None:
+    """ActiGraph's README: a few zero bytes may sit between valid records."""
+    c = np.random.default_rng(9).integers(-900, 900, size=(30 * 5, 3))
+    path = LogFile(counts=c, rate_hz=30, zero_padding=True).write(tmp_path / "padded.gt3x")
+    assert sniff(path) == "actigraph_gt3x_activity2" and len(open_device(path)) == 150
+
+
 def test_an_nhanes_file_opens_as_one_stream(tmp_path: Path) -> None:
     c = np.random.default_rng(8).integers(-2000, 2000, size=(40 * 60, 3))
     path = zip_gt3x(tmp_path / "nhanes.gt3x", nhanes_entries(c, 40, 1_250_000_000, [100] * 60))
