@@ -32,8 +32,9 @@ def _nhanes() -> dict[str, bytes]:
     return nhanes_entries(c, 30, 1_300_000_000, [30, 40, 50])
 
 
-edits = st.lists(st.tuples(st.integers(0, 1 << 20), st.integers(0, 255)), min_size=1,
-                 max_size=12)
+# anywhere, or in the first or last 100 bytes (zip headers, the central directory at the end)
+where = st.integers(0, 1 << 20) | st.integers(0, 99) | st.integers(-100, -1)
+edits = st.lists(st.tuples(where, st.integers(0, 255)), min_size=1, max_size=12)
 
 
 def _mutate(data: bytes, changes: list[tuple[int, int]], cut: int | None) -> bytes:

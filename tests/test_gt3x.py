@@ -224,6 +224,16 @@ def test_a_log_of_undocumented_sample_records_says_so(tmp_path: Path) -> None:
         read_gt3x(lf.write(tmp_path / "agdc.gt3x"))
 
 
+def test_a_zip_of_an_unknown_version_is_one_line(tmp_path: Path) -> None:
+    path = _activity2().write(tmp_path / "version.gt3x")
+    b = bytearray(path.read_bytes())
+    at = b.find(b"PK\x01\x02")
+    b[at + 6] = 64                                   # "needs zip 6.4 to extract"
+    path.write_bytes(bytes(b))
+    with pytest.raises(DeviceFileError, match="not a readable"):
+        read_gt3x(path)
+
+
 def test_not_a_gt3x_is_one_line(tmp_path: Path) -> None:
     junk = tmp_path / "junk.gt3x"
     junk.write_bytes(b"PK\x03\x04" + bytes(100))

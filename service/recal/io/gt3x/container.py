@@ -10,6 +10,7 @@ chunk plus what is decoded, whatever the file claims.
 
 from __future__ import annotations
 
+import struct
 import zipfile
 import zlib
 from collections.abc import Iterator
@@ -24,15 +25,19 @@ CHUNK_BYTES = 8 << 20
 # Deflate cannot expand more than ~1032 times; an entry that says it does lies about its size.
 MAX_EXPANSION = 1100
 DOTNET_TICKS_AT_UNIX_EPOCH = 621_355_968_000_000_000   # .NET ticks (100 ns) at 1970-01-01
-_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError,
-               RuntimeError, ValueError, OSError)
+# what zipfile raises on a damaged or crafted archive (a version it does not know:
+# NotImplementedError; a bad offset: OSError; a cut header: struct.error)
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError,
+               ValueError, OSError, struct.error, KeyError, IndexError, OverflowError)
 
 
 def open_zip(path: Path) -> zipfile.ZipFile:
     """The file as a zip, or one line saying it is not a readable one."""
+    if not Path(path).is_file():
+        raise DeviceFileError(f"{path}: no such file")
     try:
         return zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, ValueError, EOFError) as exc:
+    except _ZIP_ERRORS as exc:
         raise DeviceFileError(f"{path}: not a readable .gt3x (zip) file: {exc}") from None
 
 
