@@ -224,6 +224,15 @@ def test_a_log_of_undocumented_sample_records_says_so(tmp_path: Path) -> None:
         read_gt3x(lf.write(tmp_path / "agdc.gt3x"))
 
 
+def test_a_log_of_near_records_is_refused_not_stepped_through(tmp_path: Path) -> None:
+    """Separators whose sizes never frame a record would cost a loop step per byte: the walk
+    stops once over 1 MiB and half of what it has seen is stray."""
+    e = _activity2().entries()
+    e["log.bin"] = e["log.bin"][:400] + b"\x1e\x01" * (3 << 20)
+    with pytest.raises(DeviceFileError, match="mostly not ActiGraph log records"):
+        read_gt3x(zip_gt3x(tmp_path / "near.gt3x", e))
+
+
 def test_a_zip_of_an_unknown_version_is_one_line(tmp_path: Path) -> None:
     path = _activity2().write(tmp_path / "version.gt3x")
     b = bytearray(path.read_bytes())

@@ -222,6 +222,9 @@ class Gt3xReader:
             buf, nxt = buf[idx.end:] + nxt, next(self._chunks, None)
 
     def _check(self, idx: rec.RecordIndex) -> None:
+        if idx.garbage:
+            raise DeviceFileError(f"{self.path}: log.bin is mostly not ActiGraph log records "
+                                  f"({idx.stray_bytes} stray bytes in a row): refused")
         bad = int(np.count_nonzero(~idx.ok))
         d = self._damage
         d.bad_checksums, d.stray_bytes = d.bad_checksums + bad, d.stray_bytes + idx.stray_bytes

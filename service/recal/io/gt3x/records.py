@@ -50,6 +50,7 @@ class RecordIndex:
         end: offset of the first byte not consumed (an incomplete record the next chunk
             completes; ``len(buf)`` when everything was consumed).
         truncated: the chunk was the last and ends inside a record.
+        garbage: the chunk is mostly not records (the walk stopped early).
     """
 
     pos: np.ndarray
@@ -60,10 +61,14 @@ class RecordIndex:
     stray_bytes: int
     end: int
     truncated: bool
+    garbage: bool = False
 
 
 RUN_PROBE = (16, 4096)   # periods checked at once when guessing that a run goes on: first, most
 MAX_PERIOD = 3           # records in a repeating pattern (ACTIVITY2 then CAPSENSE every second)
+# A chunk more than half stray bytes (and over 1 MiB of them) is not a damaged log but something
+# else: the walk stops there rather than step through it a byte at a time.
+GARBAGE_BYTES = 1 << 20
 
 
 def _run_after(arr: np.ndarray, base: int, offs: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -106,11 +111,12 @@ def _pattern_runs(buf: bytes, arr: np.ndarray, recent: list[int], end: int
     return np.zeros(0, np.int64), end, recent
 
 
-def _walk(buf: bytes, final: bool) -> tuple[list[np.ndarray], int, int, bool]:
+def _walk(buf: bytes, final: bool) -> tuple[list[np.ndarray], int, int, bool | None]:
     """Record offsets by following each record's size; resynchronises on the next separator
     where a record's framing is implausible (its end is not followed by a separator or the
     description's zero padding), so one damaged size costs a record, not the rest of the file.
-    Runs of a repeating pattern of records are taken whole (`_pattern_runs`)."""
+    Runs of a repeating pattern of records are taken whole (`_pattern_runs`). The last value
+    is None where the chunk is mostly not records (GARBAGE_BYTES)."""
     arr = np.frombuffer(buf, dtype=np.uint8)
     n, pos, stray, truncated = len(buf), 0, 0, False
     found: list[np.ndarray] = []
@@ -142,6 +148,9 @@ def _walk(buf: bytes, final: bool) -> tuple[list[np.ndarray], int, int, bool]:
             continue
         stray += 1
         pos, recent = pos + 1, []
+        if stray > GARBAGE_BYTES and stray > pos // 2:
+            truncated = None       # not a log: the caller refuses it
+            break
     found.append(np.asarray(single, np.int64))
     return found, stray, (n if final else pos), truncated
 
@@ -151,7 +160,7 @@ def index_records(buf: bytes, final: bool) -> RecordIndex:
 
     ``final`` says no more bytes follow; otherwise a record cut by the chunk's end is left for
     the next chunk (``end``)."""
-    found, stray, end, truncated = _walk(buf, final)
+    found, stray, end, cut = _walk(buf, final)
     arr = np.frombuffer(buf, dtype=np.uint8)
     pos = np.concatenate(found)
     size = arr[pos + 6].astype(np.int64) | (arr[pos + 7].astype(np.int64) << 8)
@@ -168,7 +177,7 @@ def index_records(buf: bytes, final: bool) -> RecordIndex:
         x = np.bitwise_xor.reduceat(arr, spans)[0::2]
         ok = (~x & 0xFF) == arr[last]
     return RecordIndex(pos=pos, kind=arr[pos + 1].copy(), time_s=time_s, size=size, ok=ok,
-                       stray_bytes=stray, end=end, truncated=truncated)
+                       stray_bytes=stray, end=end, truncated=bool(cut), garbage=cut is None)
 
 
 def payload_rows(buf: bytes, pos: np.ndarray, size: int) -> np.ndarray:
