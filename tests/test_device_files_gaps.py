@@ -73,6 +73,7 @@ def test_a_corrupt_sector_is_skipped_and_counted(tmp_path: Path) -> None:
     assert len(rec) == 144 * 120
     assert rec.skipped["sectors"] == 1 and rec.skipped["gaps"] == 1
     assert any("1 of 145 sectors skipped" in n for n in rec.notes)
+    assert any("skipped damaged data 1 time(s)" in n and "checksum" in n for n in rec.notes)
     with pytest.raises(DeviceFileError, match=r"Axivity \.cwa that cannot be read"):
         open_device(damaged, lenient=False)
 

@@ -17,7 +17,14 @@ from pathlib import Path
 import numpy as np
 
 from recal.io.device_files import guard
-from recal.io.device_files.parsed import Parsed, actfast_read, number, table, utc_offset_s
+from recal.io.device_files.parsed import (
+    Parsed,
+    actfast_read,
+    number,
+    table,
+    utc_offset_s,
+    warning_notes,
+)
 from recal.io.device_files.probe import Probe
 
 __all__ = ["read", "sniff_activity2", "sniff_gt3x", "sniff_nhanes"]
@@ -56,6 +63,7 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
             "idle_sleep_mode": features.get("sleep_mode"),
             "values": "acceleration in g: the counts divided by the file's acceleration scale"}
     notes = []
+    notes += warning_notes(r)
     if str(serial).startswith("MOS") and str(info.get("Firmware")) == "1.6.0":
         notes.append("firmware 1.6.0 of a wGT3X-BT swaps x and y (ActiGraph's note on "
                      "ACTIVITY records): the values are as written")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recal.io.device_files.parsed import Parsed, actfast_read, number, table
+from recal.io.device_files.parsed import Parsed, actfast_read, number, table, warning_notes
 from recal.io.device_files.probe import Probe
 
 __all__ = ["read", "sniff_cwa"]
@@ -44,6 +44,7 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
             "logging_start": conf.get("logging_start"), "logging_end": conf.get("logging_end"),
             "values": "acceleration in g as the reader scales the counts (AX3: 1/256 g a step)"}
     notes = []
+    notes += warning_notes(r)
     if "gyroscope" in hf:
         meta["gyroscope"] = "ignored"
         notes.append(f"{hw}: the gyroscope's channels are not used (ignored)")

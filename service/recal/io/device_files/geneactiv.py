@@ -13,7 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from recal.io.device_files import guard
-from recal.io.device_files.parsed import Parsed, actfast_read, number, table, utc_offset_s
+from recal.io.device_files.parsed import (
+    Parsed,
+    actfast_read,
+    number,
+    table,
+    utc_offset_s,
+    warning_notes,
+)
 from recal.io.device_files.probe import Probe
 
 __all__ = ["read", "sniff_genea", "sniff_geneactiv"]
@@ -50,6 +57,7 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
     pages_read = len(lf.get("datetime", ()))
     notes = ["values in g with the header's calibration (gain and offset per axis) applied by "
              "the reader"]
+    notes += warning_notes(r)
     skipped = {"reader_warnings": len(r.get("warnings", []))}
     if claimed is not None and claimed > pages_read:
         skipped["pages"] = claimed - pages_read

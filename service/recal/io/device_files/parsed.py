@@ -17,7 +17,7 @@ import numpy as np
 
 from recal.errors import DeviceFileError
 
-__all__ = ["LowRate", "Parsed", "actfast_read", "utc_offset_s"]
+__all__ = ["LowRate", "Parsed", "actfast_read", "utc_offset_s", "warning_notes"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,15 @@ def actfast_read(path: Path, shown: Path, lenient: bool, what: str) -> dict[str,
             raise
         raise DeviceFileError(f"{shown}: {what} that the reader failed on "
                               f"({_one_line(e)})") from None
+
+
+def warning_notes(r: dict[str, Any]) -> list[str]:
+    """What the lenient reader skipped, for the user (its count and first warning)."""
+    warnings = [str(w) for w in r.get("warnings", [])]
+    if not warnings:
+        return []
+    first = " ".join(warnings[0].split())[:160]
+    return [f"the reader skipped damaged data {len(warnings)} time(s) (first: {first})"]
 
 
 def _one_line(e: BaseException) -> str:
