@@ -132,11 +132,6 @@ def test_a_cut_gzip_keeps_what_was_whole(tmp_path: Path) -> None:
 
 UNREADABLE = {
     "genea_bin": lambda p: p.write_bytes(b"GENEA Header\r\n" + bytes(2000)),
-    "actigraph_gt3x_activity2": lambda p: _gt3x_with(p, {
-        "info.txt": b"Serial Number: CPW1B0000\r\nSample Rate: 30\r\n",
-        "log.bin": _log_record(0x06, b"{}") + _log_record(0x1A, bytes(90)) * 3}),
-    "actigraph_gt3x_nhanes": lambda p: _gt3x_with(p, {
-        "info.txt": b"Serial Number: NEO1B0000\r\n", "activity.bin": bytes(900)}),
 }
 
 
@@ -152,7 +147,6 @@ def test_kinds_recal_cannot_read_say_what_they_are_through_the_cli(
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("recal: error:"), done.stderr
-    name = {"genea_bin": "Genea .bin", "actigraph_gt3x_activity2": "ACTIVITY2",
-            "actigraph_gt3x_nhanes": "NHANES"}[kind]
+    name = {"genea_bin": "Genea .bin"}[kind]
     assert name in lines[0] and "cannot read this kind of file yet" in lines[0]
     assert not (tmp_path / "out.mcap").exists()

@@ -60,7 +60,10 @@ class Probe:
             return frozenset()
         found: set[int] = set()
         i = 0
-        while i + 8 <= len(data) and data[i] == LOG_SEPARATOR:
+        while i + 8 <= len(data) and data[i] in (LOG_SEPARATOR, 0):
+            if data[i] == 0:   # zero bytes between records: allowed, not damage (README)
+                i += 1
+                continue
             found.add(data[i + 1])
             i += 8 + int.from_bytes(data[i + 6:i + 8], "little") + 1
         return frozenset(found)

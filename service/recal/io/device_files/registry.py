@@ -9,7 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from recal.io.device_files import actigraph, axivity, geneactiv
+from recal.io.device_files import actigraph, actigraph_own, axivity, geneactiv
 from recal.io.device_files.parsed import Parsed
 from recal.io.device_files.probe import Probe
 
@@ -33,14 +33,13 @@ KINDS: tuple[DeviceKind, ...] = (
                geneactiv.read),
     DeviceKind("genea_bin", "geneactiv", "Genea .bin (the older Genea format)",
                geneactiv.sniff_genea, None, "its reader (actfast) refuses this format"),
-    # the two .gt3x kinds actfast cannot read come before the one it can
+    # the two .gt3x kinds actfast cannot read (recal's own decoder) come before the one it can
     DeviceKind("actigraph_gt3x_activity2", "actigraph",
                "ActiGraph .gt3x of ACTIVITY2 records (ActiGraph Link, CentrePoint)",
-               actigraph.sniff_activity2, None,
-               "its reader (actfast 1.3) returns no samples for ACTIVITY2 records"),
+               actigraph.sniff_activity2, actigraph_own.read),
     DeviceKind("actigraph_gt3x_nhanes", "actigraph",
                "ActiGraph .gt3x of the NHANES era (activity.bin, no log.bin)",
-               actigraph.sniff_nhanes, None, "its reader (actfast 1.3) needs log.bin"),
+               actigraph.sniff_nhanes, actigraph_own.read),
     DeviceKind("actigraph_gt3x", "actigraph", "ActiGraph .gt3x", actigraph.sniff_gt3x,
                actigraph.read),
 )
