@@ -139,3 +139,14 @@ def test_a_cut_short_geneactiv_says_how_many_pages_are_missing() -> None:
     rec = open_device(_path("ggirread_GENEActiv_testfile.bin"))
     assert rec.skipped["pages"] == 222048 - -(-len(rec) // 300)  # the last page partial
     assert any("222048 pages" in n for n in rec.notes)
+
+
+@pytest.mark.parametrize(("text", "seconds"), [
+    ("GMT +01:00", 3600), ("GMT -05:00", -18000), ("-05:00:00", -18000), ("+0100", 3600),
+    ("01:00:00", 3600),  # .NET writes a zone east of UTC unsigned (ActiGraph's info.txt)
+    ("00:00:00", 0), ("-10:30", -37800),
+    ("0100", None), ("", None), ("local", None), ("+25:00", None), (None, None)])
+def test_time_zone_text(text: str | None, seconds: int | None) -> None:
+    from recal.io.device_files.parsed import utc_offset_s
+
+    assert utc_offset_s(text) == seconds

@@ -30,8 +30,6 @@ def read(path: Path, shown: Path, lenient: bool) -> Parsed:
     low = [LowRate(name, d.aux[key][0] * 1000, d.aux[key][1] * factor)
            for key, (name, factor) in _CHANNELS.items() if key in d.aux]
     zone = "+00:00" if m.get("time_is_utc") else str(m.get("utc_offset") or "") or None
-    if zone and zone[0].isdigit():   # .NET writes a zone east of UTC unsigned ("01:00:00")
-        zone = "+" + zone
     serial = str(m.get("serial") or "") or None
     meta = {"device_type": f"ActiGraph {m.get('device_type') or ''}".strip(),
             "device_id": serial, "serial": serial, "firmware": m.get("firmware"),

@@ -78,18 +78,23 @@ def _one_line(e: BaseException) -> str:
     return text[:200] + ("..." if len(text) > 200 else "")
 
 
-_OFFSET = re.compile(r"^(?:GMT|UTC)?\s*([+-])\s*(\d{1,2})(?::?(\d{2}))?(?::(\d{2}))?$")
+# The sign is optional: .NET (ActiGraph's info.txt) writes a zone east of UTC unsigned,
+# "01:00:00"; an unsigned zone must then have its minutes, so a bare number is no zone.
+_OFFSET = re.compile(r"^(?:GMT|UTC)?\s*(?:([+-])\s*(\d{1,2})(?::?(\d{2}))?|(\d{1,2}):(\d{2}))"
+                     r"(?::(\d{2}))?$")
 
 
 def utc_offset_s(text: str | None) -> float | None:
-    """'GMT +01:00', '-05:00:00', '+0100' -> seconds east of UTC; None when unknown."""
+    """'GMT +01:00', '-05:00:00', '+0100', '01:00:00' -> seconds east of UTC; None when
+    unknown."""
     if text is None:
         return None
     m = _OFFSET.match(str(text).strip())
     if m is None:
         return None
     sign = -1 if m.group(1) == "-" else 1
-    h, mi, s = int(m.group(2)), int(m.group(3) or 0), int(m.group(4) or 0)
+    h = int(m.group(2) or m.group(4))
+    mi, s = int(m.group(3) or m.group(5) or 0), int(m.group(6) or 0)
     if h > 14 or mi >= 60 or s >= 60:
         return None
     return float(sign * (3600 * h + 60 * mi + s))
