@@ -10,9 +10,8 @@ and never fetched by it (tests use none of them). Measured with:
 * ``pygt3x_small.gt3x``: ActiGraph GT9X Link, wrist, 30 Hz, 256 counts/g, 13.6 h from first to
   last sample with 7.5 h of samples (idle sleep mode leaves the still rest out), no temperature.
   actigraph/pygt3x, ``tests/resources/small.gt3x`` (its data only: pygt3x is GPL and is neither
-  imported nor copied). actfast 1.3.0 reads no samples from it (its records are ACTIVITY2,
-  id 26, which actfast skips), so `_gt3x_activity2` reads them as ActiGraph's published format
-  says (github.com/actigraph/GT3X-File-Format, LogRecords/Activity2.md).
+  imported nor copied). Its records are ACTIVITY2, which actfast 1.3.0 skips; recal's own
+  decoder (`recal.io.gt3x`) reads them.
 
 Get them with ``git clone`` of those repositories (or ``git show HEAD:<path>``). Every other file
 actfast reads works the same way; ``../shared/data/real/*.npz`` (`_npz`) too.
@@ -47,13 +46,11 @@ and the next's); actipy gets the temperature channel, recal every aux channel th
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import shutil
 import subprocess
 import sys
 import tempfile
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -106,21 +103,12 @@ class Recording:
 # --- reading ---------------------------------------------------------------------------------
 def load(path: Path) -> Recording:
     """A device file through `recal.io.device_files` (true per-sample times between the
-    file's block stamps, every aux channel), an ACTIVITY2 .gt3x through `_gt3x_activity2`, or
-    a shared .npz (`_npz`)."""
+    file's block stamps, every aux channel), or a shared .npz (`_npz`)."""
     if path.suffix.lower() == ".npz":
         return _npz(path)
-    from recal.errors import DeviceFileError
     from recal.io.device_files import open_device
 
-    try:
-        dev = open_device(path)
-    except DeviceFileError as exc:
-        if path.suffix.lower() != ".gt3x" or "ACTIVITY2" not in str(exc):
-            raise
-        t_us, v_g, rate = _gt3x_activity2(path)
-        return _sorted(Recording(path.name, "ActiGraph .gt3x (ACTIVITY2 records, read here)",
-                                 t_us, v_g, np.zeros((len(t_us), 0)), (), rate))
+    dev = open_device(path)
     batches = list(dev.batches())
     rec = Recording(path.name, str(dev.metadata.get("device_type", dev.kind)),
                     np.concatenate([b.t_us for b in batches]),
@@ -136,31 +124,6 @@ def _sorted(rec: Recording) -> Recording:
         rec.notes.append("samples re-sorted by time")
         rec.t_us, rec.v_g, rec.aux = rec.t_us[order], rec.v_g[order], rec.aux[order]
     return rec
-
-
-def _gt3x_activity2(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
-    """ACTIVITY2 log records (id 26): one second of int16 x, y, z little-endian, divided by the
-    info.txt "Acceleration Scale"; a 1-byte record marks a USB connection, not samples. Each
-    record's samples are spread over its second at the info.txt rate."""
-    with zipfile.ZipFile(path) as z:
-        info = dict(line.split(": ", 1) for line in
-                    io.TextIOWrapper(z.open("info.txt")).read().splitlines() if ": " in line)
-        log = z.read("log.bin")
-    rate = float(info["Sample Rate"])
-    scale = float(info.get("Acceleration Scale", 256))
-    stamps, chunks, i = [], [], 0
-    while i + 8 <= len(log) and log[i] == 0x1E:  # separator, type, u32 seconds, u16 size
-        kind, size = log[i + 1], int.from_bytes(log[i + 6:i + 8], "little")
-        if kind == 26 and size > 1:
-            stamps.append(int.from_bytes(log[i + 2:i + 6], "little"))
-            chunks.append(np.frombuffer(log, "<i2", size // 2, i + 8).reshape(-1, 3))
-        i += 8 + size + 1  # payload, checksum
-    counts = np.concatenate(chunks)
-    n = np.array([len(c) for c in chunks])
-    first = np.repeat(np.cumsum(n) - n, n)
-    t_us = (np.repeat(np.array(stamps, np.int64) * 1_000_000, n)
-            + ((np.arange(len(counts)) - first) * 1e6 / rate).astype(np.int64))
-    return t_us, counts / scale, rate
 
 
 def _npz(path: Path) -> Recording:

@@ -1,11 +1,7 @@
-"""bench/device_tools.py's own parts on made-up data: the still windows and GGIR's metric, the
-held-out blocks, and the ACTIVITY2 .gt3x reader (a file written here, as ActiGraph's published
-format lays it out)."""
+"""bench/device_tools.py's own parts on made-up data: the still windows and GGIR's metric and
+the held-out blocks."""
 
 from __future__ import annotations
-
-import zipfile
-from pathlib import Path
 
 import numpy as np
 
@@ -55,25 +51,3 @@ def test_held_out_blocks_alternate_every_30_min() -> None:
     assert w.block[:per_block].tolist() == [0] * per_block
     assert w.block[per_block:2 * per_block].tolist() == [1] * per_block
     assert w.block[2 * per_block] == 0
-
-
-def _record(kind: int, seconds: int, payload: bytes) -> bytes:
-    head = bytes([0x1E, kind]) + seconds.to_bytes(4, "little") + len(payload).to_bytes(2, "little")
-    return head + payload + b"\x00"  # the checksum, which the reader does not check
-
-
-def test_gt3x_activity2_records_read_as_the_format_says(tmp_path: Path) -> None:
-    rate, scale = 4, 256
-    counts = np.arange(2 * rate * 3, dtype="<i2").reshape(-1, 3) * 37 - 500
-    log = (_record(26, 1000, counts[:rate].tobytes()) + _record(2, 1000, b"\x10\x0e")
-           + _record(26, 1001, b"\x01")  # a USB connection mark, not samples
-           + _record(26, 1005, counts[rate:].tobytes()))
-    path = tmp_path / "made-up.gt3x"
-    with zipfile.ZipFile(path, "w") as z:
-        z.writestr("info.txt", f"Sample Rate: {rate}\nAcceleration Scale: {scale}\n")
-        z.writestr("log.bin", log)
-    t_us, v_g, got_rate = dt._gt3x_activity2(path)
-    assert got_rate == rate
-    np.testing.assert_array_equal(v_g, counts / scale)
-    want_t = np.r_[1000e6 + np.arange(rate) * 250_000, 1005e6 + np.arange(rate) * 250_000]
-    np.testing.assert_array_equal(t_us, want_t.astype(np.int64))
