@@ -68,6 +68,7 @@ from recal.core.buffer import Window, WindowBuffer, Windows, cell_of
 from recal.core.effects import Covariates
 from recal.core.misfit import ACROSS_SPHERE, CHANCE_SDS, excess_g2
 from recal.core.model import SensorModel
+from recal.core.pending import PendingCandidate
 from recal.core.sigma import (  # the predicted error, importable from here too
     correction_jacobian,
     predicted_sigma_mg,
@@ -386,6 +387,8 @@ class Watch:
         calm_run: windows in a row that neither failed the norm gate nor contradicted
             grossly (a suspect status clears at CLEAR_GOOD_WINDOWS of them).
         misfit: what the model cannot explain (`RunningMisfit`).
+        pending: a candidate model discovery proposed, neither adopted nor rejected yet
+            (`core.pending`: sigma carries where the two disagree); a reset keeps it.
     """
 
     onset_us: int | None = None
@@ -401,6 +404,7 @@ class Watch:
     misfit: RunningMisfit = field(default_factory=RunningMisfit)
     agreed: list[int] = field(default_factory=list)
     calm_run: int = 0
+    pending: PendingCandidate | None = None
 
     def doubt(self, cells: int = PROBATION_WINDOWS) -> None:
         """A moment of doubt: still windows in ``cells`` orientation cells must agree (a
@@ -498,6 +502,7 @@ class Watch:
                 "probation": self.probation, "agreed": list(self.agreed),
                 "calm_run": self.calm_run,
                 "misfit": self.misfit.to_dict(),
+                "pending": None if self.pending is None else self.pending.to_dict(),
                 "recent": None if self.recent is None else [
                     [list(map(float, w.v)), list(map(float, w.aux)), int(w.t_us), int(w.n),
                      float(w.var)] for w in self.recent]}
@@ -514,7 +519,8 @@ class Watch:
                    None if d.get("alarm_us") is None else int(d["alarm_us"]),
                    int(d.get("probation", 0)), RunningMisfit.from_dict(d.get("misfit")),
                    [int(c) for c in d.get("agreed", ())],
-                   int(d.get("calm_run", d.get("good_run", 0))))
+                   int(d.get("calm_run", d.get("good_run", 0))),
+                   PendingCandidate.from_dict(d.get("pending")))
 
 
 def _window(w: Sequence) -> Window:
