@@ -34,6 +34,7 @@ from recal.core.effects import Covariates, Offset, Scale
 from recal.core.estimator import Estimate, Prior, UpdateReport
 from recal.core.model import SensorModel
 from recal.core.outputs import JoinedStep, Marks, StepOutput
+from recal.core.pending import PendingCandidate, bridged
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.pipeline_fit import redirect
 from recal.core.pipeline_state import Work, load_state, restore, snapshot
@@ -51,7 +52,7 @@ from recal.core.status import (
     unsettled,
 )
 from recal.core.windower import WindowerState
-from recal.errors import InputError
+from recal.errors import InputError, ModelError
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Lifecycle", "Pipeline", "from_state_dict", "gain_reference", "state_dict"]
@@ -349,7 +350,26 @@ class Pipeline:
         self.prior = prior
         self.estimate = Estimate.from_prior(prior)
         self.bootstrapped = True
+        self.watch.pending = None  # the wait is over, whichever model was adopted
         redirect(self)
+
+    @property
+    def pending(self) -> PendingCandidate | None:
+        """The candidate model waiting to be adopted or rejected (`core.pending`), if any."""
+        return self.watch.pending
+
+    def set_pending(self, candidate: PendingCandidate | None) -> None:
+        """A discovery run ended with a candidate model not adopted (yet): until
+        ``set_pending(None)`` (rejected) or `adopt`, each sample's sigma carries how much the
+        candidate's correction of it differs from the one in force (`core.pending`). Its
+        model must read only channels this pipeline has and share the model's raw units."""
+        if candidate is not None:
+            check_channels(candidate.model, self.aux_names)
+            if candidate.model.s0 != self.model.s0 or len(candidate.p) != candidate.model.size:
+                raise ModelError(f"a candidate at s0 {candidate.model.s0:g} with "
+                                 f"{len(candidate.p)} values for {candidate.model.size} "
+                                 f"parameters does not fit a model at s0 {self.model.s0:g}")
+        self.watch.pending = candidate
 
     def _reach(self, idx: int) -> None:
         """Called before anything in the state changes at sample ``idx`` of the batch: the
@@ -386,6 +406,8 @@ class Pipeline:
             # parameters observed but not yet known to UNPINNED_MG (status held)
             "converging": list(self.converging),
             "misfit_mg": math.sqrt(self.watch.misfit.said_mg2),
+            # a candidate model waiting (`core.pending`): sigma carries where it disagrees
+            "pending": self.watch.pending.label if self.watch.pending is not None else None,
         }
 
     # --- windows -----------------------------------------------------------------------------
@@ -407,20 +429,22 @@ class Pipeline:
                 and last.status is status and last.extra_mg2 == extra):
             return last
         seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4],
-                                                status, extra, cache[5])
+                                                status, extra, cache[5], cache[6], cache[7])
         return seg
 
     def _segment_cache(self) -> tuple:
-        """(model, estimate, p, cov, sigma form, the form as lists) of the estimate in force,
-        kept while it is."""
-        est, model = self.estimate, self.model
+        """(model, estimate, p, cov, sigma form, the form as lists, pending candidate, its
+        parameters bridged to p) of the estimate in force, kept while it is."""
+        est, model, pending = self.estimate, self.model, self.watch.pending
         cache = self._work.form
-        if cache is None or cache[0] is not model or cache[1] is not est:
+        if (cache is None or cache[0] is not model or cache[1] is not est
+                or cache[6] is not pending):
             p = self.params.copy()
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
             rows = form.tolist() if form is not None else None
-            cache = self._work.form = (model, est, p, cov, form, rows)
+            q = bridged(pending, model, p) if pending is not None else None
+            cache = self._work.form = (model, est, p, cov, form, rows, pending, q)
         return cache
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
