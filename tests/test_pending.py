@@ -144,3 +144,50 @@ def test_a_candidate_in_other_units_or_channels_is_refused() -> None:
     model, q = pipe.model.extend(pipe.params, Offset("vdd_v", 3.3), 0.1)
     with pytest.raises(ModelError):
         pipe.set_pending(PendingCandidate(model, q, np.eye(model.size)))
+
+
+@pytest.mark.slow
+@pytest.mark.float_sensitive
+def test_a_discovery_runs_candidate_widens_sigma_where_the_model_in_force_errs() -> None:
+    """The hook as the live node calls it: a discovery run on the buffer of a wearer whose
+    offsets follow temperature (which the diagonal model lacks) ends with a candidate; set
+    pending, sigma widens most in the seconds whose output (the model in force) errs most
+    against the truth, and no second is further beyond 3 sigma than without it."""
+    from dataclasses import replace
+
+    from recal.core.discovery import discover_pipeline
+    from recal.sim import wearer as sim
+
+    spec = replace(sim.SensorSpec.random(np.random.default_rng(2), 50, 3),
+                   offset_tc_g_per_c=(1.5e-3, -1.5e-3, 1.5e-3))
+    res = sim.simulate(1.0, RATE_HZ, 2, spec, sim.WearerSpec(temp_excursion_every_h=0.5))
+    model = SensorModel.diagonal(float(spec.counts_per_g or 1024.0))
+    p0 = model.nominal()
+    p0[model.slice(("offset", None))] = spec.zero_g_counts
+    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0),
+                    res.raw.aux_names)
+    k = len(res.raw) // 2
+    for i in range(0, k, 500):
+        pipe.step(res.raw[i:min(i + 500, k)])
+    found = discover_pipeline(pipe.buffer.windows(), pipe.aux_names, pipe.t0_us or 0,
+                              pipe.model, pipe.params)
+    cand = PendingCandidate.of_result(found)
+    assert cand is not None and "temp_c" in cand.label, [s.effect.label for s in found.steps]
+    plain = Pipeline.from_state_dict(json.loads(json.dumps(pipe.state_dict())))
+    pipe.set_pending(cand)
+    rest, truth = res.raw[k:], res.truth.a_true_g[k:]
+    without, with_ = plain.step(rest).calibrated, pipe.step(rest).calibrated
+    np.testing.assert_array_equal(with_.a_g, without.a_g)  # sigma only
+    n = int(RATE_HZ)
+    m = len(rest) // n
+
+    def per_s(x: np.ndarray) -> np.ndarray:
+        return x[:m * n].reshape(m, n, *x.shape[1:]).mean(axis=1)
+
+    err_mg = 1e3 * np.linalg.norm(per_s(without.a_g - truth), axis=1)
+    s0_mg, s1_mg = per_s(without.sigma_mg), per_s(with_.sigma_mg)
+    widening = np.sqrt(np.maximum(s1_mg ** 2 - s0_mg ** 2, 0.0))
+    assert np.all(s1_mg >= s0_mg)
+    assert np.corrcoef(widening, err_mg)[0, 1] > 0.7
+    assert np.quantile(widening, 0.9) > 3.0 * np.quantile(widening, 0.1) + 0.5  # not uniform
+    assert np.mean(err_mg > 3 * s1_mg) <= np.mean(err_mg > 3 * s0_mg)

@@ -36,9 +36,8 @@ class Segment:
     #: ``form`` as nested lists (`status.sigma_one_mg`), made once per estimate, not per sample
     form_rows: list[list[float]] | None = None
     #: a candidate model waiting (`core.pending`): |its correction - this one's|^2 joins
-    #: sigma^2 per sample; pending_q: its parameters bridged to p (`pending.bridged`)
+    #: sigma^2 per sample
     pending: PendingCandidate | None = None
-    pending_q: np.ndarray | None = None
 
 
 def calibrate(segs: list[Segment], b: RawBatch,
@@ -70,8 +69,8 @@ def _with_doubt(g: Segment, v: np.ndarray, cov: Covariates, a_g: np.ndarray,
                 sigma_mg: np.ndarray) -> np.ndarray:
     """sigma_mg with the pending candidate's disagreement added in quadrature
     (`pending.doubt_mg2`)."""
-    assert g.pending is not None and g.pending_q is not None
-    return np.sqrt(sigma_mg ** 2 + doubt_mg2(g.pending, g.pending_q, v, cov, a_g))
+    assert g.pending is not None
+    return np.sqrt(sigma_mg ** 2 + doubt_mg2(g.pending, v, cov, a_g))
 
 
 #: what a model that reads no covariate is handed for one sample (`_calibrate_one`)

@@ -9,11 +9,11 @@ across gravity too, where a norm residual is blind; and it is per sample, so sig
 only where the models disagree: at the temperatures, supplies, times or orientations where
 the candidate's extra terms correct something, not everywhere at once.
 
-The candidate is evaluated at the parameters in force wherever the two models share a
-parameter (by name, `bridged`): the estimate in force keeps moving after the discovery run,
-and a candidate that extends the model by one effect then differs from it by that effect's
-correction alone, at its own fitted values. A parameter the candidate lacks is simply not in
-its correction (a candidate without an effect the model in force has).
+Each model at its own parameters: the estimate in force keeps tracking after the run (its
+offsets follow a temperature it lacks, for one), the candidate explains the same with its
+fitted terms; where the two agree (at the temperature the estimate in force has caught up
+with) nothing widens. Their parameters of the same name need not mean the same (an offset at
+the temperature now, an offset at the candidate's reference temperature), so none is shared.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 
-__all__ = ["PendingCandidate", "bridged", "doubt_mg2"]
+__all__ = ["PendingCandidate", "doubt_mg2"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,21 +67,9 @@ class PendingCandidate:
                    np.asarray(d["cov"], np.float64), str(d.get("label", "")))
 
 
-def bridged(pending: PendingCandidate, model: SensorModel, p: np.ndarray) -> np.ndarray:
-    """The candidate's parameters with those it shares with the model in force (by name)
-    taken from the parameters in force p (module doc)."""
-    q = pending.p.copy()
-    mine = {n: i for i, n in enumerate(model.names)}
-    for j, name in enumerate(pending.model.names):
-        i = mine.get(name)
-        if i is not None:
-            q[j] = p[i]
-    return q
-
-
-def doubt_mg2(pending: PendingCandidate, q: np.ndarray, v: np.ndarray, cov: Covariates,
+def doubt_mg2(pending: PendingCandidate, v: np.ndarray, cov: Covariates,
               a_g: np.ndarray) -> np.ndarray:
-    """|d|^2 (mg^2) per sample: the candidate's correction of the raw readings v (N, 3) at
-    parameters q (`bridged`) against the correction in force a_g (N, 3, g)."""
-    d = pending.model.correct(q, v, cov) - a_g
+    """|d|^2 (mg^2) per sample: the candidate's correction of the raw readings v (N, 3)
+    against the correction in force a_g (N, 3, g)."""
+    d = pending.model.correct(pending.p, v, cov) - a_g
     return 1e6 * np.einsum("ij,ij->i", d, d)

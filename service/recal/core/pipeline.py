@@ -34,7 +34,7 @@ from recal.core.effects import Covariates, Offset, Scale
 from recal.core.estimator import Estimate, Prior, UpdateReport
 from recal.core.model import SensorModel
 from recal.core.outputs import JoinedStep, Marks, StepOutput
-from recal.core.pending import PendingCandidate, bridged
+from recal.core.pending import PendingCandidate
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.pipeline_fit import redirect
 from recal.core.pipeline_state import Work, load_state, restore, snapshot
@@ -429,12 +429,12 @@ class Pipeline:
                 and last.status is status and last.extra_mg2 == extra):
             return last
         seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4],
-                                                status, extra, cache[5], cache[6], cache[7])
+                                                status, extra, cache[5], cache[6])
         return seg
 
     def _segment_cache(self) -> tuple:
-        """(model, estimate, p, cov, sigma form, the form as lists, pending candidate, its
-        parameters bridged to p) of the estimate in force, kept while it is."""
+        """(model, estimate, p, cov, sigma form, the form as lists, pending candidate) of the
+        estimate in force, kept while it is."""
         est, model, pending = self.estimate, self.model, self.watch.pending
         cache = self._work.form
         if (cache is None or cache[0] is not model or cache[1] is not est
@@ -443,8 +443,7 @@ class Pipeline:
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
             rows = form.tolist() if form is not None else None
-            q = bridged(pending, model, p) if pending is not None else None
-            cache = self._work.form = (model, est, p, cov, form, rows, pending, q)
+            cache = self._work.form = (model, est, p, cov, form, rows, pending)
         return cache
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:
