@@ -164,15 +164,8 @@ MISFIT_CHANCE = 1.5
 #: The misfit on the output changes when it moved by more than this (relative, in sigma) and
 #: MISFIT_STEP_MG: per window work, a few segments per batch.
 MISFIT_STEP = 0.1
-#: The buffer fit's residual beyond noise and MISFIT_FIT_FLOOR_MG, as the vector's error
-#: variance (`RunningMisfit`): kappa (`misfit.across_factor` of the buffer's directions: how
-#: much more the vector can err than the norm shows, 5 on the whole sphere) times
-#: MISFIT_TRACK: the fit follows a drifting effect and leaves little of it in its residual
-#: (the fit's excess is what even the best parameters miss, not what the output misses
-#: between updates). Measured, not derived: of 5, 10 and 20, 10 is the least that keeps the
-#: simulated supply and temperature wearers within 1 % beyond 3 sigma (5: 0.4 % on one;
-#: bench/sigma_honesty.py, docs/performance.md).
-MISFIT_TRACK = 10.0
+#: The residual the parameters in force leave on the buffer's windows (`RunningMisfit.fitted`)
+#: counts beyond their noise and MISFIT_FIT_FLOOR_MG (a fit that good needs no widening).
 MISFIT_FIT_FLOOR_MG = 0.5
 #: The estimate's movement (`RunningMisfit.moved`): counted beyond MISFIT_MOVE_SDS of its sd, summed
 #: over the last MISFIT_DRIFT_S of device time (decaying).
@@ -185,15 +178,17 @@ MISFIT_STEP_MG = 0.05
 class RunningMisfit:
     """What the model cannot explain, from the still windows' calibrated norms.
 
-    Two witnesses. The estimator's fit of the buffer (windows of many postures, hours apart):
-    its residual's mean square beyond the windows' noise, q_f (`fitted`), is what one set of
-    parameters cannot explain across them (a temperature, a supply, a cross-axis term the
-    model lacks). The norm sees the error along gravity only: the vector's error can be
+    Two witnesses. The buffer (windows of many postures, temperatures and supplies, hours
+    apart) under the parameters in force at each accepted update, one set for all of them
+    (not the estimator's own residual, whose offset rate and ageing follow a drifting effect
+    and hide most of it): its norm residual's mean square beyond the windows' noise, q_f
+    (`fitted`), is what one set of the model's parameters cannot explain across them (a
+    temperature, a supply, a cross-axis term the model lacks): what `recal discover`'s
+    held-out residual of the same model scores on the same windows (docs/design.md, "one
+    misfit figure"). The norm sees the error along gravity only: the vector's error can be
     kappa x larger in variance (`misfit.across_factor` of the buffer's window directions at
     that update, `across`: 5 when they cover the sphere, up to ACROSS_MAX when they do not
-    span), and the fit absorbs part of such an effect in the parameters (MISFIT_TRACK,
-    measured): the vector's error variance is taken as MISFIT_TRACK x kappa x q_f, q_f
-    counted beyond MISFIT_FIT_FLOOR_MG (a fit that good needs no widening).
+    span): kappa x q_f, q_f counted beyond MISFIT_FIT_FLOOR_MG.
 
     And each still window (after the bootstrap) gives r = |a| - 1 g under the parameters in force
     when it came, and the variance e2 = noise^2 + sigma_C^2 / 3 the model expects of r: the
@@ -215,7 +210,7 @@ class RunningMisfit:
     allows, u (`unseen_g2`, `misfit.unseen_cross_g2` of the buffer's directions at each
     accepted update; 0 for a model with them).
 
-    sigma^2 = sigma_C^2 + kappa (q + MISFIT_TRACK x q_f) + m + u. Where the model fits, q,
+    sigma^2 = sigma_C^2 + kappa (q + q_f) + m + u. Where the model fits, q,
     q_f and m stay at 0 (the residual within chance of the noise); u shrinks as the postures
     cover the sphere. u lies across gravity: the gross test on a window's norm leaves it out
     (`norm_mg2`).
@@ -227,7 +222,7 @@ class RunningMisfit:
         said_mg2: the misfit's share of sigma^2 in force on the output (`restate`): it
             changes when the misfit moved by more than MISFIT_STEP, so a batch's samples
             take few values of it.
-        fit_g2: the last accepted update's misfit (`fitted`).
+        fit_g2: the buffer's misfit under the last accepted update's parameters (`fitted`).
         across: kappa of the buffer's directions at the last accepted update (`fitted`).
         moved_mg2: how far the offsets and scales moved beyond what their covariance allows
             (mg at 1 g, squared), summed over the accepted updates with a decay of
@@ -262,9 +257,20 @@ class RunningMisfit:
         return few if few > MISFIT_CHANCE else MISFIT_CHANCE
 
     @property
+    def along_mg2(self) -> float:
+        """What the model misses along gravity (mg^2), q + q_f: the mean square of the still
+        windows' norm residual beyond their noise that one set of the model's parameters
+        leaves on them (q_f: the buffer's, q: each window under the parameters in force
+        before it came). The quantity `recal discover`
+        scores (its held-out RMS of |a| - 1 g, which holds the noise too) and the replay
+        summary says ("the model misses"): docs/design.md, "one misfit figure"."""
+        return 1e6 * (self.q_g2 + self.fit_g2)
+
+    @property
     def extra_mg2(self) -> float:
-        """What the misfit adds to sigma^2 (mg^2): kappa (q + MISFIT_TRACK x q_f) + m + u."""
-        return (1e6 * (self.across * (self.q_g2 + MISFIT_TRACK * self.fit_g2) + self.unseen_g2)
+        """What the misfit adds to sigma^2 (mg^2): kappa (q + q_f) + m + u, the first term
+        kappa x `along_mg2` (the vector errs across gravity too)."""
+        return (1e6 * (self.across * (self.q_g2 + self.fit_g2) + self.unseen_g2)
                 + self.moved_mg2)
 
     @property
@@ -291,9 +297,10 @@ class RunningMisfit:
 
     def fitted(self, residual_rms_g: float, noise_g2: float,
                across: float = ACROSS_SPHERE, unseen_g2: float = 0.0) -> None:
-        """An accepted update: its residual's rms over the buffer, the mean noise variance of
-        the buffer's window means (g^2), kappa of their directions and what terms the model
-        lacks may err unseen at them (`misfit.unseen_cross_g2`, g^2; 0: none)."""
+        """An accepted update: the rms of the buffer's norm residuals under its parameters
+        (g), the mean noise variance of the buffer's window means (g^2), kappa of their
+        directions and what terms the model lacks may err unseen at them
+        (`misfit.unseen_cross_g2`, g^2; 0: none)."""
         if math.isfinite(unseen_g2):
             self.unseen_g2 = unseen_g2
         if math.isfinite(residual_rms_g) and math.isfinite(noise_g2):
