@@ -405,7 +405,10 @@ class Pipeline:
             "unobserved": list(self.unobserved),
             # parameters observed but not yet known to UNPINNED_MG (status held)
             "converging": list(self.converging),
-            "misfit_mg": math.sqrt(self.watch.misfit.said_mg2),
+            # what the model misses along gravity (`RunningMisfit.along_mg2`: what discover's
+            # held-out residual scores), and what the misfit adds to sigma in force
+            "misfit_mg": math.sqrt(self.watch.misfit.along_mg2),
+            "sigma_misfit_mg": math.sqrt(self.watch.misfit.said_mg2),
             # a candidate model waiting (`core.pending`): sigma carries where it disagrees
             "pending": self.watch.pending.label if self.watch.pending is not None else None,
         }
