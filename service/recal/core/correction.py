@@ -13,7 +13,7 @@ import numpy as np
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 from recal.core.pending import PendingCandidate, doubt_mg2
-from recal.core.sigma import predicted_sigma_mg, sigma_one_mg
+from recal.core.sigma import floor_mg2, predicted_sigma_mg, sigma_one_mg
 from recal.core.status import Status
 from recal.samples import RawBatch
 
@@ -38,6 +38,9 @@ class Segment:
     #: a candidate model waiting (`core.pending`): |its correction - this one's|^2 joins
     #: sigma^2 per sample
     pending: PendingCandidate | None = None
+    #: W of the floor a^T W a (`misfit.unseen_cross_form`) where ``form`` is None (with a
+    #: form, the form holds it: `sigma.with_floor`); None: no floor
+    floor_w: np.ndarray | None = None
 
 
 def calibrate(segs: list[Segment], b: RawBatch,
@@ -60,6 +63,8 @@ def calibrate(segs: list[Segment], b: RawBatch,
             sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
             if g.extra_mg2 > 0:
                 sigma[s:e] = np.sqrt(sigma[s:e] ** 2 + g.extra_mg2)
+            if g.floor_w is not None:
+                sigma[s:e] = np.sqrt(sigma[s:e] ** 2 + floor_mg2(out[s:e], g.floor_w))
             if g.pending is not None:
                 sigma[s:e] = _with_doubt(g, b.v[s:e], cov, out[s:e], sigma[s:e])
     return out, status, sigma
@@ -93,6 +98,8 @@ def _calibrate_one(g: Segment, b: RawBatch,
         sigma = predicted_sigma_mg(g.model, g.p, g.cov, b.v, cov, g.form)
         if g.extra_mg2 > 0:
             sigma = np.sqrt(sigma ** 2 + g.extra_mg2)
+        if g.floor_w is not None:
+            sigma = np.sqrt(sigma ** 2 + floor_mg2(out, g.floor_w))
         if g.pending is not None:
             sigma = _with_doubt(g, b.v, cov, out, sigma)
         return out, np.array([g.status], np.uint8), sigma

@@ -42,7 +42,7 @@ from recal.core.pipeline_state import state_dict as state_dict
 from recal.core.pipeline_watch import heal_if_not_finite
 from recal.core.pipeline_windows import windows
 from recal.core.refit import RefitState
-from recal.core.sigma import sigma_form
+from recal.core.sigma import sigma_form, with_floor
 from recal.core.status import (
     GAP_S,
     PROBATION_WINDOWS,
@@ -431,22 +431,28 @@ class Pipeline:
         if (last is not None and last.index == idx and last.p is cache[2]
                 and last.status is status and last.extra_mg2 == extra):
             return last
-        seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4],
-                                                status, extra, cache[5], cache[6])
+        seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[8],
+                                                status, extra, cache[5], cache[6], cache[9])
         return seg
 
     def _segment_cache(self) -> tuple:
-        """(model, estimate, p, cov, sigma form, the form as lists, pending candidate) of the
-        estimate in force, kept while it is."""
+        """(model, estimate, p, cov, sigma form of C_e, the output's form as lists, pending
+        candidate, the unseen floor's W as the misfit holds it, the output's form (C_e and
+        the floor, `sigma.with_floor`), the floor's W where no form holds it) of the estimate
+        in force, kept while it is."""
         est, model, pending = self.estimate, self.model, self.watch.pending
+        unseen = self.watch.misfit.unseen_w if est is not None else None
         cache = self._work.form
         if (cache is None or cache[0] is not model or cache[1] is not est
-                or cache[6] is not pending):
+                or cache[6] is not pending or cache[7] is not unseen):
             p = self.params.copy()
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
-            rows = form.tolist() if form is not None else None
-            cache = self._work.form = (model, est, p, cov, form, rows, pending)
+            w = np.reshape(unseen, (3, 3)) if unseen is not None and any(unseen) else None
+            out = form if w is None or form is None else with_floor(model, p, form, w)
+            rows = out.tolist() if out is not None else None
+            cache = self._work.form = (model, est, p, cov, form, rows, pending, unseen, out,
+                                       w if out is None else None)
         return cache
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:

@@ -17,7 +17,7 @@ from recal.core.bootstrap import LOCATE_MIN_WINDOWS, fit_poses, locate, off_by, 
 from recal.core.buffer import Window, WindowBuffer, Windows
 from recal.core.effects import Offset, Scale
 from recal.core.estimator import Estimate, Prior, update
-from recal.core.misfit import across_factor, direction_sums, unseen_cross_g2
+from recal.core.misfit import across_factor, direction_sums, unseen_cross_form
 from recal.core.model import SensorModel
 from recal.core.outputs import UpdateEvent, WatchEvent
 from recal.core.refit import after_update
@@ -71,7 +71,7 @@ def update_at(pipe: PipelineParts, idx: int, now_us: int,
         across = float(across_factor(sums, len(a)))
         # a diagonal model's cross-axis terms the postures leave unseen (`core.misfit`)
         unseen = (0.0 if pipe.model.has("cross_axis") else
-                  unseen_cross_g2(sums, len(a), RunningMisfit.detect_g2(noise_g2)))
+                  unseen_cross_form(sums, len(a), RunningMisfit.detect_g2(noise_g2)))
         pipe.watch.misfit.fitted(*_one_set_rms(pipe.estimate, w, a, s0), across, unseen)
         # a fitted offset jump (a knock, a poisoned state) is an event, not a drift
         jumped = pipe.estimate is not None and pipe.estimate.step_us != before.step_us

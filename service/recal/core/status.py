@@ -51,7 +51,8 @@ calibrated vector that the parameters' uncertainty causes: the estimate's covari
 sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`RunningMisfit`: the still
 windows' norm residual beyond what the sensor's noise and C_e explain, the buffer fit's
 residual, the estimate's excess movement, and for a model without cross-axis terms what such
-terms may err across gravity where the postures cannot show them, `misfit.unseen_cross_g2`).
+terms may err across gravity where the postures cannot show them, `misfit.unseen_cross_form`,
+at the sample's own vector).
 The sensor's own noise on the sample is not in it.
 """
 
@@ -207,13 +208,15 @@ class RunningMisfit:
 
     And what no residual can show: a model without cross-axis terms at postures that do not
     reveal them (near the axes) errs across gravity by as much as a prior on those terms
-    allows, u (`unseen_g2`, `misfit.unseen_cross_g2` of the buffer's directions at each
-    accepted update; 0 for a model with them).
+    allows, at each sample's own calibrated vector a: u(a) = a^T W a (`unseen_w`,
+    `misfit.unseen_cross_form` of the buffer's directions at each accepted update; 0 for a
+    model with them), a per-sample term the pipeline folds into the sigma form (not in
+    `extra_mg2`).
 
-    sigma^2 = sigma_C^2 + kappa (q + q_f) + m + u. Where the model fits, q,
-    q_f and m stay at 0 (the residual within chance of the noise); u shrinks as the postures
-    cover the sphere. u lies across gravity: the gross test on a window's norm leaves it out
-    (`norm_mg2`).
+    sigma^2 = sigma_C^2 + kappa (q + q_f) + m + u(a). Where the model fits, q, q_f and m stay
+    at 0 (the residual within chance of the noise); u shrinks as the postures cover the
+    sphere, and is least at the postures the buffer saw. u lies across gravity: the gross
+    test on a window's norm leaves it out (`norm_mg2`).
 
     Attributes:
         r2_g2: running mean of the clipped squared residuals (g^2).
@@ -227,7 +230,8 @@ class RunningMisfit:
         moved_mg2: how far the offsets and scales moved beyond what their covariance allows
             (mg at 1 g, squared), summed over the accepted updates with a decay of
             MISFIT_DRIFT_S of device time (`moved`); moved_at_us: the last accepted update.
-        unseen_g2: the floor for unseen cross-axis terms at the last accepted update (u).
+        unseen_w: W (3 x 3, row by row, g^2 per g^2) of the floor for unseen cross-axis terms
+            at the last accepted update (u(a) = a^T W a).
     """
 
     r2_g2: float = 0.0
@@ -238,7 +242,7 @@ class RunningMisfit:
     moved_mg2: float = 0.0
     moved_at_us: int | None = None
     across: float = ACROSS_SPHERE
-    unseen_g2: float = 0.0
+    unseen_w: tuple[float, ...] = (0.0,) * 9
 
     @property
     def q_g2(self) -> float:
@@ -268,17 +272,23 @@ class RunningMisfit:
 
     @property
     def extra_mg2(self) -> float:
-        """What the misfit adds to sigma^2 (mg^2): kappa (q + q_f) + m + u, the first term
-        kappa x `along_mg2` (the vector errs across gravity too)."""
-        return (1e6 * (self.across * (self.q_g2 + self.fit_g2) + self.unseen_g2)
-                + self.moved_mg2)
+        """What the misfit adds to every sample's sigma^2 (mg^2): kappa (q + q_f) + m, the
+        first term kappa x `along_mg2` (the vector errs across gravity too); the floor u(a)
+        is per sample (`unseen_w`)."""
+        return 1e6 * self.across * (self.q_g2 + self.fit_g2) + self.moved_mg2
+
+    @property
+    def unseen_g2(self) -> float:
+        """The floor's most at any vector of 1 g (g^2): W's largest eigenvalue."""
+        return float(np.linalg.eigvalsh(np.reshape(self.unseen_w, (3, 3)))[-1])
 
     @property
     def norm_mg2(self) -> float:
-        """The misfit in force (mg^2) without what lies across gravity unseen (`unseen_g2`):
-        the norm of a still window shows none of that, so a gross contradiction is judged
-        without it (else the floor would hide another sensor's norm 24 mg off)."""
-        return max(self.said_mg2 - 1e6 * self.unseen_g2, 0.0)
+        """The misfit in force (mg^2), which holds nothing of what lies across gravity unseen
+        (`unseen_w`): the norm of a still window shows none of that, so a gross
+        contradiction is judged without it (else the floor would hide another sensor's norm
+        24 mg off)."""
+        return self.said_mg2
 
     @staticmethod
     def detect_g2(noise_g2: float) -> float:
@@ -296,13 +306,15 @@ class RunningMisfit:
         self.moved_at_us = now_us
 
     def fitted(self, residual_rms_g: float, noise_g2: float,
-               across: float = ACROSS_SPHERE, unseen_g2: float = 0.0) -> None:
+               across: float = ACROSS_SPHERE, unseen_w: np.ndarray | float = 0.0) -> None:
         """An accepted update: the rms of the buffer's norm residuals under its parameters
         (g), the mean noise variance of the buffer's window means (g^2), kappa of their
         directions and what terms the model lacks may err unseen at them
-        (`misfit.unseen_cross_g2`, g^2; 0: none)."""
-        if math.isfinite(unseen_g2):
-            self.unseen_g2 = unseen_g2
+        (`misfit.unseen_cross_form`, 3 x 3; a number u: u at any vector of 1 g; 0: none)."""
+        w = np.asarray(unseen_w, np.float64)
+        w = w * np.eye(3) if w.ndim == 0 else w.reshape(3, 3)
+        if np.isfinite(w).all():
+            self.unseen_w = tuple(w.ravel().tolist())
         if math.isfinite(residual_rms_g) and math.isfinite(noise_g2):
             self.fit_g2 = float(excess_g2(residual_rms_g ** 2, MISFIT_CHANCE * noise_g2
                                           + (1e-3 * MISFIT_FIT_FLOOR_MG) ** 2))
@@ -331,7 +343,7 @@ class RunningMisfit:
         return {"r2_g2": self.r2_g2, "e2_g2": self.e2_g2, "n": self.n,
                 "said_mg2": self.said_mg2, "fit_g2": self.fit_g2, "moved_mg2": self.moved_mg2,
                 "moved_at_us": self.moved_at_us, "across": self.across,
-                "unseen_g2": self.unseen_g2}
+                "unseen_w": list(self.unseen_w)}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> RunningMisfit:
@@ -341,7 +353,15 @@ class RunningMisfit:
                    float(d.get("said_mg2", 0.0)), float(d.get("fit_g2", 0.0)),
                    float(d.get("moved_mg2", 0.0)),
                    None if d.get("moved_at_us") is None else int(d["moved_at_us"]),
-                   float(d.get("across", ACROSS_SPHERE)), float(d.get("unseen_g2", 0.0)))
+                   float(d.get("across", ACROSS_SPHERE)), _unseen_w(d))
+
+
+def _unseen_w(d: dict) -> tuple[float, ...]:
+    """The floor's W from a checkpoint: "unseen_w", or an older one's single u at any
+    orientation ("unseen_g2": W = u I)."""
+    if "unseen_w" in d:
+        return tuple(float(x) for x in d["unseen_w"])
+    return tuple((float(d.get("unseen_g2", 0.0)) * np.eye(3)).ravel().tolist())
 
 
 #: "calibrated" needs every offset and scale known to this at 1 g (sd of the estimate): one
