@@ -191,3 +191,30 @@ def test_a_discovery_runs_candidate_widens_sigma_where_the_model_in_force_errs()
     assert np.corrcoef(widening, err_mg)[0, 1] > 0.7
     assert np.quantile(widening, 0.9) > 3.0 * np.quantile(widening, 0.1) + 0.5  # not uniform
     assert np.mean(err_mg > 3 * s1_mg) <= np.mean(err_mg > 3 * s0_mg)
+
+
+def test_adopting_a_model_drops_the_misfit_measured_under_the_one_it_replaces() -> None:
+    """An hour of a wearer whose offsets follow temperature under the diagonal model leaves a
+    misfit in sigma; adopting the model with the effect starts the misfit again (kappa and the
+    unseen floor kept: they are the postures')."""
+    from dataclasses import replace
+
+    from recal.sim import wearer as sim
+
+    spec = replace(sim.SensorSpec.random(np.random.default_rng(2), 50, 3),
+                   offset_tc_g_per_c=(1.5e-3, -1.5e-3, 1.5e-3))
+    res = sim.simulate(0.5, RATE_HZ, 2, spec, sim.WearerSpec(temp_excursion_every_h=0.5))
+    model = SensorModel.diagonal(float(spec.counts_per_g or 1024.0))
+    p0 = model.nominal()
+    p0[model.slice(("offset", None))] = spec.zero_g_counts
+    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0),
+                    res.raw.aux_names)
+    for i in range(0, len(res.raw), 500):
+        pipe.step(res.raw[i:i + 500])
+    before = pipe.watch.misfit
+    assert pipe.summary()["misfit_mg"] > 1.0 and before.extra_mg2 > 1.0
+    new, q = pipe.model.extend(pipe.params, Offset("temp_c", 30.0), 5.0)
+    pipe.adopt(new, Prior.default(new, q))
+    after = pipe.watch.misfit
+    assert pipe.summary()["misfit_mg"] == 0.0 and after.extra_mg2 == 0.0
+    assert after.across == before.across and after.unseen_w == before.unseen_w

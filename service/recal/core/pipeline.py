@@ -47,6 +47,7 @@ from recal.core.status import (
     GAP_S,
     PROBATION_WINDOWS,
     REOPEN_PROBATION_WINDOWS,
+    RunningMisfit,
     Status,
     Watch,
     unsettled,
@@ -344,13 +345,18 @@ class Pipeline:
 
     def adopt(self, model: SensorModel, prior: Prior) -> None:
         """Continue with another model (one effect discovery extended): its prior becomes the
-        pre-calibration and the estimate; detector, buffer and windows carry on."""
+        pre-calibration and the estimate; detector, buffer and windows carry on; the misfit
+        starts again (it measured the model replaced), a waiting candidate is no longer."""
         check_channels(model, self.aux_names)
         self.model = model
         self.prior = prior
         self.estimate = Estimate.from_prior(prior)
         self.bootstrapped = True
         self.watch.pending = None  # the wait is over, whichever model was adopted
+        # what the misfit measured, it measured under the model now replaced (kappa and the
+        # unseen floor are the postures', kept until the next update recomputes them)
+        m = self.watch.misfit
+        self.watch.misfit = RunningMisfit(across=m.across, unseen_w=m.unseen_w)
         redirect(self)
 
     @property
