@@ -218,3 +218,15 @@ def test_adopting_a_model_drops_the_misfit_measured_under_the_one_it_replaces() 
     after = pipe.watch.misfit
     assert pipe.summary()["misfit_mg"] == 0.0 and after.extra_mg2 == 0.0
     assert after.across == before.across and after.unseen_w == before.unseen_w
+
+
+def test_a_sample_whose_channel_the_candidate_reads_is_missing_keeps_its_sigma() -> None:
+    plain, doubting = _twins()
+    doubting.set_pending(_temperature_candidate(doubting))
+    temp = np.array([REF_C + 10.0, np.nan, REF_C + 10.0, np.nan])
+    batch = _moving(4, temp, np.random.default_rng(6))
+    for one in (False, True):
+        s0_mg, s1_mg = _sigma(plain, batch, one), _sigma(doubting, batch, one)
+        assert np.all(np.isfinite(s1_mg))
+        np.testing.assert_allclose(s1_mg[1::2], s0_mg[1::2], rtol=1e-12)
+        assert np.all(s1_mg[::2] > s0_mg[::2] + 10.0)

@@ -71,5 +71,9 @@ def doubt_mg2(pending: PendingCandidate, v: np.ndarray, cov: Covariates,
               a_g: np.ndarray) -> np.ndarray:
     """|d|^2 (mg^2) per sample: the candidate's correction of the raw readings v (N, 3)
     against the correction in force a_g (N, 3, g)."""
-    d = pending.model.correct(pending.p, v, cov) - a_g
-    return 1e6 * np.einsum("ij,ij->i", d, d)
+    with np.errstate(invalid="ignore", over="ignore"):
+        d = pending.model.correct(pending.p, v, cov) - a_g
+        d2 = 1e6 * np.einsum("ij,ij->i", d, d)
+    # a sample the candidate cannot correct (a channel it reads missing there, where the
+    # model in force reads none) gets no doubt from it: the candidate says nothing of it
+    return np.where(np.isfinite(d2) | ~np.isfinite(a_g).all(axis=1), d2, 0.0)
