@@ -34,7 +34,7 @@ def contradicts(pipe: PipelineParts, chunk: WindowChunk, i: int, ok: bool, n: in
     if pipe.estimate is None or chunk.norm is None:
         return False
     if chunk.sigma_mg is None:  # once per chunk, under the parameters it was cut with
-        _, _, p, cov, form, _ = pipe._segment_cache()
+        _, _, p, cov, form, *_ = pipe._segment_cache()
         w = chunk.w
         chunk.sigma_mg = predicted_sigma_mg(pipe.model, p, cov, w.v,
                                             pipe.covariates(w.t_us, w.aux), form)
