@@ -44,7 +44,7 @@ from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline_config import PipelineConfig
-from recal.core.quantization import mean_floor_g2
+from recal.core.quantization import window_noise_g2
 from recal.core.residuals import MisfitProfile, misfit
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
@@ -167,10 +167,7 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
     a = model.correct(res.p, w.v, data.cov)[fitted]  # directions: `misfit.across_factor`
     # the noise left in a window mean, per axis and so along gravity: var / n of its samples,
     # and the rounding no noise averages away
-    var_g2 = w.var[fitted] / model.s0**2
-    noise2 = var_g2 / np.maximum(w.n[fitted], 1)
-    if step_raw is not None:
-        noise2 = noise2 + mean_floor_g2(np.asarray(step_raw) / model.s0, var_g2)
+    noise2 = window_noise_g2(w.var[fitted], w.n[fitted], model.s0, step_raw)
     return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(fitted.sum()),
                         dropped + int((~fitted).sum()),
                         1e3 * float(np.sqrt(np.mean(xi_fitted**2))) if len(xi_fitted) else 0.0,
