@@ -44,7 +44,7 @@ from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline_config import PipelineConfig
-from recal.core.quantization import window_noise_g2
+from recal.core.quantization import rounding_g2
 from recal.core.residuals import MisfitProfile, misfit
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
@@ -167,7 +167,8 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
     a = model.correct(res.p, w.v, data.cov)[fitted]  # directions: `misfit.across_factor`
     # the noise left in a window mean, per axis and so along gravity: var / n of its samples,
     # and the rounding no noise averages away
-    noise2 = window_noise_g2(w.var[fitted], w.n[fitted], model.s0, step_raw)
+    noise2 = (w.var[fitted] / np.maximum(w.n[fitted], 1) / model.s0**2
+              + rounding_g2(w.var[fitted], model.s0, step_raw))
     return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(fitted.sum()),
                         dropped + int((~fitted).sum()),
                         1e3 * float(np.sqrt(np.mean(xi_fitted**2))) if len(xi_fitted) else 0.0,

@@ -20,7 +20,7 @@ from recal.core.estimator import Estimate, Prior, update
 from recal.core.misfit import across_factor, direction_sums, unseen_cross_g2
 from recal.core.model import SensorModel
 from recal.core.outputs import UpdateEvent, WatchEvent
-from recal.core.quantization import window_noise_g2
+from recal.core.quantization import rounding_g2
 from recal.core.refit import after_update
 from recal.core.status import (
     MISFIT_MOVE_SDS,
@@ -70,7 +70,8 @@ def update_at(pipe: PipelineParts, idx: int, now_us: int,
     if rep.accepted:
         pipe.unobserved = _unobserved(pipe.model, pipe.estimate, rep.observable)
         s0 = pipe.model.s0
-        noise_g2 = (float(np.mean(window_noise_g2(w.var, w.n, s0, learned_step(pipe))))
+        noise_g2 = (float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0)
+                    + float(np.mean(rounding_g2(w.var, s0, learned_step(pipe))))
                     if len(w) else 0.0)
         # how much more the vector can err than the buffer's norms show (`core.misfit`)
         a = pipe.model.correct(pipe.params, w.v, cov)

@@ -31,7 +31,7 @@ import numpy as np
 from recal.core.triaxial import any3
 
 __all__ = ["COARSE_STEP_G", "LATTICE_CHANGES", "coarse", "mean_floor_g2", "observe",
-           "window_noise_g2"]
+           "rounding_g2", "window_noise_g2"]
 
 #: Samples that differ from their predecessor the step is learned on; then it stays.
 LATTICE_CHANGES = 20_000
@@ -79,13 +79,22 @@ def mean_floor_g2(step_g: np.ndarray, var_g2: np.ndarray) -> np.ndarray:
     return np.mean(np.where(s > 0, q2 * damp, 0.0), axis=1)
 
 
+
+def rounding_g2(var_raw2: np.ndarray, s0: float, step_raw: np.ndarray | None) -> np.ndarray:
+    """`mean_floor_g2` of windows in raw units (their mean per-axis variance var_raw2, the
+    step per axis step_raw; None: unknown, zeros), in g^2: what a window mean's noise adds
+    to var / n of its samples (added after it, so a sensor without a step keeps its bits)."""
+    var = np.asarray(var_raw2, np.float64).reshape(-1)
+    if step_raw is None:
+        return np.zeros(len(var))
+    return mean_floor_g2(np.asarray(step_raw, np.float64) / s0, var / (s0 * s0))
+
+
 def window_noise_g2(var_raw2: np.ndarray, n: np.ndarray, s0: float,
                     step_raw: np.ndarray | None) -> np.ndarray:
     """The noise variance (g^2) of window means along gravity: var / n of their samples (mean
     per-axis variance var_raw2, raw units^2), and the rounding no noise averages away
-    (`mean_floor_g2`; step_raw per axis in raw units, None or inf: unknown)."""
-    var_g2 = np.asarray(var_raw2, np.float64).reshape(-1) / (s0 * s0)
-    noise = var_g2 / np.maximum(np.asarray(n).reshape(-1), 1)
-    if step_raw is None:
-        return noise
-    return noise + mean_floor_g2(np.asarray(step_raw, np.float64) / s0, var_g2)
+    (`rounding_g2`)."""
+    var = np.asarray(var_raw2, np.float64).reshape(-1)
+    return var / np.maximum(np.asarray(n).reshape(-1), 1) / (s0 * s0) + rounding_g2(
+        var, s0, step_raw)
