@@ -20,6 +20,7 @@ from recal.core.estimator import Estimate, Prior, update
 from recal.core.misfit import across_factor, direction_sums, unseen_cross_form
 from recal.core.model import SensorModel
 from recal.core.outputs import UpdateEvent, WatchEvent
+from recal.core.quantization import rounding_g2
 from recal.core.refit import after_update
 from recal.core.status import (
     MISFIT_MOVE_SDS,
@@ -33,11 +34,16 @@ from recal.core.triaxial import norm3
 if TYPE_CHECKING:
     from recal.core.pipeline_state import PipelineParts
 
-__all__ = ["redirect", "refill_buffer", "try_bootstrap", "update_at"]
+__all__ = ["learned_step", "redirect", "refill_buffer", "try_bootstrap", "update_at"]
 
 #: Up to this many windows in the buffer before a bootstrap, its sphere fits run at every
 #: window, not every update_every (`_sphere_due`).
 FEW_WINDOWS = 20
+
+
+def learned_step(pipe: PipelineParts) -> np.ndarray | None:
+    """The sensor's step per axis as its detector learned it (raw units; None: no detector)."""
+    return pipe.detector.state.step_raw if pipe.detector is not None else None
 
 
 def update_at(pipe: PipelineParts, idx: int, now_us: int,
@@ -64,7 +70,9 @@ def update_at(pipe: PipelineParts, idx: int, now_us: int,
     if rep.accepted:
         pipe.unobserved = _unobserved(pipe.model, pipe.estimate, rep.observable)
         s0 = pipe.model.s0
-        noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
+        noise_g2 = (float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0)
+                    + float(np.mean(rounding_g2(w.var, s0, learned_step(pipe))))
+                    if len(w) else 0.0)
         # how much more the vector can err than the buffer's norms show (`core.misfit`)
         a = pipe.model.correct(pipe.params, w.v, cov)
         sums = direction_sums(a)
