@@ -203,17 +203,17 @@ def discover_and_calibrate(batches: Callable[[], Iterable[RawBatch]], s0: float,
     discovery cannot score (too few windows, no pose two blocks share), the fit of offsets and
     gains, and why in place of the discovery."""
     base = SensorModel.diagonal(s0)
-    windows, aux_names, t0_us = _windows(batches, cfg, base, s0, None)
+    windows, aux_names, t0_us, step = _windows(batches, cfg, base, s0, None)
     data = data_from_windows(windows, aux_names, t0_us)
     if off_by(data.zero, data.s0, np.zeros(3), s0):
-        windows, aux_names, t0_us = _windows(batches, cfg, base, data.s0, data.zero)
+        windows, aux_names, t0_us, step = _windows(batches, cfg, base, data.s0, data.zero)
         data = data_from_windows(windows, aux_names, t0_us)
     try:
         found: DiscoveryResult | str = discover(data, cfg=dcfg or DiscoveryConfig())
     except InputError as exc:
         found = str(exc)
     model = found.model if isinstance(found, DiscoveryResult) else base
-    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g), found
+    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g, step), found
 
 
 def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
