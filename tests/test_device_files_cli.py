@@ -90,6 +90,9 @@ def test_hindsight_calibrates_a_device_file(tmp_path: Path, cwa: Path, suffix: s
     summary = json.loads(report.read_text())
     assert summary["samples"] == 58800 and summary["windows"] > 0
     assert summary["device"]["kind"] == "axivity_cwa"
+    # the reader's rate, measured between block stamps (1 / the median step of interpolated
+    # stamps is off by their microsecond rounding)
+    assert summary["rate_hz"] == open_device(cwa).rate_hz
     assert any("gap" in n or "stamped" in n for n in summary["device_notes"])
     if suffix == ".mcap":
         assert _device_metadata(out)["device_device_id"] == "51888"

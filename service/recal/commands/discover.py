@@ -92,7 +92,10 @@ def data_from_source(src: Source, window_s: float | None = None,
                 progress(len(b))
             yield b
 
-    return data_from_batches(batches, window_s=window_s)
+    if src.device is None:
+        return data_from_batches(batches, window_s=window_s)
+    # a device file: the rate its reader measured between block stamps, values in g (1 per g)
+    return data_from_batches(batches, window_s=window_s, rate_hz=src.device.rate_hz, s0=1.0)
 
 
 def csv_has_time(path: str | Path) -> bool:

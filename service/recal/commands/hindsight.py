@@ -55,7 +55,7 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
     gains in the input's units). Returns the summary (`summary_lines`).
     progress(n): called with the samples of each batch of each pass."""
     t0 = time.perf_counter()
-    rate_hz, median_norm = rate_and_scale(_counted(src.batches(), progress))
+    rate_hz, median_norm = _rate_and_scale(src, progress)
     cfg = PipelineConfig(rate_hz=rate_hz)
 
     def batches() -> Iterator[RawBatch]:
@@ -114,6 +114,18 @@ def _discovery_lines(d: dict[str, Any] | None) -> list[str]:
                      f"{st['instead_of']}: a sensor swapped, knocked or re-mounted? not "
                      "taken for an effect")
     return lines
+
+
+def _rate_and_scale(src: Source, progress: Callable[[int], None] | None
+                    ) -> tuple[float, float]:
+    """The rate and the nominal scale (raw units per g) the fit starts from: a device file's
+    reader measured the rate between its block stamps (1 / the median step of interpolated
+    stamps is off by their microsecond rounding) and gives g, so its scale is 1 (a recording
+    that holds no pose twice keeps its gains there, not at a moving wearer's median norm);
+    else both from counts in one pass."""
+    if src.device is not None:
+        return src.device.rate_hz, 1.0
+    return rate_and_scale(_counted(src.batches(), progress))
 
 
 def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:

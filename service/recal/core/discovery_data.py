@@ -126,7 +126,8 @@ def data_from_batch(batch: RawBatch, cfg: PipelineConfig | None = None,
 
 def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
                       cfg: PipelineConfig | None = None, s0: float | None = None,
-                      window_s: float | None = None) -> DiscoveryData:
+                      window_s: float | None = None, rate_hz: float | None = None
+                      ) -> DiscoveryData:
     """`data_from_batch` of a recording read one batch at a time, in two passes (``batches()``
     is called once per pass): the rate and s0 from counts of every sample's time step and of
     its norm's bin (`_norm_bins`; memory by distinct steps and bins, not by samples), then the
@@ -135,14 +136,17 @@ def data_from_batches(batches: Callable[[], Iterable[RawBatch]],
     its mean may differ in the last bit).
 
     window_s: with the measured rate, windows of this length (guard half of it) instead of
-    the default (ignored when cfg is given).
+    the default (ignored when cfg is given). rate_hz: the rate when the source knows it better
+    than its stamps' median step (with s0 too, the first pass is not needed).
     """
     if cfg is None or s0 is None:
-        rate_hz, median_norm = rate_and_scale(batches())
+        if rate_hz is None or s0 is None:
+            measured_hz, median_norm = rate_and_scale(batches())
+            rate_hz = measured_hz if rate_hz is None else rate_hz
+            s0 = median_norm if s0 is None else s0
         cfg = cfg or (PipelineConfig(rate_hz=rate_hz) if window_s is None else
                       PipelineConfig(rate_hz=rate_hz, window_s=float(window_s),
                                      guard_s=float(window_s) / 2))
-        s0 = median_norm if s0 is None else s0
     return centred_data(batches, cfg, s0)
 
 
