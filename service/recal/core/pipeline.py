@@ -209,7 +209,7 @@ class Pipeline:
         """Process one batch of raw samples (any size, in time order)."""
         s = self._stepped(batch, [])
         return StepOutput(s.calibrated, s.updates, len(s.commits), s.watch, self.model,
-                          self.estimate)
+                          self.estimate, windows=s.windows)
 
     def step_many(self, batches: Sequence[RawBatch]) -> list[StepOutput]:
         """`step` for consecutive batches: one output per batch, exactly what stepping each in
@@ -311,7 +311,7 @@ class Pipeline:
             self._work.marks = Marks(list(marks), gate, self.counts["samples"],
                                      self.counts["quasi_static"])
         try:
-            events, commits = windows(self, batch, gate)
+            events, commits, committed = windows(self, batch, gate)
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._work.marks = self._work.marks, None
@@ -325,7 +325,7 @@ class Pipeline:
             self.counts["quasi_static"] += int(gate.sum())
             out = CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma)
         return JoinedStep(out, tuple(events), commits, tuple(self._work.watch_events),
-                          done.at if done is not None else {})
+                          done.at if done is not None else {}, committed)
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""
