@@ -8,12 +8,13 @@ model. So a node keeps every committed window here (norm gate or not: a window t
 puts 200 mg off 1 g is exactly the evidence of what it lacks), and nothing but its own bound
 removes one. Discovery (`discovery.discover_pipeline`) runs on `EvidenceStore.windows`.
 
-The bound: at most ``capacity`` windows. When a window more arrives, one goes: from the most
-crowded bin of (time, each auxiliary channel, gravity face), each cut into a few equal parts
-of the range the store holds now, the one of that bin closest in time to the window before it
-in the bin (ties: the earliest). Long sitting at one temperature thins out; the one cold
-excursion, the one time the wearer lay down and the first minutes stay. Pure numpy; the node
-owns the store and saves it in its checkpoint (`to_dict` / `from_dict`). See docs/design.md
+The bound: at most ``capacity`` windows. When it is exceeded, 1/SLACK of them go, one at a
+time: from the most crowded bin of (time, each auxiliary channel, gravity face), each cut into
+a few equal parts of the range the store holds now, the one of that bin closest in time to the
+window before it in the bin (ties: the earliest). Long sitting at one temperature thins out;
+the one cold excursion, the one time the wearer lay down and the first minutes stay. Pure
+numpy; the node owns the store and saves it in its checkpoint (`to_dict` / `from_dict`). See
+docs/design.md
 (effect discovery, live).
 """
 
@@ -28,6 +29,10 @@ from recal.core.buffer import Windows
 from recal.errors import ConfigError, InputError
 
 __all__ = ["EvidenceConfig", "EvidenceStore"]
+
+#: Thinning, once the store is full, drops 1/SLACK of it at once (bins worked out once for
+#: them): a window added costs one drop's work, not a new binning of the whole store.
+SLACK = 16
 
 
 @dataclass(frozen=True)
@@ -80,12 +85,8 @@ class EvidenceStore:
         self.n = np.concatenate([self.n, np.asarray(w.n, np.int64)])
         self.var = np.concatenate([self.var, np.asarray(w.var, np.float64)])
         self.added += len(w)
-        over = len(self) - self.cfg.capacity
-        if over > 0:
-            keep = np.ones(len(self), bool)
-            for _ in range(over):  # bounded: the windows just added beyond capacity
-                keep[self._crowded(keep)] = False
-            self._take(keep)
+        if len(self) > self.cfg.capacity:
+            self._thin(self.cfg.capacity - self.cfg.capacity // SLACK)
 
     def windows(self) -> Windows:
         """The windows held (fresh arrays: a run may keep them while the store goes on)."""
@@ -133,17 +134,22 @@ class EvidenceStore:
         self.v, self.aux, self.t_us = s.v[keep], s.aux[keep], s.t_us[keep]
         self.n, self.var = s.n[keep], s.var[keep]
 
-    def _crowded(self, keep: np.ndarray) -> int:
-        """The window to drop among those kept: in the most crowded bin, the one nearest in
-        time to its predecessor in the bin (see the module doc)."""
-        idx = np.flatnonzero(keep)
-        key = self._bins(idx)
-        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-        members = idx[inverse == int(np.argmax(counts))]  # the first most crowded bin
-        if len(members) < 2:
-            return int(members[0])
-        gaps = np.diff(self.t_us[members])
-        return int(members[1 + int(np.argmin(gaps))])
+    def _thin(self, target: int) -> None:
+        """Drop windows down to ``target``, one at a time: from the most crowded bin (bins
+        as of now), the one nearest in time to its predecessor in the bin (see the module
+        doc)."""
+        _, inv = np.unique(self._bins(np.arange(len(self))), return_inverse=True)
+        counts = np.bincount(inv)
+        keep = np.ones(len(self), bool)
+        t = self.t_us
+        for _ in range(len(self) - target):  # bounded: the windows beyond target
+            b = int(np.argmax(counts))
+            members = np.flatnonzero(keep & (inv == b))
+            drop = members[0] if len(members) < 2 else members[1 + int(np.argmin(
+                np.diff(t[members])))]
+            keep[drop] = False
+            counts[b] -= 1
+        self._take(keep)
 
     def _bins(self, idx: np.ndarray) -> np.ndarray:
         """One integer per window: its time part, aux parts and gravity face."""

@@ -144,7 +144,8 @@ def _axis_newly_covered(pipe: PipelineParts) -> bool:
     observe (a sphere fitted to five half-axes, then the sixth): worth an update at once,
     whatever the window count (a six-pose stream ends right after its last pose)."""
     rep = pipe.last_report
-    if rep is None or not pipe.model.has("scale") or not rep.observable:
+    if (rep is None or not pipe.model.has("scale") or not rep.observable
+            or len(rep.observable) != len(pipe.model.names)):  # (of a model since replaced)
         return False
     sl = pipe.model.slice(Scale())
     seen = rep.observable[sl.start:sl.stop]

@@ -92,10 +92,10 @@ def _failed(sensor_id: str, exc: Exception) -> Exception:
 class RediscoverySchedule:
     """When a node reruns discovery (`RediscoveryConfig`): the first slot ``first_h`` after
     the stream's origin, then at 2, 4, 8 ... times that (the evidence doubles in time), the
-    gap never longer than ``every_h``; at a slot a run starts if the evidence holds ``min_windows`` and an estimate
-    exists (else the slot passes); one run at a time, its result taken ``adopt_after_s``
-    device seconds after it started. Only device times decide: a replay starts and adopts
-    each run at the same sample as the live node.
+    gap never longer than ``every_h``; at a slot a run starts if the evidence holds
+    ``min_windows`` and an estimate exists (else the slot passes); one run at a time, its
+    result taken ``adopt_after_s`` device seconds after it started. Only device times
+    decide: a replay starts and adopts each run at the same sample as the live node.
 
     ``next_us``: the device time of the next slot (None: from the stream's origin);
     ``gap_us``: the gap that led to it.
