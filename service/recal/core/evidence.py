@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from recal.core.buffer import Windows
+from recal.core.buffer import Windows, cell_of
 from recal.errors import ConfigError, InputError
 
 __all__ = ["EvidenceConfig", "EvidenceStore"]
@@ -97,6 +97,13 @@ class EvidenceStore:
         """Device seconds between the first and the last window held."""
         return float(self.t_us[-1] - self.t_us[0]) / 1e6 if len(self) > 1 else 0.0
 
+    def cells(self, grid: int = 6) -> int:
+        """Distinct gravity directions held: cube-face grid cells (`buffer.cell_of`) of the
+        readings about their middle (see `_centred`)."""
+        if not len(self):
+            return 0
+        return len(np.unique(cell_of(self._centred(np.arange(len(self))), grid)))
+
     def copy(self) -> EvidenceStore:
         new = EvidenceStore(self.cfg, self.aux.shape[1])
         new._take(np.ones(len(self), bool), self)
@@ -157,13 +164,16 @@ class EvidenceStore:
         key = _part(self.t_us[idx].astype(np.float64), cfg.time_bins)
         for j in range(self.aux.shape[1]):
             key = key * (cfg.aux_bins + 1) + 1 + _part(self.aux[idx, j], cfg.aux_bins)
-        v = self.v[idx]
-        # the face of gravity about the middle of the readings (an unsigned ADC reads ~2048
-        # counts at 0 g: raw directions would all point one way)
-        c = v - (np.nanmax(v, axis=0) + np.nanmin(v, axis=0)) / 2
+        c = self._centred(idx)
         ax = np.argmax(np.abs(np.nan_to_num(c)), axis=1)
         face = 2 * ax + (c[np.arange(len(c)), ax] < 0)
         return key * 6 + face
+
+    def _centred(self, idx: np.ndarray) -> np.ndarray:
+        """The readings about the middle of their range: gravity's direction well enough to
+        bin by (an unsigned ADC reads ~2048 counts at 0 g: raw directions all point one way)."""
+        v = np.nan_to_num(self.v[idx])
+        return v - (v.max(axis=0) + v.min(axis=0)) / 2
 
 
 #: Significant digits a checkpoint keeps of the window means (relative to the largest value

@@ -31,6 +31,13 @@ __all__ = ["NodeDiscovery", "Rediscovery", "RediscoverySchedule"]
 
 log = logging.getLogger(__name__)
 
+#: Effects whose terms only orientations tell apart (they act along the gravity direction):
+#: tried once the evidence holds MIN_CELLS cube-face cells (`EvidenceStore.cells`). With a few
+#: upright postures a cross-axis and a nonlinearity term together fit the postures' own
+#: scatter and pass the held-out test (seen on a clean, upright wearer at 3 cells).
+ORIENTED_KINDS = ("cross_axis", "nonlinearity")
+MIN_CELLS = 10
+
 
 def _discover(*args: Any) -> Any:
     # imported here, not at the top: a node that never reaches a run (a short stream, a
@@ -167,12 +174,16 @@ def _run_args(evidence: EvidenceStore, base: SensorModel, model: SensorModel,
               ) -> tuple:
     """`discovery.discover_pipeline`'s arguments: the evidence's windows, the configured
     model at the live scale, its values carried from the estimate in force."""
+    from recal.core.candidates import KIND_ORDER
     from recal.core.discovery import DiscoveryConfig
     from recal.core.model_fit import carry_params
 
     start = SensorModel(base.effects, model.s0, base.spreads)
     p = carry_params(model, np.asarray(estimate.p, np.float64), start)
-    return (evidence.windows(), aux_names, t0_us, start, p, DiscoveryConfig(blocks=blocks))
+    kinds = KIND_ORDER if evidence.cells() >= MIN_CELLS else tuple(
+        k for k in KIND_ORDER if k not in ORIENTED_KINDS)
+    return (evidence.windows(), aux_names, t0_us, start, p,
+            DiscoveryConfig(blocks=blocks, kinds=kinds))
 
 
 class NodeDiscovery:
