@@ -213,7 +213,7 @@ class _Capture:
 def test_discovery_is_on_by_default_in_the_daemon() -> None:
     """The node's discovery with its defaults (its schedule, evidence, adoption and restart:
     tests/test_live_discovery.py)."""
-    raw = sim.simulate(0.25, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
+    raw = sim.simulate(0.4, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
     model = SensorModel.diagonal(1024.0)
     sink = _Capture()
     node = CalibrationNode(NodeSettings("s1", PipelineSection(), model, Prior.default(model),
@@ -223,7 +223,7 @@ def test_discovery_is_on_by_default_in_the_daemon() -> None:
     assert node.settings.rediscovery == RediscoveryConfig() and RediscoveryConfig().active
     found = [o["detail"]["added"] for _, o in sink.json_messages
              if o.get("kind") == "discovery"]
-    assert found and found[0] == ["offset[board_temp]"]
+    assert found[:2] == [["offset[board_temp]"]] * 2  # selected, then confirmed
     assert node.pipeline is not None and node.pipeline.model.has("offset", "board_temp")
 
 

@@ -65,10 +65,12 @@ def test_a_node_with_the_defaults_adopts_the_undeclared_effect_and_says_so(
     d = adopted[0]["detail"]
     assert d["heldout_error_mg"]["final"] < 0.5 * d["heldout_error_mg"]["base"]
     assert d["windows"] >= RediscoveryConfig().min_windows
-    # the first slot: first_h after the stream began, taken on adopt_after_s later
+    # the first run (first_h after the stream began) selects it, the second (first_h
+    # later) confirms it, and it is taken on adopt_after_s after that run began
     cfg = RediscoveryConfig()
+    assert events[0]["detail"]["pending"] and events[0]["detail"]["added"] == d["added"]
     started = d["started_t_us"] - int(raw.t_us[0])
-    assert cfg.first_h * 3.6e9 <= started < cfg.first_h * 3.6e9 + BATCH / RATE_HZ * 1e6
+    assert 2 * cfg.first_h * 3.6e9 <= started < 2 * cfg.first_h * 3.6e9 + BATCH / RATE_HZ * 1e6
     assert 0 <= adopted[0]["t_us"] - d["started_t_us"] - cfg.adopt_after_s * 1e6 < (
         BATCH / RATE_HZ * 1e6)
     said = [n for n in notes if n.startswith("discovery:")]
@@ -77,9 +79,6 @@ def test_a_node_with_the_defaults_adopts_the_undeclared_effect_and_says_so(
               and o["reason"] == "discovery"]
     assert len(states) == 1 and {f"o_board_temp_{ax}" for ax in "xyz"} <= set(
         states[0]["param_names"])
-    # the later runs on more evidence keep it: nothing more to change
-    assert all(not e["detail"]["adopted"] for e in events if e is not adopted[0])
-    assert len(events) >= 2
     # until it is taken on, the output is exactly a node's without discovery
     t, a = sink.calibrated_output()
     off, sink0 = _node(RediscoveryConfig(enabled=False))
@@ -92,9 +91,9 @@ def test_a_node_with_the_defaults_adopts_the_undeclared_effect_and_says_so(
     # and after, the error against the truth is smaller than without it
     truth = sim.simulate(0.5, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC),
                          WEARER).truth.a_true_g
-    err = np.linalg.norm(a[~before] - truth[~before], axis=1).mean()
-    err0 = np.linalg.norm(a0[~before] - truth[~before], axis=1).mean()
-    assert err < 0.8 * err0
+    err = sim.error_1s_mg(a[~before], truth[~before], RATE_HZ)
+    err0 = sim.error_1s_mg(a0[~before], truth[~before], RATE_HZ)
+    assert err < 0.8 * err0, (err, err0)
 
 
 @pytest.mark.slow
@@ -180,7 +179,7 @@ def test_the_evidence_round_trips_through_its_dict_and_strict_json() -> None:
 def test_the_adopted_model_and_the_evidence_survive_a_restart(
         temperature_raw: RawBatch) -> None:
     raw = temperature_raw
-    cut = int(np.searchsorted(raw.t_us, raw.t_us[0] + 15 * 60e6))
+    cut = int(np.searchsorted(raw.t_us, raw.t_us[0] + 25 * 60e6))
     cut -= cut % BATCH
     node, sink = _node()
     _feed(node, raw[:cut])
@@ -194,6 +193,7 @@ def test_the_adopted_model_and_the_evidence_survive_a_restart(
     assert ev.added == node.discovery.evidence.added
     assert back.discovery.schedule.next_us == node.discovery.schedule.next_us
     assert back.discovery.schedule.gap_us == node.discovery.schedule.gap_us
+    assert back.discovery.pending == node.discovery.pending
     # a checkpoint from before discovery kept anything loads: the evidence starts anew
     old = {k: v for k, v in doc.items() if k != "discovery"}
     fresh = CalibrationNode.from_checkpoint(node.settings, _Capture(), old)

@@ -95,6 +95,7 @@ class Restored:
     next_discovery_us: int | None
     discovery_gap_us: int | None = None
     evidence: EvidenceStore | None = None
+    discovery_pending: tuple[str, ...] | None = None
 
 
 def restore_document(doc: dict[str, Any], sensor_id: str,
@@ -134,7 +135,10 @@ def restore_document(doc: dict[str, Any], sensor_id: str,
     next_us = (int(due) if isinstance(due, (int, float)) and 0 <= due <= last + every_us
                else None)
     gap_us, evidence = _discovery(doc.get("discovery"), pipe, every_us)
-    return Restored(pipe, alignment, timebase, next_us, gap_us, evidence)
+    d = doc.get("discovery")
+    pending = d.get("pending") if isinstance(d, dict) else None
+    return Restored(pipe, alignment, timebase, next_us, gap_us, evidence,
+                    tuple(map(str, pending)) if isinstance(pending, list) else None)
 
 
 def _discovery(d: Any, pipe: Pipeline, every_us: int) -> tuple[int | None, EvidenceStore | None]:

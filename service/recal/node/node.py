@@ -364,7 +364,8 @@ class CalibrationNode:
                                settings.rediscovery)
         node = cls(settings, sink, pipeline=got.pipeline, alignment=got.alignment,
                    start="checkpoint", timebase=got.timebase)
-        node.discovery.restore(got.next_discovery_us, got.discovery_gap_us, got.evidence)
+        node.discovery.restore(got.next_discovery_us, got.discovery_gap_us, got.evidence,
+                               got.discovery_pending)
         return node
 
     # -- starting -----------------------------------------------------------------------------

@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 #: scatter and pass the held-out test (seen on a clean, upright wearer at 3 cells).
 ORIENTED_KINDS = ("cross_axis", "nonlinearity")
 MIN_CELLS = 10
+#: Slots every first_h before the schedule's gap starts doubling (the first hour at 10 min).
+FIRST_SLOTS = 6
 
 
 def _discover(*args: Any) -> Any:
@@ -97,12 +99,12 @@ def _failed(sensor_id: str, exc: Exception) -> Exception:
 
 
 class RediscoverySchedule:
-    """When a node reruns discovery (`RediscoveryConfig`): the first slot ``first_h`` after
-    the stream's origin, then at 2, 4, 8 ... times that (the evidence doubles in time), the
-    gap never longer than ``every_h``; at a slot a run starts if the evidence holds
-    ``min_windows`` and an estimate exists (else the slot passes); one run at a time, its
-    result taken ``adopt_after_s`` device seconds after it started. Only device times
-    decide: a replay starts and adopts each run at the same sample as the live node.
+    """When a node reruns discovery (`RediscoveryConfig`): a slot every ``first_h`` after the
+    stream's origin for FIRST_SLOTS slots (the first hour at the defaults), then each time the
+    evidence has doubled in time, the gap at most ``every_h``; at a slot a run starts if the
+    evidence holds ``min_windows`` and an estimate exists (else the slot passes); one run at
+    a time, its result taken ``adopt_after_s`` device seconds after it started. Only device
+    times decide: a replay starts and adopts each run at the same sample as the live node.
 
     ``next_us``: the device time of the next slot (None: from the stream's origin);
     ``gap_us``: the gap that led to it.
@@ -112,9 +114,7 @@ class RediscoverySchedule:
                  gap_us: int | None = None, executor: Executor | None = None) -> None:
         self.cfg = cfg
         self.next_us = next_us
-        # half the first: the gap after the first slot is the time since the origin, and
-        # doubles from there (the evidence doubles in time) up to every_h
-        self.gap_us = gap_us if gap_us is not None else round(cfg.first_h * 3.6e9) // 2
+        self.gap_us = gap_us if gap_us is not None else round(cfg.first_h * 3.6e9)
         self.executor = executor
         self.run: Rediscovery | None = None  # a run going on
 
@@ -146,6 +146,7 @@ class RediscoverySchedule:
         cfg = self.cfg
         if not cfg.active or self.next_us is None:
             return None
+        base, model, estimate, aux_names, origin_us = start
         if self.run is not None:
             if last_t_us >= self.run.due_us:
                 run, self.run = self.run, None
@@ -153,14 +154,17 @@ class RediscoverySchedule:
             return None  # one run at a time
         if last_t_us < self.next_us:
             return None
-        every_us = round(cfg.every_h * 3.6e9)
-        self.gap_us = min(2 * self.gap_us, every_us) if self.gap_us else every_us
+        every_us, first_us = round(cfg.every_h * 3.6e9), round(cfg.first_h * 3.6e9)
+        # every first_h for the first hour (FIRST_SLOTS of them), then as the evidence
+        # doubles in time, the gap at most every_h
+        age = self.next_us - origin_us
+        self.gap_us = min(first_us if age < FIRST_SLOTS * first_us else max(age, first_us),
+                          every_us)
         self.next_us = max(self.next_us + self.gap_us, last_t_us + 1)
-        base, model, estimate, aux_names, t0_us = start
         if estimate is None or len(evidence) < cfg.min_windows:
             return None
         self.run = Rediscovery.start(sensor_id, _run_args(evidence, base, model, estimate,
-                                                          aux_names, t0_us, cfg.blocks),
+                                                          aux_names, origin_us, cfg.blocks),
                                      last_t_us, last_t_us + round(cfg.adopt_after_s * 1e6),
                                      model.names, self.executor)
         if cfg.adopt_after_s <= 0:
@@ -198,6 +202,9 @@ class NodeDiscovery:
         self.events = events
         self.evidence: EvidenceStore | None = None
         self.runs: list[dict[str, Any]] = []
+        #: the effects the last run selected beyond the configured model, while they differ
+        #: from those in force: the next run must select them again to have them adopted
+        self.pending: tuple[str, ...] | None = None
 
     def start(self, pipe: Pipeline) -> None:
         cfg = self.schedule.cfg
@@ -208,10 +215,13 @@ class NodeDiscovery:
         """What the checkpoint keeps: the schedule's gap and the evidence."""
         if self.evidence is None:
             return None
-        return {"gap_us": self.schedule.gap_us, "evidence": self.evidence.to_dict()}
+        return {"gap_us": self.schedule.gap_us, "evidence": self.evidence.to_dict(),
+                "pending": None if self.pending is None else list(self.pending)}
 
     def restore(self, next_us: int | None, gap_us: int | None,
-                evidence: EvidenceStore | None) -> None:
+                evidence: EvidenceStore | None, pending: tuple[str, ...] | None = None
+                ) -> None:
+        self.pending = pending
         self.schedule.next_us = next_us
         if gap_us is not None:
             self.schedule.gap_us = gap_us
@@ -244,9 +254,12 @@ class NodeDiscovery:
 
     def _take(self, pipe: Pipeline, run: Rediscovery, t_us: int, log_ns: int) -> bool:
         """A run's result: the model it selected from the configured one becomes the live one
-        (its fitted values the estimate) when its effects differ from those in force; an
-        event "discovery" either way (the effects added and dropped, the held-out error
-        before and after), a console note when adopted."""
+        (its fitted values the estimate) when its effects differ from those in force and
+        the run before selected the same effects (two runs on growing evidence agree: an
+        effect one run's few windows favour by chance, or a form a few postures cannot tell
+        from another, is not taken on); an event "discovery" either way (the effects it
+        would add and drop, whether it was adopted, the held-out error before and after), a
+        console note when adopted."""
         res = run.result()  # waits if it is still running (a replay gets here sooner)
         if isinstance(res, Exception):
             self.events.event("discovery_failed", t_us, log_ns,
@@ -256,10 +269,14 @@ class NodeDiscovery:
         found = {e.label: e.key for e in res.model.effects}
         added = [lb for lb, k in found.items() if k not in now.values()]
         dropped = [lb for lb, k in now.items() if k not in found.values()]
-        adopt = bool(added or dropped) and pipe.model.names == run.model_names
+        chosen = tuple(sorted(found))
+        agreed = self.pending == chosen
+        self.pending = chosen if (added or dropped) else None
+        adopt = bool(added or dropped) and agreed and pipe.model.names == run.model_names
         detail = {
             "effects_selected": [e.label for e in res.selected],
             "added": added, "dropped": dropped, "adopted": adopt,
+            "pending": bool(added or dropped) and not adopt,
             "steps": [f"{s.action} {s.effect.label}" for s in res.steps],
             "heldout_error_mg": {"base": res.heldout_base_mg, "final": res.heldout_final_mg},
             "windows": len(res.data), "started_t_us": run.started_us,
@@ -268,6 +285,7 @@ class NodeDiscovery:
         self.runs.append({"t_us": t_us, **detail})
         if not adopt:
             return False
+        self.pending = None
         pipe.adopt(res.model, res.prior)
         what = ", ".join([f"added {lb}" for lb in added] + [f"dropped {lb}" for lb in dropped])
         self.events.note(f"discovery: {what} (held-out error {res.heldout_base_mg:.2f} -> "
