@@ -278,10 +278,9 @@ class RemoteNodeConfig:
 class RediscoveryConfig:
     """Effect discovery on a node's own evidence (`recal.core.evidence`), on by default.
 
-    The schedule (docs/design.md, "Effect discovery, live"): the first run ``first_h`` device
-    hours after the stream began, then each time the evidence has doubled in time (the gap
-    doubles), the gap never longer than ``every_h``; a run with fewer than ``min_windows``
-    windows held, or before the pipeline has an estimate, is skipped.
+    The schedule (docs/design.md, effect discovery step 8): a run every ``first_h`` device
+    hours for the first hour, then each time the evidence has doubled in time, the gap never
+    longer than ``every_h``; a run with fewer than ``min_windows`` windows held is skipped.
 
     Attributes:
         enabled: False: never (so does every_h = 0, as in older configuration files).

@@ -341,13 +341,16 @@ class Pipeline:
     def coverage(self) -> Coverage:
         return self.buffer.coverage()
 
-    def adopt(self, model: SensorModel, prior: Prior) -> None:
+    def adopt(self, model: SensorModel, prior: Prior, cov: np.ndarray | None = None) -> None:
         """Continue with another model (one effect discovery extended): its prior becomes the
-        pre-calibration and the estimate; detector, buffer and windows carry on."""
+        pre-calibration and the estimate, with ``cov`` as the estimate's covariance if given
+        (the fit's that found the model: what its windows tell, not only the prior's
+        spreads); detector, buffer and windows carry on."""
         check_channels(model, self.aux_names)
         self.model = model
         self.prior = prior
-        self.estimate = Estimate.from_prior(prior)
+        self.estimate = (Estimate.from_prior(prior) if cov is None
+                         else Estimate(prior.mean.copy(), np.array(cov, np.float64)))
         self.bootstrapped = True
         redirect(self)
 

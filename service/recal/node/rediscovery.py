@@ -102,7 +102,8 @@ class RediscoverySchedule:
     """When a node reruns discovery (`RediscoveryConfig`): a slot every ``first_h`` after the
     stream's origin for FIRST_SLOTS slots (the first hour at the defaults), then each time the
     evidence has doubled in time, the gap at most ``every_h``; at a slot a run starts if the
-    evidence holds ``min_windows`` and an estimate exists (else the slot passes); one run at
+    evidence holds ``min_windows`` (else the slot passes; without an estimate, a bootstrap
+    that has not found one, the run starts from the windows alone); one run at
     a time, its result taken ``adopt_after_s`` device seconds after it started. Only device
     times decide: a replay starts and adopts each run at the same sample as the live node.
 
@@ -161,7 +162,7 @@ class RediscoverySchedule:
         self.gap_us = min(first_us if age < FIRST_SLOTS * first_us else max(age, first_us),
                           every_us)
         self.next_us = max(self.next_us + self.gap_us, last_t_us + 1)
-        if estimate is None or len(evidence) < cfg.min_windows:
+        if len(evidence) < cfg.min_windows:
             return None
         self.run = Rediscovery.start(sensor_id, _run_args(evidence, base, model, estimate,
                                                           aux_names, origin_us, cfg.blocks),
@@ -174,16 +175,18 @@ class RediscoverySchedule:
 
 
 def _run_args(evidence: EvidenceStore, base: SensorModel, model: SensorModel,
-              estimate: Estimate, aux_names: tuple[str, ...], t0_us: int, blocks: int
+              estimate: Estimate | None, aux_names: tuple[str, ...], t0_us: int, blocks: int
               ) -> tuple:
     """`discovery.discover_pipeline`'s arguments: the evidence's windows, the configured
-    model at the live scale, its values carried from the estimate in force."""
+    model at the live scale, its values carried from the estimate in force (none: the
+    bootstrap's own start from the windows, `model_fit.start_params`)."""
     from recal.core.candidates import KIND_ORDER
     from recal.core.discovery import DiscoveryConfig
     from recal.core.model_fit import carry_params
 
     start = SensorModel(base.effects, model.s0, base.spreads)
-    p = carry_params(model, np.asarray(estimate.p, np.float64), start)
+    p = (None if estimate is None
+         else carry_params(model, np.asarray(estimate.p, np.float64), start))
     kinds = KIND_ORDER if evidence.cells() >= MIN_CELLS else tuple(
         k for k in KIND_ORDER if k not in ORIENTED_KINDS)
     return (evidence.windows(), aux_names, t0_us, start, p,
@@ -286,7 +289,7 @@ class NodeDiscovery:
         if not adopt:
             return False
         self.pending = None
-        pipe.adopt(res.model, res.prior)
+        pipe.adopt(res.model, res.prior, res.cov)
         what = ", ".join([f"added {lb}" for lb in added] + [f"dropped {lb}" for lb in dropped])
         self.events.note(f"discovery: {what} (held-out error {res.heldout_base_mg:.2f} -> "
                          f"{res.heldout_final_mg:.2f} mg on {len(res.data)} windows)")
