@@ -345,12 +345,16 @@ class Pipeline:
         """Continue with another model (one effect discovery extended): its prior becomes the
         pre-calibration and the estimate, with ``cov`` as the estimate's covariance if given
         (the fit's that found the model: what its windows tell, not only the prior's
-        spreads); detector, buffer and windows carry on."""
+        spreads); detector, buffer and windows carry on, the self-watch starts afresh."""
         check_channels(model, self.aux_names)
         self.model = model
         self.prior = prior
         self.estimate = (Estimate.from_prior(prior) if cov is None
                          else Estimate(prior.mean.copy(), np.array(cov, np.float64)))
+        # the self-watch judged the model this one replaces (its contradictions, its misfit):
+        # it starts afresh, the first still window must agree before output is calibrated
+        self.watch = Watch(triggers=self.watch.triggers)
+        self.watch.doubt(REOPEN_PROBATION_WINDOWS)
         self.bootstrapped = True
         redirect(self)
 
