@@ -12,8 +12,11 @@ node's pipeline. The schedule and the method: docs/design.md (effect discovery).
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import threading
-from concurrent.futures import Executor
+from collections.abc import Iterator
+from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -27,7 +30,7 @@ from recal.core.pipeline import Pipeline
 from recal.node.events import NodeEvents
 from recal.node.state_message import model_name
 
-__all__ = ["NodeDiscovery", "Rediscovery", "RediscoverySchedule"]
+__all__ = ["NodeDiscovery", "Rediscovery", "RediscoverySchedule", "in_a_process"]
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +42,30 @@ ORIENTED_KINDS = ("cross_axis", "nonlinearity")
 MIN_CELLS = 10
 #: Slots every first_h before the schedule's gap starts doubling (the first hour at 10 min).
 FIRST_SLOTS = 6
+
+
+#: Where every node of this process runs discovery while `in_a_process` holds (None: a thread
+#: per run).
+_EXECUTOR: Executor | None = None
+
+
+@contextmanager
+def in_a_process(on: bool = True) -> Iterator[None]:
+    """While in the block, every node's discovery runs go to one worker process of their own
+    (the daemons: a run of seconds in a thread holds the interpreter the arrivals need; a
+    tick of 1 ms beside a run saw a p99 of 13.8 ms against 4.9 ms without, docs/performance.md).
+    Spawned, not forked: a fork of a threaded daemon may copy a held lock."""
+    global _EXECUTOR
+    if not on:
+        yield
+        return
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+    _EXECUTOR = pool
+    try:
+        yield
+    finally:
+        _EXECUTOR = None
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _discover(*args: Any) -> Any:
@@ -167,7 +194,7 @@ class RediscoverySchedule:
         self.run = Rediscovery.start(sensor_id, _run_args(evidence, base, model, estimate,
                                                           aux_names, origin_us, cfg.blocks),
                                      last_t_us, last_t_us + round(cfg.adopt_after_s * 1e6),
-                                     model.names, self.executor)
+                                     model.names, self.executor or _EXECUTOR)
         if cfg.adopt_after_s <= 0:
             run, self.run = self.run, None
             return run
