@@ -2,6 +2,7 @@
 
     python bench/live_loop.py                 # 2 h at 50 Hz per case (several minutes)
     python bench/live_loop.py --hours 1.5 --rate 25 --only temp
+    python bench/live_loop.py --cost          # a run's CPU, a window's, latency beside a run
 
 Each case is a simulated wearer (temperature excursions every 0.5 h on average, the supply
 sagging: both move within the first hour) whose sensor has effects the diagonal model lacks,
@@ -28,9 +29,12 @@ After the first hour of device time:
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import sys
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -171,13 +175,73 @@ def _after(cal: CalibratedBatch, truth: np.ndarray, noise_g: float, rate: float,
             "med_err": float(np.median(e[ok])) if ok.any() else float("nan")}
 
 
+def _tick(stop: threading.Event, out: list[float]) -> None:
+    """Sleep 1 ms over and over; how late each wake-up came, s."""
+    while not stop.is_set():  # bounded by the caller's stop
+        t = time.perf_counter()
+        time.sleep(0.001)
+        out.append(time.perf_counter() - t - 0.001)
+
+
+def _beside(work: Callable[[], object]) -> str:
+    """p50 / p99 / max of a 1 ms tick's lateness (ms) while ``work`` runs."""
+    stop, out = threading.Event(), []
+    th = threading.Thread(target=_tick, args=(stop, out))
+    th.start()
+    work()
+    stop.set()
+    th.join()
+    o = 1e3 * np.array(out)
+    return f"{np.percentile(o, 50):.2f} / {np.percentile(o, 99):.2f} / {o.max():.2f} ms"
+
+
+def cost() -> None:
+    """A run's CPU on evidence of 250 .. 2048 windows (3 h at 50 Hz, two aux channels, clean),
+    a window's cost to the evidence, and a 1 ms tick's lateness idle, beside a run in a
+    thread and beside one in a spawned process."""
+    from recal.core import discovery as dc
+    from recal.core import discovery_data as dd
+    from recal.core.buffer import Windows
+    from recal.core.evidence import EvidenceConfig, EvidenceStore
+    from recal.core.pipeline_config import PipelineConfig
+
+    spec = sim.SensorSpec.random(np.random.default_rng(1), 50, 3)
+    r = sim.simulate(3.0, 50.0, 1, spec, sim.WearerSpec(always_aux=True, **WEARER))
+    w = dd.data_from_batch(r.raw, PipelineConfig(rate_hz=50.0), 1024.0).windows
+    m = SensorModel.diagonal(1024.0)
+    args: tuple = ()
+    for cap in (256, 512, 1024, 2048):
+        st = EvidenceStore(EvidenceConfig(cap), 2)
+        t = time.process_time()
+        for i in range(len(w)):  # bounded: a window at a time, as a node adds them
+            st.add(Windows(w.v[i:i + 1], w.aux[i:i + 1], w.t_us[i:i + 1], w.n[i:i + 1],
+                           w.var[i:i + 1]))
+        add_us = 1e6 * (time.process_time() - t) / len(w)
+        args = (st.windows(), r.raw.aux_names, int(r.raw.t_us[0]), m, m.nominal())
+        t = time.process_time()
+        dc.discover_pipeline(*args)
+        print(f"capacity {cap}: {len(st)} windows held, a run {time.process_time() - t:.2f} s "
+              f"CPU, adding a window {add_us:.0f} us")
+    print("1 ms tick lateness p50 / p99 / max: idle", _beside(lambda: time.sleep(3.0)))
+    print("  beside a run in a thread", _beside(lambda: dc.discover_pipeline(*args)))
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    pool.submit(int, 1).result()  # the worker is up
+    print("  beside a run in a process",
+          _beside(lambda: pool.submit(dc.discover_pipeline, *args).result()))
+    pool.shutdown()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--hours", type=float, default=2.0)
     ap.add_argument("--rate", type=float, default=50.0)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--only", default="")
+    ap.add_argument("--cost", action="store_true")
     a = ap.parse_args(argv)
+    if a.cost:
+        cost()
+        return 0
     print("| case | cal % | err/floor | >3 / >10 % | med sig / med err mg | adopted (min) "
           "| runs, cpu s |\n|---|---|---|---|---|---|---|")
     for case in CASES:

@@ -53,7 +53,7 @@ _EXECUTOR: Executor | None = None
 def in_a_process(on: bool = True) -> Iterator[None]:
     """While in the block, every node's discovery runs go to one worker process of their own
     (the daemons: a run of seconds in a thread holds the interpreter the arrivals need; a
-    tick of 1 ms beside a run saw a p99 of 13.8 ms against 4.9 ms without, docs/performance.md).
+    tick of 1 ms beside a run saw a p99 of 26 ms against 3 ms without, docs/performance.md).
     Spawned, not forked: a fork of a threaded daemon may copy a held lock."""
     global _EXECUTOR
     if not on:
