@@ -239,3 +239,30 @@ def test_joined_steps_start_and_adopt_at_the_batch_a_live_node_does(
     t0, a0 = live_sink.calibrated_output()
     np.testing.assert_array_equal(t, t0)
     np.testing.assert_allclose(a, a0, rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_a_replay_of_a_resumed_node_runs_and_adopts_as_it_did(
+        temperature_raw: RawBatch) -> None:
+    from recal.commands.replay import _node_for
+    from recal.config import ServiceConfig
+
+    raw = temperature_raw
+    cut = int(np.searchsorted(raw.t_us, raw.t_us[0] + 15 * 60e6))  # one run pending
+    cut -= cut % BATCH
+    first, _ = _node()
+    _feed(first, raw[:cut])
+    assert first.discovery.pending is not None and "offset[board_temp]" in first.discovery.pending
+    resumed_sink = _Capture()
+    resumed = CalibrationNode.from_checkpoint(first.settings, resumed_sink,
+                                              json.loads(json.dumps(first.checkpoint())))
+    _feed(resumed, raw, cut)
+    setup = next(o for s, o in resumed_sink.json_messages if s == "setup")
+    replay_sink = _Capture()
+    node, start = _node_for("s1", ServiceConfig(), None, setup, replay_sink)
+    assert start == "recording"
+    _feed(node, raw, cut)
+    live, again = _events(resumed_sink), _events(replay_sink)
+    assert any(e["detail"]["adopted"] for e in live)  # the pending one, confirmed
+    assert [(e["t_us"], e["detail"]["adopted"]) for e in again] == [
+        (e["t_us"], e["detail"]["adopted"]) for e in live]

@@ -216,6 +216,8 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
         node = CalibrationNode(settings, sink, pipeline=pipe, start="recording",
                                alignment=Alignment.from_dict(ali) if ali else None,
                                timebase=TimebaseState.from_dict(tbd) if tbd else None)
+        if isinstance(setup.get("discovery_json"), str):  # absent in older recordings
+            node.discovery.resume(json.loads(setup["discovery_json"]))
         return node, "recording"
     m, prior = model_and_prior(sensor, cfg.pipeline)  # no prior known: bootstrap
     settings = NodeSettings(sid, cfg.pipeline, m, prior, sensor.rate_hz, sensor.full_scale_g,

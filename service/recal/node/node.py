@@ -414,7 +414,11 @@ class CalibrationNode:
             "alignment_settings": asdict(self.settings.alignment),
             "alignment": ali.to_dict() if ali else None,
             # a string: JSON messages turn NaN into null, the checkpoint format keeps NaN
-            "pipeline_state_json": json.dumps(self.pipeline.state_dict())}, log_ns)
+            "pipeline_state_json": json.dumps(self.pipeline.state_dict()),
+            # discovery's evidence and schedule as this run began (a resumed node's): a replay
+            # of the log then runs and adopts as this node does
+            "discovery_json": json.dumps({"next_us": self.discovery.schedule.next_us,
+                                          **(self.discovery.state() or {})})}, log_ns)
         reason = "restored" if self.start in ("checkpoint", "recording") else "start"
         self._publish_state(t_us, reason, log_ns)
         self.events.event("node_started", t_us, log_ns, {

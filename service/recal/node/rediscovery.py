@@ -258,6 +258,23 @@ class NodeDiscovery:
         if evidence is not None and self.evidence is not None:
             self.evidence = evidence
 
+    def resume(self, doc: dict[str, Any]) -> None:
+        """Continue from a setup message's ``discovery_json`` (`state` and ``next_us``); what
+        does not read leaves the part as it is (a replay then starts its evidence anew)."""
+        try:
+            ev = doc.get("evidence")
+            evidence = EvidenceStore.from_dict(ev) if isinstance(ev, dict) else None
+            if (evidence is not None and self.evidence is not None
+                    and evidence.aux.shape[1] != self.evidence.aux.shape[1]):
+                raise ValueError("its evidence has other channels than the stream")
+            pending = doc.get("pending")
+            nxt, gap = doc.get("next_us"), doc.get("gap_us")
+            self.restore(int(nxt) if isinstance(nxt, int) else None,
+                         int(gap) if isinstance(gap, int) and gap > 0 else None, evidence,
+                         tuple(map(str, pending)) if isinstance(pending, list) else None)
+        except (KeyError, TypeError, ValueError) as exc:
+            log.warning("a setup's discovery state does not read: %s", exc)
+
     def stop_us(self, pipe: Pipeline) -> int | None:
         """Where a joined step must end (`RediscoverySchedule.stop_us`; None: anywhere)."""
         if self.evidence is None or pipe.t0_us is None:
