@@ -266,3 +266,12 @@ def test_a_replay_of_a_resumed_node_runs_and_adopts_as_it_did(
     assert any(e["detail"]["adopted"] for e in live)  # the pending one, confirmed
     assert [(e["t_us"], e["detail"]["adopted"]) for e in again] == [
         (e["t_us"], e["detail"]["adopted"]) for e in live]
+
+
+@pytest.mark.slow
+def test_with_no_delay_a_run_is_taken_on_where_it_starts(temperature_raw: RawBatch) -> None:
+    node, sink = _node(RediscoveryConfig(adopt_after_s=0.0))
+    _feed(node, temperature_raw)
+    events = _events(sink)
+    assert events and all(e["t_us"] == e["detail"]["started_t_us"] for e in events)
+    assert any(e["detail"]["adopted"] for e in events)
