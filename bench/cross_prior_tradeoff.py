@@ -14,7 +14,7 @@ bench's cases, sensors whose axes are 0.6 and 1.0 deg from orthogonal under the 
 model: misalignment angles uniform in +-0.6 deg give symmetric cross-axis terms of sd
 0.6 deg / (2 sqrt 3) = 0.30 %, a sensor drawn from the floor's own prior.
 
-The prior is passed as the default of `misfit.unseen_cross_g2`'s ``prior_sd_g`` (what the
+The prior is passed as the default of `misfit.unseen_cross_form`'s ``prior_sd_g`` (what the
 pipeline calls it with); this analysis sets that default per run and restores it.
 ``--floor``: the floor in force over each case's calibrated seconds, sqrt(sigma^2 at the
 prior now - sigma^2 without a floor) per second (everything else in sigma is the same in both
@@ -69,12 +69,12 @@ def _per_second(name: str, case: sh.Case, minutes: float, seed: int, prior: floa
         kept.append(sh._seconds(out, truth))
         return row(name, seed, case, spec, pipe, out, truth, *rest)
 
-    default = misfit.unseen_cross_g2.__defaults__
-    sh._row, misfit.unseen_cross_g2.__defaults__ = keep, (prior,)
+    default = misfit.unseen_cross_form.__defaults__
+    sh._row, misfit.unseen_cross_form.__defaults__ = keep, (prior,)
     try:
         sh.run(name, case, minutes, seed)
     finally:
-        sh._row, misfit.unseen_cross_g2.__defaults__ = row, default
+        sh._row, misfit.unseen_cross_form.__defaults__ = row, default
     e, s, cal, _ = kept[0]
     return e, s, cal
 
@@ -111,7 +111,7 @@ def main() -> None:
         return
     if args.vector_noise:
         sh._row = _vector_noise_row(sh._row)
-    default = misfit.unseen_cross_g2.__defaults__
+    default = misfit.unseen_cross_form.__defaults__
     print("case | seed | cal. s | " + " | ".join(
         f">3 % / >10 % / real/pred at {100 * p:.2f} %" for p in args.priors))
     print("---|---|---|" + "---|" * len(args.priors))
@@ -120,13 +120,13 @@ def main() -> None:
             cells, cal = [], set()
             try:
                 for prior in args.priors:
-                    misfit.unseen_cross_g2.__defaults__ = (prior,)
+                    misfit.unseen_cross_form.__defaults__ = (prior,)
                     r = sh.run(name, case, args.minutes, seed)
                     cal.add(r["cal_s"])
                     cells.append(f"{r['beyond3_pct']:.1f} / {r['beyond10_pct']:.1f} / "
                                  f"{r['real_pred']:.2f}")
             finally:
-                misfit.unseen_cross_g2.__defaults__ = default
+                misfit.unseen_cross_form.__defaults__ = default
             assert len(cal) == 1, f"{name}: the floor changed the statuses"
             print(f"{name} | {seed} | {cal.pop()} | " + " | ".join(cells), flush=True)
 

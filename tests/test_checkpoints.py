@@ -700,11 +700,15 @@ def _unruns(runs: list[list]) -> np.ndarray:
 
 def _without_later_parts(state: dict[str, Any]) -> dict[str, Any]:
     """A state as the old code wrote it: the parts added since (unobserved parameters, the
-    self-watch's misfit, probation, agreeing cells and calm run) taken out, each checked to be
-    at its default where a restored old state starts."""
+    self-watch's misfit, probation, agreeing cells, calm run and waiting candidate model, the
+    detector's learned step) taken out, each checked to be at its default where a restored old
+    state starts."""
     state = json.loads(json.dumps(state))
     assert isinstance(state.pop("unobserved"), list)
+    assert len(state["detector"].pop("step_raw")) == 3
+    assert isinstance(state["detector"].pop("changes"), int)
     watch = state["watch"]
+    assert watch.pop("pending") is None
     for k in ("probation", "misfit", "agreed", "calm_run"):
         watch.pop(k)
     return state

@@ -141,3 +141,38 @@ def test_correction_of_one_sample_is_the_batch_bit_for_bit(extra_mg2: float) -> 
         got = np.concatenate([o[k] for o in ones])
         assert got.dtype == whole[k].dtype and got.tobytes() == whole[k].tobytes(), name
     assert np.isnan(whole[2]).sum() >= 2 and np.isfinite(whole[2]).sum() > n - 5
+
+
+@pytest.mark.parametrize("with_form", [True, False])
+def test_the_unseen_floor_is_the_same_one_sample_or_in_a_batch(with_form: bool) -> None:
+    """The unseen cross-axis floor a^T W a: folded into the form (`sigma.with_floor`) or
+    added sample by sample (`sigma.floor_mg2`, a model without a form), one sample at a time
+    gives the batch's sigmas to the bit; and the folded form is the per-sample floor's sum."""
+    from recal.core.correction import Segment, calibrate
+    from recal.core.sigma import floor_mg2, predicted_sigma_mg, sigma_form, with_floor
+    from recal.core.status import Status
+
+    rng = np.random.default_rng(14)
+    model = SensorModel.diagonal(1024.0)
+    p = model.nominal() + rng.normal(0.0, 20.0, model.size)
+    cov_p = np.diag(np.full(model.size, 1e-2))
+    form = sigma_form(model, p, cov_p)
+    assert form is not None
+    b = rng.normal(size=(3, 3)) * 3e-3
+    w = b @ b.T
+    n = 300
+    v = rng.normal(0.0, 800.0, (n, 3)) + np.array([0.0, 0.0, 1024.0])
+    t = RawBatch(np.arange(n, dtype=np.int64) * 10_000, v, np.zeros((n, 0)), ())
+
+    def cov(t_us: np.ndarray, aux: np.ndarray) -> Covariates:
+        return Covariates.from_samples(t_us, aux, (), 0)
+
+    folded = with_floor(model, p, form, w)
+    seg = (Segment(0, model, p, cov_p, folded, Status.HELD, 0.0, folded.tolist()) if with_form
+           else Segment(0, model, p, cov_p, None, Status.HELD, 0.0, None, None, w))
+    whole = calibrate([seg], t, cov)
+    ones = np.concatenate([calibrate([seg], t[i:i + 1], cov)[2] for i in range(n)])
+    assert ones.tobytes() == whole[2].tobytes()
+    plain = predicted_sigma_mg(model, p, cov_p, v, cov(t.t_us, t.aux), form)
+    a = model.correct(p, v, cov(t.t_us, t.aux))
+    np.testing.assert_allclose(whole[2] ** 2, plain ** 2 + floor_mg2(a, w), rtol=1e-9)

@@ -24,7 +24,8 @@ RATE_HZ = 50.0
 CHECKPOINT_KEYS = ["version", "config", "model", "prior", "estimate", "bootstrapped",
                    "from_prior", "centre0", "aux_names", "t0_us", "buffer", "detector", "open",
                    "pending", "fresh", "last_t_us", "last_gate", "counts", "last_report"]
-DETECTOR_DOC_KEYS = ["s0", "zero_raw", "zi_hp", "zi_lp", "last_v", "same_run", "started"]
+DETECTOR_DOC_KEYS = ["s0", "zero_raw", "zi_hp", "zi_lp", "last_v", "same_run", "started",
+                     "step_raw", "changes"]
 
 
 def _raw(hours: float = 0.2, seed: int = 3):
@@ -56,9 +57,9 @@ def test_detector_state_round_trips_through_json_bit_for_bit() -> None:
     raw = _raw(0.01)
     st, _ = det.detect(cfg, det.init_state(cfg), raw.v)
     back = det.DetectorState.from_dict(json.loads(json.dumps(st.to_dict())))
-    for name in ("zi_hp", "zi_lp", "last_v"):
+    for name in ("zi_hp", "zi_lp", "last_v", "step_raw"):
         assert np.array_equal(getattr(back, name), getattr(st, name))
-    assert (back.same_run, back.started) == (st.same_run, st.started)
+    assert (back.same_run, back.started, back.changes) == (st.same_run, st.started, st.changes)
     # the state read back goes on exactly as the one it was written from
     more = raw.v[:50] + 1.0
     (a_st, a), (b_st, b) = det.detect(cfg, st, more), det.detect(cfg, back, more)
@@ -71,7 +72,9 @@ def test_a_detector_before_its_first_sample_writes_none_for_its_last_sample() ->
     doc = d.to_dict()
     assert list(doc) == DETECTOR_DOC_KEYS
     assert doc["last_v"] == [None, None, None] and doc["started"] is False
+    assert doc["step_raw"] == [None, None, None]  # no step seen yet
     assert np.isnan(det.DetectorState.from_dict(doc).last_v).all()
+    assert np.isinf(det.DetectorState.from_dict(doc).step_raw).all()
 
 
 def test_a_window_round_trips_as_the_checkpoints_list() -> None:

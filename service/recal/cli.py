@@ -16,7 +16,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -158,15 +158,22 @@ def _cmd_discover(a: argparse.Namespace) -> int:
     from recal.config import load_model_file
     from recal.core.discovery import DiscoveryConfig
     from recal.core.discovery_data import data_from_table
+    from recal.io.sources import open_recording, recording_kind, source_lines
 
     _report_paths(a.json, a.write_model, a.plots)
     path = Path(a.input)
-    if path.suffix.lower() == ".csv" and a.rate is None and not dr.csv_has_time(path):
+    kind = recording_kind(path)  # by content, never by extension
+    src = None
+    if kind == "csv" and a.rate is None and not dr.csv_has_time(path):
         data = data_from_table(read_static_table(a.input))  # one still row per pose
-    elif path.suffix.lower() == ".csv":
-        data = dr.data_from_csv(path, a.rate, a.units, a.window_s)
-    else:
+    elif kind == "mcap":
         data = dr.data_from_recording(path, a.sensor_id, a.window_s)[0]
+    else:  # a CSV time series or a device file: two or three passes, with a bar
+        src = open_recording(path, a.sensor_id, a.rate, a.units)
+        if src.device is not None:  # the device and what reading it did, before the table
+            print("\n".join(source_lines(src)))
+        with _sample_bar("discover (passes)", a.quiet) as bar:
+            data = dr.data_from_source(src, a.window_s, bar.update)
     model, p = None, None
     if a.model:
         model, prior = load_model_file(a.model)
@@ -174,10 +181,18 @@ def _cmd_discover(a: argparse.Namespace) -> int:
     try:
         dr.run(data, model=model, p=p, cfg=DiscoveryConfig(blocks=a.blocks),
                json_path=a.json, plots_dir=a.plots, model_path=a.write_model,
-               source=str(path))
+               source=str(path), device=src.metadata if src and src.device else None)
     except RuntimeError as e:  # matplotlib missing for --plots
         raise UsageError(str(e)) from None
     return 0
+
+
+def _sample_bar(desc: str, quiet: bool) -> Any:
+    """A progress bar in samples on a terminal (none in a pipe, a log or --quiet)."""
+    from tqdm import tqdm
+
+    return tqdm(unit="sample", unit_scale=True, desc=desc, leave=False,
+                disable=quiet or None)
 
 
 # --- hindsight -------------------------------------------------------------------------------
@@ -192,8 +207,9 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
     model = load_model_file(a.model)[0] if a.model else None
     src = hf.open_source(a.input, a.sensor_id, a.rate, a.units)
     # three passes over the input (module doc of recal.commands.hindsight): samples read, in all
+    total = 3 * len(src.device) if src.device is not None else None
     with tqdm(unit="sample", unit_scale=True, desc="hindsight (3 passes)", leave=False,
-              disable=a.quiet or None) as bar:
+              disable=a.quiet or None, total=total) as bar:
         summary = hf.calibrate_file(src, a.out, model, a.overwrite, bar.update)
     if a.json:
         Path(a.json).write_text(json.dumps(summary, indent=2, default=str))

@@ -131,7 +131,8 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
     "replay": ("Runs the raw topic of a recording through the same calibration node as the "
                "daemon (detector, windows, estimator, correction) and writes raw, calibrated, "
                "body, plot, calibration states and events to a new MCAP. No Zenoh, no clocks: "
-               "the same input gives the same output.",
+               "the same input gives the same output. A device file (.cwa, .bin, .gt3x) "
+               "streams every sample through the node, logged at its sample time.",
                ("recal replay recordings/wearer-10min.mcap --out replayed.mcap --json r.json",
                 "recal replay in.mcap --out out.mcap --model model.json")),
     "simulate": ("A wearer-like recording (still postures and movement) sensed by a sensor "
@@ -151,7 +152,8 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                   "recording's poses cannot determine are held at nominal and named. Writes "
                   "raw, calibrated and the fit (MCAP) or t_us,x_g,y_g,z_g,status,sigma_mg "
                   "(CSV: the status of each sample, calibrated or held, and its predicted "
-                  "error in mg).",
+                  "error in mg). A device file (.cwa, .bin, .gt3x) is read with true sample "
+                  "times and its device's metadata goes into the output and --json.",
                   ("recal hindsight recordings/wearer-10min.mcap --out calibrated.mcap",
                    "recal hindsight in.mcap --out out.csv --model model.json --json fit.json")),
     "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
@@ -159,14 +161,18 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                  "channel such as temperature or supply; cross-axis terms; non-linearity; "
                  "offset drift in time) on held-out time blocks, adds what helps and reports "
                  "the held-out error before -> after. "
-                 "--write-model saves the extended model for run/replay --model.",
+                 "--write-model saves the extended model for run/replay --model. Takes "
+                 "device files (.cwa, .bin, .gt3x) as well.",
                  ("recal discover recordings/wearer-temp-30min.mcap --json report.json",
                   "recal discover table.csv --write-model model.json")),
     "import": ("A CSV time series (a time column t_us, t_ms or t_s, or none with --rate; x, y, "
                "z or x_<unit>, y_<unit>, z_<unit>; any auxiliary columns by name) to an MCAP raw "
-               "topic that replay and discover read. Bad rows are counted and skipped.",
+               "topic that replay and discover read. Bad rows are counted and skipped. A "
+               "device file (Axivity .cwa/.cwa.gz, GENEActiv .bin, ActiGraph .gt3x) is read "
+               "with true sample times; its device's metadata goes into the recording.",
                ("recal import log.csv --out log.mcap --units g",
-                "recal import log.csv --out log.mcap --rate 100")),
+                "recal import log.csv --out log.mcap --rate 100",
+                "recal import wrist.cwa --out wrist.mcap")),
     "export": ("The calibrated (default) or raw samples of one sensor of a recording (default: "
                "the first) to CSV.",
                ("recal export replayed.mcap --csv calibrated.csv",
@@ -225,7 +231,8 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
 
     s = _add_command(sub, "replay", "re-run the raw topic of a recording through the "
                        "calibration node (same code as the daemon, no Zenoh)")
-    s.add_argument("input", help="recording (.mcap)")
+    s.add_argument("input", help="recording (.mcap) or device file (Axivity .cwa/.cwa.gz, "
+                   "GENEActiv .bin, ActiGraph .gt3x), recognised by content")
     s.add_argument("--out", required=True, help="output recording (.mcap)")
     s.add_argument("--model", help="model file (effects and starting values)")
     s.add_argument("--config", help="service config (TOML) for priors and settings")
@@ -282,8 +289,10 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
 
     s = _add_command(sub, "discover", "find the effects the model lacks: fit, residual, "
                        "candidate effects scored on held-out time blocks, before -> after")
-    s.add_argument("input", help="recording (.mcap), CSV time series (t_us/t_ms/t_s, x, y, z, "
-                   "channels), or a static table (x, y, z, one still row per pose)")
+    s.add_argument("input", help="recording (.mcap), device file (Axivity .cwa/.cwa.gz, "
+                   "GENEActiv .bin, ActiGraph .gt3x), CSV time series (t_us/t_ms/t_s, x, y, z, "
+                   "channels), or a static table (x, y, z, one still row per pose); recognised "
+                   "by content")
     s.add_argument("--json", help="write the report (effects_selected, heldout_error_mg, "
                    "steps, ...) here")
     s.add_argument("--plots", metavar="DIR", help="write PNG figures here (needs matplotlib)")
@@ -296,12 +305,14 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
                    "(default 2 s, as the daemon)")
     s.add_argument("--rate", type=float, help="sample rate of a CSV without a time column")
     s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=commands["discover"])
 
     s = _add_command(sub, "hindsight", "calibrate a recording on disk with hindsight: one fit "
                        "on all of it, every sample corrected (as the batch tools do)")
-    s.add_argument("input", help="recording (.mcap) or CSV time series (t_us/t_ms/t_s, x, y, z, "
-                   "channels)")
+    s.add_argument("input", help="recording (.mcap), device file (Axivity .cwa/.cwa.gz, "
+                   "GENEActiv .bin, ActiGraph .gt3x) or CSV time series (t_us/t_ms/t_s, x, y, "
+                   "z, channels), recognised by content")
     s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or FILE.csv")
     s.add_argument("--model", help="model file (recal discover --write-model); default offsets "
                    "and gains")
@@ -313,14 +324,17 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     s.set_defaults(func=commands["hindsight"])
 
-    s = _add_command(sub, "import", "CSV (t_us, t_ms or t_s, x, y, z, aux...) -> MCAP raw topic")
-    s.add_argument("input", help="CSV file")
+    s = _add_command(sub, "import", "CSV (t_us, t_ms or t_s, x, y, z, aux...) or device file "
+                       "-> MCAP raw topic")
+    s.add_argument("input", help="CSV file or device file (Axivity .cwa/.cwa.gz, GENEActiv "
+                   ".bin, ActiGraph .gt3x), recognised by content")
     s.add_argument("--out", required=True, help="MCAP file to write")
     s.add_argument("--units", choices=("counts", "g", "ms2"),
                    help="unit of x, y, z (default: the header's x_<unit> names, else "
                    "counts; must agree with them)")
     s.add_argument("--rate", type=float, help="sample rate when the CSV has no time column")
-    s.add_argument("--sensor-id", default="imported", help="sensor id (default imported)")
+    s.add_argument("--sensor-id", help="sensor id (default: a device file's device and id, "
+                   "else imported)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
     s.set_defaults(func=commands["import"])

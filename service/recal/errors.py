@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["CheckpointError", "ConfigError", "InputError", "ModelError", "RecalError",
-           "RecordingError", "SensorLockedError", "UsageError"]
+__all__ = ["CheckpointError", "ConfigError", "DeviceFileError", "InputError", "ModelError",
+           "RecalError", "RecordingError", "SensorLockedError", "UsageError"]
 
 
 class RecalError(Exception):
@@ -33,6 +33,12 @@ class InputError(RecalError, ValueError):
 class RecordingError(RecalError, ValueError):
     """An MCAP recording that cannot be read or written as asked (not a recording, no such
     sensor, damaged beyond repair)."""
+
+
+class DeviceFileError(RecalError, ValueError):
+    """A device file (Axivity .cwa, GENEActiv .bin, ActiGraph .gt3x) that cannot be read: a
+    kind recal recognises but cannot read yet, or a damaged or crafted file (the message says
+    which kind of file it is and why)."""
 
 
 class ModelError(RecalError, ValueError):

@@ -44,12 +44,14 @@ from recal.core.residuals import (
     orientation_features,
 )
 from recal.errors import RecordingError, UsageError
+from recal.io.sources import Source
 from recal.samples import RawBatch
 
 __all__ = [
     "csv_has_time",
     "data_from_csv",
     "data_from_recording",
+    "data_from_source",
     "format_table",
     "model_file_dict",
     "report_dict",
@@ -77,6 +79,20 @@ def data_from_recording(path: str | Path, sensor_id: str | None = None,
     data = data_from_batches(lambda: (b for _, b, _ in recording.iter_raw(parts, sensor_id)),
                              window_s=window_s)
     return data, sensor_id
+
+
+def data_from_source(src: Source, window_s: float | None = None,
+                     progress: Callable[[int], None] | None = None) -> DiscoveryData:
+    """Quasi-static windows of a CSV time series or a device file opened by
+    `recal.io.sources.open_recording` (a pass at a time: bounded memory beyond the file's
+    reader); progress(n) with the samples of each batch of each pass."""
+    def batches() -> Iterator[RawBatch]:
+        for b in src.batches():
+            if progress is not None:
+                progress(len(b))
+            yield b
+
+    return data_from_batches(batches, window_s=window_s)
 
 
 def csv_has_time(path: str | Path) -> bool:
@@ -199,7 +215,8 @@ def _misfit_next(result: dc.DiscoveryResult) -> str:
             f"{1e3 * SUSPECT_EXCESS_G:g} mg")
 
 
-def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[str, Any]:
+def report_dict(result: dc.DiscoveryResult, source: str | None = None,
+                device: dict[str, Any] | None = None) -> dict[str, Any]:
     """The JSON report (keys in the module docstring)."""
     cfg, data = result.config, result.data
     n_blocks = int(result.blocks.max()) + 1
@@ -215,6 +232,7 @@ def report_dict(result: dc.DiscoveryResult, source: str | None = None) -> dict[s
     mis = result.misfit()
     report = {
         "source": source,
+        **({"device": device} if device else {}),
         "misfit": misfit_dict(mis),
         "held_at_start": list(result.held_at_start()),
         "input": {"kind": data.source, "windows": len(data), "dropped_moving": data.dropped,
@@ -408,6 +426,7 @@ def run(data: DiscoveryData, *, model: SensorModel | None = None,
         p: np.ndarray | None = None, cfg: dc.DiscoveryConfig | None = None,
         json_path: str | Path | None = None, plots_dir: str | Path | None = None,
         model_path: str | Path | None = None, source: str | None = None,
+        device: dict[str, Any] | None = None,
         out: Callable[[str], None] = print) -> dc.DiscoveryResult:
     """Discover, print the table, write what was asked for."""
     if plots_dir is not None:
@@ -415,7 +434,8 @@ def run(data: DiscoveryData, *, model: SensorModel | None = None,
     result = dc.discover(data, model, p, cfg or dc.DiscoveryConfig())
     out(format_table(result))
     if json_path is not None:
-        Path(json_path).write_text(json.dumps(report_dict(result, source), indent=2))
+        Path(json_path).write_text(json.dumps(report_dict(result, source, device), indent=2,
+                                                default=str))
         out(f"wrote {json_path}")
     if model_path is not None:
         Path(model_path).write_text(json.dumps(model_file_dict(result), indent=2))

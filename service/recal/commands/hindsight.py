@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,48 +32,16 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import UNPINNED_MG, Status, predicted_sigma_mg, sigma_form, unsettled
-from recal.errors import RecordingError
+from recal.io.sources import Source, open_recording, source_lines, string_metadata
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
 __all__ = ["Corrected", "Source", "calibrate_file", "open_source", "summary_lines"]
 
-@dataclass(frozen=True)
-class Source:
-    """Where the samples come from: ``batches()`` reads the input once more from its start;
-    ``logged()`` (MCAP only) yields each raw batch with its message as logged."""
-
-    name: str
-    sensor_id: str
-    batches: Callable[[], Iterable[RawBatch]]
-    logged: Callable[[], Iterator[tuple[RawBatch, Any]]] | None = None
-
-
 def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float | None = None,
                 units: str | None = None) -> Source:
-    """An MCAP recording (one sensor: the only one, or ``sensor_id``) or a CSV time series."""
-    path = Path(path)
-    if path.suffix.lower() == ".csv":
-        from recal.io.csv_table import iter_csv
-
-        def rows() -> Iterator[RawBatch]:
-            return (t.batch for t in iter_csv(path, units=units, rate_hz=rate_hz))  # type: ignore[arg-type]
-
-        return Source(str(path), sensor_id or path.stem, rows)
-    from recal.io import recording
-
-    parts = recording.recording_parts(path)
-    found = recording.sensors(parts)
-    sid = recording.pick_sensor(path, found, sensor_id)
-    if sid not in found:
-        raise RecordingError(f"{path} has no sensor {sid!r} (it has: {', '.join(found) or 'none'})")
-
-    def raw() -> Iterator[RawBatch]:
-        return (b for _, b, _ in recording.iter_raw(parts, sid))
-
-    def logged() -> Iterator[tuple[RawBatch, Any]]:
-        return ((b, m) for _, b, m, _ in recording.iter_raw_logged(parts, sid))
-
-    return Source(str(path), sid, raw, logged)
+    """An MCAP recording, a device file or a CSV time series, by content
+    (`recal.io.sources.open_recording`)."""
+    return open_recording(path, sensor_id, rate_hz, units)
 
 
 def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
@@ -97,7 +64,8 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
     return {"in": src.name, "out": str(out), "sensor_id": src.sensor_id, "samples": samples,
             "seconds": seconds, "samples_per_s": samples / seconds if seconds > 0 else None,
             "rate_hz": rate_hz, **fit_summary(fit),
-            "samples_suspect": corrected.samples_suspect}
+            "samples_suspect": corrected.samples_suspect,
+            **({"device": src.metadata, "device_notes": src.notes} if src.device else {})}
 
 
 def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
@@ -119,6 +87,9 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
              f"{s['seconds']:.2f} s into {s['out']}: one fit on {s['windows']} quasi-static "
              f"windows ({s['windows_dropped']} dropped as movement), residual "
              f"{s['residual_rms_mg']:.2f} mg"]
+    if "device" in s:
+        lines += source_lines(Source(s["in"], s["sensor_id"], list, kind="device",
+                                     metadata=s["device"], notes=s["device_notes"]))
     for effect, values in s["described"].items():
         lines.append(f"  {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
     ref = s.get("gain_reference")
@@ -201,7 +172,8 @@ def _write_mcap(src: Source, corrected: Corrected, out: str | Path, overwrite: b
     writer = RecordingWriter(out, chunk_size=1024 * 1024, background_flush=False,
                              flush_interval_s=FILE_TO_FILE_FLUSH_S, fsync=False,
                              overwrite=overwrite, background_compression=True,
-                             metadata={"hindsight_of": Path(src.name).name})
+                             metadata={"hindsight_of": Path(src.name).name,
+                                       **string_metadata(src)})
     try:
         if src.logged is not None:
             for group in batch_groups(src.logged()):

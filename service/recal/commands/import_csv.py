@@ -18,9 +18,10 @@ from recal.core import timebase as tb
 from recal.errors import UsageError
 from recal.io import csv_table
 from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
+from recal.io.sources import open_recording, recording_kind, source_lines, string_metadata
 from recal.samples import RawBatch
 
-__all__ = ["ImportClock", "import_csv", "write_raw_messages"]
+__all__ = ["ImportClock", "import_csv", "import_device", "write_raw_messages"]
 
 MESSAGE_SAMPLES = 1000  # samples per raw message written
 
@@ -35,11 +36,15 @@ def write_raw_messages(writer: RecordingWriter, sensor_id: str,
 
 
 def import_csv(source: str, out: str, *, units: str | None, rate_hz: float | None,
-               sensor_id: str, quiet: bool) -> list[str]:
-    """Write the CSV ``source`` to the recording ``out`` (replaced); returns the lines that
-    say what was imported. UsageError for a file without a valid row or with times out of
-    range."""
+               sensor_id: str | None, quiet: bool) -> list[str]:
+    """Write the CSV or device file ``source`` (by content) to the recording ``out``
+    (replaced); returns the lines that say what was imported. UsageError for a CSV without a
+    valid row or with times out of range."""
     from tqdm import tqdm  # the progress bar, only when importing
+
+    if recording_kind(source) == "device":
+        return import_device(source, out, sensor_id=sensor_id, quiet=quiet)
+    sensor_id = sensor_id or "imported"
 
     writer: RecordingWriter | None = None
     samples, skipped, bad_lines = 0, 0, []
@@ -81,6 +86,33 @@ def import_csv(source: str, out: str, *, units: str | None, rate_hz: float | Non
     writer.close()
     return [f"imported {samples} samples ({table_units}, channels {list(aux_names) or 'none'}) "
             f"into {out}; {skipped} bad rows skipped", *clock.lines()]
+
+
+def import_device(source: str, out: str, *, sensor_id: str | None, quiet: bool) -> list[str]:
+    """A device file's samples (true times, values in g, its aux channels) to the raw topic of
+    ``out``, with the device's metadata in the recording's metadata record. The times need
+    no time base: they are the device's, in microseconds, strictly increasing."""
+    from tqdm import tqdm
+
+    src = open_recording(source, sensor_id)
+    assert src.device is not None
+    bar = tqdm(total=len(src.device), unit="sample", unit_scale=True, desc="import",
+               disable=quiet or not sys.stderr.isatty(), leave=False)
+    samples = 0
+    try:
+        with RecordingWriter(out, overwrite=True, flush_interval_s=FILE_TO_FILE_FLUSH_S,
+                             metadata={"units": "g", **string_metadata(src)}) as writer:
+            for batch in src.batches():
+                write_raw_messages(writer, src.sensor_id, batch)
+                samples += len(batch)
+                bar.update(len(batch))
+    except BaseException:
+        Path(out).unlink(missing_ok=True)  # nothing half-imported is left behind
+        raise
+    finally:
+        bar.close()
+    return [f"imported {samples} samples (g, channels {list(src.device.aux_names) or 'none'}) "
+            f"of {src.sensor_id} into {out}", *source_lines(src)]
 
 
 class ImportClock:

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -47,6 +48,13 @@ from recal.core.timebase import TimebaseState
 from recal.io import recording as rec
 from recal.io.messages import Arrivals
 from recal.io.recording_writer import FILE_TO_FILE_FLUSH_S, RecordingWriter
+from recal.io.sources import (
+    Source,
+    open_recording,
+    recording_kind,
+    source_lines,
+    string_metadata,
+)
 from recal.node.node import CalibrationNode, NodeSettings, model_name, node_settings
 from recal.node.sinks import RecordingSink
 from recal.samples import CalibratedBatch, RawBatch
@@ -251,7 +259,9 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     if model is not None:
         load_model_file(model)  # a bad model file fails now, before any output exists
     rec.refuse_input_as_output(out_mcap, in_mcap)
-    paths = rec.recording_parts(in_mcap)
+    # a device file streams its samples as arrivals; anything else is read as MCAP
+    device = open_recording(in_mcap) if recording_kind(in_mcap) == "device" else None
+    paths = rec.recording_parts(in_mcap) if device is None else []
     setups = _setups(paths)
     reopens = _reopens(paths)
     t0 = time.perf_counter()
@@ -262,13 +272,16 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     writer = RecordingWriter(out_mcap, chunk_size=1024 * 1024, background_flush=False,
                              flush_interval_s=FILE_TO_FILE_FLUSH_S, fsync=False,
                              overwrite=overwrite, background_compression=True,
-                             metadata={"replay_of": str(Path(in_mcap).name)})
+                             metadata={"replay_of": str(Path(in_mcap).name),
+                                       **(string_metadata(device) if device else {})})
     sink = _JoiningSink(writer)
-    bar = tqdm(total=_raw_message_count(paths), unit="msg", desc="replay",
-               disable=not progress, leave=False)
+    bar = tqdm(total=_raw_message_count(paths) if device is None else len(device.device or ()),
+               unit="msg" if device is None else "sample", unit_scale=device is not None,
+               desc="replay", disable=not progress, leave=False)
     try:
-        for sid, batch, logged, found in rec.iter_raw_logged(paths):
-            bar.update(1)
+        messages = rec.iter_raw_logged(paths) if device is None else _device_messages(device)
+        for sid, batch, logged, found in messages:
+            bar.update(1 if device is None else len(batch))
             if sensor_ids is not None and sid not in sensor_ids:
                 continue
             run = runs.get(sid)
@@ -294,10 +307,30 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
         writer.close()
     seconds = time.perf_counter() - t0
     total = sum(r.samples for r in runs.values())
-    return {"in": str(in_mcap), "out": str(writer.paths[0]), "seconds": seconds,
-            "samples": total, "samples_per_s": total / seconds if seconds > 0 else None,
-            "samples_not_calibrated": sum(r.node.samples_not_calibrated for r in runs.values()),
-            "sensors": {sid: _sensor_summary(r) for sid, r in runs.items()}}
+    out = {"in": str(in_mcap), "out": str(writer.paths[0]), "seconds": seconds,
+           "samples": total, "samples_per_s": total / seconds if seconds > 0 else None,
+           "samples_not_calibrated": sum(r.node.samples_not_calibrated for r in runs.values()),
+           "sensors": {sid: _sensor_summary(r) for sid, r in runs.items()}}
+    if device is not None:
+        out.update(device=device.metadata, device_notes=device.notes)
+    return out
+
+
+#: samples per arrival of a device file's replay (the size `recal import` writes messages of)
+DEVICE_ARRIVAL_SAMPLES = 1000
+
+
+class _DeviceMessage(NamedTuple):
+    log_time_ns: int
+
+
+def _device_messages(src: Source) -> Iterator[tuple[str, RawBatch, _DeviceMessage, None]]:
+    """A device file's samples as arrivals of DEVICE_ARRIVAL_SAMPLES, each logged at its first
+    sample's time (as `recal import` writes them)."""
+    for batch in src.batches():
+        for i in range(0, len(batch), DEVICE_ARRIVAL_SAMPLES):
+            piece = batch[i:i + DEVICE_ARRIVAL_SAMPLES]
+            yield src.sensor_id, piece, _DeviceMessage(int(piece.t_us[0]) * 1000), None
 
 
 def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
@@ -359,6 +392,9 @@ def replay_lines(summary: dict) -> list[str]:
     lines = [f"replayed {summary['samples']} samples of {len(sensors)} sensor(s) in "
              f"{summary['seconds']:.2f} s ({summary['samples_per_s'] / 1e6:.2f} M samples/s) "
              f"into {summary['out']}"]
+    if "device" in summary:
+        lines += source_lines(Source(summary["in"], "", list, kind="device",
+                                     metadata=summary["device"], notes=summary["device_notes"]))
     for sid, info in sensors.items():
         c = info["counts"]
         rms = info.get("residual_rms_mg")

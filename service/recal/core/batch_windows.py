@@ -76,6 +76,11 @@ class Windowing:
             if len(self._tables) >= TABLES_KEPT:  # a few arrays, not thousands of small ones
                 self._tables = [WindowSums.concat(self._tables)]
 
+    @property
+    def step_raw(self) -> np.ndarray:
+        """The sensor's step per axis as the detector learned it (raw units; inf: unknown)."""
+        return self._state.step_raw
+
     def kept(self) -> WindowSums:
         """The windows the live pipeline would commit, in order."""
         if not self._tables:

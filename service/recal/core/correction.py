@@ -12,7 +12,8 @@ import numpy as np
 
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
-from recal.core.sigma import predicted_sigma_mg, sigma_one_mg
+from recal.core.pending import PendingCandidate, doubt_mg2
+from recal.core.sigma import floor_mg2, predicted_sigma_mg, sigma_one_mg
 from recal.core.status import Status
 from recal.samples import RawBatch
 
@@ -34,6 +35,12 @@ class Segment:
     extra_mg2: float = 0.0  # what the model cannot explain, added to sigma^2 (`status.Misfit`)
     #: ``form`` as nested lists (`status.sigma_one_mg`), made once per estimate, not per sample
     form_rows: list[list[float]] | None = None
+    #: a candidate model waiting (`core.pending`): |its correction - this one's|^2 joins
+    #: sigma^2 per sample
+    pending: PendingCandidate | None = None
+    #: W of the floor a^T W a (`misfit.unseen_cross_form`) where ``form`` is None (with a
+    #: form, the form holds it: `sigma.with_floor`); None: no floor
+    floor_w: np.ndarray | None = None
 
 
 def calibrate(segs: list[Segment], b: RawBatch,
@@ -56,7 +63,19 @@ def calibrate(segs: list[Segment], b: RawBatch,
             sigma[s:e] = predicted_sigma_mg(g.model, g.p, g.cov, b.v[s:e], cov, g.form)
             if g.extra_mg2 > 0:
                 sigma[s:e] = np.sqrt(sigma[s:e] ** 2 + g.extra_mg2)
+            if g.floor_w is not None:
+                sigma[s:e] = np.sqrt(sigma[s:e] ** 2 + floor_mg2(out[s:e], g.floor_w))
+            if g.pending is not None:
+                sigma[s:e] = _with_doubt(g, b.v[s:e], cov, out[s:e], sigma[s:e])
     return out, status, sigma
+
+
+def _with_doubt(g: Segment, v: np.ndarray, cov: Covariates, a_g: np.ndarray,
+                sigma_mg: np.ndarray) -> np.ndarray:
+    """sigma_mg with the pending candidate's disagreement added in quadrature
+    (`pending.doubt_mg2`)."""
+    assert g.pending is not None
+    return np.sqrt(sigma_mg ** 2 + doubt_mg2(g.pending, v, cov, a_g))
 
 
 #: what a model that reads no covariate is handed for one sample (`_calibrate_one`)
@@ -70,15 +89,19 @@ def _calibrate_one(g: Segment, b: RawBatch,
     segment bookkeeping."""
     # a model that reads no covariate (time, aux) corrects without them, and its sigma comes
     # from the form: no per-sample covariates to make then
-    reads = g.form_rows is None or g.model.covariates
+    reads = g.form_rows is None or g.model.covariates or g.pending is not None
     cov = covariates(b.t_us, b.aux) if reads else _NO_COVARIATES
     out = g.model.correct(g.p, b.v, cov)
     if out is b.v:  # a model without stages hands the reading back: never share it
         out = out.copy()
-    if g.form_rows is None:
+    if g.form_rows is None or g.pending is not None:
         sigma = predicted_sigma_mg(g.model, g.p, g.cov, b.v, cov, g.form)
         if g.extra_mg2 > 0:
             sigma = np.sqrt(sigma ** 2 + g.extra_mg2)
+        if g.floor_w is not None:
+            sigma = np.sqrt(sigma ** 2 + floor_mg2(out, g.floor_w))
+        if g.pending is not None:
+            sigma = _with_doubt(g, b.v, cov, out, sigma)
         return out, np.array([g.status], np.uint8), sigma
     # predicted_sigma_mg's few-sample path on this sample's floats, and the misfit's widening
     # as Python floats: the same operations (x ** 2 of an array is x * x), so the same bits

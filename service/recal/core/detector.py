@@ -5,7 +5,10 @@
 
 A sample is quasi-static when v_out is below the threshold T (Lötters' T_v, here in g) and it
 is neither clipped (near full scale) nor part of a flat-lined stretch (a device that repeats its
-last sample while idle: zero variance is not stillness, it is no data).
+last sample while idle: zero variance is not stillness, it is no data). A sensor whose counts
+are coarse against its noise (1/256 g: `quantization.coarse`) repeats its reading bit for bit
+when still, so for it a flat line takes flat_coarse_s, not flat_s (the step is learned from
+the samples as they come: `quantization.observe`, carried in the state).
 
 Streaming in the manner of scipy.signal.sosfilt: the filter state travels in `DetectorState`, so a
 recording fed in one batch or sample by sample gives the same gates to the last bit. The
@@ -17,10 +20,11 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from recal.core import quantization as quant
 from recal.core.sos_filter import butter_sos, sos_rows, sos_zi, sosfilt, sosfilt_one
 from recal.core.triaxial import all3, any3, norm3
 
@@ -46,6 +50,8 @@ class DetectorConfig:
         clip_raw: |v - zero_raw| on any axis at or above this (raw units) counts as clipped;
             None = off.
         flat_s: this long of bit-identical samples is a flat line, not stillness.
+        flat_coarse_s: the same for a sensor whose step is coarse (`quantization.coarse`):
+            a still one repeats its reading for minutes; longer than a wearer stays still.
         zero_raw: the reading at 0 g (raw units, per axis), taken off before the norm: an
             analog part on an unsigned ADC reads ~2048 counts at 0 g, and the norm of such
             readings follows the offset, not the acceleration.
@@ -59,6 +65,7 @@ class DetectorConfig:
     s0: float = 1.0
     clip_raw: float | None = None
     flat_s: float = 1.0
+    flat_coarse_s: float = 3600.0
     zero_raw: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def sos(self) -> tuple[np.ndarray, np.ndarray]:
@@ -68,38 +75,52 @@ class DetectorConfig:
     def flat_n(self) -> int:
         return max(2, round(self.flat_s * self.rate_hz))
 
+    @property
+    def flat_coarse_n(self) -> int:
+        return max(self.flat_n, round(self.flat_coarse_s * self.rate_hz))
+
     @functools.cached_property
     def one(self) -> tuple:
         """What `_detect_one` reads of the configuration, made once per configuration (the
         configuration is immutable): the filters' sections as Python floats (hp, lp), and
-        zero_raw, s0, threshold_g, clip_raw and flat_n - 1."""
+        zero_raw, s0, threshold_g, clip_raw, flat_n - 1, flat_coarse_n - 1 and the least
+        step that is coarse (raw units)."""
         hp, lp = _butter_pair(self.order, self.hp_hz, self.lp_hz, self.rate_hz)
         return (sos_rows(hp), sos_rows(lp), self.zero_raw, self.s0, self.threshold_g,
-                self.clip_raw, self.flat_n - 1)
+                self.clip_raw, self.flat_n - 1, self.flat_coarse_n - 1,
+                quant.COARSE_STEP_G * self.s0)
 
 
 @dataclass(frozen=True, eq=False)
 class DetectorState:
-    """Filter states (sosfilt zi) and the flat-line run carried between batches."""
+    """Filter states (sosfilt zi), the flat-line run and the sensor's step (per axis, raw
+    units, inf: not seen; learned on `changes` samples: `quantization.observe`) carried
+    between batches."""
 
     zi_hp: np.ndarray
     zi_lp: np.ndarray
     last_v: np.ndarray
     same_run: int
     started: bool
-
+    step_raw: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))
+    changes: int = 0
 
     def to_dict(self) -> dict:
-        """JSON-able (NaN in last_v, before a first sample, as None)."""
+        """JSON-able (NaN in last_v, before a first sample, and an unknown step as None)."""
         return {"zi_hp": self.zi_hp.tolist(), "zi_lp": self.zi_lp.tolist(),
                 "last_v": [None if np.isnan(x) else float(x) for x in self.last_v],
-                "same_run": self.same_run, "started": self.started}
+                "same_run": self.same_run, "started": self.started,
+                "step_raw": [None if np.isinf(x) else float(x) for x in self.step_raw],
+                "changes": self.changes}
 
     @classmethod
     def from_dict(cls, d: dict) -> DetectorState:
+        step = d.get("step_raw", [None] * 3)  # a state saved before the step was learned
         return cls(np.asarray(d["zi_hp"], float), np.asarray(d["zi_lp"], float),
                    np.array([np.nan if x is None else x for x in d["last_v"]], float),
-                   int(d["same_run"]), bool(d["started"]))
+                   int(d["same_run"]), bool(d["started"]),
+                   np.array([np.inf if x is None else x for x in step], float),
+                   int(d.get("changes", 0)))
 
 
 class Detector:
@@ -205,8 +226,14 @@ def detect(cfg: DetectorConfig, state: DetectorState,
     runs = _flat_runs(v, state.last_v, state.same_run)
     clipped = (any3(np.abs(vc) >= cfg.clip_raw) if cfg.clip_raw is not None
                else np.zeros(len(v), bool))
-    out = DetectorOutput(v_out, v_out < cfg.threshold_g, clipped, runs >= cfg.flat_n - 1)
-    return DetectorState(zi_hp, zi_lp, v[-1].copy(), int(runs[-1]), True), out
+    step, changes = state.step_raw, state.changes
+    if changes < quant.LATTICE_CHANGES:  # still learning the step: sample by sample
+        step, changes, steps = quant.observe(step, changes, v, state.last_v)
+        flat_n = np.where(quant.coarse(steps, cfg.s0), cfg.flat_coarse_n, cfg.flat_n)
+    else:
+        flat_n = cfg.flat_coarse_n if quant.coarse(step, cfg.s0) else cfg.flat_n
+    out = DetectorOutput(v_out, v_out < cfg.threshold_g, clipped, runs >= flat_n - 1)
+    return DetectorState(zi_hp, zi_lp, v[-1].copy(), int(runs[-1]), True, step, changes), out
 
 
 def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray
@@ -215,7 +242,7 @@ def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray
     in the same order as the array path (`norm3`'s (x^2 + y^2) + z^2, `sosfilt`'s scalar
     loop), so the same bits, with a handful of numpy calls instead of dozens. None for a
     sample the array path must take (not finite)."""
-    hp, lp, (zx, zy, zz), s0, threshold_g, clip, flat_run = cfg.one
+    hp, lp, (zx, zy, zz), s0, threshold_g, clip, flat_run, coarse_run, coarse_raw = cfg.one
     x, y, z = vx, vy, vz = v[0].tolist()
     if zx or zy or zz:
         x, y, z = x - zx, y - zy, z - zz
@@ -225,12 +252,24 @@ def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray
     y_hp, zi_hp = sosfilt_one(hp, v_in, state.zi_hp.tolist())
     v_out, zi_lp = sosfilt_one(lp, abs(y_hp), state.zi_lp.tolist())  # eq. 2
     lx, ly, lz = state.last_v.tolist()
-    run = state.same_run + 1 if (vx == lx and vy == ly and vz == lz) else 0
+    same = vx == lx and vy == ly and vz == lz
+    run = state.same_run + 1 if same else 0
+    step, changes = state.step_raw, state.changes
+    if not same and changes < quant.LATTICE_CHANGES:  # `quantization.observe`, one sample
+        sx, sy, sz = step.tolist()
+        dx, dy, dz = abs(vx - lx), abs(vy - ly), abs(vz - lz)  # NaN: no step (ignored)
+        step = np.array([dx if 0 < dx < sx else sx, dy if 0 < dy < sy else sy,
+                         dz if 0 < dz < sz else sz])
+        changes += 1
+    sx, sy, sz = step.tolist()
+    coarse = sx >= coarse_raw and sy >= coarse_raw and sz >= coarse_raw and math.isfinite(
+        sx + sy + sz)
     clipped = clip is not None and (abs(x) >= clip or abs(y) >= clip or abs(z) >= clip)
-    below, flat = v_out < threshold_g, run >= flat_run
+    below, flat = v_out < threshold_g, run >= (coarse_run if coarse else flat_run)
     out = DetectorOutput(np.array([v_out]), np.array([below]), np.array([clipped]),
                          np.array([flat]), np.array([below and not clipped and not flat]))
-    return DetectorState(np.array(zi_hp), np.array(zi_lp), v[0].copy(), run, True), out
+    return DetectorState(np.array(zi_hp), np.array(zi_lp), v[0].copy(), run, True, step,
+                         changes), out
 
 
 def _detect_finite(cfg: DetectorConfig, state: DetectorState, v: np.ndarray,

@@ -63,7 +63,7 @@ from recal.core.discovery_data import (
     time_blocks,
     usable_channels,
 )
-from recal.core.effects import Effect, make_effect
+from recal.core.effects import Effect, Scale, make_effect
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.model_fit import (
@@ -327,9 +327,12 @@ def _selected(model: SensorModel, fit: ModelFit, effect: Effect,
     sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))[sl]
     prior_sd = fit.prior_sd[sl]
     extra = model.axis_angles_deg(fit.p) if effect.kind == "cross_axis" else {}
+    # in units of the data's own scale (the mean fitted one), as the report's model is
+    # described (`pipeline.gain_reference` without a prior), not of s0, a median norm
+    ref = float(np.mean(fit.p[model.slice(Scale())])) if model.has("scale") else model.s0
     return SelectedEffect(
         effect.kind, effect.covariate, getattr(effect, "reference", None), effect.label,
-        effect.describe(theta, model.s0), dict(zip(names, map(float, theta), strict=True)),
+        effect.describe(theta, ref), dict(zip(names, map(float, theta), strict=True)),
         dict(zip(names, map(float, sd), strict=True)),
         {n: bool(s < cfg.observable_ratio * d)
          for n, s, d in zip(names, sd, prior_sd, strict=True)}, extra)

@@ -44,6 +44,7 @@ from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
 from recal.core.pipeline_config import PipelineConfig
+from recal.core.quantization import rounding_g2
 from recal.core.residuals import MisfitProfile, misfit
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
@@ -137,8 +138,10 @@ class HindsightFit:
 
 
 def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorModel,
-        norm_tol_g: float = 0.1) -> HindsightFit:
-    """The model fitted to a recording's window means (module doc, step 2)."""
+        norm_tol_g: float = 0.1, step_raw: np.ndarray | None = None) -> HindsightFit:
+    """The model fitted to a recording's window means (module doc, step 2); step_raw: the
+    sensor's step per axis (raw units; None or inf: unknown), whose rounding the means keep
+    where the noise does not dither it (`quantization.mean_floor_g2`)."""
     data = data_from_windows(windows, aux_names, t0_us)
     dropped = data.dropped
     if off_by(data.zero, data.s0, np.zeros(3), model.s0):  # s0 a first guess (`calibrate`)
@@ -162,8 +165,10 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
     xi_fitted = xi[fitted]
     w = data.windows
     a = model.correct(res.p, w.v, data.cov)[fitted]  # directions: `misfit.across_factor`
-    # the noise left in a window mean, per axis and so along gravity: var / n of its samples
-    noise2 = w.var[fitted] / np.maximum(w.n[fitted], 1) / model.s0**2
+    # the noise left in a window mean, per axis and so along gravity: var / n of its samples,
+    # and the rounding no noise averages away
+    noise2 = (w.var[fitted] / np.maximum(w.n[fitted], 1) / model.s0**2
+              + rounding_g2(w.var[fitted], model.s0, step_raw))
     return HindsightFit(model, res.p, res.cov, res.free, int(t0_us), int(fitted.sum()),
                         dropped + int((~fitted).sum()),
                         1e3 * float(np.sqrt(np.mean(xi_fitted**2))) if len(xi_fitted) else 0.0,
@@ -177,18 +182,19 @@ def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
     far from 0 or the scale far from s0 (`bootstrap.zero_and_scale`: an analog part on an
     unsigned ADC, s0 a first sample's norm), once more centred at the zero-g found and in its
     units, and the model's s0 becomes that scale."""
-    windows, aux_names, t0_us = _windows(batches, cfg, model, model.s0, None)
+    windows, aux_names, t0_us, step = _windows(batches, cfg, model, model.s0, None)
     data = data_from_windows(windows, aux_names, t0_us)
     if off_by(data.zero, data.s0, np.zeros(3), model.s0):
         model = SensorModel(model.effects, data.s0, model.spreads)
-        windows, aux_names, t0_us = _windows(batches, cfg, model, data.s0, data.zero)
-    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g)
+        windows, aux_names, t0_us, step = _windows(batches, cfg, model, data.s0, data.zero)
+    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g, step)
 
 
 def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
              model: SensorModel, s0: float, zero: np.ndarray | None
-             ) -> tuple[Windows, tuple[str, ...], int]:
-    """The recording's kept windows by the detector in units of s0, zero-g `zero` off."""
+             ) -> tuple[Windows, tuple[str, ...], int, np.ndarray]:
+    """The recording's kept windows by the detector in units of s0, zero-g `zero` off, and
+    the sensor's step as the detector learned it."""
     w = Windowing(cfg, model, s0, zero)
     for b in rebatch(batches()):  # a recording's small messages, joined: fewer numpy calls
         w.add(b)
@@ -197,4 +203,4 @@ def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
     sums = w.kept()
     if not len(sums):
         raise InputError("no quasi-static window in the recording: nothing to calibrate on")
-    return sums.means()[0], w.aux_names, w.t0_us
+    return sums.means()[0], w.aux_names, w.t0_us, w.step_raw

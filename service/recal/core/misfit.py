@@ -37,7 +37,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["ACROSS_MAX", "ACROSS_SPHERE", "CHANCE_SDS", "CROSS_AXIS_PRIOR_SD", "across_factor",
-           "chance", "direction_features", "direction_sums", "excess_g2", "unseen_cross_g2"]
+           "chance", "direction_features", "direction_sums", "excess_g2", "unseen_cross_form",
+           "unseen_cross_g2"]
 
 #: Most `across_factor` gives: directions so close to one plane or axis that the residual
 #: bounds nothing across it (sigma then ~10x the residual's excess).
@@ -135,13 +136,36 @@ def unseen_cross_g2(moments: np.ndarray, count: float, detect_g2: float,
     trace(B^T B) = 2 and |B(u) e|^2 <= 4/3 for a unit e; so its mean square is at most
     min(2 lambda_max(P), 4/3 trace(P)): 2 prior_sd^2 where nothing is seen. Moments: the sums
     over `count` windows of `direction_features`' outer products (`direction_sums`)."""
+    p = _unseen_cov(moments, count, detect_g2, prior_sd_g)
+    p_eig = np.linalg.eigvalsh(p)  # P's eigenvalues
+    return float(min(2.0 * p_eig.max(), 4.0 / 3.0 * p_eig.sum()))
+
+
+def _unseen_cov(moments: np.ndarray, count: float, detect_g2: float,
+                prior_sd_g: float) -> np.ndarray:
+    """P (3, 3), the covariance of the symmetric cross-axis terms d the prior and the windows'
+    directions leave (`unseen_cross_g2`); the prior's where the directions tell nothing."""
+    prior = np.eye(3) * prior_sd_g ** 2
     if count < _FEW or not (detect_g2 > 0.0 and prior_sd_g > 0.0):
-        return 2.0 * prior_sd_g ** 2
+        return prior
     g = np.asarray(moments, np.float64) / float(count)
     m = _cross_moment(g)
     info = np.eye(3) / prior_sd_g ** 2 + 0.5 * (m + m.T) / detect_g2
-    lam = np.linalg.eigvalsh(info)
+    lam, vec = np.linalg.eigh(info)
     if not np.all(np.isfinite(lam)) or lam[0] <= 0.0:
-        return 2.0 * prior_sd_g ** 2
-    p_eig = 1.0 / lam  # P's eigenvalues
-    return float(min(2.0 * p_eig.max(), 4.0 / 3.0 * p_eig.sum()))
+        return prior
+    return (vec / lam) @ vec.T
+
+
+def unseen_cross_form(moments: np.ndarray, count: float, detect_g2: float,
+                      prior_sd_g: float = CROSS_AXIS_PRIOR_SD) -> np.ndarray:
+    """W (3, 3) with E|D a|^2 = a^T W a (g^2) for a calibrated vector a (g): the expected
+    squared error the unseen symmetric cross-axis terms d (covariance P, `unseen_cross_g2`)
+    cause at that very vector, where `unseen_cross_g2` bounds it over every orientation.
+    D a = B(a) d with B(a) = [[a_y, a_z, 0], [a_x, 0, a_z], [0, a_x, a_y]] (d = (d_xy, d_xz,
+    d_yz)), so E|D a|^2 = trace(P B^T B), a quadratic form in a: an upright wearer's samples
+    (a ~ z) carry only d_xz and d_yz's share, however little the postures showed d_xy."""
+    p = _unseen_cov(moments, count, detect_g2, prior_sd_g)
+    return np.array([[p[0, 0] + p[1, 1], p[1, 2], p[0, 2]],
+                     [p[1, 2], p[0, 0] + p[2, 2], p[0, 1]],
+                     [p[0, 2], p[0, 1], p[1, 1] + p[2, 2]]])

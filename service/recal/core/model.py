@@ -258,11 +258,12 @@ class SensorModel:
 
     # --- reporting and files -----------------------------------------------------------------
     def describe(self, p: np.ndarray, gain_reference: float | None = None) -> dict[str, dict]:
-        """Parameters by effect, in physical units (mg, %, ...); gains in % of gain_reference
-        (raw units per g; None: s0), the others in units of s0."""
+        """Parameters by effect, in physical units (mg, %, ...): gains in % of gain_reference,
+        offsets in mg of it (raw units per g; None: s0). Without a prior that is the data's
+        own scale: s0 is then a recording's median norm, offsets and all (5 % over a sensor's
+        1 g with 50 mg of offset along the vertical), no unit to report offsets in."""
         ref = self.s0 if gain_reference is None else float(gain_reference)
-        return {e.label: e.describe(p[self.slice(e)], ref if isinstance(e, Scale) else self.s0)
-                for e in self.effects}
+        return {e.label: e.describe(p[self.slice(e)], ref) for e in self.effects}
 
     def sensitivity_matrix(self, p: np.ndarray) -> np.ndarray:
         """K in v = K a + o for the linear part (raw per g), rotation gauge fixed."""

@@ -34,6 +34,7 @@ from recal.core.effects import Covariates, Offset, Scale
 from recal.core.estimator import Estimate, Prior, UpdateReport
 from recal.core.model import SensorModel
 from recal.core.outputs import JoinedStep, Marks, StepOutput
+from recal.core.pending import PendingCandidate
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.pipeline_fit import redirect
 from recal.core.pipeline_state import Work, load_state, restore, snapshot
@@ -41,17 +42,18 @@ from recal.core.pipeline_state import state_dict as state_dict
 from recal.core.pipeline_watch import heal_if_not_finite
 from recal.core.pipeline_windows import windows
 from recal.core.refit import RefitState
-from recal.core.sigma import sigma_form
+from recal.core.sigma import sigma_form, with_floor
 from recal.core.status import (
     GAP_S,
     PROBATION_WINDOWS,
     REOPEN_PROBATION_WINDOWS,
+    RunningMisfit,
     Status,
     Watch,
     unsettled,
 )
 from recal.core.windower import WindowerState
-from recal.errors import InputError
+from recal.errors import InputError, ModelError
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Lifecycle", "Pipeline", "from_state_dict", "gain_reference", "state_dict"]
@@ -345,18 +347,42 @@ class Pipeline:
         """Continue with another model (one effect discovery extended): its prior becomes the
         pre-calibration and the estimate, with ``cov`` as the estimate's covariance if given
         (the fit's that found the model: what its windows tell, not only the prior's
-        spreads); detector, buffer and windows carry on, the self-watch starts afresh."""
+        spreads); detector, buffer and windows carry on; the self-watch starts afresh (it
+        judged the model replaced), a waiting candidate is no longer."""
         check_channels(model, self.aux_names)
         self.model = model
         self.prior = prior
         self.estimate = (Estimate.from_prior(prior) if cov is None
                          else Estimate(prior.mean.copy(), np.array(cov, np.float64)))
         # the self-watch judged the model this one replaces (its contradictions, its misfit):
-        # it starts afresh, the first still window must agree before output is calibrated
+        # it starts afresh, the first still window must agree before output is calibrated;
+        # the wait for a candidate is over, whichever model was adopted
+        m = self.watch.misfit
         self.watch = Watch(triggers=self.watch.triggers)
         self.watch.doubt(REOPEN_PROBATION_WINDOWS)
         self.bootstrapped = True
+        # what the misfit measured, it measured under the model now replaced (kappa and the
+        # unseen floor are the postures', kept until the next update recomputes them)
+        self.watch.misfit = RunningMisfit(across=m.across, unseen_w=m.unseen_w)
         redirect(self)
+
+    @property
+    def pending(self) -> PendingCandidate | None:
+        """The candidate model waiting to be adopted or rejected (`core.pending`), if any."""
+        return self.watch.pending
+
+    def set_pending(self, candidate: PendingCandidate | None) -> None:
+        """A discovery run ended with a candidate model not adopted (yet): until
+        ``set_pending(None)`` (rejected) or `adopt`, each sample's sigma carries how much the
+        candidate's correction of it differs from the one in force (`core.pending`). Its
+        model must read only channels this pipeline has and share the model's raw units."""
+        if candidate is not None:
+            check_channels(candidate.model, self.aux_names)
+            if candidate.model.s0 != self.model.s0 or len(candidate.p) != candidate.model.size:
+                raise ModelError(f"a candidate at s0 {candidate.model.s0:g} with "
+                                 f"{len(candidate.p)} values for {candidate.model.size} "
+                                 f"parameters does not fit a model at s0 {self.model.s0:g}")
+        self.watch.pending = candidate
 
     def _reach(self, idx: int) -> None:
         """Called before anything in the state changes at sample ``idx`` of the batch: the
@@ -392,7 +418,12 @@ class Pipeline:
             "unobserved": list(self.unobserved),
             # parameters observed but not yet known to UNPINNED_MG (status held)
             "converging": list(self.converging),
-            "misfit_mg": math.sqrt(self.watch.misfit.said_mg2),
+            # what the model misses along gravity (`RunningMisfit.along_mg2`: what discover's
+            # held-out residual scores), and what the misfit adds to sigma in force
+            "misfit_mg": math.sqrt(self.watch.misfit.along_mg2),
+            "sigma_misfit_mg": math.sqrt(self.watch.misfit.said_mg2),
+            # a candidate model waiting (`core.pending`): sigma carries where it disagrees
+            "pending": self.watch.pending.label if self.watch.pending is not None else None,
         }
 
     # --- windows -----------------------------------------------------------------------------
@@ -413,21 +444,28 @@ class Pipeline:
         if (last is not None and last.index == idx and last.p is cache[2]
                 and last.status is status and last.extra_mg2 == extra):
             return last
-        seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[4],
-                                                status, extra, cache[5])
+        seg = self._work.last_segment = Segment(idx, cache[0], cache[2], cache[3], cache[8],
+                                                status, extra, cache[5], cache[6], cache[9])
         return seg
 
     def _segment_cache(self) -> tuple:
-        """(model, estimate, p, cov, sigma form, the form as lists) of the estimate in force,
-        kept while it is."""
-        est, model = self.estimate, self.model
+        """(model, estimate, p, cov, sigma form of C_e, the output's form as lists, pending
+        candidate, the unseen floor's W as the misfit holds it, the output's form (C_e and
+        the floor, `sigma.with_floor`), the floor's W where no form holds it) of the estimate
+        in force, kept while it is."""
+        est, model, pending = self.estimate, self.model, self.watch.pending
+        unseen = self.watch.misfit.unseen_w if est is not None else None
         cache = self._work.form
-        if cache is None or cache[0] is not model or cache[1] is not est:
+        if (cache is None or cache[0] is not model or cache[1] is not est
+                or cache[6] is not pending or cache[7] is not unseen):
             p = self.params.copy()
             cov = est.cov if est is not None else np.diag(model.prior_sd() ** 2)
             form = sigma_form(model, p, cov) if np.isfinite(cov).all() else None
-            rows = form.tolist() if form is not None else None
-            cache = self._work.form = (model, est, p, cov, form, rows)
+            w = np.reshape(unseen, (3, 3)) if unseen is not None and any(unseen) else None
+            out = form if w is None or form is None else with_floor(model, p, form, w)
+            rows = out.tolist() if out is not None else None
+            cache = self._work.form = (model, est, p, cov, form, rows, pending, unseen, out,
+                                       w if out is None else None)
         return cache
 
     def _start_detector(self, s0: float, zero_raw: np.ndarray | None = None) -> None:

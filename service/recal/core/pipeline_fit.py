@@ -17,9 +17,10 @@ from recal.core.bootstrap import LOCATE_MIN_WINDOWS, fit_poses, locate, off_by, 
 from recal.core.buffer import Window, WindowBuffer, Windows
 from recal.core.effects import Offset, Scale
 from recal.core.estimator import Estimate, Prior, update
-from recal.core.misfit import across_factor, direction_sums, unseen_cross_g2
+from recal.core.misfit import across_factor, direction_sums, unseen_cross_form
 from recal.core.model import SensorModel
 from recal.core.outputs import UpdateEvent, WatchEvent
+from recal.core.quantization import rounding_g2
 from recal.core.refit import after_update
 from recal.core.status import (
     MISFIT_MOVE_SDS,
@@ -33,11 +34,16 @@ from recal.core.triaxial import norm3
 if TYPE_CHECKING:
     from recal.core.pipeline_state import PipelineParts
 
-__all__ = ["redirect", "refill_buffer", "try_bootstrap", "update_at"]
+__all__ = ["learned_step", "redirect", "refill_buffer", "try_bootstrap", "update_at"]
 
 #: Up to this many windows in the buffer before a bootstrap, its sphere fits run at every
 #: window, not every update_every (`_sphere_due`).
 FEW_WINDOWS = 20
+
+
+def learned_step(pipe: PipelineParts) -> np.ndarray | None:
+    """The sensor's step per axis as its detector learned it (raw units; None: no detector)."""
+    return pipe.detector.state.step_raw if pipe.detector is not None else None
 
 
 def update_at(pipe: PipelineParts, idx: int, now_us: int,
@@ -64,15 +70,17 @@ def update_at(pipe: PipelineParts, idx: int, now_us: int,
     if rep.accepted:
         pipe.unobserved = _unobserved(pipe.model, pipe.estimate, rep.observable)
         s0 = pipe.model.s0
-        noise_g2 = float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0) if len(w) else 0.0
+        noise_g2 = (float(np.mean(w.var / np.maximum(w.n, 1))) / (s0 * s0)
+                    + float(np.mean(rounding_g2(w.var, s0, learned_step(pipe))))
+                    if len(w) else 0.0)
         # how much more the vector can err than the buffer's norms show (`core.misfit`)
         a = pipe.model.correct(pipe.params, w.v, cov)
         sums = direction_sums(a)
         across = float(across_factor(sums, len(a)))
         # a diagonal model's cross-axis terms the postures leave unseen (`core.misfit`)
         unseen = (0.0 if pipe.model.has("cross_axis") else
-                  unseen_cross_g2(sums, len(a), RunningMisfit.detect_g2(noise_g2)))
-        pipe.watch.misfit.fitted(rep.residual_rms_after_g, noise_g2, across, unseen)
+                  unseen_cross_form(sums, len(a), RunningMisfit.detect_g2(noise_g2)))
+        pipe.watch.misfit.fitted(*_one_set_rms(pipe.estimate, w, a, s0), across, unseen)
         # a fitted offset jump (a knock, a poisoned state) is an event, not a drift
         jumped = pipe.estimate is not None and pipe.estimate.step_us != before.step_us
         pipe.watch.misfit.moved(_moved_mg2(pipe.model, before, pipe.estimate)
@@ -85,6 +93,20 @@ def update_at(pipe: PipelineParts, idx: int, now_us: int,
         redirect(pipe, a)
     pipe.last_report = rep
     return UpdateEvent(idx, now_us, rep)
+
+
+def _one_set_rms(est: Estimate, w: Windows, a: np.ndarray, s0: float) -> tuple[float, float]:
+    """The rms (g) of the buffer's norm residuals under one set of parameters, those in force
+    (`a`: its windows corrected with them; the estimator's offset rate and ageing left out,
+    which follow a drifting effect and hide it), and their windows' mean noise variance (g^2):
+    what the model misses (`status.RunningMisfit`). After a fitted offset jump, the windows
+    since it only (those before saw other offsets: a knock is no misfit)."""
+    keep = w.t_us >= est.step_us if est.step_us is not None else np.ones(len(w), bool)
+    if not keep.any():
+        return 0.0, 0.0
+    xi = norm3(a[keep]) - 1.0
+    noise_g2 = float(np.mean(w.var[keep] / np.maximum(w.n[keep], 1))) / (s0 * s0)
+    return float(np.sqrt(np.mean(xi * xi))), noise_g2
 
 
 def _watch_jump(pipe: PipelineParts, before: Estimate, idx: int, now_us: int) -> None:

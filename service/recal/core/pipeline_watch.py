@@ -15,7 +15,8 @@ from recal.core.bootstrap import TURN_SD_G
 from recal.core.buffer import Window, WindowBuffer
 from recal.core.estimator import Estimate
 from recal.core.outputs import UpdateEvent, WatchEvent
-from recal.core.pipeline_fit import refill_buffer, update_at
+from recal.core.pipeline_fit import learned_step, refill_buffer, update_at
+from recal.core.quantization import rounding_g2
 from recal.core.refit import WindowChunk
 from recal.core.sigma import predicted_sigma_mg
 from recal.core.status import Watch, gross
@@ -34,14 +35,16 @@ def contradicts(pipe: PipelineParts, chunk: WindowChunk, i: int, ok: bool, n: in
     if pipe.estimate is None or chunk.norm is None:
         return False
     if chunk.sigma_mg is None:  # once per chunk, under the parameters it was cut with
-        _, _, p, cov, form, _ = pipe._segment_cache()
+        _, _, p, cov, form, *_ = pipe._segment_cache()
         w = chunk.w
         chunk.sigma_mg = predicted_sigma_mg(pipe.model, p, cov, w.v,
                                             pipe.covariates(w.t_us, w.aux), form)
     r_g = chunk.norm_at(i) - 1.0
     sigma_c_mg = chunk.sigma_at(i)
     s0 = pipe.model.s0
-    noise_g2 = var / max(n, 1) / (s0 * s0) if math.isfinite(var) else 0.0
+    noise_g2 = (var / max(n, 1) / (s0 * s0)
+                + float(rounding_g2(np.array([var]), s0, learned_step(pipe))[0])
+                if math.isfinite(var) else 0.0)
     misfit = pipe.watch.misfit
     # a window that turned while taken (two poses in one mean: `bootstrap.TURN_SD_G`)
     # says nothing of the calibration, however far its norm

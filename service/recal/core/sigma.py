@@ -16,8 +16,8 @@ import numpy as np
 from recal.core.effects import Covariates
 from recal.core.model import SensorModel
 
-__all__ = ["SMALL_BATCH", "correction_jacobian", "predicted_sigma_mg", "sigma_form",
-           "sigma_one_mg"]
+__all__ = ["SMALL_BATCH", "correction_jacobian", "floor_mg2", "predicted_sigma_mg",
+           "sigma_form", "sigma_one_mg", "with_floor"]
 
 
 def correction_jacobian(model: SensorModel, p: np.ndarray, v: np.ndarray,
@@ -137,3 +137,20 @@ def sigma_form(model: SensorModel, p: np.ndarray, cov_p: np.ndarray) -> np.ndarr
     if model.covariates or not all(e.affine and not e.divides_rows for e in model.effects):
         return None
     return _quadratic_form(model, p, cov_p)
+
+
+def with_floor(model: SensorModel, p: np.ndarray, form: np.ndarray, w: np.ndarray
+               ) -> np.ndarray:
+    """The sigma form (`sigma_form`) widened by a floor a^T W a (g^2) at each corrected
+    vector a (`misfit.unseen_cross_form`): for a correction affine in v without covariates,
+    a = L [1, v] with L (3, 4) from the corrections of v = 0 and of each axis, so the floor is
+    the quadratic form L^T W L in [1, v] and sigma stays one form per estimate."""
+    a = model.correct(p, _BASIS, _NO_COVARIATES)
+    L = np.concatenate([a[:1], a[1:] - a[:1]]).T  # columns: A_0, then A's
+    return form + L.T @ w @ L
+
+
+def floor_mg2(a_g: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """a^T W a (mg^2) of each corrected vector a (N, 3, g): the floor sample by sample, for a
+    model without a sigma form (one that reads covariates)."""
+    return 1e6 * np.einsum("ni,ij,nj->n", a_g, w, a_g)

@@ -51,7 +51,8 @@ calibrated vector that the parameters' uncertainty causes: the estimate's covari
 sigma_C^2 = trace(J C_e J^T), widened by what the model cannot explain (`RunningMisfit`: the still
 windows' norm residual beyond what the sensor's noise and C_e explain, the buffer fit's
 residual, the estimate's excess movement, and for a model without cross-axis terms what such
-terms may err across gravity where the postures cannot show them, `misfit.unseen_cross_g2`).
+terms may err across gravity where the postures cannot show them, `misfit.unseen_cross_form`,
+at the sample's own vector).
 The sensor's own noise on the sample is not in it.
 """
 
@@ -68,6 +69,7 @@ from recal.core.buffer import Window, WindowBuffer, Windows, cell_of
 from recal.core.effects import Covariates
 from recal.core.misfit import ACROSS_SPHERE, CHANCE_SDS, excess_g2
 from recal.core.model import SensorModel
+from recal.core.pending import PendingCandidate
 from recal.core.sigma import (  # the predicted error, importable from here too
     correction_jacobian,
     predicted_sigma_mg,
@@ -163,15 +165,8 @@ MISFIT_CHANCE = 1.5
 #: The misfit on the output changes when it moved by more than this (relative, in sigma) and
 #: MISFIT_STEP_MG: per window work, a few segments per batch.
 MISFIT_STEP = 0.1
-#: The buffer fit's residual beyond noise and MISFIT_FIT_FLOOR_MG, as the vector's error
-#: variance (`RunningMisfit`): kappa (`misfit.across_factor` of the buffer's directions: how
-#: much more the vector can err than the norm shows, 5 on the whole sphere) times
-#: MISFIT_TRACK: the fit follows a drifting effect and leaves little of it in its residual
-#: (the fit's excess is what even the best parameters miss, not what the output misses
-#: between updates). Measured, not derived: of 5, 10 and 20, 10 is the least that keeps the
-#: simulated supply and temperature wearers within 1 % beyond 3 sigma (5: 0.4 % on one;
-#: bench/sigma_honesty.py, docs/performance.md).
-MISFIT_TRACK = 10.0
+#: The residual the parameters in force leave on the buffer's windows (`RunningMisfit.fitted`)
+#: counts beyond their noise and MISFIT_FIT_FLOOR_MG (a fit that good needs no widening).
 MISFIT_FIT_FLOOR_MG = 0.5
 #: The estimate's movement (`RunningMisfit.moved`): counted beyond MISFIT_MOVE_SDS of its sd, summed
 #: over the last MISFIT_DRIFT_S of device time (decaying).
@@ -184,15 +179,17 @@ MISFIT_STEP_MG = 0.05
 class RunningMisfit:
     """What the model cannot explain, from the still windows' calibrated norms.
 
-    Two witnesses. The estimator's fit of the buffer (windows of many postures, hours apart):
-    its residual's mean square beyond the windows' noise, q_f (`fitted`), is what one set of
-    parameters cannot explain across them (a temperature, a supply, a cross-axis term the
-    model lacks). The norm sees the error along gravity only: the vector's error can be
+    Two witnesses. The buffer (windows of many postures, temperatures and supplies, hours
+    apart) under the parameters in force at each accepted update, one set for all of them
+    (not the estimator's own residual, whose offset rate and ageing follow a drifting effect
+    and hide most of it): its norm residual's mean square beyond the windows' noise, q_f
+    (`fitted`), is what one set of the model's parameters cannot explain across them (a
+    temperature, a supply, a cross-axis term the model lacks): what `recal discover`'s
+    held-out residual of the same model scores on the same windows (docs/design.md, "one
+    misfit figure"). The norm sees the error along gravity only: the vector's error can be
     kappa x larger in variance (`misfit.across_factor` of the buffer's window directions at
     that update, `across`: 5 when they cover the sphere, up to ACROSS_MAX when they do not
-    span), and the fit absorbs part of such an effect in the parameters (MISFIT_TRACK,
-    measured): the vector's error variance is taken as MISFIT_TRACK x kappa x q_f, q_f
-    counted beyond MISFIT_FIT_FLOOR_MG (a fit that good needs no widening).
+    span): kappa x q_f, q_f counted beyond MISFIT_FIT_FLOOR_MG.
 
     And each still window (after the bootstrap) gives r = |a| - 1 g under the parameters in force
     when it came, and the variance e2 = noise^2 + sigma_C^2 / 3 the model expects of r: the
@@ -211,13 +208,15 @@ class RunningMisfit:
 
     And what no residual can show: a model without cross-axis terms at postures that do not
     reveal them (near the axes) errs across gravity by as much as a prior on those terms
-    allows, u (`unseen_g2`, `misfit.unseen_cross_g2` of the buffer's directions at each
-    accepted update; 0 for a model with them).
+    allows, at each sample's own calibrated vector a: u(a) = a^T W a (`unseen_w`,
+    `misfit.unseen_cross_form` of the buffer's directions at each accepted update; 0 for a
+    model with them), a per-sample term the pipeline folds into the sigma form (not in
+    `extra_mg2`).
 
-    sigma^2 = sigma_C^2 + kappa (q + MISFIT_TRACK x q_f) + m + u. Where the model fits, q,
-    q_f and m stay at 0 (the residual within chance of the noise); u shrinks as the postures
-    cover the sphere. u lies across gravity: the gross test on a window's norm leaves it out
-    (`norm_mg2`).
+    sigma^2 = sigma_C^2 + kappa (q + q_f) + m + u(a). Where the model fits, q, q_f and m stay
+    at 0 (the residual within chance of the noise); u shrinks as the postures cover the
+    sphere, and is least at the postures the buffer saw. u lies across gravity: the gross
+    test on a window's norm leaves it out (`norm_mg2`).
 
     Attributes:
         r2_g2: running mean of the clipped squared residuals (g^2).
@@ -226,12 +225,13 @@ class RunningMisfit:
         said_mg2: the misfit's share of sigma^2 in force on the output (`restate`): it
             changes when the misfit moved by more than MISFIT_STEP, so a batch's samples
             take few values of it.
-        fit_g2: the last accepted update's misfit (`fitted`).
+        fit_g2: the buffer's misfit under the last accepted update's parameters (`fitted`).
         across: kappa of the buffer's directions at the last accepted update (`fitted`).
         moved_mg2: how far the offsets and scales moved beyond what their covariance allows
             (mg at 1 g, squared), summed over the accepted updates with a decay of
             MISFIT_DRIFT_S of device time (`moved`); moved_at_us: the last accepted update.
-        unseen_g2: the floor for unseen cross-axis terms at the last accepted update (u).
+        unseen_w: W (3 x 3, row by row, g^2 per g^2) of the floor for unseen cross-axis terms
+            at the last accepted update (u(a) = a^T W a).
     """
 
     r2_g2: float = 0.0
@@ -242,7 +242,7 @@ class RunningMisfit:
     moved_mg2: float = 0.0
     moved_at_us: int | None = None
     across: float = ACROSS_SPHERE
-    unseen_g2: float = 0.0
+    unseen_w: tuple[float, ...] = (0.0,) * 9
 
     @property
     def q_g2(self) -> float:
@@ -261,17 +261,34 @@ class RunningMisfit:
         return few if few > MISFIT_CHANCE else MISFIT_CHANCE
 
     @property
+    def along_mg2(self) -> float:
+        """What the model misses along gravity (mg^2), q + q_f: the mean square of the still
+        windows' norm residual beyond their noise that one set of the model's parameters
+        leaves on them (q_f: the buffer's, q: each window under the parameters in force
+        before it came). The quantity `recal discover`
+        scores (its held-out RMS of |a| - 1 g, which holds the noise too) and the replay
+        summary says ("the model misses"): docs/design.md, "one misfit figure"."""
+        return 1e6 * (self.q_g2 + self.fit_g2)
+
+    @property
     def extra_mg2(self) -> float:
-        """What the misfit adds to sigma^2 (mg^2): kappa (q + MISFIT_TRACK x q_f) + m + u."""
-        return (1e6 * (self.across * (self.q_g2 + MISFIT_TRACK * self.fit_g2) + self.unseen_g2)
-                + self.moved_mg2)
+        """What the misfit adds to every sample's sigma^2 (mg^2): kappa (q + q_f) + m, the
+        first term kappa x `along_mg2` (the vector errs across gravity too); the floor u(a)
+        is per sample (`unseen_w`)."""
+        return 1e6 * self.across * (self.q_g2 + self.fit_g2) + self.moved_mg2
+
+    @property
+    def unseen_g2(self) -> float:
+        """The floor's most at any vector of 1 g (g^2): W's largest eigenvalue."""
+        return float(np.linalg.eigvalsh(np.reshape(self.unseen_w, (3, 3)))[-1])
 
     @property
     def norm_mg2(self) -> float:
-        """The misfit in force (mg^2) without what lies across gravity unseen (`unseen_g2`):
-        the norm of a still window shows none of that, so a gross contradiction is judged
-        without it (else the floor would hide another sensor's norm 24 mg off)."""
-        return max(self.said_mg2 - 1e6 * self.unseen_g2, 0.0)
+        """The misfit in force (mg^2), which holds nothing of what lies across gravity unseen
+        (`unseen_w`): the norm of a still window shows none of that, so a gross
+        contradiction is judged without it (else the floor would hide another sensor's norm
+        24 mg off)."""
+        return self.said_mg2
 
     @staticmethod
     def detect_g2(noise_g2: float) -> float:
@@ -289,12 +306,15 @@ class RunningMisfit:
         self.moved_at_us = now_us
 
     def fitted(self, residual_rms_g: float, noise_g2: float,
-               across: float = ACROSS_SPHERE, unseen_g2: float = 0.0) -> None:
-        """An accepted update: its residual's rms over the buffer, the mean noise variance of
-        the buffer's window means (g^2), kappa of their directions and what terms the model
-        lacks may err unseen at them (`misfit.unseen_cross_g2`, g^2; 0: none)."""
-        if math.isfinite(unseen_g2):
-            self.unseen_g2 = unseen_g2
+               across: float = ACROSS_SPHERE, unseen_w: np.ndarray | float = 0.0) -> None:
+        """An accepted update: the rms of the buffer's norm residuals under its parameters
+        (g), the mean noise variance of the buffer's window means (g^2), kappa of their
+        directions and what terms the model lacks may err unseen at them
+        (`misfit.unseen_cross_form`, 3 x 3; a number u: u at any vector of 1 g; 0: none)."""
+        w = np.asarray(unseen_w, np.float64)
+        w = w * np.eye(3) if w.ndim == 0 else w.reshape(3, 3)
+        if np.isfinite(w).all():
+            self.unseen_w = tuple(w.ravel().tolist())
         if math.isfinite(residual_rms_g) and math.isfinite(noise_g2):
             self.fit_g2 = float(excess_g2(residual_rms_g ** 2, MISFIT_CHANCE * noise_g2
                                           + (1e-3 * MISFIT_FIT_FLOOR_MG) ** 2))
@@ -323,7 +343,7 @@ class RunningMisfit:
         return {"r2_g2": self.r2_g2, "e2_g2": self.e2_g2, "n": self.n,
                 "said_mg2": self.said_mg2, "fit_g2": self.fit_g2, "moved_mg2": self.moved_mg2,
                 "moved_at_us": self.moved_at_us, "across": self.across,
-                "unseen_g2": self.unseen_g2}
+                "unseen_w": list(self.unseen_w)}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> RunningMisfit:
@@ -333,7 +353,15 @@ class RunningMisfit:
                    float(d.get("said_mg2", 0.0)), float(d.get("fit_g2", 0.0)),
                    float(d.get("moved_mg2", 0.0)),
                    None if d.get("moved_at_us") is None else int(d["moved_at_us"]),
-                   float(d.get("across", ACROSS_SPHERE)), float(d.get("unseen_g2", 0.0)))
+                   float(d.get("across", ACROSS_SPHERE)), _unseen_w(d))
+
+
+def _unseen_w(d: dict) -> tuple[float, ...]:
+    """The floor's W from a checkpoint: "unseen_w", or an older one's single u at any
+    orientation ("unseen_g2": W = u I)."""
+    if "unseen_w" in d:
+        return tuple(float(x) for x in d["unseen_w"])
+    return tuple((float(d.get("unseen_g2", 0.0)) * np.eye(3)).ravel().tolist())
 
 
 #: "calibrated" needs every offset and scale known to this at 1 g (sd of the estimate): one
@@ -386,6 +414,8 @@ class Watch:
         calm_run: windows in a row that neither failed the norm gate nor contradicted
             grossly (a suspect status clears at CLEAR_GOOD_WINDOWS of them).
         misfit: what the model cannot explain (`RunningMisfit`).
+        pending: a candidate model discovery proposed, neither adopted nor rejected yet
+            (`core.pending`: sigma carries where the two disagree); a reset keeps it.
     """
 
     onset_us: int | None = None
@@ -401,6 +431,7 @@ class Watch:
     misfit: RunningMisfit = field(default_factory=RunningMisfit)
     agreed: list[int] = field(default_factory=list)
     calm_run: int = 0
+    pending: PendingCandidate | None = None
 
     def doubt(self, cells: int = PROBATION_WINDOWS) -> None:
         """A moment of doubt: still windows in ``cells`` orientation cells must agree (a
@@ -498,6 +529,7 @@ class Watch:
                 "probation": self.probation, "agreed": list(self.agreed),
                 "calm_run": self.calm_run,
                 "misfit": self.misfit.to_dict(),
+                "pending": None if self.pending is None else self.pending.to_dict(),
                 "recent": None if self.recent is None else [
                     [list(map(float, w.v)), list(map(float, w.aux)), int(w.t_us), int(w.n),
                      float(w.var)] for w in self.recent]}
@@ -514,7 +546,8 @@ class Watch:
                    None if d.get("alarm_us") is None else int(d["alarm_us"]),
                    int(d.get("probation", 0)), RunningMisfit.from_dict(d.get("misfit")),
                    [int(c) for c in d.get("agreed", ())],
-                   int(d.get("calm_run", d.get("good_run", 0))))
+                   int(d.get("calm_run", d.get("good_run", 0))),
+                   PendingCandidate.from_dict(d.get("pending")))
 
 
 def _window(w: Sequence) -> Window:

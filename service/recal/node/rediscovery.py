@@ -26,6 +26,7 @@ from recal.core.estimator import Estimate
 from recal.core.evidence import EvidenceConfig, EvidenceStore
 from recal.core.model import SensorModel
 from recal.core.outputs import StepOutput
+from recal.core.pending import PendingCandidate
 from recal.core.pipeline import Pipeline
 from recal.node.events import NodeEvents
 from recal.node.state_message import model_name
@@ -331,6 +332,12 @@ class NodeDiscovery:
         self.events.event("discovery", t_us, log_ns, detail)
         self.runs.append({"t_us": t_us, **detail})
         if not adopt:
+            # a selection waiting for the next run's word widens sigma where it disagrees
+            # with the model in force (`core.pending`); none: nothing waits
+            waits = (added or dropped) and res.model.s0 == pipe.model.s0
+            pipe.set_pending(PendingCandidate(res.model, np.asarray(res.p, np.float64),
+                                              np.asarray(res.cov, np.float64),
+                                              "+".join(added)) if waits else None)
             return False
         self.pending = None
         pipe.adopt(res.model, res.prior, res.cov)
