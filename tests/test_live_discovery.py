@@ -253,6 +253,9 @@ def test_a_replay_of_a_resumed_node_runs_and_adopts_as_it_did(
     first, _ = _node()
     _feed(first, raw[:cut])
     assert first.discovery.pending is not None and "offset[board_temp]" in first.discovery.pending
+    # waiting for the next run's word, the selection widens sigma (`core.pending`)
+    assert first.pipeline is not None and first.pipeline.pending is not None
+    assert first.pipeline.pending.label == "offset[board_temp]"
     resumed_sink = _Capture()
     resumed = CalibrationNode.from_checkpoint(first.settings, resumed_sink,
                                               json.loads(json.dumps(first.checkpoint())))
@@ -264,6 +267,7 @@ def test_a_replay_of_a_resumed_node_runs_and_adopts_as_it_did(
     _feed(node, raw, cut)
     live, again = _events(resumed_sink), _events(replay_sink)
     assert any(e["detail"]["adopted"] for e in live)  # the pending one, confirmed
+    assert resumed.pipeline is not None and resumed.pipeline.pending is None
     assert [(e["t_us"], e["detail"]["adopted"]) for e in again] == [
         (e["t_us"], e["detail"]["adopted"]) for e in live]
 
