@@ -69,12 +69,24 @@ def in_a_process(on: bool = True) -> Iterator[None]:
         pool.shutdown(wait=False, cancel_futures=True)
 
 
-def _discover(*args: Any) -> Any:
+def _discover(*args: Any) -> tuple[Any, float | None]:
+    """`discovery.discover_pipeline` on all but the last argument, and the held-out RMS (mg)
+    of the last, the live (model, p) (None: none), on the same windows, blocks and scored
+    windows: whether the selection predicts better than what is in force."""
     # imported here, not at the top: a node that never reaches a run (a short stream, a
     # replay of minutes) does not load discovery's modules (~15 ms)
     from recal.core import discovery
+    from recal.core.model_fit import score_heldout
 
-    return discovery.discover_pipeline(*args)
+    *run_args, live = args
+    res = discovery.discover_pipeline(*run_args)
+    if live is None:
+        return res, None
+    model, p = live
+    n = int(res.blocks.max()) + 1
+    sc = score_heldout(model, res.data, res.blocks, [p] * n, p, res.config.fit())
+    xi = sc.heldout_xi[res.scored]
+    return res, 1e3 * float(np.sqrt(np.mean(xi**2))) if len(xi) else None
 
 
 class Rediscovery:
@@ -217,8 +229,10 @@ def _run_args(evidence: EvidenceStore, base: SensorModel, model: SensorModel,
          else carry_params(model, np.asarray(estimate.p, np.float64), start))
     kinds = KIND_ORDER if evidence.cells() >= MIN_CELLS else tuple(
         k for k in KIND_ORDER if k not in ORIENTED_KINDS)
+    live = (None if estimate is None
+            else (model, np.asarray(estimate.p, np.float64).copy()))
     return (evidence.windows(), aux_names, t0_us, start, p,
-            DiscoveryConfig(blocks=blocks, kinds=kinds))
+            DiscoveryConfig(blocks=blocks, kinds=kinds), live)
 
 
 class NodeDiscovery:
@@ -308,7 +322,11 @@ class NodeDiscovery:
         from another, is not taken on); an event "discovery" either way (the effects it
         would add and drop, whether it was adopted, the held-out error before and after), a
         console note when adopted."""
-        res = run.result()  # waits if it is still running (a replay gets here sooner)
+        got = run.result()  # waits if it is still running (a replay gets here sooner)
+        if isinstance(got, Exception):
+            res = got
+        else:
+            res, live_mg = got
         if isinstance(res, Exception):
             self.events.event("discovery_failed", t_us, log_ns,
                               {"error": str(res), "started_t_us": run.started_us})
@@ -317,6 +335,12 @@ class NodeDiscovery:
         found = {e.label: e.key for e in res.model.effects}
         added = [lb for lb, k in found.items() if k not in now.values()]
         dropped = [lb for lb, k in now.items() if k not in found.values()]
+        # a selection the model in force predicts as well on the same held-out windows is no
+        # reason to change (a run's search from the configured model can end elsewhere)
+        worse = live_mg is not None and (added or dropped) and (
+            res.heldout_final_mg >= live_mg)
+        if worse:
+            added, dropped = [], []
         chosen = tuple(sorted(found))
         agreed = self.pending == chosen
         self.pending = chosen if (added or dropped) else None
@@ -327,6 +351,7 @@ class NodeDiscovery:
             "pending": bool(added or dropped) and not adopt,
             "steps": [f"{s.action} {s.effect.label}" for s in res.steps],
             "heldout_error_mg": {"base": res.heldout_base_mg, "final": res.heldout_final_mg},
+            "heldout_live_mg": live_mg, "not_better": bool(worse),
             "windows": len(res.data), "started_t_us": run.started_us,
             "model": model_name(res.model)}
         self.events.event("discovery", t_us, log_ns, detail)
