@@ -210,89 +210,21 @@ class _Capture:
         self.json_messages.append((suffix, obj))
 
 
-def _rediscovering_node(raw: RawBatch, every_h: float, adopt_after_s: float = 60.0,
-                        batch: int = 500) -> tuple[CalibrationNode, _Capture]:
-    model = SensorModel.diagonal(1024.0)
-    settings = NodeSettings("s1", PipelineSection(), model, Prior.default(model), RATE_HZ,
-                            rediscovery=RediscoveryConfig(every_h=every_h,
-                                                          adopt_after_s=adopt_after_s))
-    sink = _Capture()
-    node = CalibrationNode(settings, sink)
-    for i in range(0, len(raw), batch):  # bounded: one pass over the recording
-        node.process(raw[i:i + batch], 0)
-    return node, sink
-
-
-def test_the_daemon_rediscovers_on_its_buffer_and_publishes_the_extended_state() -> None:
-    raw = sim.simulate(1.0, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
-    node, sink = _rediscovering_node(raw, every_h=0.5)
-    events = [o for s, o in sink.json_messages if s == "events" and o["kind"] == "discovery"]
-    states = [o for s, o in sink.json_messages
-              if s == "calibration" and o["reason"] == "discovery"]
-    assert len(events) == 1 and events[0]["detail"]["effects_selected"] == ["offset[board_temp]"]
-    assert {f"o_board_temp_{ax}" for ax in "xyz"} <= set(states[0]["param_names"])
-    later = [o for s, o in sink.json_messages if s == "calibration"][-1]
-    assert "offset[board_temp]" in later["described"]  # the live estimator carries it on
-    restored = CalibrationNode.from_checkpoint(node.settings, sink, node.checkpoint())
-    assert restored.pipeline is not None and restored.pipeline.model.has("offset", "board_temp")
-
-    # the run worked in its own thread on a copy: it is taken on at the first batch 60 device
-    # seconds after it started, and until then the output is exactly a node's without it
-    started, adopted = events[0]["detail"]["started_t_us"], events[0]["t_us"]
-    batch_us = 500 / RATE_HZ * 1e6
-    assert started + 60e6 <= adopted < started + 60e6 + batch_us + 1e6
-    t, a = sink.calibrated_output()
-    t0, a0 = _rediscovering_node(raw, every_h=0.0)[1].calibrated_output()
-    np.testing.assert_array_equal(t, t0)
-    before = t <= adopted
-    np.testing.assert_array_equal(a[before], a0[before])
-    assert np.abs(a[~before] - a0[~before]).max() > 1e-4  # the extended model took over
-    # and whenever the thread finishes, the same samples see the new model: run it again
-    np.testing.assert_array_equal(_rediscovering_node(raw, every_h=0.5)[1].calibrated_output()[1],
-                                  a)
-
-
-def test_a_rediscovery_pending_at_a_checkpoint_runs_again_after_the_restart() -> None:
-    raw = sim.simulate(1.0, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
-    cut = int(np.searchsorted(raw.t_us, raw.t_us[0] + (0.5 * 3600 + 30) * 1e6))
-    cut -= cut % 500
-    node, _ = _rediscovering_node(raw[:cut], every_h=0.5)  # the run started, not yet taken on
-    doc = json.loads(json.dumps(node.checkpoint()))
-    assert doc["next_discovery_us"] <= doc["t_us"]  # due again: the pending run is not saved
-    sink = _Capture()
-    restored = CalibrationNode.from_checkpoint(node.settings, sink, doc)
-    for i in range(cut, len(raw), 500):  # bounded: the rest of the recording
-        restored.process(raw[i:i + 500], 0)
-    events = [o for s, o in sink.json_messages if s == "events" and o["kind"] == "discovery"]
-    # without the saved schedule the next run would be due every_h after the restart, past
-    # the end of this recording
-    assert len(events) == 1
-    assert events[0]["detail"]["started_t_us"] == int(raw.t_us[min(cut + 500, len(raw)) - 1])
-    assert events[0]["detail"]["effects_selected"] == ["offset[board_temp]"]
-    # a checkpoint between runs keeps the next one's time
-    again = CalibrationNode.from_checkpoint(node.settings, _Capture(),
-                                            json.loads(json.dumps(restored.checkpoint())))
-    assert again.checkpoint()["next_discovery_us"] == restored.checkpoint()["next_discovery_us"]
-    assert again.checkpoint()["next_discovery_us"] > restored.checkpoint()["t_us"]
-
-
-def test_rediscovery_with_no_delay_is_taken_on_where_it_starts() -> None:
-    raw = sim.simulate(0.7, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
-    _, sink = _rediscovering_node(raw, every_h=0.5, adopt_after_s=0.0)
-    events = [o for s, o in sink.json_messages if s == "events" and o["kind"] == "discovery"]
-    assert len(events) == 1 and events[0]["t_us"] == events[0]["detail"]["started_t_us"]
-
-
-def test_discovery_is_off_by_default_in_the_daemon() -> None:
-    raw = sim.simulate(0.6, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
+def test_discovery_is_on_by_default_in_the_daemon() -> None:
+    """The node's discovery with its defaults (its schedule, evidence, adoption and restart:
+    tests/test_live_discovery.py)."""
+    raw = sim.simulate(0.4, RATE_HZ, SEED, _sensor(offset_tc_g_per_c=OFFSET_TC), WEARER).raw
     model = SensorModel.diagonal(1024.0)
     sink = _Capture()
     node = CalibrationNode(NodeSettings("s1", PipelineSection(), model, Prior.default(model),
                                         RATE_HZ), sink)
     for i in range(0, len(raw), 1000):
         node.process(raw[i:i + 1000], 0)
-    assert not any(o.get("kind", "").startswith("discovery") for _, o in sink.json_messages)
-    assert node.pipeline is not None and node.pipeline.model.names == model.names
+    assert node.settings.rediscovery == RediscoveryConfig() and RediscoveryConfig().active
+    found = [o["detail"]["added"] for _, o in sink.json_messages
+             if o.get("kind") == "discovery"]
+    assert found[:2] == [["offset[board_temp]"]] * 2  # selected, then confirmed
+    assert node.pipeline is not None and node.pipeline.model.has("offset", "board_temp")
 
 
 def test_cli_discover_writes_the_report_and_a_model_replay_accepts(tmp_path: Path,

@@ -400,6 +400,7 @@ def test_shipped_configs_load() -> None:
     root = Path(__file__).resolve().parents[1] / "configs"
     cfg = load_config(root / "gateway.toml")
     assert [s.id for s in cfg.sensors] == ["wrist", "hip"]
+    assert cfg.discovery.active  # effect discovery on, as by default
     for s in cfg.sensors:
         model, prior = model_and_prior(s, cfg.pipeline)
         assert prior is not None and model.s0 == s.prior.counts_per_g

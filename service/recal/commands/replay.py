@@ -224,6 +224,8 @@ def _node_for(sid: str, cfg: ServiceConfig, model: str | Path | None,
         node = CalibrationNode(settings, sink, pipeline=pipe, start="recording",
                                alignment=Alignment.from_dict(ali) if ali else None,
                                timebase=TimebaseState.from_dict(tbd) if tbd else None)
+        if isinstance(setup.get("discovery_json"), str):  # absent in older recordings
+            node.discovery.resume(json.loads(setup["discovery_json"]))
         return node, "recording"
     m, prior = model_and_prior(sensor, cfg.pipeline)  # no prior known: bootstrap
     settings = NodeSettings(sid, cfg.pipeline, m, prior, sensor.rate_hz, sensor.full_scale_g,
@@ -337,7 +339,8 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
                            "rate_hz": node.rate_hz,
                            "samples_by_status": node.samples_by_status(),
                            "samples_not_calibrated": node.samples_not_calibrated,
-                           "samples_not_finite": node.samples_not_finite}
+                           "samples_not_finite": node.samples_not_finite,
+                           "discoveries": node.discovery.runs}
     if node.pipeline is not None:
         s = node.pipeline.summary()
         out.update({"model": model_name(node.pipeline.model), "params": s["params"],
@@ -345,7 +348,7 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
                     "counts": s["counts"], "bootstrapped": s["bootstrapped"],
                     "phase": s["phase"], "gain_reference": s["gain_reference"],
                     "status": s["status"], "unobserved": s["unobserved"],
-                    "misfit_mg": s["misfit_mg"],
+                    "misfit_mg": s["misfit_mg"], "t0_us": node.pipeline.t0_us,
                     "last_update_reason": (s["last_update"] or {}).get("reason", ""),
                     "alignment": node.alignment.to_dict() if node.alignment else None})
     return out
@@ -361,6 +364,26 @@ def _why_not_calibrated(counts: dict, reason: str) -> str:
                 "give a prior with --config or --model")
     return ("not calibrated: without a prior the recording must first cover enough "
             "orientations (5 half-axes); give one with --config or --model")
+
+
+def _discovery_lines(runs: list[dict], t0_us: int | None) -> list[str]:
+    """One line per discovery run that changed the model, and one for the runs that did
+    not."""
+    lines = []
+    for d in runs:
+        if not d["adopted"]:
+            continue
+        what = ", ".join([f"added {e}" for e in d["added"]] + [f"dropped {e}" for e in
+                                                               d["dropped"]])
+        at = (f"{(d['t_us'] - t0_us) / 3.6e9:.2f} h in" if t0_us is not None
+              else f"t_us {d['t_us']}")
+        err = d["heldout_error_mg"]
+        lines.append(f"    discovery {at}: {what} (held-out error {err['base']:.2f} -> "
+                     f"{err['final']:.2f} mg on {d['windows']} windows)")
+    kept = sum(not d["adopted"] for d in runs)
+    if kept:
+        lines.append(f"    discovery: {kept} more run(s) found nothing to change")
+    return lines
 
 
 def replay_lines(summary: dict) -> list[str]:
@@ -396,6 +419,7 @@ def replay_lines(summary: dict) -> list[str]:
         if (info.get("misfit_mg") or 0.0) >= 0.5:
             lines.append(f"    the model misses {info['misfit_mg']:.2f} mg the data show (sigma "
                          "widened by it); `recal discover` may find the effect")
+        lines += _discovery_lines(info.get("discoveries") or [], info.get("t0_us"))
         for effect, values in info["described"].items():
             lines.append(f"    {effect}: " + ", ".join(f"{k} {v:.4g}" for k, v in
                                                         values.items()))

@@ -25,8 +25,9 @@ relative to the file)::
                 request_interval_s = 60 (at most one recal/<sensor>/align request per sensor)
     [node]      accept_any = false, max_sensors = 16: which sensors a `recal node` serves
                 (default: only those in [[sensors]] or --sensor-id)
-    [discovery] every_h = 0 (off), min_windows = 60, blocks = 10: rediscover effects on the
-                live buffer (recal.core.discovery) and continue with the extended model
+    [discovery] enabled = true, every_h = 2 (0 = off), first_h = 1/6, min_windows = 60,
+                blocks = 10, adopt_after_s = 60, capacity = 2048: discover effects on each
+                node's evidence (recal.core.evidence) and continue with the extended model
     [[sensors]] id, port, format = "ascii" (a name in recal.io.wire_formats), baudrate,
                 aux_names, rate_hz, full_scale_g, model,
                 prior = "<name in priors_file>" | { inline table }
@@ -254,15 +255,22 @@ def _node(ctx: Place, d: Any) -> RemoteNodeConfig:
 
 
 def _discovery(ctx: Place, d: Any) -> RediscoveryConfig:
-    d = table(ctx, d, ("every_h", "min_windows", "blocks", "adopt_after_s"))
-    every = number(ctx, d, "every_h", 0.0)
+    d = table(ctx, d, ("enabled", "every_h", "first_h", "min_windows", "blocks",
+                       "adopt_after_s", "capacity"))
+    dflt = RediscoveryConfig()
+    every = number(ctx, d, "every_h", dflt.every_h)
     if every < 0:
         raise ctx.error("every_h", f"expected hours >= 0 (0 = off), got {every!r}")
-    adopt = number(ctx, d, "adopt_after_s", 60.0)
+    first = number(ctx, d, "first_h", dflt.first_h)
+    if not first > 0:
+        raise ctx.error("first_h", f"expected hours > 0, got {first!r}")
+    adopt = number(ctx, d, "adopt_after_s", dflt.adopt_after_s)
     if adopt < 0:
         raise ctx.error("adopt_after_s", f"expected seconds >= 0, got {adopt!r}")
-    return RediscoveryConfig(every, integer(ctx, d, "min_windows", 60, 10),
-                             integer(ctx, d, "blocks", 10, 3), adopt)
+    return RediscoveryConfig(boolean(ctx, d, "enabled", dflt.enabled), every, first,
+                             integer(ctx, d, "min_windows", dflt.min_windows, 10),
+                             integer(ctx, d, "blocks", dflt.blocks, 3), adopt,
+                             integer(ctx, d, "capacity", dflt.capacity, 100))
 
 
 def load_priors(path: Path) -> dict[str, PriorConfig]:

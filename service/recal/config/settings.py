@@ -276,26 +276,37 @@ class RemoteNodeConfig:
 
 @dataclass(frozen=True)
 class RediscoveryConfig:
-    """Periodic effect discovery on a node's live window buffer (off by default).
+    """Effect discovery on a node's own evidence (`recal.core.evidence`), on by default.
+
+    The schedule (docs/design.md, effect discovery step 8): a run every ``first_h`` device
+    hours for the first hour, then each time the evidence has doubled in time, the gap never
+    longer than ``every_h``; a run with fewer than ``min_windows`` windows held is skipped.
 
     Attributes:
-        every_h: device hours between runs; 0 = never.
-        min_windows: fewer buffered windows than this and the run is skipped.
+        enabled: False: never (so does every_h = 0, as in older configuration files).
+        every_h: the longest gap between runs, device hours.
+        first_h: device hours from the stream's start to the first run.
+        min_windows: fewer windows held than this and the run is skipped.
         blocks: held-out time blocks (see recal.core.discovery.DiscoveryConfig).
-        adopt_after_s: a run works on a copy of the buffer in a thread of its own (1-2 s of
-            CPU) while the node goes on calibrating; its result is taken on at the first batch
-            this many device seconds after it started, waiting for it then if need be, so a
-            replay (which gets there sooner) adopts it at the same sample as the live node.
+        adopt_after_s: a run works on a copy of the evidence apart from the node (seconds
+            of CPU) while the node goes on calibrating; its result is taken on at the first
+            batch this many device seconds after it started, waiting for it then if need be,
+            so a replay (which gets there sooner) adopts it at the same sample as the live
+            node.
+        capacity: windows the evidence keeps (`core.evidence.EvidenceConfig`).
     """
 
-    every_h: float = 0.0
+    enabled: bool = True
+    every_h: float = 2.0
+    first_h: float = 1.0 / 6.0
     min_windows: int = 60
     blocks: int = 10
     adopt_after_s: float = 60.0
+    capacity: int = 2048
 
     @property
-    def enabled(self) -> bool:
-        return self.every_h > 0
+    def active(self) -> bool:
+        return self.enabled and self.every_h > 0
 
 
 @dataclass(frozen=True)

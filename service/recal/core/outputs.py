@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from recal.core.buffer import Windows
 from recal.core.estimator import Estimate, UpdateReport
 from recal.core.model import SensorModel
 from recal.samples import CalibratedBatch
@@ -48,7 +49,9 @@ class StepOutput:
     the updates and the self-watch's events in it (indices into the batch, in order), the
     windows committed in it; and the state as of the batch's end: the model and estimate in
     force, and ``state``, the model and `Pipeline.summary()` then when the batch holds an
-    update or a reset (`step_many` only: after `step` the pipeline's own summary is that)."""
+    update or a reset (`step_many` only: after `step` the pipeline's own summary is that);
+    ``windows``: the window means committed in it, norm gate or not (None: none; what a node
+    keeps for discovery, `core.evidence`)."""
 
     calibrated: CalibratedBatch
     updates: tuple[UpdateEvent, ...]
@@ -57,6 +60,7 @@ class StepOutput:
     model: SensorModel | None = None
     estimate: Estimate | None = None
     state: tuple[SensorModel, dict] | None = None
+    windows: Windows | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,15 +111,18 @@ class JoinedStep:
     commits: list[int]
     watch: tuple[WatchEvent, ...]
     marks: dict[int, MarkState]
+    windows: Windows | None = None  # one per commit, in order (None: no commit)
 
     def joined(self, tail: JoinedStep, at: int) -> JoinedStep:
         """This step's output for the first `at` samples, then `tail`'s for the rest."""
+        wins = (self.windows if tail.windows is None else tail.windows if self.windows is None
+                else _concat(self.windows, tail.windows))
         return JoinedStep(CalibratedBatch.concat([self.calibrated, tail.calibrated]),
                           (*self.updates, *(replace(u, index=u.index + at)
                                             for u in tail.updates)),
                           [*self.commits, *(c + at for c in tail.commits)],
                           (*self.watch, *(replace(w, index=w.index + at) for w in tail.watch)),
-                          {**self.marks, **{m + at: v for m, v in tail.marks.items()}})
+                          {**self.marks, **{m + at: v for m, v in tail.marks.items()}}, wins)
 
     def split(self, lengths: Sequence[int], model: SensorModel,
               estimate: Estimate | None) -> list[StepOutput]:
@@ -136,9 +143,22 @@ class JoinedStep:
             model, estimate = mark.model, mark.estimate
             state = (mark.model, mark.summary) if mark.summary is not None else None
             outs.append(StepOutput(self.calibrated[lo:hi], tuple(mine), c1 - c, tuple(seen),
-                                   model, estimate, state))
+                                   model, estimate, state, _rows(self.windows, c, c1)))
             lo, c = hi, c1
         return outs
+
+
+def _concat(a: Windows, b: Windows) -> Windows:
+    return Windows(*(np.concatenate([x, y]) for x, y in zip(
+        (a.v, a.aux, a.t_us, a.n, a.var), (b.v, b.aux, b.t_us, b.n, b.var), strict=True)))
+
+
+def _rows(w: Windows | None, lo: int, hi: int) -> Windows | None:
+    """Windows lo..hi of a step's (None when there are none)."""
+    if w is None or hi <= lo:
+        return None
+    s = slice(lo, hi)
+    return Windows(w.v[s], w.aux[s], w.t_us[s], w.n[s], w.var[s])
 
 
 def _take_before(events: list, hi: int) -> list:

@@ -211,7 +211,7 @@ class Pipeline:
         """Process one batch of raw samples (any size, in time order)."""
         s = self._stepped(batch, [])
         return StepOutput(s.calibrated, s.updates, len(s.commits), s.watch, self.model,
-                          self.estimate)
+                          self.estimate, windows=s.windows)
 
     def step_many(self, batches: Sequence[RawBatch]) -> list[StepOutput]:
         """`step` for consecutive batches: one output per batch, exactly what stepping each in
@@ -313,7 +313,7 @@ class Pipeline:
             self._work.marks = Marks(list(marks), gate, self.counts["samples"],
                                      self.counts["quasi_static"])
         try:
-            events, commits = windows(self, batch, gate)
+            events, commits, committed = windows(self, batch, gate)
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._work.marks = self._work.marks, None
@@ -327,7 +327,7 @@ class Pipeline:
             self.counts["quasi_static"] += int(gate.sum())
             out = CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma)
         return JoinedStep(out, tuple(events), commits, tuple(self._work.watch_events),
-                          done.at if done is not None else {})
+                          done.at if done is not None else {}, committed)
 
     def state_dict(self) -> dict:
         """JSON-able checkpoint (see module function `state_dict`)."""
@@ -343,19 +343,26 @@ class Pipeline:
     def coverage(self) -> Coverage:
         return self.buffer.coverage()
 
-    def adopt(self, model: SensorModel, prior: Prior) -> None:
+    def adopt(self, model: SensorModel, prior: Prior, cov: np.ndarray | None = None) -> None:
         """Continue with another model (one effect discovery extended): its prior becomes the
-        pre-calibration and the estimate; detector, buffer and windows carry on; the misfit
-        starts again (it measured the model replaced), a waiting candidate is no longer."""
+        pre-calibration and the estimate, with ``cov`` as the estimate's covariance if given
+        (the fit's that found the model: what its windows tell, not only the prior's
+        spreads); detector, buffer and windows carry on; the self-watch starts afresh (it
+        judged the model replaced), a waiting candidate is no longer."""
         check_channels(model, self.aux_names)
         self.model = model
         self.prior = prior
-        self.estimate = Estimate.from_prior(prior)
+        self.estimate = (Estimate.from_prior(prior) if cov is None
+                         else Estimate(prior.mean.copy(), np.array(cov, np.float64)))
+        # the self-watch judged the model this one replaces (its contradictions, its misfit):
+        # it starts afresh, the first still window must agree before output is calibrated;
+        # the wait for a candidate is over, whichever model was adopted
+        m = self.watch.misfit
+        self.watch = Watch(triggers=self.watch.triggers)
+        self.watch.doubt(REOPEN_PROBATION_WINDOWS)
         self.bootstrapped = True
-        self.watch.pending = None  # the wait is over, whichever model was adopted
         # what the misfit measured, it measured under the model now replaced (kappa and the
         # unseen floor are the postures', kept until the next update recomputes them)
-        m = self.watch.misfit
         self.watch.misfit = RunningMisfit(across=m.across, unseen_w=m.unseen_w)
         redirect(self)
 

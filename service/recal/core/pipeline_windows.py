@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from recal.core.buffer import Window
+from recal.core.buffer import Window, Windows
 from recal.core.effects import Scale
 from recal.core.estimator import innovations
 from recal.core.outputs import UpdateEvent
@@ -18,7 +18,7 @@ from recal.core.pipeline_fit import try_bootstrap, update_at
 from recal.core.pipeline_watch import contradicts, reset_estimate, watch_window
 from recal.core.refit import WindowChunk, fresh_windows, must_update, next_update, tries
 from recal.core.status import Status
-from recal.core.windower import WindowSums, cut
+from recal.core.windower import cut
 from recal.samples import RawBatch
 
 if TYPE_CHECKING:
@@ -27,19 +27,24 @@ if TYPE_CHECKING:
 __all__ = ["windows"]
 
 
-def windows(pipe: PipelineParts, b: RawBatch,
-            gate: np.ndarray) -> tuple[list[UpdateEvent], list[int]]:
-    """Cut the gated runs into windows (`core.windower`) and commit the finished ones.
+def windows(pipe: PipelineParts, b: RawBatch, gate: np.ndarray
+            ) -> tuple[list[UpdateEvent], list[int], Windows | None]:
+    """Cut the gated runs into windows (`core.windower`) and commit the finished ones; the
+    updates, the commit sample of each window and the windows committed (None: none), every
+    one whether the norm gate kept it or not (discovery's evidence, `core.evidence`).
 
     Which windows finish and when they commit depends on the gates and times alone, so it
     is worked out first for the whole batch; committing them then depends on the
     parameters, which change only at updates (`_commit_all`)."""
     c, pipe.windower = cut(pipe.cfg.windows, pipe.windower, b.t_us, b.v, b.aux, gate)
-    return _commit_all(pipe, b, c.due, c.sums)
+    means = c.sums.means() if c.sums is not None else None
+    events, at = _commit_all(pipe, b, c.due, means)
+    return events, at, means[0] if means is not None else None
 
 
 def _commit_all(pipe: PipelineParts, b: RawBatch, due: list[tuple[int, bool]],
-                table: WindowSums | None) -> tuple[list[UpdateEvent], list[int]]:
+                means: tuple[Windows, np.ndarray] | None
+                ) -> tuple[list[UpdateEvent], list[int]]:
     """Commit the scheduled windows in order. Between updates the parameters hold, so the
     norm gate, directions and cells of the windows are worked out a chunk at a time
     (`refit.WindowChunk`), and `_scan` finds the next window after which an update runs from the
@@ -50,12 +55,12 @@ def _commit_all(pipe: PipelineParts, b: RawBatch, due: list[tuple[int, bool]],
     at = [idx for idx, window in due if window]  # commit sample of each window
     slot = [k for k, (_, window) in enumerate(due) if window]  # its place in due
     done = 0  # due entries handled
-    if table is not None:
-        w, runs = table.means()
+    if means is not None:
+        w, runs = means
         c, size, chunk = 0, 0, None
-        while c < len(table):
+        while c < len(w):
             if chunk is None or c >= chunk.lo + len(chunk):
-                size = min(len(table) - c, max(64, 2 * size))
+                size = min(len(w) - c, max(64, 2 * size))
                 chunk = WindowChunk.of(
                     pipe.model, pipe.params, pipe.covariates,
                     pipe.cfg.norm_tol_g if pipe.bootstrapped else None,
@@ -139,7 +144,8 @@ def _axis_newly_covered(pipe: PipelineParts) -> bool:
     observe (a sphere fitted to five half-axes, then the sixth): worth an update at once,
     whatever the window count (a six-pose stream ends right after its last pose)."""
     rep = pipe.last_report
-    if rep is None or not pipe.model.has("scale") or not rep.observable:
+    if (rep is None or not pipe.model.has("scale") or not rep.observable
+            or len(rep.observable) != len(pipe.model.names)):  # (of a model since replaced)
         return False
     sl = pipe.model.slice(Scale())
     seen = rep.observable[sl.start:sl.stop]

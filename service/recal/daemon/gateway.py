@@ -72,6 +72,7 @@ from recal.io import messages
 from recal.io.recording_writer import RecordingWriter
 from recal.io.serial_source import SerialSource, SourceEvent
 from recal.io.wire_formats import wire_format
+from recal.node import rediscovery
 from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, make_node, node_settings
 from recal.node.sinks import Sink, make_sink
@@ -460,8 +461,9 @@ def run_gateway(config: ServiceConfig | str | Path | None, ports: Sequence[str] 
     stop = stop_event or threading.Event()
     restore = install_stop_signals(stop)
     try:
-        return _serve(cfg, mcap_out, model_path, stop, emit, fail, on_ready, batch_s,
-                      idle_batch_s)
+        with rediscovery.in_a_process(cfg.run_nodes and cfg.discovery.active):
+            return _serve(cfg, mcap_out, model_path, stop, emit, fail, on_ready, batch_s,
+                          idle_batch_s)
     finally:
         restore()
 

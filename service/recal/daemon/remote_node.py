@@ -31,6 +31,7 @@ from recal.daemon.runtime import (
 from recal.errors import ConfigError
 from recal.io import bus as _bus
 from recal.io import messages
+from recal.node import rediscovery
 from recal.node.alignment import align_handler
 from recal.node.node import CalibrationNode, make_node, node_settings
 from recal.node.sinks import Sink, make_sink
@@ -169,7 +170,8 @@ def run_node(config: ServiceConfig | str | Path | None = None,
     watch = None if writer is None else watch_recording(writer, emit, cfg.mcap.backlog_mb,
                                                         stop, NOTE_PREFIX)
     try:
-        runner.run(stop)
+        with rediscovery.in_a_process(cfg.discovery.active):
+            runner.run(stop)
     finally:
         runner.close()
         if writer is not None:

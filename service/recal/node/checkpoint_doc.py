@@ -1,18 +1,18 @@
 """The checkpoint document: what a node's state looks like on disk, and when it is trusted.
 
 :func:`checkpoint_document` builds a node's document, :func:`restore_document` takes one back
-(the pipeline, the alignment, the time base, the next rediscovery). A document is trusted only
-after it has been checked (:func:`parse_document` for the text, :func:`restore_pipeline` for
-the state): nesting depth, strict JSON (no NaN, no infinity, no integer beyond 2^53), the
-format, then the pipeline rebuilt with ``Pipeline.from_state_dict`` inside a guard and its
-result checked: the estimate and prior shaped like the model, finite, inside the model's own
-``bounds()`` (the offsets' centred on the configured zero-g, `param_bounds`), a symmetric
-covariance with positive variances, device times no later than the checkpoint's last sample
-(plus a day) and that one not after tomorrow in Unix time, and one probe step on a copy that
-must run and give finite output. New state fields are covered by the strict-JSON rule and the
-probe without edits here. The same checks (without the probe) run before each save: a state
-that would not load is never written over a good one; a node runs them on every state it
-takes on (`estimate_problem`, `recal.node.vetting`).
+(the pipeline, the alignment, the time base, discovery's schedule and evidence). A document is
+trusted only after it has been checked (:func:`parse_document` for the text,
+:func:`restore_pipeline` for the state): nesting depth, strict JSON (no NaN, no infinity, no
+integer beyond 2^53), the format, then the pipeline rebuilt with ``Pipeline.from_state_dict``
+inside a guard and its result checked: the estimate and prior shaped like the model, finite,
+inside the model's own ``bounds()`` (the offsets' centred on the configured zero-g,
+`param_bounds`), a symmetric covariance with positive variances, device times no later than the
+checkpoint's last sample (plus a day) and that one not after tomorrow in Unix time, and one
+probe step on a copy that must run and give finite output. New state fields are covered by the
+strict-JSON rule and the probe without edits here. The same checks (without the probe) run
+before each save: a state that would not load is never written over a good one; a node runs
+them on every state it takes on (`estimate_problem`, `recal.node.vetting`).
 
 The files (atomic saves, ``.prev``, locks, owners) are the daemon's:
 `recal.daemon.checkpoint_store`.
@@ -34,6 +34,7 @@ from recal.config.settings import RediscoveryConfig
 from recal.core import alignment as al
 from recal.core import timebase as tb
 from recal.core.estimator import Prior
+from recal.core.evidence import EvidenceStore
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.errors import CheckpointError
@@ -70,13 +71,17 @@ _STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
 
 def checkpoint_document(sensor_id: str, t_us: int | None, pipeline: Pipeline,
                         alignment: al.Alignment | None, next_discovery_us: int | None,
-                        timebase: tb.TimebaseState | None) -> dict[str, Any]:
-    """A node's JSON-able checkpoint (`recal.node.node.CalibrationNode.checkpoint`)."""
+                        timebase: tb.TimebaseState | None,
+                        discovery: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A node's JSON-able checkpoint (`recal.node.node.CalibrationNode.checkpoint`);
+    ``discovery``: the schedule's gap (``gap_us``) and the evidence (``evidence``,
+    `core.evidence.EvidenceStore.to_dict`)."""
     return {"format": CHECKPOINT_FORMAT, "sensor_id": sensor_id,
             "saved_unix_s": time.time(), "t_us": t_us,
             "pipeline": pipeline.state_dict(),
             "alignment": alignment.to_dict() if alignment else None,
             "next_discovery_us": next_discovery_us,
+            "discovery": discovery,
             "timebase": timebase.to_dict() if timebase else None}
 
 
@@ -88,6 +93,9 @@ class Restored:
     alignment: al.Alignment | None
     timebase: tb.TimebaseState | None
     next_discovery_us: int | None
+    discovery_gap_us: int | None = None
+    evidence: EvidenceStore | None = None
+    discovery_pending: tuple[str, ...] | None = None
 
 
 def restore_document(doc: dict[str, Any], sensor_id: str,
@@ -104,7 +112,7 @@ def restore_document(doc: dict[str, Any], sensor_id: str,
     pipe = restore_pipeline(doc.get("pipeline"), reference=reference)
     kinds = [e.kind for e in pipe.model.effects]
     configured = [e.kind for e in model.effects]
-    grown = rediscovery.enabled and {e.key for e in model.effects} <= {
+    grown = rediscovery.active and {e.key for e in model.effects} <= {
         e.key for e in pipe.model.effects}  # rediscovery extended the configured model
     if kinds != configured and not grown:
         raise ValueError(f"checkpoint model {model_name(pipe.model)} differs from the "
@@ -126,7 +134,33 @@ def restore_document(doc: dict[str, Any], sensor_id: str,
     # one further ahead than a period never comes: scheduled again from the data
     next_us = (int(due) if isinstance(due, (int, float)) and 0 <= due <= last + every_us
                else None)
-    return Restored(pipe, alignment, timebase, next_us)
+    gap_us, evidence = _discovery(doc.get("discovery"), pipe, every_us)
+    d = doc.get("discovery")
+    pending = d.get("pending") if isinstance(d, dict) else None
+    return Restored(pipe, alignment, timebase, next_us, gap_us, evidence,
+                    tuple(map(str, pending)) if isinstance(pending, list) else None)
+
+
+def _discovery(d: Any, pipe: Pipeline, every_us: int) -> tuple[int | None, EvidenceStore | None]:
+    """The schedule's gap and the evidence of a checkpoint's ``discovery`` (absent in
+    checkpoints from before it was kept: none, the evidence starts anew). Evidence whose
+    channels or times do not fit the pipeline's is refused (ValueError)."""
+    if not isinstance(d, dict):
+        return None, None
+    gap = d.get("gap_us")
+    gap_us = int(gap) if isinstance(gap, (int, float)) and 0 < gap <= every_us else None
+    ev = d.get("evidence")
+    if not isinstance(ev, dict):
+        return gap_us, None
+    try:
+        store = EvidenceStore.from_dict(ev)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"checkpoint evidence: {type(exc).__name__}: {exc}") from None
+    last = pipe.last_t_us or 0
+    if store.aux.shape[1] != len(pipe.aux_names) or (
+            len(store) and not 0 <= store.t_us[0] <= store.t_us[-1] <= last + FUTURE_US):
+        raise ValueError("checkpoint evidence does not fit the pipeline's channels or times")
+    return gap_us, store
 
 
 # ---------------------------------------------------------------------------------------------

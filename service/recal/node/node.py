@@ -11,7 +11,7 @@ The node keeps ``process`` and ``emit``; each other concern is a part it holds a
 directly: the rate hold and the channel layout (`recal.node.layout`), device time
 (`recal.node.device_time`: through `recal.core.timebase` right before ``Pipeline.step``), the
 published samples' guard and status lines (`recal.node.published`), the estimate checks
-(`recal.node.vetting`), periodic rediscovery (`recal.node.rediscovery`), the mounting and its
+(`recal.node.vetting`), effect discovery (`recal.node.rediscovery`), the mounting and its
 requests (`recal.node.alignment`), the state message (`recal.node.state_message`) and the
 checkpoint document (`recal.node.checkpoint_doc`). A model that needs a channel the stream
 lacks is one ``missing_channel`` event at the stream's first batch, then the node skips
@@ -57,7 +57,7 @@ from recal.node.device_time import DeviceClock
 from recal.node.events import NodeEvents
 from recal.node.layout import DEFAULT_RATE_HZ, ChannelLayout, RateHold
 from recal.node.published import Published
-from recal.node.rediscovery import Rediscovery, RediscoverySchedule
+from recal.node.rediscovery import NodeDiscovery
 from recal.node.sinks import Sink
 from recal.node.state_message import model_name, state_message
 from recal.node.vetting import EstimateVet
@@ -144,7 +144,7 @@ class CalibrationNode:
         self.clock = DeviceClock(self.events, timebase)
         self.published = Published(self.events)
         self._vet = EstimateVet((settings.model, settings.prior), self.events)
-        self.rediscovery = RediscoverySchedule(settings.rediscovery)
+        self.discovery = NodeDiscovery(settings.rediscovery, self.events)
         self._started = False
         self._plot_every_at: tuple[float, int] | None = None  # (rate, plot_every) of `_plot_every`
         self.accepted_updates = 0
@@ -156,6 +156,7 @@ class CalibrationNode:
         self.failed: str | None = None
         if pipeline is not None:
             self.aligner.start(pipeline.cfg.rate_hz)
+            self.discovery.start(pipeline)
             if timebase is None:  # from before time bases were kept: microseconds, as then
                 self.clock.state = tb.TimebaseState(step_us=1e6 / pipeline.cfg.rate_hz)
 
@@ -242,15 +243,16 @@ class CalibrationNode:
         is batch-size invariant (replay joins a recording's small messages this way; bit for
         bit on integer readings such as ADC counts, else to the last bit of a window sum that
         a message end cuts, `core.windower`). Falls back to `process` one by one when the
-        batches cannot share a step: pipeline not started, another channel layout, periodic
-        rediscovery on.
+        batches cannot share a step: pipeline not started, another channel layout. A step
+        ends where discovery's schedule may start a run or take one on
+        (`RediscoverySchedule.stop_us`), so it does both at the batch `process` would.
         """
         items = [(b, t) for b, t in items if len(b)]
         with self._lock:
             while items and (self.pipeline is None or not self._started):
                 self.process(*items.pop(0))  # until the rate is known and the pipeline runs
             pipe = self.pipeline
-            if (len(items) < 2 or pipe is None or self.settings.rediscovery.enabled
+            if (len(items) < 2 or pipe is None or pipe.t0_us is None
                     or self.failed is not None
                     or any(b.aux_names != pipe.aux_names for b, _ in items)):
                 for batch, log_ns in items:
@@ -259,11 +261,22 @@ class CalibrationNode:
             device = RawBatch.concat([b for b, _ in items])
             joined = self.clock.apply(device, items[0][1], pipe)
             lengths = [len(b) for b, _ in items]
-            outs = pipe.step_joined(joined, lengths)
+            cum = np.cumsum(lengths)
+            ends_us = joined.t_us[cum - 1]
             self._layout.last_names = pipe.aux_names
-            devs = np.split(device.t_us, np.cumsum(lengths)[:-1])
-            for (_, log_ns), out, dev in zip(items, outs, devs, strict=True):
-                self._emit(out, log_ns, dev)
+            devs = np.split(device.t_us, cum[:-1])
+            lo = 0
+            while lo < len(items):  # bounded: each pass takes at least one batch
+                assert self.pipeline is not None
+                stop = self.discovery.stop_us(self.pipeline)
+                hi = len(items) if stop is None else min(
+                    len(items), int(np.searchsorted(ends_us[lo:], stop)) + lo + 1)
+                a = int(cum[lo - 1]) if lo else 0
+                outs = self.pipeline.step_joined(joined[a:int(cum[hi - 1])], lengths[lo:hi])
+                for (_, log_ns), out, dev in zip(items[lo:hi], outs, devs[lo:hi],
+                                                 strict=True):
+                    self._emit(out, log_ns, dev)
+                lo = hi
 
     def flush(self, log_time_ns: int) -> None:
         """End of stream: calibrate samples still held for rate measurement."""
@@ -338,8 +351,9 @@ class CalibrationNode:
             if self.pipeline is None:
                 return None
             return checkpoint_document(self.sensor_id, self.last_t_us, self.pipeline,
-                                       self.aligner.alignment, self.rediscovery.due_us,
-                                       self.clock.state)
+                                       self.aligner.alignment,
+                                       self.discovery.schedule.due_us, self.clock.state,
+                                       self.discovery.state())
 
     @classmethod
     def from_checkpoint(cls, settings: NodeSettings, sink: Sink,
@@ -350,7 +364,8 @@ class CalibrationNode:
                                settings.rediscovery)
         node = cls(settings, sink, pipeline=got.pipeline, alignment=got.alignment,
                    start="checkpoint", timebase=got.timebase)
-        node.rediscovery.next_us = got.next_discovery_us
+        node.discovery.restore(got.next_discovery_us, got.discovery_gap_us, got.evidence,
+                               got.discovery_pending)
         return node
 
     # -- starting -----------------------------------------------------------------------------
@@ -384,6 +399,7 @@ class CalibrationNode:
         cfg = s.pipeline.pipeline_config(rate, s.full_scale_g)
         self.pipeline = Pipeline(cfg, s.model, s.prior, names)
         self.aligner.start(rate)
+        self.discovery.start(self.pipeline)
         return batch
 
     def _announce(self, t_us: int, log_ns: int) -> None:
@@ -398,7 +414,11 @@ class CalibrationNode:
             "alignment_settings": asdict(self.settings.alignment),
             "alignment": ali.to_dict() if ali else None,
             # a string: JSON messages turn NaN into null, the checkpoint format keeps NaN
-            "pipeline_state_json": json.dumps(self.pipeline.state_dict())}, log_ns)
+            "pipeline_state_json": json.dumps(self.pipeline.state_dict()),
+            # discovery's evidence and schedule as this run began (a resumed node's): a replay
+            # of the log then runs and adopts as this node does
+            "discovery_json": json.dumps({"next_us": self.discovery.schedule.next_us,
+                                          **(self.discovery.state() or {})})}, log_ns)
         reason = "restored" if self.start in ("checkpoint", "recording") else "start"
         self._publish_state(t_us, reason, log_ns)
         self.events.event("node_started", t_us, log_ns, {
@@ -442,9 +462,9 @@ class CalibrationNode:
         self.published.report(cal, log_ns, self.pipeline)
         if out.updates:
             self._report_updates(out, log_ns)
-        run = self.rediscovery.poll(sid, self.pipeline, self.last_t_us)
-        if run is not None:
-            self._adopt_discovery(run, log_ns)
+        if self.discovery.step(self.pipeline, out, self.settings.model, self.last_t_us,
+                               log_ns):
+            self._publish_state(self.last_t_us, "discovery", log_ns)
         aligner.track(cal, log_ns, out, self.pipeline, self.accepted_updates)
         if aligner.alignment is not None:
             sink.calibrated(sid, aligner.body(cal, aligner.alignment), log_ns, "body")
@@ -453,25 +473,6 @@ class CalibrationNode:
         if back is not None:
             self.pipeline = back
             self._publish_state(self.last_t_us, "estimate_refused", log_ns)
-
-    def _adopt_discovery(self, run: Rediscovery, log_ns: int) -> None:
-        """A rediscovery's result (`RediscoverySchedule`): a model it extends becomes the live
-        one (with its fitted values as the estimate) and the state is published with reason
-        "discovery"."""
-        assert self.pipeline is not None and self.last_t_us is not None
-        res = run.result()  # waits if it is still running (a replay gets here sooner)
-        if isinstance(res, Exception):
-            self.events.event("discovery_failed", self.last_t_us, log_ns,
-                              {"error": str(res), "started_t_us": run.started_us})
-            return
-        self.events.event("discovery", self.last_t_us, log_ns, {
-            "effects_selected": [e.label for e in res.selected],
-            "steps": [f"{s.action} {s.effect.label}" for s in res.steps],
-            "heldout_error_mg": {"base": res.heldout_base_mg, "final": res.heldout_final_mg},
-            "windows": len(res.data), "started_t_us": run.started_us})
-        if res.selected and self.pipeline.model.names == run.model_names:
-            self.pipeline.adopt(res.model, res.prior)
-            self._publish_state(self.last_t_us, "discovery", log_ns)
 
     def _report_updates(self, out: StepOutput, log_ns: int) -> None:
         assert self.pipeline is not None
