@@ -279,3 +279,23 @@ def test_with_no_delay_a_run_is_taken_on_where_it_starts(temperature_raw: RawBat
     events = _events(sink)
     assert events and all(e["t_us"] == e["detail"]["started_t_us"] for e in events)
     assert any(e["detail"]["adopted"] for e in events)
+
+
+def test_a_waiting_selection_is_confirmed_a_quarter_gap_later() -> None:
+    """Once the gap has doubled to hours, a selection waiting for the next run's word is
+    judged again a quarter of the gap later (at least first_h), not a whole gap later; a slot
+    already sooner stays."""
+    from recal.node.rediscovery import RediscoverySchedule
+
+    hour_us = round(3.6e9)
+    cfg = RediscoveryConfig()
+    first_us = round(cfg.first_h * 3.6e9)
+    late = RediscoverySchedule(cfg, next_us=6 * hour_us, gap_us=2 * hour_us)
+    late.confirm_soon(4 * hour_us)
+    assert late.next_us == 4 * hour_us + hour_us // 2
+    early = RediscoverySchedule(cfg, next_us=40 * 60_000_000, gap_us=first_us)
+    early.confirm_soon(30 * 60_000_000)
+    assert early.next_us == 30 * 60_000_000 + first_us  # first_h: not sooner than a slot
+    soon = RediscoverySchedule(cfg, next_us=hour_us + 1, gap_us=2 * hour_us)
+    soon.confirm_soon(hour_us)
+    assert soon.next_us == hour_us + 1

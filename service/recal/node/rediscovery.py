@@ -177,6 +177,15 @@ class RediscoverySchedule:
         if self.next_us is None:
             self.next_us = origin_us + round(self.cfg.first_h * 3.6e9)
 
+    def confirm_soon(self, t_us: int) -> None:
+        """A selection waits for the next run's word: that run comes a quarter of the gap
+        after ``t_us`` (at least first_h), not a whole doubled gap later (hours, while sigma
+        carries the doubt); the evidence has grown by then, and only device time decides."""
+        if self.next_us is None:
+            return
+        soon = t_us + max(round(self.cfg.first_h * 3.6e9), self.gap_us // 4)
+        self.next_us = min(self.next_us, soon)
+
     def poll(self, sensor_id: str, last_t_us: int, evidence: EvidenceStore,
              start: tuple[SensorModel, SensorModel, Estimate | None, tuple[str, ...], int]
              ) -> Rediscovery | None:
@@ -363,6 +372,8 @@ class NodeDiscovery:
             pipe.set_pending(PendingCandidate(res.model, np.asarray(res.p, np.float64),
                                               np.asarray(res.cov, np.float64),
                                               "+".join(added)) if waits else None)
+            if waits:
+                self.schedule.confirm_soon(t_us)
             return False
         self.pending = None
         pipe.adopt(res.model, res.prior, res.cov)
