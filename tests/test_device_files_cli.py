@@ -78,6 +78,10 @@ def test_replay_streams_every_sample_through_the_node(tmp_path: Path, cwa: Path)
     cal = recording.read_all_calibrated(out, "AX3-51888")
     assert len(cal) == 58800 and (np.diff(cal.t_us) > 0).all()
     assert _device_metadata(out)["device_rate_hz"].startswith("197.2")
+    # one device recorded every sample: a gap is the device asleep or off, not a doubt
+    setups = [m for _, m, _ in recording.iter_json(out, "*/setup")]
+    state = json.loads(setups[0]["pipeline_state_json"])
+    assert state["config"]["gap_doubt_s"] == 0.0
 
 
 @pytest.mark.parametrize("suffix", [".mcap", ".csv"])

@@ -148,3 +148,22 @@ def test_a_gap_before_any_estimate_doubts_nothing() -> None:
                                                 PipelineSection()), raw.aux_names)
     pipe.step(_gapped(raw[:2000], 1000))
     assert pipe.watch.probation == 0
+
+
+def test_a_configured_gap_doubt_of_zero_holds_nothing_after_a_gap() -> None:
+    """``gap_doubt_s = 0`` (what `recal replay` of a device file sets: one device recorded
+    every sample, a gap is the device asleep or off): the same statuses as the recording with
+    its gap closed, and the sample after the gap calibrated where the default holds it."""
+    raw, k = _same()
+    model, prior = model_and_prior(SensorConfig(SID, rate_hz=RATE_HZ,
+                                                prior=PriorConfig(counts_per_g=S0)),
+                                   PipelineSection())
+    cfg = PipelineSection(options={"gap_doubt_s": 0.0}).pipeline_config(RATE_HZ)
+    outs = {}
+    for name, c in (("off", cfg), ("default", _config())):
+        pipe = Pipeline(c, model, prior, raw.aux_names)
+        outs[name] = CalibratedBatch.concat([pipe.step(raw[i:i + 250]).calibrated
+                                             for i in range(0, len(raw), 250)])
+    assert outs["default"].status[k] == Status.HELD
+    assert outs["off"].status[k - 1] == outs["off"].status[k] == Status.CALIBRATED
+    assert not np.any(outs["off"].status[k:] == Status.HELD)

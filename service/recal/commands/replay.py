@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -261,6 +261,12 @@ def replay(in_mcap: str | Path, out_mcap: str | Path, model: str | Path | None =
     rec.refuse_input_as_output(out_mcap, in_mcap)
     # a device file streams its samples as arrivals; anything else is read as MCAP
     device = open_recording(in_mcap) if recording_kind(in_mcap) == "device" else None
+    if device is not None and "gap_doubt_s" not in cfg.pipeline.options:
+        # one device recorded every sample of its file: a gap is the device asleep (idle
+        # sleep is declared stillness) or off, never another sensor come back; a sensor that
+        # changed meanwhile still meets the self-watch at its first still window
+        cfg = replace(cfg, pipeline=replace(cfg.pipeline,
+                                            options={**cfg.pipeline.options, "gap_doubt_s": 0.0}))
     paths = rec.recording_parts(in_mcap) if device is None else []
     setups = _setups(paths)
     reopens = _reopens(paths)

@@ -44,7 +44,6 @@ from recal.core.pipeline_windows import windows
 from recal.core.refit import RefitState
 from recal.core.sigma import sigma_form, with_floor
 from recal.core.status import (
-    GAP_S,
     PROBATION_WINDOWS,
     REOPEN_PROBATION_WINDOWS,
     RunningMisfit,
@@ -235,11 +234,11 @@ class Pipeline:
 
     def _stepped(self, batch: RawBatch, marks: list[int]) -> JoinedStep:
         """`step` with the state recorded after each mark's samples (`step_many`), cut at each
-        gap in device time longer than GAP_S: a doubt for REOPEN_PROBATION_WINDOWS from the
-        sample after it, once an estimate exists to doubt. The cuts fall at those samples
-        however the samples were batched, so live (a message at a time) and replay (messages
-        joined) agree (cutting a step changes nothing else: the pipeline is batch-size
-        invariant)."""
+        gap in device time longer than cfg.gap_doubt_s (GAP_S unless configured): a doubt for
+        REOPEN_PROBATION_WINDOWS from the sample after it, once an estimate exists to doubt.
+        The cuts fall at those samples however the samples were batched, so live (a message
+        at a time) and replay (messages joined) agree (cutting a step changes nothing else:
+        the pipeline is batch-size invariant)."""
         gaps = self._gaps(batch)
         if not gaps:
             return self._stepped_whole(batch, marks)
@@ -254,10 +253,10 @@ class Pipeline:
         return out
 
     def _gaps(self, batch: RawBatch) -> list[int]:
-        """The samples of the batch that follow a gap in device time beyond GAP_S, in order
-        (0: the gap lies before the batch's first sample)."""
-        t, last, gap_us = batch.t_us, self.last_t_us, GAP_S * 1e6
-        if not len(t):
+        """The samples of the batch that follow a gap in device time beyond cfg.gap_doubt_s,
+        in order (0: the gap lies before the batch's first sample)."""
+        t, last, gap_us = batch.t_us, self.last_t_us, self.cfg.gap_doubt_s * 1e6
+        if not len(t) or not gap_us:  # 0: no gap is a doubt
             return []
         gaps = [0] if last is not None and int(t[0]) - last > gap_us else []
         if len(t) == 1:  # a live arrival: no gap inside it (and no numpy calls for none)

@@ -16,6 +16,7 @@ import numpy as np
 from recal.core import detector as det
 from recal.core.buffer import BufferConfig
 from recal.core.estimator import EstimatorConfig
+from recal.core.status import GAP_S
 from recal.core.windower import WindowConfig
 from recal.errors import ConfigError
 
@@ -40,6 +41,10 @@ class PipelineConfig:
         min_fill: fraction of a window's nominal samples it must hold.
         norm_tol_g: a window whose calibrated norm is further than this from 1 g is rejected.
         update_every: committed windows between estimator updates (tried: see next).
+        gap_doubt_s: a gap in device time longer than this is a moment of doubt (the output
+            held until a still window agrees: a sensor out of radio range may come back
+            another); 0: never (a device file, where one device recorded every sample and
+            idle sleep is declared stillness).
         max_update_interval_s: device time after which an update runs even when the windows
             since the last one agree with the estimate (`estimator.consistent`); until then a
             try is skipped when they agree, the estimate has settled and no new orientation
@@ -58,6 +63,7 @@ class PipelineConfig:
     norm_tol_g: float = 0.1
     update_every: int = 5
     max_update_interval_s: float = 300.0
+    gap_doubt_s: float = GAP_S
     bootstrap_min_cells: int = 5
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     buffer: BufferConfig = field(default_factory=BufferConfig)
@@ -83,6 +89,8 @@ class PipelineConfig:
             raise ConfigError("min_fill must be in (0, 1]")
         if self.update_every < 1 or self.bootstrap_min_cells < 1:
             raise ConfigError("update_every and bootstrap_min_cells must be at least 1")
+        if not self.gap_doubt_s >= 0:
+            raise ConfigError("gap_doubt_s must be >= 0 (0: a gap is never a doubt)")
         if self.max_update_interval_s < 0:
             raise ConfigError("max_update_interval_s must be >= 0 (0: every try updates)")
 
