@@ -34,7 +34,9 @@ correction of every sample, peak memory the process's VmHWM):
                             refuses (keeps the input) unless its still windows reach beyond
                             +-0.3 g on every axis
   actipy, sphere criterion off   the same with calib_cube=0: the fit it would make anyway
-  recal hindsight           offsets and gains (`recal hindsight` without --model)
+  recal offsets and gains   `recal hindsight --model` of offsets and gains alone
+  recal hindsight           `recal hindsight` as it runs without --model: the effects
+                            discover's rule selects on the windows, then one fit
   recal discover+hindsight  `recal discover` then `recal hindsight --model` of the model it
                             writes; "calibrated" is the share of samples hindsight marks
                             calibrated (status CALIBRATED, in-sample fit).
@@ -65,10 +67,11 @@ WINDOW_US = 10_000_000  # GGIR's and actipy's 10 s windows
 BLOCK_US = 1_800_000_000  # held-out blocks: 30 min
 STILL_SD_G = 0.013  # GGIR's sdCriter: every axis's SD under 13 mg
 MIN_FILL = 0.9  # a window counts with at least 90 % of its samples
-TOOLS = ("actipy", "actipy-nocube", "recal-hindsight", "recal-discover")
+TOOLS = ("actipy", "actipy-nocube", "recal-diagonal", "recal-hindsight", "recal-discover")
 LABELS = {"raw": "raw (file's scaling)", "actipy": "actipy calibrate_gravity",
           "actipy-nocube": "actipy, sphere criterion off",
-          "recal-hindsight": "recal hindsight", "recal-discover": "recal discover+hindsight"}
+          "recal-diagonal": "recal offsets and gains", "recal-hindsight": "recal hindsight",
+          "recal-discover": "recal discover+hindsight"}
 TIMEOUT_S = 900
 
 

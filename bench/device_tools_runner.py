@@ -79,10 +79,13 @@ def _actipy_call(cube_g: float, v: np.ndarray, t_us: np.ndarray, temp: np.ndarra
     return call, metadata.version("actipy")
 
 
-def _recal(discover: bool) -> Callable[..., tuple[Callable[[], tuple], str]]:
-    """`recal hindsight` (offsets and gains, one fit with hindsight), or `recal discover` then
-    `recal hindsight --model` with the model file discover writes: the functions those
-    commands call, on batches of the training samples, then every sample corrected."""
+def _recal(how: str) -> Callable[..., tuple[Callable[[], tuple], str]]:
+    """How recal fits, on batches of the training samples, then every sample corrected:
+    "hindsight" (`recal hindsight` as it runs without --model: the effects discover's rule
+    selects, one fit), "diagonal" (`recal hindsight --model` of offsets and gains alone), or
+    "discover" (`recal discover`, then `recal hindsight --model` with the model file discover
+    writes): the functions those commands call. A device file's values are in g: the fit starts
+    at 1 raw unit per g, as the commands start it."""
 
     def make(v: np.ndarray, t_us: np.ndarray, temp: np.ndarray | None, train: np.ndarray,
              channels: tuple[np.ndarray, tuple[str, ...]]) -> tuple[Callable[[], tuple], str]:
@@ -113,18 +116,22 @@ def _recal(discover: bool) -> Callable[..., tuple[Callable[[], tuple], str]]:
         fit_on, every = batches(None if train.all() else train), batches(None)
 
         def call() -> tuple[np.ndarray, str, str, Callable[[], float]]:
-            rate, median_norm = rate_and_scale(fit_on())
-            model = SensorModel.diagonal(median_norm)
-            label = "diagonal"
-            if discover:
-                result = dc.discover(data_from_batches(fit_on), None, None, dc.DiscoveryConfig())
+            rate, _ = rate_and_scale(fit_on())
+            model = SensorModel.diagonal(1.0)
+            cfg = PipelineConfig(rate_hz=rate)
+            if how == "discover":
+                result = dc.discover(data_from_batches(fit_on, rate_hz=rate, s0=1.0), None,
+                                     None, dc.DiscoveryConfig())
                 with tempfile.TemporaryDirectory() as d:  # the model file, as the CLI passes it
                     path = Path(d) / "model.json"
                     path.write_text(json.dumps(dr.model_file_dict(result)))
                     model = load_model_file(path)[0]
-                label = "+".join(e.label for e in model.effects)
-            cfg = PipelineConfig(rate_hz=rate)
-            fit = hindsight.calibrate(fit_on, model, cfg)
+            if how == "hindsight":
+                fit, _ = hindsight.discover_and_calibrate(fit_on, 1.0, cfg)
+                model = fit.model
+            else:
+                fit = hindsight.calibrate(fit_on, model, cfg)
+            label = "+".join(e.label for e in model.effects)
             out = np.empty_like(v)
             for i, b in zip(range(0, len(v), BATCH), every(), strict=True):
                 fit.correct(b, out[i:i + len(b)])
@@ -153,8 +160,9 @@ def _installed(name: str) -> bool:
     return True
 
 
-TOOLS = {"actipy": _actipy(0.3), "actipy-nocube": _actipy(0.0), "recal-hindsight": _recal(False),
-         "recal-discover": _recal(True)}
+TOOLS = {"actipy": _actipy(0.3), "actipy-nocube": _actipy(0.0),
+         "recal-diagonal": _recal("diagonal"), "recal-hindsight": _recal("hindsight"),
+         "recal-discover": _recal("discover")}
 
 
 def main(argv: list[str]) -> int:

@@ -93,7 +93,13 @@ def test_analog_part_on_a_sagging_supply_is_marked_suspect_and_says_what_next() 
     s = {"samples": len(cal), "sensor_id": "s", "seconds": 1.0, "out": "o.mcap",
          "in": "in.mcap", "samples_suspect": corrected.samples_suspect, **fit_summary(fit)}
     text = "\n".join(summary_lines(s))
-    assert "poor fit" in text and "recal discover in.mcap" in text
+    # a fit of a model given: the way on is hindsight without --model (it selects effects)
+    assert "poor fit" in text and "`recal hindsight in.mcap` without --model" in text
+    # after discovery ran and found nothing: where to look
+    ran = {"effects_found": [], "heldout_error_mg": {"base": 30.0, "final": 30.0},
+           "windows": fit.windows}
+    text = "\n".join(summary_lines({**s, "discovery": ran}))
+    assert "No candidate effect explained it: `recal discover in.mcap --json`" in text
 
 
 def test_clean_recording_keeps_its_accuracy_and_a_sigma_within_3x() -> None:
