@@ -131,15 +131,17 @@ def _actfast(path: Path) -> np.ndarray:
 
 
 def _pygt3x(python: str, path: Path, repeats: int) -> Result | None:
-    best, out = float("inf"), path.with_suffix(".pygt3x.npy")
-    for _ in range(repeats):
-        r = subprocess.run([python, "-c", PYGT3X_SCRIPT, str(path), str(out)],
-                           capture_output=True, text=True, timeout=600)
-        if r.returncode != 0:
-            print(f"    pygt3x failed: {r.stderr.strip().splitlines()[-1:]}")
-            return None
-        best = min(best, float(r.stdout.split()[1]))
-    return best, np.load(out)
+    best = float("inf")
+    with tempfile.TemporaryDirectory() as tmp:  # never beside the input (read-only data)
+        out = Path(tmp) / "pygt3x.npy"
+        for _ in range(repeats):
+            r = subprocess.run([python, "-c", PYGT3X_SCRIPT, str(path), str(out)],
+                               capture_output=True, text=True, timeout=600)
+            if r.returncode != 0:
+                print(f"    pygt3x failed: {r.stderr.strip().splitlines()[-1:]}")
+                return None
+            best = min(best, float(r.stdout.split()[1]))
+        return best, np.load(out)
 
 
 def main(argv: list[str] | None = None) -> int:
