@@ -12,11 +12,9 @@ import numpy as np
 import pytest
 
 from recal.core.discovery import DiscoveryConfig, discover_pipeline
-from recal.core.estimator import Prior
-from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
-from recal.core.pipeline_config import PipelineConfig
 from recal.sim import wearer as sim
+from test_pending import wearer_pipeline
 
 RATE_HZ = 25.0
 
@@ -27,14 +25,7 @@ def _cross_axis_pipeline() -> Pipeline:
     model in force lacks, through the pipeline."""
     spec = sim.SensorSpec.random(np.random.default_rng(1), 50, 3, 1.5)
     res = sim.simulate(1.0, RATE_HZ, 1, spec, sim.WearerSpec(temp_excursion_every_h=0.5))
-    model = SensorModel.diagonal(float(spec.counts_per_g or 1024.0))
-    p0 = model.nominal()
-    p0[model.slice(("offset", None))] = spec.zero_g_counts
-    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0),
-                    res.raw.aux_names)
-    for i in range(0, len(res.raw), 500):
-        pipe.step(res.raw[i:i + 500])
-    return pipe
+    return wearer_pipeline(spec, res.raw)
 
 
 @pytest.mark.slow

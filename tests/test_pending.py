@@ -17,12 +17,27 @@ from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import PipelineConfig
 from recal.errors import ModelError
 from recal.samples import RawBatch
+from recal.sim.wearer import SensorSpec
 
 S0 = 1000.0
 RATE_HZ = 25.0
 #: the candidate's offset per degree (counts/degC): 2 mg/degC at s0
 TEMP_COEF = 2.0
 REF_C = 25.0
+
+
+def wearer_pipeline(spec: SensorSpec, raw: RawBatch, upto: int | None = None) -> Pipeline:
+    """The diagonal model at the sensor's own zero-g and scale (a datasheet prior) through a
+    simulated wearer's raw samples (the first ``upto``), 500 at a time."""
+    model = SensorModel.diagonal(float(spec.counts_per_g or 1024.0))
+    p0 = model.nominal()
+    p0[model.slice(("offset", None))] = spec.zero_g_counts
+    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0),
+                    raw.aux_names)
+    end = len(raw) if upto is None else upto
+    for i in range(0, end, 500):
+        pipe.step(raw[i:min(i + 500, end)])
+    return pipe
 
 
 def _pipe() -> Pipeline:
@@ -161,14 +176,8 @@ def test_a_discovery_runs_candidate_widens_sigma_where_the_model_in_force_errs()
     spec = replace(sim.SensorSpec.random(np.random.default_rng(2), 50, 3),
                    offset_tc_g_per_c=(1.5e-3, -1.5e-3, 1.5e-3))
     res = sim.simulate(1.0, RATE_HZ, 2, spec, sim.WearerSpec(temp_excursion_every_h=0.5))
-    model = SensorModel.diagonal(float(spec.counts_per_g or 1024.0))
-    p0 = model.nominal()
-    p0[model.slice(("offset", None))] = spec.zero_g_counts
-    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0),
-                    res.raw.aux_names)
     k = len(res.raw) // 2
-    for i in range(0, k, 500):
-        pipe.step(res.raw[i:min(i + 500, k)])
+    pipe = wearer_pipeline(spec, res.raw, k)
     found = discover_pipeline(pipe.buffer.windows(), pipe.aux_names, pipe.t0_us or 0,
                               pipe.model, pipe.params)
     cand = PendingCandidate.of_result(found)
@@ -204,13 +213,7 @@ def test_adopting_a_model_drops_the_misfit_measured_under_the_one_it_replaces() 
     spec = replace(sim.SensorSpec.random(np.random.default_rng(2), 50, 3),
                    offset_tc_g_per_c=(1.5e-3, -1.5e-3, 1.5e-3))
     res = sim.simulate(0.5, RATE_HZ, 2, spec, sim.WearerSpec(temp_excursion_every_h=0.5))
-    model = SensorModel.diagonal(float(spec.counts_per_g or 1024.0))
-    p0 = model.nominal()
-    p0[model.slice(("offset", None))] = spec.zero_g_counts
-    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), model, Prior.default(model, p0),
-                    res.raw.aux_names)
-    for i in range(0, len(res.raw), 500):
-        pipe.step(res.raw[i:i + 500])
+    pipe = wearer_pipeline(spec, res.raw)
     before = pipe.watch.misfit
     assert pipe.summary()["misfit_mg"] > 1.0 and before.extra_mg2 > 1.0
     new, q = pipe.model.extend(pipe.params, Offset("temp_c", 30.0), 5.0)
