@@ -42,7 +42,7 @@ from recal.config import (
     load_config,
 )
 from recal.core.pipeline import Pipeline
-from recal.core.status import Status
+from recal.core.status import GAP_S, Status
 from recal.daemon.checkpoint_store import (
     FAIL_NOTE_S,
     Checkpoints,
@@ -701,10 +701,11 @@ def _unruns(runs: list[list]) -> np.ndarray:
 def _without_later_parts(state: dict[str, Any]) -> dict[str, Any]:
     """A state as the old code wrote it: the parts added since (unobserved parameters, the
     self-watch's misfit, probation, agreeing cells, calm run and waiting candidate model, the
-    detector's learned step) taken out, each checked to be at its default where a restored old
+    detector's learned step, the configured gap doubt) taken out, each checked to be at its default where a restored old
     state starts."""
     state = json.loads(json.dumps(state))
     assert isinstance(state.pop("unobserved"), list)
+    assert state["config"].pop("gap_doubt_s") == GAP_S
     assert len(state["detector"].pop("step_raw")) == 3
     assert isinstance(state["detector"].pop("changes"), int)
     watch = state["watch"]
