@@ -701,8 +701,8 @@ def _unruns(runs: list[list]) -> np.ndarray:
 def _without_later_parts(state: dict[str, Any]) -> dict[str, Any]:
     """A state as the old code wrote it: the parts added since (unobserved parameters, the
     self-watch's misfit, probation, agreeing cells, calm run and waiting candidate model, the
-    detector's learned step, the configured gap doubt) taken out, each checked to be at its default where a restored old
-    state starts."""
+    detector's learned step, the configured gap doubt) taken out, each checked to be at its
+    default where a restored old state starts."""
     state = json.loads(json.dumps(state))
     assert isinstance(state.pop("unobserved"), list)
     assert state["config"].pop("gap_doubt_s") == GAP_S
