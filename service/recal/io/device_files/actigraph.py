@@ -1,7 +1,8 @@
 """ActiGraph .gt3x (a zip: info.txt and log.bin of log records), read by actfast; the kinds it
-cannot read are recognised and refused: log.bin of ACTIVITY2 records (ActiGraph Link,
-CentrePoint; actfast 1.3 returns no samples for them) and the NHANES-era zip with activity.bin
-and no log.bin (actigraph/GT3X-File-Format and NHANES-GT3X-File-Format describe both).
+cannot read are recognised here and read by recal's own decoder (`actigraph_own`,
+`recal.io.gt3x`): log.bin of ACTIVITY2 records (ActiGraph Link, CentrePoint; actfast 1.3
+returns no samples for them) and the NHANES-era zip with activity.bin and no log.bin
+(actigraph/GT3X-File-Format and NHANES-GT3X-File-Format describe both).
 
 Each ACTIVITY record holds one second of samples at the sample rate, stamped with its whole
 second: the seconds are the blocks. In idle sleep mode the device writes no ACTIVITY record for
