@@ -201,11 +201,12 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
 
     from recal.commands import hindsight as hf
     from recal.config import load_model_file
+    from recal.io.sources import open_recording
 
     _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json, a.out)
     model = load_model_file(a.model)[0] if a.model else None
-    src = hf.open_source(a.input, a.sensor_id, a.rate, a.units)
+    src = open_recording(a.input, a.sensor_id, a.rate, a.units)
     # three passes over the input (module doc of recal.commands.hindsight): samples read, in all
     total = 3 * len(src.device) if src.device is not None else None
     with tqdm(unit="sample", unit_scale=True, desc="hindsight (3 passes)", leave=False,

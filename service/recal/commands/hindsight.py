@@ -35,16 +35,10 @@ from recal.core.model import SensorModel
 from recal.core.pipeline import gain_reference
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.status import UNPINNED_MG, Status, predicted_sigma_mg, sigma_form, unsettled
-from recal.io.sources import Source, open_recording, source_lines, string_metadata
+from recal.io.sources import Source, source_lines, string_metadata
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
-__all__ = ["Corrected", "Source", "calibrate_file", "open_source", "summary_lines"]
-
-def open_source(path: str | Path, sensor_id: str | None = None, rate_hz: float | None = None,
-                units: str | None = None) -> Source:
-    """An MCAP recording, a device file or a CSV time series, by content
-    (`recal.io.sources.open_recording`)."""
-    return open_recording(path, sensor_id, rate_hz, units)
+__all__ = ["Corrected", "calibrate_file", "summary_lines"]
 
 
 def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
