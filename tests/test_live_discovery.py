@@ -299,3 +299,16 @@ def test_a_waiting_selection_is_confirmed_a_quarter_gap_later() -> None:
     soon = RediscoverySchedule(cfg, next_us=hour_us + 1, gap_us=2 * hour_us)
     soon.confirm_soon(hour_us)
     assert soon.next_us == hour_us + 1
+
+
+def test_a_node_keeps_the_detail_of_its_newest_runs_only() -> None:
+    """A daemon runs discovery 18 times a day for months: the runs it keeps for its summary
+    are bounded (the newest RUNS_KEPT), nothing grows with time."""
+    from recal.node.rediscovery import RUNS_KEPT
+
+    sink = _Capture()
+    node = CalibrationNode(NodeSettings("s", PipelineSection(), MODEL, None, RATE_HZ), sink)
+    runs = node.discovery.runs
+    for i in range(RUNS_KEPT + 5):  # bounded
+        runs.append({"t_us": i})
+    assert len(runs) == RUNS_KEPT and runs[0]["t_us"] == 5

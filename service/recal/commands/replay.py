@@ -346,7 +346,7 @@ def _sensor_summary(run: _SensorRun) -> dict[str, Any]:
                            "samples_by_status": node.samples_by_status(),
                            "samples_not_calibrated": node.samples_not_calibrated,
                            "samples_not_finite": node.samples_not_finite,
-                           "discoveries": node.discovery.runs}
+                           "discoveries": list(node.discovery.runs)}
     if node.pipeline is not None:
         s = node.pipeline.summary()
         out.update({"model": model_name(node.pipeline.model), "params": s["params"],

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import threading
+from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Executor, ProcessPoolExecutor
 from contextlib import contextmanager
@@ -244,18 +245,23 @@ def _run_args(evidence: EvidenceStore, base: SensorModel, model: SensorModel,
             DiscoveryConfig(blocks=blocks, kinds=kinds), live)
 
 
+#: Runs whose detail a node keeps for its summary (18 a day at the defaults: four weeks); a
+#: daemon that runs for months keeps the newest, nothing grows with time.
+RUNS_KEPT = 512
+
+
 class NodeDiscovery:
     """A node's discovery part: the evidence (`core.evidence`, from the pipeline's start while
     discovery is on), the schedule, and what each run gave (``runs``: its event's detail and
-    device time). The node calls `step` after each batch; it adopts a run's model into the
-    pipeline and says so (event "discovery", a console note)."""
+    device time, the newest RUNS_KEPT). The node calls `step` after each batch; it adopts a
+    run's model into the pipeline and says so (event "discovery", a console note)."""
 
     def __init__(self, cfg: RediscoveryConfig, events: NodeEvents,
                  executor: Executor | None = None) -> None:
         self.schedule = RediscoverySchedule(cfg, executor=executor)
         self.events = events
         self.evidence: EvidenceStore | None = None
-        self.runs: list[dict[str, Any]] = []
+        self.runs: deque[dict[str, Any]] = deque(maxlen=RUNS_KEPT)
         #: the effects the last run selected beyond the configured model, while they differ
         #: from those in force: the next run must select them again to have them adopted
         self.pending: tuple[str, ...] | None = None
