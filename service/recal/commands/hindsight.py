@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,15 +39,26 @@ from recal.core.status import UNPINNED_MG, Status, predicted_sigma_mg, sigma_for
 from recal.io.sources import Source, source_lines, string_metadata
 from recal.samples import CalibratedBatch, RawBatch, batch_groups, rebatch
 
-__all__ = ["Corrected", "calibrate_file", "summary_lines"]
+__all__ = ["Corrected", "Fitted", "calibrate_file", "fit_recording", "summary_lines"]
 
 
-def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
-                   overwrite: bool = False, progress: Callable[[int], None] | None = None
-                   ) -> dict[str, Any]:
-    """Fit ``model`` to the source with hindsight and write every sample corrected; without
-    a model, the one `recal discover`'s selection finds on the same windows (from offsets and
-    gains in the input's units). Returns the summary (`summary_lines`).
+@dataclass(frozen=True)
+class Fitted:
+    """Passes 1 and 2 of a recording: the fit, what discovery chose (None: the model was
+    given; a string: why it could not run), the settings the windows were found with."""
+
+    fit: hindsight.HindsightFit
+    found: DiscoveryResult | str | None
+    cfg: PipelineConfig
+    rate_hz: float
+    seconds: float
+
+
+def fit_recording(src: Source, model: SensorModel | None = None,
+                  progress: Callable[[int], None] | None = None) -> Fitted:
+    """Passes 1 and 2: the rate and scale, the quasi-static windows and one fit of ``model``
+    on them; without a model, the one `recal discover`'s selection finds on the same windows
+    (from offsets and gains in the input's units). Writes nothing.
     progress(n): called with the samples of each batch of each pass."""
     t0 = time.perf_counter()
     rate_hz, median_norm = _rate_and_scale(src, progress)
@@ -60,7 +72,17 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
         fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg)
     else:
         fit = hindsight.calibrate(batches, model, cfg)
-    corrected = Corrected(fit, cfg)
+    return Fitted(fit, found, cfg, rate_hz, time.perf_counter() - t0)
+
+
+def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
+                   overwrite: bool = False, progress: Callable[[int], None] | None = None
+                   ) -> dict[str, Any]:
+    """Fit ``model`` to the source with hindsight (`fit_recording`) and write every sample
+    corrected. Returns the summary (`summary_lines`)."""
+    t0 = time.perf_counter()
+    fitted = fit_recording(src, model, progress)
+    corrected = Corrected(fitted.fit, fitted.cfg)
     if Path(out).suffix.lower() == ".csv":
         samples = _write_csv(src, corrected, out, progress)
     else:
@@ -68,7 +90,8 @@ def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = Non
     seconds = time.perf_counter() - t0
     return {"in": src.name, "out": str(out), "sensor_id": src.sensor_id, "samples": samples,
             "seconds": seconds, "samples_per_s": samples / seconds if seconds > 0 else None,
-            "rate_hz": rate_hz, **fit_summary(fit), "discovery": discovery_summary(found),
+            "rate_hz": fitted.rate_hz, **fit_summary(fitted.fit),
+            "discovery": discovery_summary(fitted.found),
             "samples_suspect": corrected.samples_suspect,
             **({"device": src.metadata, "device_notes": src.notes} if src.device else {})}
 
