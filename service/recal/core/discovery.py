@@ -20,7 +20,8 @@ the rows of a static table, `discover`:
    per-axis quadratic nonlinearity (3), offset linear in time (3);
 4. scores each candidate on held-out data: the windows are cut into `blocks` contiguous time
    blocks (rows in table order for a table) and each block is predicted by a fit on the
-   others, so neighbouring windows, which share posture, temperature and drift, never sit on
+   others (from the smaller model's fit of those blocks and from their own start, whichever
+   fits them better: a score must not depend on the route), so neighbouring windows, which share posture, temperature and drift, never sit on
    both sides of a split (boundaries move into the movement between still runs); a window in
    a pose that only its own block covers is not scored (`discovery_data.scorable`): no model
    can be tested where the others cannot see the gain;
@@ -366,6 +367,8 @@ class _Search:
     base: SensorModel
     current: Scored
     scored: np.ndarray
+    #: the given model's own starts (per fold, from those blocks alone; on all windows)
+    starts: tuple[tuple[np.ndarray, ...], np.ndarray]
     noise_mg: float = 0.0
 
     @property
@@ -388,11 +391,16 @@ class _Search:
                                  self.noise_mg * np.sqrt(added))
 
     def rescore(self, model: SensorModel) -> Scored:
-        """`model` scored, each fit started from the current one's (shared effects)."""
-        cur = self.current
-        return score_heldout(model, self.data, self.blocks,
-                      [carry_params(cur.model, fp, model) for fp in cur.fold_p],
-                      carry_params(cur.model, cur.fit.p, model), self.cfg.fit())
+        """`model` scored, each fit started from the current one's (shared effects) and from
+        the given model's own start on the same windows, keeping the one that fits those
+        windows better (`best_fit`): a score must not depend on the route to the model (a
+        smaller model's fold gone astray would hold every larger one there)."""
+        cur, (fresh, fresh_all) = self.current, self.starts
+        folds = [(carry_params(cur.model, fp, model), carry_params(self.base, s, model))
+                 for fp, s in zip(cur.fold_p, fresh, strict=True)]
+        p_all = (carry_params(cur.model, cur.fit.p, model),
+                 carry_params(self.base, fresh_all, model))
+        return score_heldout(model, self.data, self.blocks, folds, p_all, self.cfg.fit())
 
     def _choose(self, scores: list[CandidateScore], scored: list[Scored]) -> int | None:
         """The passing candidate with the largest R, unless a simpler passing one explains as
@@ -541,7 +549,8 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
     scored = scorable(data, blocks, model.correct(base.fit.p, data.windows.v, data.cov))
     if not scored.any():
         raise InputError("no held-out window lies in a pose the other blocks saw")
-    search = _Search(data, blocks, cfg, model, base, scored, noise_mg(data, scored))
+    search = _Search(data, blocks, cfg, model, base, scored, (tuple(starts), p_all),
+                     noise_mg(data, scored))
     steps: list[Step] = []
     last_round: tuple[CandidateScore, ...] = ()
     added = 0
