@@ -17,10 +17,10 @@ hc = load_bench("honesty_cases")
 @pytest.mark.slow
 @pytest.mark.float_sensitive
 def test_hindsight_finds_the_supply_and_the_temperature_offset_of_an_analog_part() -> None:
-    """1 h at 50 Hz: a model scored on held-out blocks by folds started only from the smaller
-    model's folds inherited a diagonal fit gone astray (a z axis with 27x its gain) and found
-    nothing, or the supply alone at 15 mg held out; every fold also started from its own
-    blocks' start finds both, at the floor."""
+    """1 h at 50 Hz. Scored by folds started from the smaller model's fold fits, a model
+    inherited a diagonal fit gone astray (a z axis with 27x its gain) and nothing was found
+    (2 h: the supply alone, 15 mg held out); every fold started from its own blocks' start,
+    both are found and the correction is at the floor."""
     index = next(i for i, c in enumerate(hc.DISCOVERY_CASES)
                  if c.name == "temperature on offsets + analog supply")
     r = hh.run_discover(index, 1, 1.0)

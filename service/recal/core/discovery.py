@@ -20,11 +20,11 @@ the rows of a static table, `discover`:
    per-axis quadratic nonlinearity (3), offset linear in time (3);
 4. scores each candidate on held-out data: the windows are cut into `blocks` contiguous time
    blocks (rows in table order for a table) and each block is predicted by a fit on the
-   others (from the smaller model's fit of those blocks and from their own start, whichever
-   fits them better: a score must not depend on the route), so neighbouring windows, which share posture, temperature and drift, never sit on
-   both sides of a split (boundaries move into the movement between still runs); a window in
-   a pose that only its own block covers is not scored (`discovery_data.scorable`): no model
-   can be tested where the others cannot see the gain;
+   others (from those blocks' own start, for every model alike: a score must not depend on
+   the route to the model), so neighbouring windows, which share posture, temperature and
+   drift, never sit on both sides of a split (boundaries move into the movement between
+   still runs); a window in a pose that only its own block covers is not scored
+   (`discovery_data.scorable`): no model can be tested where the others cannot see the gain;
 5. accepts by this criterion: the relative reduction of the held-out sum of squares of xi,
    R = 1 - SS_candidate / SS_model, must exceed both t bootstrap standard errors (blocks
    resampled with replacement; t is Student's 97.5 % quantile for blocks - 1 degrees of
@@ -391,16 +391,14 @@ class _Search:
                                  self.noise_mg * np.sqrt(added))
 
     def rescore(self, model: SensorModel) -> Scored:
-        """`model` scored, each fit started from the current one's (shared effects) and from
-        the given model's own start on the same windows, keeping the one that fits those
-        windows better (`best_fit`): a score must not depend on the route to the model (a
-        smaller model's fold gone astray would hold every larger one there)."""
-        cur, (fresh, fresh_all) = self.current, self.starts
-        folds = [(carry_params(cur.model, fp, model), carry_params(self.base, s, model))
-                 for fp, s in zip(cur.fold_p, fresh, strict=True)]
-        p_all = (carry_params(cur.model, cur.fit.p, model),
-                 carry_params(self.base, fresh_all, model))
-        return score_heldout(model, self.data, self.blocks, folds, p_all, self.cfg.fit())
+        """`model` scored from the given model's own starts (a fold's from its training blocks
+        alone), its other effects at nominal, as the given model is: never from another
+        model's fit, which as a start is also the prior's mean (a smaller model's fold gone
+        astray held every larger one there). A score is the model's, not the route's."""
+        fresh, fresh_all = self.starts
+        return score_heldout(model, self.data, self.blocks,
+                             [carry_params(self.base, s, model) for s in fresh],
+                             carry_params(self.base, fresh_all, model), self.cfg.fit())
 
     def _choose(self, scores: list[CandidateScore], scored: list[Scored]) -> int | None:
         """The passing candidate with the largest R, unless a simpler passing one explains as

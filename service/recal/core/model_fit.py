@@ -2,9 +2,8 @@
 predict the block held out.
 
 The fit is the batch form of Lötters eq. 11a (`estimator.solve`, iterated Gauss-Newton) over the
-parameters the poses can determine (`free_params`), with the live estimator's default prior
-centred at the start. From several starts (`best_fit`), the fit that leaves its own windows the
-least is kept. See docs/design.md (effect discovery, step 5).
+parameters the poses can determine (`free_params`), with the live estimator's default prior.
+See docs/design.md (effect discovery).
 """
 
 from __future__ import annotations
@@ -22,8 +21,6 @@ __all__ = [
     "FitConfig",
     "ModelFit",
     "Scored",
-    "Starts",
-    "best_fit",
     "carry_params",
     "fit_model",
     "free_params",
@@ -158,42 +155,16 @@ class Scored:
                            minlength=n_blocks)
 
 
-#: One start of a fit, or several: the fit from each, and the one that leaves its own windows
-#: the least is kept (`best_fit`).
-Starts = np.ndarray | tuple[np.ndarray, ...]
-
-
-def best_fit(model: SensorModel, starts: Starts, data: DiscoveryData,
-             cfg: FitConfig) -> ModelFit:
-    """`fit_model` from each start (each also its prior mean); the fit whose |a| - 1 g over
-    these windows has the smallest sum of squares. Only the windows fitted choose, so a fold's
-    choice never sees the block it predicts."""
-    best: tuple[float, ModelFit] | None = None
-    done: list[np.ndarray] = []
-    for p0 in (starts if isinstance(starts, tuple) else (starts,)):
-        if any(np.array_equal(p0, q) for q in done):
-            continue
-        done.append(p0)
-        fit = fit_model(model, p0, data, cfg)
-        ss = float(np.sum(norm_error_g(model, fit.p, data) ** 2))
-        if best is None or ss < best[0]:
-            best = (ss, fit)
-    if best is None:
-        raise ValueError("best_fit needs a start")
-    return best[1]
-
-
 def score_heldout(model: SensorModel, data: DiscoveryData, blocks: np.ndarray,
-                  starts: list[Starts], p_all: Starts, cfg: FitConfig) -> Scored:
+                  starts: list[np.ndarray], p_all: np.ndarray, cfg: FitConfig) -> Scored:
     """Fit on all windows (from p_all) and, per block, on the other blocks (from starts[k],
-    which came from those blocks alone: no held-out value leaks in through a start); from
-    several starts, the fit that leaves its own windows the least (`best_fit`)."""
-    fit = best_fit(model, p_all, data, cfg)
+    which came from those blocks alone: no held-out value leaks in through a start)."""
+    fit = fit_model(model, p_all, data, cfg)
     held = np.empty(len(data))
     fold_p = []
     for k, p0 in enumerate(starts):
         test = blocks == k
-        pk = best_fit(model, p0, data.subset(~test), cfg).p
+        pk = fit_model(model, p0, data.subset(~test), cfg).p
         held[test] = norm_error_g(model, pk, data.subset(test))
         fold_p.append(pk)
     return Scored(model, fit, tuple(fold_p), held)
