@@ -20,10 +20,11 @@ the rows of a static table, `discover`:
    per-axis quadratic nonlinearity (3), offset linear in time (3);
 4. scores each candidate on held-out data: the windows are cut into `blocks` contiguous time
    blocks (rows in table order for a table) and each block is predicted by a fit on the
-   others, so neighbouring windows, which share posture, temperature and drift, never sit on
-   both sides of a split (boundaries move into the movement between still runs); a window in
-   a pose that only its own block covers is not scored (`discovery_data.scorable`): no model
-   can be tested where the others cannot see the gain;
+   others (from those blocks' own start, for every model alike: a score must not depend on
+   the route to the model), so neighbouring windows, which share posture, temperature and
+   drift, never sit on both sides of a split (boundaries move into the movement between
+   still runs); a window in a pose that only its own block covers is not scored
+   (`discovery_data.scorable`): no model can be tested where the others cannot see the gain;
 5. accepts by this criterion: the relative reduction of the held-out sum of squares of xi,
    R = 1 - SS_candidate / SS_model, must exceed both t bootstrap standard errors (blocks
    resampled with replacement; t is Student's 97.5 % quantile for blocks - 1 degrees of
@@ -366,6 +367,8 @@ class _Search:
     base: SensorModel
     current: Scored
     scored: np.ndarray
+    #: the given model's own starts (per fold, from those blocks alone; on all windows)
+    starts: tuple[tuple[np.ndarray, ...], np.ndarray]
     noise_mg: float = 0.0
 
     @property
@@ -388,11 +391,14 @@ class _Search:
                                  self.noise_mg * np.sqrt(added))
 
     def rescore(self, model: SensorModel) -> Scored:
-        """`model` scored, each fit started from the current one's (shared effects)."""
-        cur = self.current
+        """`model` scored from the given model's own starts (a fold's from its training blocks
+        alone), its other effects at nominal, as the given model is: never from another
+        model's fit, which as a start is also the prior's mean (a smaller model's fold gone
+        astray held every larger one there). A score is the model's, not the route's."""
+        fresh, fresh_all = self.starts
         return score_heldout(model, self.data, self.blocks,
-                      [carry_params(cur.model, fp, model) for fp in cur.fold_p],
-                      carry_params(cur.model, cur.fit.p, model), self.cfg.fit())
+                             [carry_params(self.base, s, model) for s in fresh],
+                             carry_params(self.base, fresh_all, model), self.cfg.fit())
 
     def _choose(self, scores: list[CandidateScore], scored: list[Scored]) -> int | None:
         """The passing candidate with the largest R, unless a simpler passing one explains as
@@ -541,7 +547,8 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
     scored = scorable(data, blocks, model.correct(base.fit.p, data.windows.v, data.cov))
     if not scored.any():
         raise InputError("no held-out window lies in a pose the other blocks saw")
-    search = _Search(data, blocks, cfg, model, base, scored, noise_mg(data, scored))
+    search = _Search(data, blocks, cfg, model, base, scored, (tuple(starts), p_all),
+                     noise_mg(data, scored))
     steps: list[Step] = []
     last_round: tuple[CandidateScore, ...] = ()
     added = 0
