@@ -1,0 +1,76 @@
+"""A study's folder for the tests and the bench: device files of two formats (synthetic, from
+`device_writers`), recal's own MCAP and CSV recordings, and the files a real study folder also
+holds: one unreadable (a device file's header and then noise), one cut short (a .cwa whose
+last third is gone), one too short, one with no still period (a wearer never at rest), a text
+file and a picture (skipped: not recordings)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from device_writers import DeviceRun, device_signal, write_cwa, write_geneactiv_bin
+from recal.cli import main
+
+__all__ = ["EXPECTED", "make_folder", "write_device_files"]
+
+RATE_HZ = 25
+
+#: each file of `make_folder`: its status and, where it failed, the failure word
+EXPECTED: dict[str, tuple[str, str | None]] = {
+    "wearer1/day.cwa": ("ok", None),
+    "wearer1/cut.cwa": ("ok", None),  # cut short: the rest is read and calibrated
+    "wearer2/day.bin": ("ok", None),
+    "lab/sim.mcap": ("ok", None),
+    "lab/sim.csv": ("ok", None),
+    "wearer3/junk.cwa": ("failed", "corrupt"),
+    "wearer3/short.cwa": ("failed", "too short"),
+    "wearer3/moving.cwa": ("failed", "no still period"),
+    "README.txt": ("skipped", None),
+    "photo.png": ("skipped", None),
+}
+
+
+def write_device_files(folder: Path, n: int, hours: float, fmt: str = "cwa",
+                       seed: int = 1) -> list[Path]:
+    """n synthetic device files of ``hours`` each (different wearers and sensors)."""
+    writer = {"cwa": write_cwa, "bin": write_geneactiv_bin}[fmt]
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in range(n):
+        path = folder / f"wearer{i:03d}.{fmt}"
+        writer(path, device_signal(DeviceRun(hours=hours, nominal_hz=RATE_HZ,
+                                             real_hz=RATE_HZ, seed=seed + i)))
+        out.append(path)
+    return out
+
+
+def make_folder(root: Path, hours: float = 0.1) -> Path:
+    """The mixed folder of `EXPECTED` under root (module doc); minutes of data per file."""
+    (root / "wearer1").mkdir(parents=True)
+    (root / "wearer2").mkdir()
+    (root / "wearer3").mkdir()
+    (root / "lab").mkdir()
+    day = device_signal(DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=1))
+    write_cwa(root / "wearer1/day.cwa", day)
+    whole = (root / "wearer1/day.cwa").read_bytes()
+    (root / "wearer1/cut.cwa").write_bytes(whole[:2 * len(whole) // 3 + 100])
+    write_geneactiv_bin(root / "wearer2/day.bin", device_signal(
+        DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=2)))
+    rng = np.random.default_rng(3)
+    (root / "wearer3/junk.cwa").write_bytes(whole[:1024] + rng.bytes(4096))
+    write_cwa(root / "wearer3/short.cwa", device_signal(
+        DeviceRun(hours=0.005, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=4)))
+    moving = device_signal(DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=5))
+    shaken = moving.counts + np.round(rng.normal(0, 0.4 * 256, moving.counts.shape))
+    write_cwa(root / "wearer3/moving.cwa",
+              dataclasses.replace(moving, counts=shaken.astype(np.int64)))
+    for name in ("sim.mcap", "sim.csv"):
+        assert main(["simulate", "--out", str(root / "lab" / name), "--hours", str(hours),
+                     "--seed", "7"]) == 0
+        (root / "lab" / name).with_suffix(".truth.npz").unlink()
+    (root / "README.txt").write_text("wearers 1-3, collected in March\n")
+    (root / "photo.png").write_bytes(b"\x89PNG\r\n\x1a\n" + rng.bytes(256))
+    return root
