@@ -159,15 +159,16 @@ def check_cluster(client: Any, jobs: list[Job], out_dir: Path) -> int:
     return len(facts)
 
 
-def connect(address: str, timeout_s: float = 20.0) -> Any:
-    """A dask.distributed Client to the scheduler at address (recal[cluster] installed)."""
+def connect(address: str) -> Any:
+    """A dask.distributed Client to the scheduler at address (recal[cluster] installed),
+    waiting for it as long as Dask's ``distributed.comm.timeouts.connect`` says."""
     try:
         from distributed import Client
     except ImportError:
         raise UsageError("--scheduler needs dask.distributed: pip install 'recal[cluster]'"
                          ) from None
     try:
-        return Client(address, timeout=timeout_s, set_as_default=False)
+        return Client(address, set_as_default=False)
     except (OSError, TimeoutError) as exc:
         raise UsageError(f"cannot reach the Dask scheduler at {address}: "
                          f"{' '.join(str(exc).split())}") from None
@@ -180,7 +181,7 @@ def run_dask(client: Any, jobs: list[Job], on_row: Callable[[Row], None],
 
     futures = {client.submit(fn, j, key=f"recal-study-{j.rel}-{os.getpid()}", pure=False): j
                for j in jobs}
-    for fut in as_completed(list(futures)):
+    for fut in as_completed(list(futures), loop=client.loop):
         job = futures[fut]
         try:
             on_row(fut.result())
