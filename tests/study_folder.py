@@ -13,10 +13,21 @@ import numpy as np
 
 from device_writers import DeviceRun, device_signal, write_cwa, write_geneactiv_bin
 from recal.cli import main
+from recal.sim.sensor import SensorSpec
 
 __all__ = ["EXPECTED", "make_folder", "write_device_files"]
 
 RATE_HZ = 25
+
+
+def sensor(seed: int) -> SensorSpec:
+    """A worn device's sensor: offsets of tens of mg and gains off by about 1 %, as a study's
+    devices have (the calibration has something to do)."""
+    rng = np.random.default_rng(seed)
+    return SensorSpec(counts_per_g=256.0, full_scale_g=8.0,
+                      offset_g=tuple(rng.uniform(-0.05, 0.05, 3)),
+                      gain=tuple(rng.uniform(-0.02, 0.02, 3)))
+
 
 #: each file of `make_folder`: its status and, where it failed, the failure word
 EXPECTED: dict[str, tuple[str, str | None]] = {
@@ -34,15 +45,15 @@ EXPECTED: dict[str, tuple[str, str | None]] = {
 
 
 def write_device_files(folder: Path, n: int, hours: float, fmt: str = "cwa",
-                       seed: int = 1) -> list[Path]:
+                       seed: int = 1, rate_hz: int = RATE_HZ) -> list[Path]:
     """n synthetic device files of ``hours`` each (different wearers and sensors)."""
     writer = {"cwa": write_cwa, "bin": write_geneactiv_bin}[fmt]
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     for i in range(n):
         path = folder / f"wearer{i:03d}.{fmt}"
-        writer(path, device_signal(DeviceRun(hours=hours, nominal_hz=RATE_HZ,
-                                             real_hz=RATE_HZ, seed=seed + i)))
+        writer(path, device_signal(DeviceRun(hours=hours, nominal_hz=rate_hz, real_hz=rate_hz,
+                                             seed=seed + i, sensor=sensor(seed + i))))
         out.append(path)
     return out
 
@@ -53,12 +64,13 @@ def make_folder(root: Path, hours: float = 0.1) -> Path:
     (root / "wearer2").mkdir()
     (root / "wearer3").mkdir()
     (root / "lab").mkdir()
-    day = device_signal(DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=1))
+    day = device_signal(DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=1,
+                                  sensor=sensor(1)))
     write_cwa(root / "wearer1/day.cwa", day)
     whole = (root / "wearer1/day.cwa").read_bytes()
     (root / "wearer1/cut.cwa").write_bytes(whole[:2 * len(whole) // 3 + 100])
     write_geneactiv_bin(root / "wearer2/day.bin", device_signal(
-        DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=2)))
+        DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=2, sensor=sensor(2))))
     rng = np.random.default_rng(3)
     (root / "wearer3/junk.cwa").write_bytes(whole[:1024] + rng.bytes(4096))
     write_cwa(root / "wearer3/short.cwa", device_signal(

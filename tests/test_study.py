@@ -53,7 +53,10 @@ def test_a_mixed_folder_gives_a_row_per_file_and_a_rerun_skips_what_is_done(
         assert (r["status"], r["failure"] or None) == (status, failure), (path, r)
         if status == "ok":
             assert int(r["still_windows"]) > 0 and int(r["samples"]) > 0
-            assert float(r["ggir_error_after_mg"]) >= 0.0
+            # calibrated within 2 mg on the still windows; where the sensor was off by more
+            # (not the .bin: its reader applies the header's factory calibration), better
+            before, after = float(r["ggir_error_before_mg"]), float(r["ggir_error_after_mg"])
+            assert after < 2.0 and (before < 2.0 or after < before)
             assert float(r["heldout_error_after_mg"]) <= float(r["heldout_error_before_mg"])
             assert int(r["samples_calibrated"]) + int(r["samples_held"]) + int(
                 r["samples_suspect"]) == int(r["samples"])
