@@ -16,9 +16,8 @@ import pytest
 from recal.cli import main
 from recal.commands.study.job import Job, Options
 from recal.commands.study.runner import run_local
+from recal.commands.study.summary import COLUMNS
 from study_folder import EXPECTED, make_folder
-
-pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +41,7 @@ def _hindsight(folder: Path, out: Path, *extra: str) -> int:
                  *extra])
 
 
+@pytest.mark.slow
 def test_a_mixed_folder_gives_a_row_per_file_and_a_rerun_skips_what_is_done(
         folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
@@ -105,6 +105,7 @@ def _same(a: dict[str, dict[str, str]], b: dict[str, dict[str, str]]) -> bool:
     return strip(a) == strip(b)
 
 
+@pytest.mark.slow
 def test_verify_compares_the_content_too(tmp_path: Path) -> None:
     folder = tmp_path / "in"
     make_one = make_folder(tmp_path / "all")
@@ -127,6 +128,7 @@ def test_verify_compares_the_content_too(tmp_path: Path) -> None:
     assert _results(out)["sim.csv.json"] != first["sim.csv.json"]
 
 
+@pytest.mark.slow
 def test_samples_are_written_beside_the_calibration(folder: Path, tmp_path: Path) -> None:
     one = tmp_path / "in"
     one.mkdir()
@@ -140,6 +142,7 @@ def test_samples_are_written_beside_the_calibration(folder: Path, tmp_path: Path
         assert sum(1 for _ in f) == int(row["samples"])
 
 
+@pytest.mark.slow
 def test_a_second_run_on_the_same_outdir_is_refused(
         folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
@@ -161,6 +164,7 @@ def test_a_second_run_on_the_same_outdir_is_refused(
     assert holder.returncode == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("extra", [("--workers", "0"), ("--json", "x.json"),
                                    ("--overwrite",)])
 def test_bad_arguments_exit_2(folder: Path, tmp_path: Path, extra: tuple[str, ...],
@@ -169,11 +173,13 @@ def test_bad_arguments_exit_2(folder: Path, tmp_path: Path, extra: tuple[str, ..
     assert capsys.readouterr().err.startswith("recal: error:")
 
 
+@pytest.mark.slow
 def test_folder_options_are_refused_for_a_file(folder: Path, tmp_path: Path) -> None:
     assert main(["hindsight", str(folder / "lab/sim.csv"), "--out",
                  str(tmp_path / "o.mcap"), "--workers", "2"]) == 2
 
 
+@pytest.mark.slow
 def test_an_outdir_that_is_a_file_is_refused(folder: Path, tmp_path: Path) -> None:
     (tmp_path / "o").write_text("")
     assert main(["hindsight", str(folder), "--out", str(tmp_path / "o")]) == 2
@@ -187,6 +193,7 @@ def dies_on_some(job: Job) -> dict[str, str]:
     return {"path": job.rel, "status": "ok"}
 
 
+@pytest.mark.slow
 def test_a_worker_that_dies_is_a_row_and_the_others_finish(tmp_path: Path) -> None:
     names = ["a", "b", "die1", "c", "d", "e"]
     jobs = [Job(str(tmp_path / n), n, str(tmp_path), Options(), {}) for n in names]
@@ -196,3 +203,9 @@ def test_a_worker_that_dies_is_a_row_and_the_others_finish(tmp_path: Path) -> No
     assert sorted(by_path) == sorted(names) and len(rows) == len(names)
     assert by_path["die1"]["failure"] == "worker died"
     assert all(by_path[n]["status"] == "ok" for n in names if n != "die1")
+
+
+@pytest.mark.parametrize("column", sorted(COLUMNS))
+def test_docs_study_lists_every_summary_column(column: str) -> None:
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "study.md").read_text()
+    assert f"| `{column}` |" in doc
