@@ -1,12 +1,14 @@
 """A study's folder for the tests and the bench: device files of two formats (synthetic, from
 `device_writers`), recal's own MCAP and CSV recordings, and the files a real study folder also
-holds: one unreadable (a device file's header and then noise), one cut short (a .cwa whose
+holds: one corrupt (a device file's header and then noise), one unreadable (a link to a file
+no longer there), one cut short (a .cwa whose
 last third is gone), one too short, one with no still period (a wearer never at rest), a text
-file and a picture (skipped: not recordings)."""
+file, a picture and a named pipe (skipped: not recordings)."""
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,7 @@ from device_writers import DeviceRun, device_signal, write_cwa, write_geneactiv_
 from recal.cli import main
 from recal.sim.sensor import SensorSpec
 
-__all__ = ["EXPECTED", "make_folder", "write_device_files"]
+__all__ = ["EXPECTED", "counts", "make_folder", "write_device_files"]
 
 RATE_HZ = 25
 
@@ -37,11 +39,19 @@ EXPECTED: dict[str, tuple[str, str | None]] = {
     "lab/sim.mcap": ("ok", None),
     "lab/sim.csv": ("ok", None),
     "wearer3/junk.cwa": ("failed", "corrupt"),
+    "wearer3/gone.cwa": ("failed", "unreadable"),  # a link to a file no longer there
     "wearer3/short.cwa": ("failed", "too short"),
     "wearer3/moving.cwa": ("failed", "no still period"),
     "README.txt": ("skipped", None),
     "photo.png": ("skipped", None),
+    "wearer3/pipe": ("skipped", None),  # a named pipe: opening it would wait forever
 }
+
+
+def counts() -> dict[str, int]:
+    """The rows of `make_folder` by status."""
+    statuses = [status for status, _ in EXPECTED.values()]
+    return {s: statuses.count(s) for s in ("ok", "failed", "skipped")}
 
 
 def write_device_files(folder: Path, n: int, hours: float, fmt: str = "cwa",
@@ -73,6 +83,7 @@ def make_folder(root: Path, hours: float = 0.1) -> Path:
         DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=2, sensor=sensor(2))))
     rng = np.random.default_rng(3)
     (root / "wearer3/junk.cwa").write_bytes(whole[:1024] + rng.bytes(4096))
+    (root / "wearer3/gone.cwa").symlink_to(root / "wearer3/moved-away.cwa")
     write_cwa(root / "wearer3/short.cwa", device_signal(
         DeviceRun(hours=0.005, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=4)))
     moving = device_signal(DeviceRun(hours=hours, nominal_hz=RATE_HZ, real_hz=RATE_HZ, seed=5))
@@ -83,6 +94,7 @@ def make_folder(root: Path, hours: float = 0.1) -> Path:
         assert main(["simulate", "--out", str(root / "lab" / name), "--hours", str(hours),
                      "--seed", "7"]) == 0
         (root / "lab" / name).with_suffix(".truth.npz").unlink()
+    os.mkfifo(root / "wearer3/pipe")
     (root / "README.txt").write_text("wearers 1-3, collected in March\n")
     (root / "photo.png").write_bytes(b"\x89PNG\r\n\x1a\n" + rng.bytes(256))
     return root

@@ -15,6 +15,7 @@ import fcntl
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -80,6 +81,16 @@ def find_files(root: Path, out_dir: Path) -> Iterator[Path]:
                 yield here_path / name
 
 
+def _not_a_file(path: Path) -> str | None:
+    """Why a name is not a regular file to read (a pipe, a socket, a device: opening one may
+    wait forever); a link to nothing is left to its job (a row: unreadable)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return None
+    return None if stat.S_ISREG(mode) else "not a regular file (a pipe, socket or device)"
+
+
 def not_a_recording(path: Path) -> str | None:
     """Why a file is not a recording (then it is listed as skipped), else None. A text file
     is one when its header names x, y, z columns (`io.csv_table`). An unreadable file is left
@@ -112,7 +123,7 @@ def make_plan(root: Path, out_dir: Path, options: Options, verify: bool) -> Plan
     todo: list[Job] = []
     for path in find_files(root, out_dir):
         rel = path.relative_to(root).as_posix()
-        why = not_a_recording(path)
+        why = _not_a_file(path) or not_a_recording(path)
         if why is not None:
             skipped.append({"path": rel, "status": "skipped", "reason": why})
             continue

@@ -89,32 +89,50 @@ def _died(job: Job, said: str) -> Row:
             "reason": f"the worker process calibrating it ended: {said}"}
 
 
-def _pool(workers: int) -> ProcessPoolExecutor:
-    import multiprocessing
+_started: Any = None  # in a worker: the queue it tells the jobs it starts on
 
-    # spawn: each worker a fresh interpreter that reads THREAD_VARS when numpy loads (a fork
-    # would inherit this process's numeric libraries as already started)
-    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+
+def _worker_init(queue: Any) -> None:
+    global _started
+    _started = queue
+
+
+def _call(fn: JobFn, job: Job) -> Row:
+    """In a worker: say the job started (the parent learns which jobs a dead worker had),
+    then run it."""
+    _started.put(job.rel)
+    return fn(job)
 
 
 def run_local(jobs: list[Job], workers: int, on_row: Callable[[Row], None],
               fn: JobFn = run_job) -> None:
-    """Run every job in ``workers`` local processes; ``on_row`` gets each row as it ends."""
-    if not jobs:
-        return
+    """Run every job in ``workers`` local processes; ``on_row`` gets each row as it ends.
+    When a process dies, the jobs that had not started run on in a fresh pool; those that had
+    (the one that killed it among them) each once more alone, and a second death is that
+    file's row: rounds end, since each death sets at least one job aside."""
     with _one_thread_each():
-        broken = _run_pool(jobs, workers, on_row, fn)
-        for job in broken:  # alone, in a fresh process: a second death is the file's
-            if _run_pool([job], 1, on_row, fn):
-                on_row(_died(job, "twice, the second time running this file alone"))
+        while jobs:
+            not_started, suspects = _run_pool(jobs, workers, on_row, fn)
+            for job in suspects:
+                if any(_run_pool([job], 1, on_row, fn)):
+                    on_row(_died(job, "twice, the second time running this file alone"))
+            jobs = not_started
 
 
 def _run_pool(jobs: list[Job], workers: int, on_row: Callable[[Row], None],
-              fn: JobFn) -> list[Job]:
-    """The jobs' rows through on_row; the jobs whose process died (not yet a row)."""
+              fn: JobFn) -> tuple[list[Job], list[Job]]:
+    """The jobs' rows through on_row; of the jobs whose pool broke (not yet rows), those that
+    had not started and those that had."""
+    import multiprocessing
+
+    # spawn: each worker a fresh interpreter that reads THREAD_VARS when numpy loads (a fork
+    # would inherit this process's numeric libraries as already started)
+    ctx = multiprocessing.get_context("spawn")
+    started = ctx.SimpleQueue()
     broken: list[Job] = []
-    with _pool(workers) as pool:
-        pending: dict[Future[Row], Job] = {pool.submit(fn, j): j for j in jobs}
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                             initargs=(started,)) as pool:
+        pending: dict[Future[Row], Job] = {pool.submit(_call, fn, j): j for j in jobs}
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
@@ -123,7 +141,11 @@ def _run_pool(jobs: list[Job], workers: int, on_row: Callable[[Row], None],
                     on_row(fut.result())
                 except BrokenProcessPool:
                     broken.append(job)
-    return broken
+    began = set()
+    while broken and not started.empty():
+        began.add(started.get())
+    started.close()
+    return ([j for j in broken if j.rel not in began], [j for j in broken if j.rel in began])
 
 
 # --- Dask ------------------------------------------------------------------------------------
