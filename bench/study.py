@@ -24,6 +24,8 @@ import contextlib
 import csv
 import io
 import math
+import os
+import resource
 import sys
 import tempfile
 import time
@@ -36,11 +38,21 @@ from recal.commands.study.job import Options  # noqa: E402
 from study_folder import EXPECTED, make_folder, write_device_files  # noqa: E402
 
 
+def _cpu_s() -> float:
+    """CPU seconds of this process and its ended children (the local workers)."""
+    me, kids = (resource.getrusage(w) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def _run(folder: Path, out: Path, **kw: object) -> tuple[StudyResult, float]:
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()):
         result = run_study(folder, out, Options(), quiet=True, **kw)  # type: ignore[arg-type]
     return result, time.perf_counter() - t0
+
+
+def _load() -> str:
+    return "load average " + " ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
 def _rows(out: Path) -> dict[str, dict[str, str]]:
@@ -106,15 +118,19 @@ def scaling(tmp: Path, files: int, hours: float, rate_hz: int) -> list[str]:
     write_device_files(folder, files, hours, rate_hz=rate_hz)
     print(f"wrote {files} files of {hours} h at {rate_hz} Hz in "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
+    load0, c0 = _load(), _cpu_s()
     one, t1 = _run(folder, tmp / "out-1", workers=1)
+    c1 = _cpu_s()
     _, t2 = _run(folder, tmp / "out-2", workers=2)
+    c2, load1 = _cpu_s(), _load()
     diff = _differences(_rows(tmp / "out-1"), _rows(tmp / "out-2"))
     ok = all(r["status"] == "ok" for r in one.rows)
     return ["| scaling | figure | goal | met |", "|---|---|---|---|",
-            f"| {files} x {hours} h at {rate_hz} Hz (.cwa), 1 worker | {t1:.1f} s "
-            f"(all ok: {ok}) | | |",
-            f"| the same, 2 workers | {t2:.1f} s = {t2 / t1:.2f}x, {len(diff)} cells differ "
-            f"| <= 0.6x | {'yes' if t2 <= 0.6 * t1 else 'no'} |"]
+            f"| {files} x {hours} h at {rate_hz} Hz (.cwa), 1 worker | {t1:.1f} s, "
+            f"{c1 - c0:.1f} CPU s (all ok: {ok}) | | |",
+            f"| the same, 2 workers | {t2:.1f} s = {t2 / t1:.2f}x, {c2 - c1:.1f} CPU s, "
+            f"{len(diff)} cells differ | <= 0.6x | {'yes' if t2 <= 0.6 * t1 else 'no'} |",
+            f"| machine | {os.cpu_count()} cores; {load0} before, {load1} after | | |"]
 
 
 def main(argv: list[str] | None = None) -> int:
