@@ -22,6 +22,7 @@ from recal.commands.study import run_study
 from recal.commands.study.job import Options
 from recal.errors import UsageError
 from study_folder import EXPECTED, counts, make_folder
+from study_jobs import dies_on_some
 
 pytestmark = pytest.mark.slow
 
@@ -68,23 +69,19 @@ def test_a_local_cluster_gives_the_same_rows(folder: Path, tmp_path: Path,
     _assert_same_rows(_rows(tmp_path / "out"), local_rows)
 
 
-def test_a_cluster_whose_workers_cannot_see_the_files_is_refused(folder: Path,
-                                                                 tmp_path: Path) -> None:
-    """The workers check the paths themselves: here every worker runs in a folder where
-    the inputs were moved away after the plan was made (the same as another machine)."""
-    moved = tmp_path / "in"
-    moved.mkdir()
-    (moved / "day.cwa").write_bytes((folder / "wearer1/day.cwa").read_bytes())
+def test_a_cluster_whose_workers_cannot_see_the_files_is_refused(tmp_path: Path) -> None:
+    """Each worker reports what it cannot see (here a path that exists nowhere stands for one
+    on a disk only this machine mounts) and the run stops before any job, saying so."""
+    from recal.commands.study.runner import check_cluster
+
+    here = tmp_path / "day.cwa"
+    here.write_bytes(b"")
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                       dashboard_address=None) as cluster, \
             Client(cluster.scheduler_address) as client:
-        from recal.commands.study.plan import make_plan
-        from recal.commands.study.runner import check_cluster
-
-        plan = make_plan(moved, tmp_path / "out", Options(), verify=False)
-        (moved / "day.cwa").rename(tmp_path / "elsewhere.cwa")
-        with pytest.raises(UsageError, match="cannot see 1 input files"):
-            check_cluster(client, plan.todo, tmp_path)
+        assert check_cluster(client, [str(here)], tmp_path) == 1
+        with pytest.raises(UsageError, match=r"cannot see 1 input files \(first: /nowhere/"):
+            check_cluster(client, [str(here), "/nowhere/x.cwa"], tmp_path)
 
 
 def _free_port() -> int:
@@ -145,3 +142,27 @@ def test_an_unreachable_scheduler_is_one_line(folder: Path, tmp_path: Path) -> N
     assert done.returncode == 2
     assert done.stderr.strip().startswith("recal: error: cannot reach the Dask scheduler")
     assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_a_dask_worker_that_dies_is_a_row_and_the_others_finish(tmp_path: Path) -> None:
+    import dask
+
+    from recal.commands.study.job import Job
+    from recal.commands.study.runner import run_dask
+
+    names = ["a", "b", "die1", "c", "d", "e", "f", "g"]
+    jobs = [Job(str(tmp_path / n), n, str(tmp_path), Options(), {}) for n in names]
+    rows: list[dict[str, str]] = []
+    # the scheduler gives up on a task after it killed two workers (default: four); a worker
+    # is given one task per thread (saturation 1.0), so no other task dies with it
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1,
+                          "distributed.scheduler.worker-saturation": 1.0}), \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                         dashboard_address=None) as cluster, \
+            Client(cluster.scheduler_address) as client:
+        run_dask(client, jobs, rows.append, dies_on_some)
+    by_path = {r["path"]: r for r in rows}
+    assert sorted(by_path) == sorted(names) and len(rows) == len(names)
+    assert by_path["die1"]["failure"] == "worker died"
+    assert "KilledWorker" in by_path["die1"]["reason"]
+    assert all(by_path[n]["status"] == "ok" for n in names if n != "die1"), rows

@@ -56,7 +56,9 @@ def run_study(root: str | Path, out_dir: str | Path, options: Options, *,
         client = runner.connect(scheduler) if scheduler else None
         try:
             if client is not None and plan.todo:
-                runner.check_cluster(client, plan.todo, out_dir)
+                # the files this process sees (one it cannot see is its job's row: unreadable)
+                runner.check_cluster(client, [j.path for j in plan.todo
+                                              if Path(j.path).exists()], out_dir)
             with tqdm(total=len(plan.todo), unit="file", desc="hindsight",
                       disable=quiet or None, leave=False) as bar:
                 def on_row(row: dict[str, Any]) -> None:

@@ -137,7 +137,7 @@ def make_plan(root: Path, out_dir: Path, options: Options, verify: bool) -> Plan
             continue
         if verify and "size" in key:
             key["sha256"] = sha256(path)
-        todo.append(Job(str(path.resolve()), rel, str(out_dir.resolve()), options, key))
+        todo.append(Job(os.path.abspath(path), rel, str(out_dir.resolve()), options, key))
     return Plan(skipped, done, todo)
 
 

@@ -158,13 +158,13 @@ def _worker_facts(paths: list[str], out_dir: str) -> dict[str, Any]:
             "out_writable": os.access(out_dir, os.W_OK)}
 
 
-def check_cluster(client: Any, jobs: list[Job], out_dir: Path) -> int:
-    """Every worker runs this recal and sees the inputs and OUTDIR (a shared file system);
-    else a UsageError that says which worker lacks what. The number of workers."""
+def check_cluster(client: Any, paths: list[str], out_dir: Path) -> int:
+    """Every worker runs this recal and sees the paths (the inputs this process sees) and
+    OUTDIR (a shared file system); else a UsageError that says which worker lacks what. The
+    number of workers."""
     from recal import __version__
 
-    facts = client.run(_worker_facts, sorted({j.path for j in jobs})[:1000],
-                       str(out_dir.resolve()))
+    facts = client.run(_worker_facts, sorted(paths)[:1000], str(out_dir.resolve()))
     if not facts:
         raise UsageError("the Dask cluster has no worker")
     problems = []
@@ -201,8 +201,9 @@ def run_dask(client: Any, jobs: list[Job], on_row: Callable[[Row], None],
     """Run every job on the client's cluster; ``on_row`` gets each row as it ends."""
     from distributed import as_completed
 
-    futures = {client.submit(fn, j, key=f"recal-study-{j.rel}-{os.getpid()}", pure=False): j
-               for j in jobs}
+    # keys of one task group (the function's name and a unique token): the scheduler queues
+    # them and hands a worker one per thread, so a worker's death takes no waiting file with it
+    futures = {client.submit(fn, j, pure=False): j for j in jobs}
     for fut in as_completed(list(futures), loop=client.loop):
         job = futures[fut]
         try:
