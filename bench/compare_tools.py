@@ -1,4 +1,4 @@
-"""Issue 5, "Calibration core alone": the recal core beside the calibrators people use instead.
+"""The calibration core alone: the recal core beside the calibrators people use instead.
 
     python bench/compare_tools.py            # full: 24 h at 50 Hz per case, 5 timed runs
     python bench/compare_tools.py --quick    # 13 h per case, 1 timed run (a few minutes)
@@ -240,7 +240,7 @@ def run_tool(tool: str, case_dir: Path, out: Path | None) -> dict:
 def run_recal(raw_g: RawBatch, model: SensorModel, batch: int,
               **settings: float) -> tuple[np.ndarray, float, Pipeline]:
     """The core alone: Pipeline.step over big batches, from a nominal prior (datasheet);
-    settings: PipelineConfig fields other than the defaults (bench/core_settings.py)."""
+    settings: PipelineConfig fields other than the defaults."""
     batches = [raw_g[i:i + batch] for i in range(0, len(raw_g), batch)]
     t0 = time.perf_counter()
     pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ, **settings), model, Prior.default(model),

@@ -3,7 +3,7 @@
     python bench/in_use_accuracy.py           # 8 cross-axis wearers, 7 drifting, 3 plain, 3 upright
     python bench/in_use_accuracy.py --quick   # 2 of each
 
-Every case is issue 2's: 2 h at 50 Hz, offsets +-50 mg, gains +-3 %, 4 mg noise, 1024 counts/g,
+Every case: 2 h at 50 Hz, offsets +-50 mg, gains +-3 %, 4 mg noise, 1024 counts/g,
 the pre-calibration prior (`Prior.default`), batches of 1000 samples. Error = RMS over 1 s
 windows of |calibrated - true| after the first 30 min (the 1 s average of the noise alone is
 0.98 mg); the full model's after the best rotation (not observable from gravity). Targets:
@@ -50,8 +50,7 @@ def err_1s_mg(cal: np.ndarray, truth: np.ndarray, t_us: np.ndarray, align: bool)
 
 def run_case(seed: int, cross: float, full: bool, upright: bool, drift: float,
              **settings: float) -> dict:
-    """One wearer through the core; settings: PipelineConfig fields other than the defaults
-    (bench/core_settings.py tries some)."""
+    """One wearer through the core; settings: PipelineConfig fields other than the defaults."""
     r = wearer(seed, cross, upright, drift)
     model = SensorModel.full(1024.0) if full else SensorModel.diagonal(1024.0)
     pipe = Pipeline(PipelineConfig(rate_hz=50.0, **settings), model, Prior.default(model),

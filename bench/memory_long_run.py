@@ -1,4 +1,4 @@
-"""Issue 5, "Memory over a long run": RSS while a simulated week at 100 Hz goes through the
+"""Memory over a long run: RSS while a simulated week at 100 Hz goes through the
 daemon's code path.
 
     python bench/memory_long_run.py            # 7 days (60.5 M samples), 3 runs

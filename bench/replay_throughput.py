@@ -1,4 +1,4 @@
-"""Issue 5, "Replay end to end": MCAP in -> calibrated MCAP out, beside merely reading the file.
+"""Replay end to end: MCAP in -> calibrated MCAP out, beside merely reading the file.
 
     python bench/replay_throughput.py            # full: 2 h at 100 Hz per case, 5 runs
     python bench/replay_throughput.py --quick    # 15 min per case, 3 runs

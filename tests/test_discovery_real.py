@@ -1,6 +1,6 @@
 """Effect discovery on the measured recordings in ../shared/data (fails if they are missing).
 
-What each asserts is what discovery found on it (see README, "Effect discovery"):
+What each asserts is what discovery found on it (docs/performance.md, `recal discover`):
 - Xsens multi-position (raw 16-bit counts, lab poses): cross-axis coupling (~1.2° between
   the y and z sensing axes) takes the held-out error from ~3.8 mg to ~0.17 mg;
 - GENEActiv cooling (one pose, 37 -> 27 °C): an offset linear in temperature on the axis

@@ -1,7 +1,7 @@
 """What the documents tell a user to type exists: every ``python -m recal.<module>`` named in
 the code, docs, configs and benchmarks runs something (a module with a ``__main__`` block or a
-package with ``__main__.py``), and every flag each command's ``--help`` shows is in the README's
-command table."""
+package with ``__main__.py``), every flag each command's ``--help`` shows is in the command-line
+reference's table (docs/cli.md), and every command has a row in the README's short table."""
 
 from __future__ import annotations
 
@@ -16,6 +16,10 @@ from recal.io.topics import TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
 SERVICE = ROOT / "service"
+#: the command-line reference: every command's flags
+CLI_REFERENCE = ROOT / "docs" / "cli.md"
+#: the reference of what recal writes: the MCAP topic table
+OUTPUTS_REFERENCE = ROOT / "docs" / "outputs.md"
 #: where a user or developer reads command lines
 SEARCHED = ("README.md", "Dockerfile", "docs", "configs", "service", "bench", "tests")
 MODULE_RUN = re.compile(r"-m\s+(recal(?:\.\w+)+)")
@@ -61,10 +65,10 @@ def _command_flags() -> dict[str, list[tuple[str, ...]]]:
             for name, p in sub.choices.items()}
 
 
-def _readme_command_rows() -> dict[str, str]:
-    """The README's command table: command name -> the text of its row."""
+def _command_rows(doc: Path) -> dict[str, str]:
+    """A document's command table: command name -> the text of its row."""
     rows: dict[str, str] = {}
-    for line in (ROOT / "README.md").read_text().splitlines():
+    for line in doc.read_text().splitlines():
         m = re.match(r"\|\s*`recal (\w+)", line)
         if m:
             rows[m.group(1)] = rows.get(m.group(1), "") + line
@@ -72,22 +76,28 @@ def _readme_command_rows() -> dict[str, str]:
 
 
 @pytest.mark.parametrize("command", sorted(_command_flags()))
-def test_the_readme_command_table_lists_every_flag(command: str) -> None:
-    rows = _readme_command_rows()
-    assert command in rows, f"`recal {command}` has no row in the README's command table"
+def test_the_cli_reference_lists_every_flag(command: str) -> None:
+    rows = _command_rows(CLI_REFERENCE)
+    assert command in rows, f"`recal {command}` has no row in docs/cli.md's command table"
     missing = sorted("/".join(names) for names in _command_flags()[command]
                      if not any(re.search(rf"{re.escape(f)}(?![\w-])", rows[command])
                                 for f in names))
-    assert missing == [], f"recal {command} --help shows {missing}, the README's table does not"
+    assert missing == [], f"recal {command} --help shows {missing}, docs/cli.md's table does not"
 
 
-def test_the_readme_topic_table_lists_every_topic_a_sensor_gets() -> None:
+def test_the_readme_command_table_names_every_command_and_no_other() -> None:
+    rows = _command_rows(ROOT / "README.md")
+    assert set(rows) == set(_command_flags()), (
+        f"README's command table: {sorted(rows)}; recal --help: {sorted(_command_flags())}")
+
+
+def test_the_topic_table_lists_every_topic_a_sensor_gets() -> None:
     """The per-sensor topics the registry logs and recal.node.sinks documents (``name``
-    ...) each have a README row."""
+    ...) each have a row in docs/outputs.md's MCAP table."""
     doc = (SERVICE / "recal" / "node" / "sinks.py").read_text().split('"""')[1]
     logged = {t.suffix for t in TOPICS.values() if t.logged}
     suffixes = set(re.findall(r"^\* ``(\w+)``", doc, re.MULTILINE)) | logged
     assert {"raw", "calibrated", "setup"} <= suffixes, suffixes
-    readme = (ROOT / "README.md").read_text()
-    missing = sorted(s for s in suffixes if f"| `/<sensor>/{s}`" not in readme)
-    assert missing == [], f"topics without a row in the README's MCAP table: {missing}"
+    table = OUTPUTS_REFERENCE.read_text()
+    missing = sorted(s for s in suffixes if f"| `/<sensor>/{s}`" not in table)
+    assert missing == [], f"topics without a row in docs/outputs.md's MCAP table: {missing}"

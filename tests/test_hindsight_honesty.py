@@ -76,7 +76,7 @@ def test_cross_axis_under_a_diagonal_model_is_suspect_or_honest() -> None:
 
 
 def test_analog_part_on_a_sagging_supply_is_marked_suspect_and_says_what_next() -> None:
-    """The issue's recording: 12-bit analog part, ratiometric output, supply 3.3 -> 2.9 V,
+    """The analog part's recording: 12-bit analog part, ratiometric output, supply 3.3 -> 2.9 V,
     no prior: a residual of tens of mg. No sample calibrated with a sigma of 0.1 mg."""
     r, fit, corrected, cal, sigma, _, _ = _hindsight("ratiometric[vdd]")
     before, after = _score("ratiometric[vdd]")

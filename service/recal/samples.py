@@ -226,10 +226,10 @@ def rebatch(batches: Iterable[RawBatch], min_samples: int = REBATCH_SAMPLES
     a batch that is big enough passes through as it is.
 
     Batch work in numpy costs per call as well as per sample, so fewer, larger batches cost
-    less (docs/performance.md), with the same windows (their state carries across batches;
-    bit for bit on integer readings such as ADC counts, else a window cut by a batch end may
-    differ in its last bit, `core.window_means`). `recal hindsight` and `recal discover` read
-    recordings this way.
+    less (docs/design.md, "Figures behind choices"), with the same windows (their state
+    carries across batches; bit for bit on integer readings such as ADC counts, else a window
+    cut by a batch end may differ in its last bit, `core.window_means`). `recal hindsight` and
+    `recal discover` read recordings this way.
     """
     for group in batch_groups(((b, None) for b in batches), min_samples):
         yield group[0][0] if len(group) == 1 else RawBatch.concat([b for b, _ in group])

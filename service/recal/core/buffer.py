@@ -12,10 +12,10 @@ still run whose directions agree within `merge_deg` (`k` counts them): a two-min
 fills a few slots instead of evicting every older posture of its cell with the same 12 s of
 itself. Merging keeps what the windows say (the estimator weighs a slot as its k windows) but not
 their number: a buffer of single windows forgets the first half hour of a wearer, merged slots
-learn as fast as keeping every window (docs/performance.md). The direction tolerance bounds
-the norm bias of averaging directions that differ: the mean of unit vectors within 1 deg of
-each other is short by at most 0.15 mg. Why this buffer: docs/design.md ("Why the buffer bins
-windows on a cube-face grid").
+learn as fast as keeping every window (docs/design.md, "Figures behind choices"). The direction
+tolerance bounds the norm bias of averaging directions that differ: the mean of unit vectors
+within 1 deg of each other is short by at most 0.15 mg. Why this buffer: docs/design.md ("Why
+the buffer bins windows on a cube-face grid").
 """
 
 from __future__ import annotations

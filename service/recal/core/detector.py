@@ -32,8 +32,8 @@ __all__ = ["Detector", "DetectorConfig", "DetectorOutput", "DetectorState", "det
 
 #: Default threshold on the detector output, in g: the middle of the range that works on both
 #: simulated wearers and the Xsens multi-position recording (lower, still postures' own noise
-#: crosses it; higher, hand rotations get into the calibration). Chosen by
-#: `bench/detector_threshold.py`; the sweep is in docs/performance.md.
+#: crosses it; higher, hand rotations get into the calibration). The sweep that chose it is in
+#: docs/design.md, "The detector threshold".
 DEFAULT_THRESHOLD_G = 0.015
 
 

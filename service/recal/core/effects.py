@@ -311,7 +311,7 @@ class Offset(Effect):
         # rate (estimator.py); this walk covers what a straight line does not, and is kept small
         # so that windows from an hour ago still pin the gains and cross-axis terms; the price:
         # offsets that follow temperature swings the model lacks are tracked more slowly
-        # (chosen by bench/in_use_accuracy.py; figures in docs/performance.md).
+        # (chosen by bench/in_use_accuracy.py; figures in docs/design.md, "Figures behind choices").
         return np.full(3, OFFSET_WALK_G_PER_SQRT_H * s0) if self.covariate is None else np.zeros(3)
 
     def bounds(self, s0, spread):

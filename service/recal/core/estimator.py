@@ -41,7 +41,7 @@ beyond the paper where the paper fails in use:
 Why the whole buffer, re-linearized, rather than a recursive (Kalman) update of the fresh
 windows: a recursive update keeps each window's information as linearized when it arrived, far
 from the truth early on, and holds the cross-axis and gain terms of an axis not yet seen from
-both sides fixed, so the offsets absorb them (docs/design.md; figures in docs/performance.md).
+both sides fixed, so the offsets absorb them (docs/design.md, and its "Figures behind choices").
 
 The pipeline tries an update every `update_every` committed windows but first asks
 `consistent` (the new windows' normalized innovations, eq. 14, a chi-square and a mean test):

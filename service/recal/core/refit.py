@@ -28,7 +28,7 @@ __all__ = ["SETTLED_SD_FRACTION", "RefitState", "WindowChunk", "after_update", "
 
 #: An update that moved no parameter by more than this fraction of its standard deviation
 #: leaves the estimate settled: later windows that agree with it need no re-fit (the value
-#: trades re-fits against drift tracking; see docs/performance.md).
+#: trades re-fits against drift tracking; see docs/design.md, "Figures behind choices").
 SETTLED_SD_FRACTION = 0.25
 
 CovariatesOf = Callable[[np.ndarray, np.ndarray], Covariates]

@@ -33,7 +33,7 @@ __all__ = ["SCALAR_MAX_N", "butter_sos", "sos_rows", "sos_zi", "sosfilt", "sosfi
 
 #: Batches up to this many samples are filtered by the scalar loop; longer ones by scipy's
 #: compiled kernel (about 1 ms of scalar loop per section at this length on this machine:
-#: docs/performance.md).
+#: docs/design.md, "Figures behind choices").
 SCALAR_MAX_N = 1024
 
 

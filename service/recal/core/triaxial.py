@@ -2,10 +2,10 @@
 
 These run on every sample of a batch, and numpy reduces `axis=1` of an (N,3) array, or
 broadcasts one value per axis (3,) over it, with a loop per row of 3 that costs several times
-as much as three column operations (docs/performance.md). The sums are added in the same order
-as numpy's (x + y) + z, so the results are bit-identical to `np.linalg.norm(v, axis=1)` and
-`np.add.reduce(v * v, axis=1)`; the per-axis forms do the same operations on the same numbers.
-See docs/design.md ("Smaller decisions").
+as much as three column operations (docs/design.md, "Figures behind choices"). The sums are
+added in the same order as numpy's (x + y) + z, so the results are bit-identical to
+`np.linalg.norm(v, axis=1)` and `np.add.reduce(v * v, axis=1)`; the per-axis forms do the
+same operations on the same numbers. See docs/design.md ("Smaller decisions").
 """
 
 from __future__ import annotations

@@ -93,7 +93,8 @@ class CheckpointSchedule:
     the interval (the k-th added at phase k * 0.618... of it, evenly for any count).
 
     Why: every sensor's checkpoint written at once holds the GIL long enough to stall the I/O
-    loop (figures: docs/performance.md); spread out, each turn is short, shared with the loop.
+    loop (figures: docs/design.md, "Figures behind choices"); spread out, each turn is short,
+    shared with the loop.
     """
 
     _PHASE_STEP = (5 ** 0.5 - 1) / 2  # golden-ratio steps stay evenly spread as sensors come

@@ -45,7 +45,7 @@ NODE_READY_PREFIX = "recal node ready"
 RECV_ROUND = 4096  # most raw messages a remote node takes from its receiver per round
 # Raw messages a remote node buffers before Zenoh's thread waits (and after its 1 s wait,
 # drops): gateways handling every arrival at once send a message per sample, so this must
-# hold a second of many sensors (docs/performance.md, bench/scale_out.py).
+# hold a second of many sensors (docs/design.md, "Figures behind choices", bench/scale_out.py).
 RECV_CAPACITY = 1 << 17
 REJECT_REPORT_S = 10.0  # at most one console line and event this often about turned-away ids
 REJECT_IDS_KEPT = 16  # example ids named in that line and event (bounded, whatever comes in)

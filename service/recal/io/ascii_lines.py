@@ -13,7 +13,7 @@ knows the rate (``rate_hz``): sample i since the last anchor is stamped
 at the first arrival).
 
 The stream part (carry-over, resync, error counts) is `recal.io.frames`; why a vectorized path
-beside the per-line one: docs/performance.md.
+beside the per-line one: docs/design.md, "Figures behind choices".
 """
 
 from __future__ import annotations
@@ -100,7 +100,7 @@ class AsciiLineParser(DelimitedParser):
         vectorized: False parses every line on the per-line path (for tests and debugging).
         vectorize_min_lines: a chunk with fewer complete lines than this goes line by line,
             which is cheaper at the read sizes of a sensor handled as it sends (one line per
-            read; docs/performance.md).
+            read; docs/design.md, "Figures behind choices").
         rate_hz: the device's sample rate, if known; then lines without a time column
             (``x,y,z[,aux]``: a header starting with ``x``, or 3 fields with no header) are
             accepted and stamped ``origin + round(i * 1e6 / rate_hz)`` (see

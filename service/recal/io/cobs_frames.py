@@ -19,7 +19,7 @@ COBS block, no 0xFF code). Binary frames carry no channel names: they come from 
 configuration (``aux_names``), else the channels are named by position.
 
 The stream part (carry-over, resync, error counts) is `recal.io.frames`; why a vectorized
-decode beside ``cobs.decode``: docs/performance.md.
+decode beside ``cobs.decode``: docs/design.md, "Figures behind choices".
 """
 
 from __future__ import annotations
@@ -141,7 +141,7 @@ class CobsFrameParser(DelimitedParser):
         vectorized: False decodes frame by frame with ``cobs.decode`` (tests, debugging).
         vectorize_min_frames: a chunk with fewer well-sized frames than this goes frame by
             frame, which is cheaper at serial-port read sizes (the vectorized decode has a
-            fixed set-up cost; docs/performance.md).
+            fixed set-up cost; docs/design.md, "Figures behind choices").
     """
 
     _DELIMITER = b"\x00"

@@ -33,7 +33,7 @@ COBS, control characters in a line), ``non_utf8``, ``too_long``, ``non_numeric``
 Speed: clean input takes a vectorized path (numpy over the whole chunk); only suspect lines or
 frames go through the per-item path, which is the reference the fast path must agree with. So
 do chunks of a few lines or frames (a sensor read as it sends), where setting up the vectorized
-path would cost more than it saves. Measurements: docs/performance.md.
+path would cost more than it saves. Measurements: docs/design.md, "Figures behind choices".
 """
 
 from __future__ import annotations

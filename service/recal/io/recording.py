@@ -223,7 +223,7 @@ def _chunk_messages(f: IO[bytes], index: ChunkIndex, decompressor: Any, path: Pa
 
     Reads the chunk with one read and walks it with struct, reusing one zstd context: faster
     than the mcap reader's per-record stream reads, and reading speed is what replay and tests
-    wait on (docs/performance.md).
+    wait on (docs/design.md, "Figures behind choices").
     """
     f.seek(index.chunk_start_offset)
     blob = f.read(index.chunk_length)

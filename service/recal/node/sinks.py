@@ -323,7 +323,7 @@ class LoggedBusSink(RecordingSink):
     """Logs to a recording as a RecordingSink does, then publishes on the bus (the gateway's
     sink): a batch goes out in its own float64 form, encoded only when a subscriber matches
     its key, a JSON message as the very bytes logged (why it matters per sample:
-    docs/performance.md)."""
+    docs/design.md, "Figures behind choices")."""
 
     def __init__(self, writer: Writer, bus: Bus) -> None:
         super().__init__(writer)
