@@ -10,7 +10,7 @@ Goals:
 4. N hour-long device files (default 16 at 100 Hz): 2 workers at most 0.6x the time of 1.
 
     python bench/study.py                      # the goals as stated
-    python bench/study.py --files 8 --hours 0.5  # shorter
+    python bench/study.py --files 8 --hours 0.5 --repeats 1  # shorter
 
 The files are synthetic (tests/device_writers.py: a simulated wearer, a sensor off by tens of
 mg), written to a temporary folder first (not timed). Times are wall-clock of the whole
@@ -26,6 +26,7 @@ import io
 import math
 import os
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -112,25 +113,35 @@ def mixed(tmp: Path) -> list[str]:
     return lines
 
 
-def scaling(tmp: Path, files: int, hours: float, rate_hz: int) -> list[str]:
+def scaling(tmp: Path, files: int, hours: float, rate_hz: int, repeats: int) -> list[str]:
     folder = tmp / "hours"
     t0 = time.perf_counter()
     write_device_files(folder, files, hours, rate_hz=rate_hz)
     print(f"wrote {files} files of {hours} h at {rate_hz} Hz in "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
-    load0, c0 = _load(), _cpu_s()
-    one, t1 = _run(folder, tmp / "out-1", workers=1)
-    c1 = _cpu_s()
-    _, t2 = _run(folder, tmp / "out-2", workers=2)
-    c2, load1 = _cpu_s(), _load()
-    diff = _differences(_rows(tmp / "out-1"), _rows(tmp / "out-2"))
+    load0 = _load()
+    times: dict[int, list[float]] = {1: [], 2: []}
+    cpu: dict[int, list[float]] = {1: [], 2: []}
+    for rep in range(repeats):  # alternated: the machine's load moves under both alike
+        for workers in ((1, 2) if rep % 2 == 0 else (2, 1)):
+            c0 = _cpu_s()
+            result, t = _run(folder, tmp / f"out-{workers}-{rep}", workers=workers)
+            times[workers].append(t)
+            cpu[workers].append(_cpu_s() - c0)
+            if workers == 1:
+                one = result
+    load1 = _load()
+    t1, t2 = statistics.median(times[1]), statistics.median(times[2])
+    c1, c2 = statistics.median(cpu[1]), statistics.median(cpu[2])
+    diff = _differences(_rows(tmp / "out-1-0"), _rows(tmp / "out-2-0"))
     ok = all(r["status"] == "ok" for r in one.rows)
     return ["| scaling | figure | goal | met |", "|---|---|---|---|",
             f"| {files} x {hours} h at {rate_hz} Hz (.cwa), 1 worker | {t1:.1f} s, "
-            f"{c1 - c0:.1f} CPU s (all ok: {ok}) | | |",
-            f"| the same, 2 workers | {t2:.1f} s = {t2 / t1:.2f}x, {c2 - c1:.1f} CPU s, "
+            f"{c1:.1f} CPU s (all ok: {ok}) | | |",
+            f"| the same, 2 workers | {t2:.1f} s = {t2 / t1:.2f}x, {c2:.1f} CPU s, "
             f"{len(diff)} cells differ | <= 0.6x | {'yes' if t2 <= 0.6 * t1 else 'no'} |",
-            f"| machine | {os.cpu_count()} cores; {load0} before, {load1} after | | |"]
+            f"| machine | {os.cpu_count()} cores; {load0} before, {load1} after; medians of "
+            f"{repeats} runs each, alternated | | |"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,13 +149,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--files", type=int, default=16)
     ap.add_argument("--hours", type=float, default=1.0)
     ap.add_argument("--rate", type=int, default=100)
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each worker count")
     ap.add_argument("--skip-scaling", action="store_true")
     a = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="recal-study-") as d:
         tmp = Path(d)
         print("\n".join(mixed(tmp)), flush=True)
         if not a.skip_scaling:
-            print("\n".join(scaling(tmp, a.files, a.hours, a.rate)), flush=True)
+            print("\n".join(scaling(tmp, a.files, a.hours, a.rate, a.repeats)), flush=True)
     return 0
 
 
