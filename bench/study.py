@@ -14,7 +14,8 @@ Goals:
 
 The files are synthetic (tests/device_writers.py: a simulated wearer, a sensor off by tens of
 mg), written to a temporary folder first (not timed). Times are wall-clock of the whole
-command's work (`run_study`), workers' start included.
+command's work (`run_study`), local workers' start included; the Dask LocalCluster is started
+before its run (a cluster is there before a study is sent to it).
 """
 
 from __future__ import annotations
