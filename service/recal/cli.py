@@ -203,6 +203,12 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
     from recal.config import load_model_file
     from recal.io.sources import open_recording
 
+    if Path(a.input).is_dir():
+        return _hindsight_folder(a)
+    folder_only = [f"--{k}" for k in ("samples", "workers", "scheduler", "verify")
+                   if getattr(a, k) not in (None, False)]
+    if folder_only:
+        raise UsageError(f"{', '.join(folder_only)}: for a folder input only")
     _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json, a.out)
     model = load_model_file(a.model)[0] if a.model else None
@@ -216,6 +222,25 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
         Path(a.json).write_text(json.dumps(summary, indent=2, default=str))
     print("\n".join(hf.summary_lines(summary)))
     return 0
+
+
+def _hindsight_folder(a: argparse.Namespace) -> int:
+    """`recal hindsight DIR --out OUTDIR` (`commands.study`): exit 0 when every recording was
+    calibrated, 1 when some failed."""
+    from recal.commands.study import run_study
+    from recal.commands.study.plan import options_for
+
+    file_only = [f"--{k}" for k in ("json", "overwrite") if getattr(a, k) not in (None, False)]
+    if file_only:
+        raise UsageError(f"{', '.join(file_only)}: for a file input only (a folder's results "
+                         "are OUTDIR/summary.csv and .json; done files are kept)")
+    if a.scheduler is not None and a.workers is not None:
+        raise UsageError("--workers is for local processes; a Dask cluster has its own")
+    if a.model is not None and not Path(a.model).is_file():
+        raise UsageError(f"--model {a.model}: no such file")
+    options = options_for(a.model, a.samples, a.sensor_id, a.rate, a.units)
+    return run_study(a.input, a.out, options, workers=a.workers, scheduler=a.scheduler,
+                     verify=a.verify, quiet=a.quiet).exit_code
 
 
 # --- replay / repair / run / demo / router ---------------------------------------------------

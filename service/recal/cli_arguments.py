@@ -156,9 +156,13 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                   "t_us,x_g,y_g,z_g,status,sigma_mg (CSV: the status of each sample, "
                   "calibrated or held, and its predicted error in mg). A device file (.cwa, "
                   ".bin, .gt3x) is read with true sample times and its device's metadata goes "
-                  "into the output and --json.",
+                  "into the output and --json. Given a folder, it calibrates every "
+                  "recording under it (one row per file in OUTDIR/summary.csv, failures as "
+                  "rows; a second run skips what is done) on local processes or a Dask "
+                  "cluster: docs/study.md.",
                   ("recal hindsight recordings/wearer-10min.mcap --out calibrated.mcap",
-                   "recal hindsight in.mcap --out out.csv --model model.json --json fit.json")),
+                   "recal hindsight in.mcap --out out.csv --model model.json --json fit.json",
+                   "recal hindsight study/ --out calibrated/ --workers 2")),
     "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
                  "effects (offsets, gains or ratiometric scaling that follow an auxiliary "
                  "channel such as temperature or supply; cross-axis terms; non-linearity; "
@@ -312,11 +316,15 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
     s.set_defaults(func=commands["discover"])
 
     s = _add_command(sub, "hindsight", "calibrate a recording on disk with hindsight: one fit "
-                       "on all of it, every sample corrected (as the batch tools do)")
+                       "on all of it, every sample corrected (as the batch tools do); or "
+                       "every recording under a folder")
     s.add_argument("input", help="recording (.mcap), device file (Axivity .cwa/.cwa.gz, "
                    "GENEActiv .bin, ActiGraph .gt3x) or CSV time series (t_us/t_ms/t_s, x, y, "
-                   "z, channels), recognised by content")
-    s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or FILE.csv")
+                   "z, channels), recognised by content; or a folder: every recording under "
+                   "it (a study)")
+    s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or "
+                   "FILE.csv; for a folder input, OUTDIR (each file's calibration at its "
+                   "relative path, summary.csv and summary.json)")
     s.add_argument("--model", help="model file (recal discover --write-model): fixes the model; "
                    "default: the effects recal discover selects on the same windows")
     s.add_argument("--sensor-id", help="which sensor of a recording (default: the only one)")
@@ -325,6 +333,14 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
     s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    s.add_argument("--samples", choices=("mcap", "csv"), help="folder: also write each file's "
+                   "calibrated samples (default: the calibrations alone)")
+    s.add_argument("--workers", type=int, metavar="N", help="folder: local worker processes "
+                   "(default: the cores, fewer if the memory cannot hold them)")
+    s.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="folder: run on this Dask "
+                   "cluster's workers instead (needs recal[cluster])")
+    s.add_argument("--verify", action="store_true", help="folder: a done file counts as done "
+                   "only if its SHA-256 is unchanged too (default: size and mtime)")
     s.set_defaults(func=commands["hindsight"])
 
     s = _add_command(sub, "import", "CSV (t_us, t_ms or t_s, x, y, z, aux...) or device file "

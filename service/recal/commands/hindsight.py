@@ -76,12 +76,14 @@ def fit_recording(src: Source, model: SensorModel | None = None,
 
 
 def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
-                   overwrite: bool = False, progress: Callable[[int], None] | None = None
-                   ) -> dict[str, Any]:
-    """Fit ``model`` to the source with hindsight (`fit_recording`) and write every sample
-    corrected. Returns the summary (`summary_lines`)."""
+                   overwrite: bool = False, progress: Callable[[int], None] | None = None,
+                   fitted: Fitted | None = None) -> dict[str, Any]:
+    """Fit ``model`` to the source with hindsight (`fit_recording`; or take ``fitted``, its
+    result on this source) and write every sample corrected. Returns the summary
+    (`summary_lines`)."""
     t0 = time.perf_counter()
-    fitted = fit_recording(src, model, progress)
+    if fitted is None:
+        fitted = fit_recording(src, model, progress)
     corrected = Corrected(fitted.fit, fitted.cfg)
     if Path(out).suffix.lower() == ".csv":
         samples = _write_csv(src, corrected, out, progress)
