@@ -35,6 +35,7 @@ __all__ = [
     "data_from_windows",
     "rate_and_scale",
     "scorable",
+    "thinned",
     "time_blocks",
     "usable_channels",
 ]
@@ -82,6 +83,15 @@ class DiscoveryData:
         w = self.windows
         win = Windows(w.v[mask], w.aux[mask], w.t_us[mask], w.n[mask], w.var[mask])
         return replace(self, windows=win, cov=self.cov[mask])
+
+
+def thinned(data: DiscoveryData, most: int) -> DiscoveryData:
+    """At most ``most`` of the windows: every k-th in time order, k the least that fits, so
+    they still cover the recording's time, poses and covariates as the whole does."""
+    step = -(-len(data) // max(1, most))
+    if step <= 1:
+        return data
+    return data.subset(np.arange(0, len(data), step))
 
 
 def _norms(v: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ import numpy as np
 from recal.errors import DeviceFileError
 from recal.io.device_files import block_times as bt
 from recal.io.device_files import guard, registry
-from recal.io.device_files.parsed import Parsed
+from recal.io.device_files.parsed import LowRate, Parsed
 from recal.samples import REBATCH_SAMPLES, RawBatch
 
 __all__ = ["DeviceRecording", "is_device_file", "open_device"]
@@ -54,6 +54,8 @@ class DeviceRecording:
             raise DeviceFileError(f"{path}: {kind.name} with times outside 1970-2200: "
                                   "refused (a damaged or crafted file)")
         self.rate_hz = 1e9 / self._blocks.measured_period_ns
+        self._increasing = {id(lr.t_ns): bool(np.all(np.diff(lr.t_ns) > 0))
+                            for lr in parsed.low_rate}
         self.aux_names = tuple([lr.name for lr in parsed.low_rate] + list(parsed.per_sample))
         self.skipped = {**parsed.skipped, "gaps": self._blocks.gaps,
                         "clock_changes": self._blocks.clock_changes}
@@ -78,11 +80,34 @@ class DeviceRecording:
     def _batch(self, lo: int, hi: int) -> RawBatch:
         p = self._p
         t_us = (self._blocks.times_ns(lo, hi) - self._shift_ns) // 1000
-        file_t = p.file_t_ns[lo:hi].astype(np.float64)
-        cols = [np.interp(file_t, lr.t_ns.astype(np.float64), lr.values) for lr in p.low_rate]
+        cols = _interp_low_rate(p.file_t_ns[lo:hi], p.low_rate, self._increasing)
         cols += [a[lo:hi] for a in p.per_sample.values()]
         aux = np.column_stack(cols) if cols else np.zeros((hi - lo, 0))
         return RawBatch(t_us, p.v_g[lo:hi].astype(np.float64), aux, self.aux_names)
+
+
+def _interp_low_rate(t_ns: np.ndarray, low: list[LowRate],
+                     increasing: dict[int, bool]) -> list[np.ndarray]:
+    """Each low-rate channel linearly interpolated to the samples' stamps t_ns, held at its
+    first and last values outside its stamps (as np.interp). The channels of a table share
+    their stamps (an Axivity sector's temperature, battery and light): one search per sample
+    for all of them, not one per channel. Stamps that do not rise strictly (``increasing``
+    by id: a clock set back) go to np.interp as they are."""
+    out: list[np.ndarray] = []
+    x = t_ns.astype(np.float64)
+    shared: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # stamps, index, weight
+    for lr in low:
+        if len(lr.t_ns) < 2 or not increasing.get(id(lr.t_ns), False):
+            out.append(np.interp(x, lr.t_ns.astype(np.float64), lr.values))
+            continue
+        if shared is None or shared[0] is not lr.t_ns:
+            xp = lr.t_ns.astype(np.float64)
+            j = np.clip(np.searchsorted(xp, x, side="right") - 1, 0, len(xp) - 2)
+            shared = (lr.t_ns, j, np.clip((x - xp[j]) / (xp[j + 1] - xp[j]), 0.0, 1.0))
+        _, j, w = shared
+        fp = np.asarray(lr.values, np.float64)
+        out.append(fp[j] + w * (fp[j + 1] - fp[j]))
+    return out
 
 
 def _sensor_id(text: str) -> str:
