@@ -103,7 +103,8 @@ def calibrate_file(src: Source, out: str | Path | None, model: SensorModel | Non
     else:
         samples = _write_mcap(src, corrected, out, overwrite, progress)
     seconds = time.perf_counter() - t0
-    return {"in": src.name, "out": None if out is None else str(out), "sensor_id": src.sensor_id, "samples": samples,
+    return {"in": src.name, "out": None if out is None else str(out),
+            "sensor_id": src.sensor_id, "samples": samples,
             "seconds": seconds, "samples_per_s": samples / seconds if seconds > 0 else None,
             "rate_hz": fitted.rate_hz, **fit_summary(fitted.fit),
             "discovery": discovery_summary(fitted.found),

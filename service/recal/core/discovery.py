@@ -60,6 +60,7 @@ from recal.core.candidates import KIND_ORDER, smaller_models
 from recal.core.candidates import candidates as proposed_on
 from recal.core.discovery_criterion import explained_mg, noise_mg, paired_gain
 from recal.core.discovery_data import (
+    MAX_WINDOWS,
     DiscoveryData,
     data_from_windows,
     scorable,
@@ -90,7 +91,6 @@ from recal.core.time_step import TimeStep, best_step, in_sample_ss
 from recal.errors import ConfigError, InputError
 
 __all__ = [
-    "MAX_WINDOWS",
     "CandidateScore",
     "DiscoveryConfig",
     "DiscoveryResult",
@@ -102,11 +102,6 @@ __all__ = [
     "n_se_for",
     "noise_mg",
 ]
-
-#: Most windows the selection runs on (`DiscoveryConfig.max_windows`): a day of wear has tens
-#: of thousands; of 4096 spread over the recording, each of 10 held-out blocks keeps about
-#: 400, whose mean leaves a window's noise (about 0.3 mg) at about 0.015 mg.
-MAX_WINDOWS = 4096
 
 
 @dataclass(frozen=True)
@@ -140,8 +135,7 @@ class DiscoveryConfig:
         kinds: candidate kinds to try (any of `candidates.KIND_ORDER`: offset, gain,
             ratiometric, cross_axis, nonlinearity); `time` whether to try effects in time.
         max_windows: the selection runs on at most this many windows, every k-th in time
-            order (`discovery_data.thinned`: a week of wear has a quarter of a million; its
-            cost grows with them, its power for an effect above a window's noise does not).
+            (`discovery_data.thinned`, `discovery_data.MAX_WINDOWS`).
     """
 
     blocks: int = 10

@@ -25,6 +25,7 @@ from recal.samples import RawBatch, rebatch
 
 __all__ = [
     "COVERAGE_LEVEL_G",
+    "MAX_WINDOWS",
     "SCORE_COVERAGE_G",
     "DiscoveryData",
     "centred_data",
@@ -45,6 +46,11 @@ COVERAGE_LEVEL_G = 0.3
 #: For held-out scoring an axis counts as covered by the training blocks only beyond this on
 #: both sides: one pose just past 0.3 g leaves the gain barely determined.
 SCORE_COVERAGE_G = 0.5
+#: Most windows discovery's selection runs on (`thinned`): a week of wear has a quarter of a
+#: million, and the selection's cost grows with them while its power for an effect above a
+#: window's noise hardly does: of 4096 spread over the recording, each of 10 held-out blocks
+#: keeps about 400, whose mean leaves a window's noise (about 0.3 mg) at about 0.015 mg.
+MAX_WINDOWS = 4096
 
 
 @dataclass(frozen=True, eq=False)
