@@ -54,8 +54,9 @@ class DeviceRecording:
             raise DeviceFileError(f"{path}: {kind.name} with times outside 1970-2200: "
                                   "refused (a damaged or crafted file)")
         self.rate_hz = 1e9 / self._blocks.measured_period_ns
-        self._increasing = {id(lr.t_ns): bool(np.all(np.diff(lr.t_ns) > 0))
-                            for lr in parsed.low_rate}
+        self._stamps = {id(lr.t_ns): (lr.t_ns.astype(np.float64)
+                                      if np.all(np.diff(lr.t_ns) > 0) else None)
+                        for lr in parsed.low_rate}
         self.aux_names = tuple([lr.name for lr in parsed.low_rate] + list(parsed.per_sample))
         self.skipped = {**parsed.skipped, "gaps": self._blocks.gaps,
                         "clock_changes": self._blocks.clock_changes}
@@ -80,33 +81,28 @@ class DeviceRecording:
     def _batch(self, lo: int, hi: int) -> RawBatch:
         p = self._p
         t_us = (self._blocks.times_ns(lo, hi) - self._shift_ns) // 1000
-        cols = _interp_low_rate(p.file_t_ns[lo:hi], p.low_rate, self._increasing)
+        cols = _interp_low_rate(p.file_t_ns[lo:hi], p.low_rate, self._stamps)
         cols += [a[lo:hi] for a in p.per_sample.values()]
         aux = np.column_stack(cols) if cols else np.zeros((hi - lo, 0))
         return RawBatch(t_us, p.v_g[lo:hi].astype(np.float64), aux, self.aux_names)
 
 
 def _interp_low_rate(t_ns: np.ndarray, low: list[LowRate],
-                     increasing: dict[int, bool]) -> list[np.ndarray]:
-    """Each low-rate channel linearly interpolated to the samples' stamps t_ns, held at its
-    first and last values outside its stamps (as np.interp). The channels of a table share
-    their stamps (an Axivity sector's temperature, battery and light): one search per sample
-    for all of them, not one per channel. Stamps that do not rise strictly (``increasing``
-    by id: a clock set back) go to np.interp as they are."""
-    out: list[np.ndarray] = []
+                     stamps: dict[int, np.ndarray | None]) -> list[np.ndarray]:
+    """Each low-rate channel at the samples' stamps t_ns, by np.interp, against only the
+    stamps around the batch where they rise strictly (``stamps``: each table's stamps in
+    float64, made once per file, by id; None where they do not rise: a clock set back, all of
+    them): the same values, without converting and searching a week's stamps per batch."""
     x = t_ns.astype(np.float64)
-    shared: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # stamps, index, weight
+    out: list[np.ndarray] = []
     for lr in low:
-        if len(lr.t_ns) < 2 or not increasing.get(id(lr.t_ns), False):
+        xp = stamps.get(id(lr.t_ns))
+        if xp is None:
             out.append(np.interp(x, lr.t_ns.astype(np.float64), lr.values))
             continue
-        if shared is None or shared[0] is not lr.t_ns:
-            xp = lr.t_ns.astype(np.float64)
-            j = np.clip(np.searchsorted(xp, x, side="right") - 1, 0, len(xp) - 2)
-            shared = (lr.t_ns, j, np.clip((x - xp[j]) / (xp[j + 1] - xp[j]), 0.0, 1.0))
-        _, j, w = shared
-        fp = np.asarray(lr.values, np.float64)
-        out.append(fp[j] + w * (fp[j + 1] - fp[j]))
+        a = max(0, int(np.searchsorted(xp, x.min(), side="right")) - 1)
+        b = min(len(xp), int(np.searchsorted(xp, x.max(), side="left")) + 1)
+        out.append(np.interp(x, xp[a:b], lr.values[a:b]))
     return out
 
 
