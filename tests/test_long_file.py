@@ -17,8 +17,6 @@ from recal.core import discovery as dc
 from recal.core import discovery_data as dd
 from recal.core.buffer import Windows
 from recal.io.device_files import open_device
-from recal.io.device_files.parsed import LowRate
-from recal.io.device_files.recording import _interp_low_rate
 from recal.samples import RawBatch
 
 
@@ -97,8 +95,8 @@ def test_discovery_selects_on_at_most_max_windows() -> None:
 def test_device_batches_are_the_same_in_any_size_and_interpolate_as_numpy(written,
                                                                           size: int) -> None:
     """Times: each sample's block found by position, not searched, gives what the search
-    gives; low-rate channels against only the stamps around each batch give np.interp's
-    values against all of them, to the bit."""
+    gives; low-rate channels (their stamps converted once per file) are np.interp's values,
+    to the bit."""
     rec = open_device(written.path)
     whole = next(rec.batches(len(rec)))
     if size < 100:  # the first thousands of samples: enough boundaries, few batches
@@ -119,19 +117,3 @@ def test_device_batches_are_the_same_in_any_size_and_interpolate_as_numpy(writte
     for k, lr in enumerate(rec._p.low_rate):
         ref = np.interp(file_t, lr.t_ns.astype(np.float64), lr.values)
         assert np.array_equal(got.aux[:, k], ref), lr.name
-
-
-@pytest.mark.parametrize("x", [[-5, 0, 5, 12, 18, 25, 40], [-9, -5], [31, 50], [12, 3, 25]])
-def test_low_rate_channels_are_numpys_interpolation_around_the_batch(x: list[int]) -> None:
-    """Before, after, across and out of order: the same values as np.interp on all stamps;
-    stamps that go back (a clock set back) are left to np.interp whole."""
-    xs = np.array(x, np.int64)
-    back = np.array([0, 10, 20, 15, 30], np.int64)
-    rises = np.array([0, 10, 20, 30, 40, 50], np.int64)
-    lows = [LowRate("temperature", back, np.array([1.0, 2.0, 4.0, 3.0, 5.0])),
-            LowRate("light", rises, np.array([1.0, 2.0, 4.0, 8.0, 16.0, 0.5])),
-            LowRate("battery", rises, np.array([3.0, 3.1, 3.3, 3.2, 3.1, 3.0]))]
-    stamps = {id(back): None, id(rises): rises.astype(np.float64)}
-    for lr, got in zip(lows, _interp_low_rate(xs, lows, stamps), strict=True):
-        ref = np.interp(xs.astype(float), lr.t_ns.astype(float), lr.values)
-        assert np.array_equal(got, ref), lr.name

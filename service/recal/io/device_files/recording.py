@@ -54,9 +54,7 @@ class DeviceRecording:
             raise DeviceFileError(f"{path}: {kind.name} with times outside 1970-2200: "
                                   "refused (a damaged or crafted file)")
         self.rate_hz = 1e9 / self._blocks.measured_period_ns
-        self._stamps = {id(lr.t_ns): (lr.t_ns.astype(np.float64)
-                                      if np.all(np.diff(lr.t_ns) > 0) else None)
-                        for lr in parsed.low_rate}
+        self._stamps = {id(lr.t_ns): lr.t_ns.astype(np.float64) for lr in parsed.low_rate}
         self.aux_names = tuple([lr.name for lr in parsed.low_rate] + list(parsed.per_sample))
         self.skipped = {**parsed.skipped, "gaps": self._blocks.gaps,
                         "clock_changes": self._blocks.clock_changes}
@@ -88,22 +86,12 @@ class DeviceRecording:
 
 
 def _interp_low_rate(t_ns: np.ndarray, low: list[LowRate],
-                     stamps: dict[int, np.ndarray | None]) -> list[np.ndarray]:
-    """Each low-rate channel at the samples' stamps t_ns, by np.interp, against only the
-    stamps around the batch where they rise strictly (``stamps``: each table's stamps in
-    float64, made once per file, by id; None where they do not rise: a clock set back, all of
-    them): the same values, without converting and searching a week's stamps per batch."""
+                     stamps: dict[int, np.ndarray]) -> list[np.ndarray]:
+    """Each low-rate channel at the samples' stamps t_ns, by np.interp; ``stamps``: each
+    table's stamps in float64 by id, converted once per file (not a week's stamps per batch
+    and channel)."""
     x = t_ns.astype(np.float64)
-    out: list[np.ndarray] = []
-    for lr in low:
-        xp = stamps.get(id(lr.t_ns))
-        if xp is None:
-            out.append(np.interp(x, lr.t_ns.astype(np.float64), lr.values))
-            continue
-        a = max(0, int(np.searchsorted(xp, x.min(), side="right")) - 1)
-        b = min(len(xp), int(np.searchsorted(xp, x.max(), side="left")) + 1)
-        out.append(np.interp(x, xp[a:b], lr.values[a:b]))
-    return out
+    return [np.interp(x, stamps[id(lr.t_ns)], lr.values) for lr in low]
 
 
 def _sensor_id(text: str) -> str:
