@@ -209,13 +209,19 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
                    if getattr(a, k) not in (None, False)]
     if folder_only:
         raise UsageError(f"{', '.join(folder_only)}: for a folder input only")
-    _new_output(a.out, a.overwrite, a.input)
+    if a.out is None and a.json is None:
+        raise UsageError("hindsight writes --out (every sample calibrated), --json (the "
+                         "calibration alone) or both: give at least one")
+    if a.out is not None:
+        _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json, a.out)
     model = load_model_file(a.model)[0] if a.model else None
     src = open_recording(a.input, a.sensor_id, a.rate, a.units)
-    # three passes over the input (module doc of recal.commands.hindsight): samples read, in all
-    total = 3 * len(src.device) if src.device is not None else None
-    with tqdm(unit="sample", unit_scale=True, desc="hindsight (3 passes)", leave=False,
+    # passes over the input (module doc of recal.commands.hindsight; a device file's reader
+    # gives the rate, so no first pass): samples read, in all
+    passes = (3 if a.out is not None else 2) - (src.device is not None)
+    total = passes * len(src.device) if src.device is not None else None
+    with tqdm(unit="sample", unit_scale=True, desc=f"hindsight ({passes} passes)", leave=False,
               disable=a.quiet or None, total=total) as bar:
         summary = hf.calibrate_file(src, a.out, model, a.overwrite, bar.update)
     if a.json:
@@ -234,6 +240,9 @@ def _hindsight_folder(a: argparse.Namespace) -> int:
     if file_only:
         raise UsageError(f"{', '.join(file_only)}: for a file input only (a folder's results "
                          "are OUTDIR/summary.csv and .json; done files are kept)")
+    if a.out is None:
+        raise UsageError("a folder input needs --out OUTDIR (each file's calibration and "
+                         "summary.csv go there)")
     if a.scheduler is not None and a.workers is not None:
         raise UsageError("--workers is for local processes; a Dask cluster has its own")
     if a.model is not None and not Path(a.model).is_file():

@@ -156,12 +156,14 @@ _ABOUT: dict[str, tuple[str, tuple[str, ...]]] = {
                   "t_us,x_g,y_g,z_g,status,sigma_mg (CSV: the status of each sample, "
                   "calibrated or held, and its predicted error in mg). A device file (.cwa, "
                   ".bin, .gt3x) is read with true sample times and its device's metadata goes "
-                  "into the output and --json. Given a folder, it calibrates every "
-                  "recording under it (one row per file in OUTDIR/summary.csv, failures as "
-                  "rows; a second run skips what is done) on local processes or a Dask "
-                  "cluster: docs/study.md.",
+                  "into the output and --json. With --json and no --out it writes the "
+                  "calibration alone (no pass over the samples to correct them). Given a "
+                  "folder, it calibrates every recording under it (one row per file in "
+                  "OUTDIR/summary.csv, failures as rows; a second run skips what is done) on "
+                  "local processes or a Dask cluster: docs/study.md.",
                   ("recal hindsight recordings/wearer-10min.mcap --out calibrated.mcap",
                    "recal hindsight in.mcap --out out.csv --model model.json --json fit.json",
+                   "recal hindsight week.cwa --json fit.json",
                    "recal hindsight study/ --out calibrated/ --workers 2")),
     "discover": ("Fits the model, looks at what it leaves in the residual, scores candidate "
                  "effects (offsets, gains or ratiometric scaling that follow an auxiliary "
@@ -322,13 +324,15 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
                    "GENEActiv .bin, ActiGraph .gt3x) or CSV time series (t_us/t_ms/t_s, x, y, "
                    "z, channels), recognised by content; or a folder: every recording under "
                    "it (a study)")
-    s.add_argument("--out", required=True, help="FILE.mcap (raw, calibrated, the fit) or "
-                   "FILE.csv; for a folder input, OUTDIR (each file's calibration at its "
-                   "relative path, summary.csv and summary.json)")
+    s.add_argument("--out", help="FILE.mcap (raw, calibrated, the fit) or FILE.csv; without "
+                   "it, only the calibration is written (--json) and no sample is; for a "
+                   "folder input, OUTDIR (each file's calibration at its relative path, "
+                   "summary.csv and summary.json)")
     s.add_argument("--model", help="model file (recal discover --write-model): fixes the model; "
                    "default: the effects recal discover selects on the same windows")
     s.add_argument("--sensor-id", help="which sensor of a recording (default: the only one)")
-    s.add_argument("--json", help="write the fit (parameters, sd, held, windows, discovery) here")
+    s.add_argument("--json", help="write the fit (parameters, sd, held, windows, discovery) here "
+                   "(--out, --json or both)")
     s.add_argument("--rate", type=float, help="sample rate of a CSV without a time column")
     s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
     s.add_argument("--quiet", action="store_true", help="no progress bar")

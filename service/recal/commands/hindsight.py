@@ -13,6 +13,8 @@ windows, about 100 bytes each, not for its samples):
 3. every sample corrected with that fit and written out: an MCAP gets the raw topic copied as
    logged, a calibrated topic (with the detector's gate and output per sample, as the live
    node writes them) and the fit as a calibration message; a CSV gets t_us, x_g, y_g, z_g.
+   Without an output file (``out=None``: the calibration alone, `recal hindsight --json`)
+   this pass is not made.
 """
 
 from __future__ import annotations
@@ -45,13 +47,15 @@ __all__ = ["Corrected", "Fitted", "calibrate_file", "fit_recording", "summary_li
 @dataclass(frozen=True)
 class Fitted:
     """Passes 1 and 2 of a recording: the fit, what discovery chose (None: the model was
-    given; a string: why it could not run), the settings the windows were found with."""
+    given; a string: why it could not run), the settings the windows were found with, and
+    the samples the windows were found in."""
 
     fit: hindsight.HindsightFit
     found: DiscoveryResult | str | None
     cfg: PipelineConfig
     rate_hz: float
     seconds: float
+    samples: int = 0
 
 
 def fit_recording(src: Source, model: SensorModel | None = None,
@@ -64,37 +68,50 @@ def fit_recording(src: Source, model: SensorModel | None = None,
     rate_hz, median_norm = _rate_and_scale(src, progress)
     cfg = PipelineConfig(rate_hz=rate_hz)
 
+    read = [0]  # samples of the last pass over the input
+
+    def count(n: int) -> None:
+        read[0] += n
+        if progress is not None:
+            progress(n)
+
     def batches() -> Iterator[RawBatch]:
-        return _counted(src.batches(), progress)
+        read[0] = 0
+        return _counted(src.batches(), count)
 
     found: DiscoveryResult | str | None = None
     if model is None:
         fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg)
     else:
         fit = hindsight.calibrate(batches, model, cfg)
-    return Fitted(fit, found, cfg, rate_hz, time.perf_counter() - t0)
+    return Fitted(fit, found, cfg, rate_hz, time.perf_counter() - t0, read[0])
 
 
-def calibrate_file(src: Source, out: str | Path, model: SensorModel | None = None,
+def calibrate_file(src: Source, out: str | Path | None, model: SensorModel | None = None,
                    overwrite: bool = False, progress: Callable[[int], None] | None = None,
                    fitted: Fitted | None = None) -> dict[str, Any]:
     """Fit ``model`` to the source with hindsight (`fit_recording`; or take ``fitted``, its
-    result on this source) and write every sample corrected. Returns the summary
+    result on this source) and write every sample corrected into ``out`` (None: the
+    calibration alone, no third pass). Returns the summary
     (`summary_lines`)."""
     t0 = time.perf_counter()
     if fitted is None:
         fitted = fit_recording(src, model, progress)
     corrected = Corrected(fitted.fit, fitted.cfg)
-    if Path(out).suffix.lower() == ".csv":
+    if out is None:
+        samples = fitted.samples
+    elif Path(out).suffix.lower() == ".csv":
         samples = _write_csv(src, corrected, out, progress)
     else:
         samples = _write_mcap(src, corrected, out, overwrite, progress)
     seconds = time.perf_counter() - t0
-    return {"in": src.name, "out": str(out), "sensor_id": src.sensor_id, "samples": samples,
+    return {"in": src.name, "out": None if out is None else str(out),
+            "sensor_id": src.sensor_id, "samples": samples,
             "seconds": seconds, "samples_per_s": samples / seconds if seconds > 0 else None,
             "rate_hz": fitted.rate_hz, **fit_summary(fitted.fit),
             "discovery": discovery_summary(fitted.found),
-            "samples_suspect": corrected.samples_suspect,
+            # pass 3 marks them: unknown when it is not made
+            "samples_suspect": corrected.samples_suspect if out is not None else None,
             **({"device": src.metadata, "device_notes": src.notes} if src.device else {})}
 
 
@@ -162,10 +179,12 @@ def fit_summary(fit: hindsight.HindsightFit) -> dict[str, Any]:
 
 def summary_lines(s: dict[str, Any]) -> list[str]:
     """`recal hindsight`'s report for a person (--json has it all)."""
-    lines = [f"calibrated {s['samples']} samples of {s['sensor_id']} with hindsight in "
-             f"{s['seconds']:.2f} s into {s['out']}: one fit on {s['windows']} quasi-static "
-             f"windows ({s['windows_dropped']} dropped as movement), residual "
-             f"{s['residual_rms_mg']:.2f} mg"]
+    into = (f"into {s['out']}" if s.get("out") is not None
+            else "(the calibration alone: no samples written)")
+    lines = [f"{'calibrated' if s.get('out') is not None else 'fitted'} {s['samples']} samples "
+             f"of {s['sensor_id']} with hindsight in {s['seconds']:.2f} s {into}: one fit on "
+             f"{s['windows']} quasi-static windows ({s['windows_dropped']} dropped as "
+             f"movement), residual {s['residual_rms_mg']:.2f} mg"]
     if "device" in s:
         lines += source_lines(Source(s["in"], s["sensor_id"], list, kind="device",
                                      metadata=s["device"], notes=s["device_notes"]))
@@ -185,9 +204,10 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
     mis = s.get("misfit")
     if mis and mis["well_above_noise"]:
         suspect = s.get("samples_suspect", 0)
+        where = (f"{suspect} samples where it exceeds" if suspect is not None
+                 else "the samples where it exceeds")
         lines.append(
-            f"  poor fit: it {misfit_words(mis)}. sigma carries it; {suspect} samples where "
-            "it exceeds "
+            f"  poor fit: it {misfit_words(mis)}. sigma carries it; {where} "
             f"{1e3 * hindsight.SUSPECT_EXCESS_G:g} mg are marked suspect. "
             + (f"No candidate effect explained it: `recal discover {s['in']} --json` lists "
                "how close each came" if "heldout_error_mg" in (s.get("discovery") or {}) else

@@ -61,9 +61,11 @@ from recal.core.candidates import KIND_ORDER, smaller_models
 from recal.core.candidates import candidates as proposed_on
 from recal.core.discovery_criterion import explained_mg, noise_mg, paired_gain
 from recal.core.discovery_data import (
+    MAX_WINDOWS,
     DiscoveryData,
     data_from_windows,
     scorable,
+    thinned,
     time_blocks,
 )
 from recal.core.effects import Effect, Scale
@@ -133,6 +135,8 @@ class DiscoveryConfig:
             deviation is below this fraction of its prior one (as the live estimator).
         kinds: candidate kinds to try (any of `candidates.KIND_ORDER`: offset, gain,
             ratiometric, cross_axis, nonlinearity); `time` whether to try effects in time.
+        max_windows: the selection runs on at most this many windows, every k-th in time
+            (`discovery_data.thinned`, `discovery_data.MAX_WINDOWS`).
     """
 
     blocks: int = 10
@@ -151,6 +155,7 @@ class DiscoveryConfig:
     observable_ratio: float = 0.5
     kinds: tuple[str, ...] = KIND_ORDER
     time: bool = True
+    max_windows: int = MAX_WINDOWS
 
     def __post_init__(self) -> None:
         if self.blocks < 3:
@@ -534,7 +539,10 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
 
     model: the current model (default: Lötters' diagonal one at the data's s0); p: its
     current values (default: an ellipsoid / sphere fit, or nominal for too few poses).
+    More than cfg.max_windows windows: the selection runs on that many (`thinned`; at least
+    three a block).
     """
+    data = thinned(data, max(cfg.max_windows, 3 * cfg.blocks))
     n_blocks = min(cfg.blocks, len(data))
     if n_blocks < 3:
         raise InputError(f"{len(data)} windows are too few for held-out scoring (need 3)")

@@ -52,9 +52,14 @@ class BlockTimes:
 
     def times_ns(self, lo: int, hi: int) -> np.ndarray:
         """The true times (ns) of samples lo..hi-1."""
-        j = np.arange(lo, hi, dtype=np.int64)
-        b = np.searchsorted(self.start, j, side="right") - 1
-        k = (j - self.start[b]).astype(np.float64)
+        if hi <= lo:
+            return np.zeros(0, np.int64)
+        # the blocks of lo..hi-1 are consecutive: each repeated over its samples in the range
+        # (no search per sample)
+        b0, b1 = np.searchsorted(self.start, [lo, hi - 1], side="right") - 1
+        edges = np.clip(np.append(self.start[b0 + 1:b1 + 1], hi), lo, hi)
+        b = np.repeat(np.arange(b0, b1 + 1), np.diff(np.append(lo, edges)))
+        k = (np.arange(lo, hi, dtype=np.int64) - self.start[b]).astype(np.float64)
         return self.anchor_ns[b] + np.rint(k * self.period_ns[b]).astype(np.int64)
 
 
