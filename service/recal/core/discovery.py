@@ -31,11 +31,11 @@ the rows of a static table, `discover`:
    freedom, 2.26 for 10 blocks) and `min_gain` (5 %); and what it explains, in mg, must exceed
    the noise of a window mean (`noise_mg`; times sqrt(2) for a pair: each of its effects must
    explain as much): below that the folds' own scatter reaches it, and an effect that small
-   moves no output the user sees. Of the
-   candidates that pass, the largest R wins, unless a simpler one passes too (fewer directions
-   the data determine, then KIND_ORDER) and the winner does not beat it by the same criterion.
-   When no candidate passes alone, pairs of the candidates the score test ranks highest are
-   tried (two effects whose channels drift together can each fail alone);
+   moves no output the user sees. Of the candidates that pass, the largest R wins, unless a
+   simpler one passes too (fewer directions the data determine, then KIND_ORDER) and the winner
+   does not beat it by the same criterion. When no candidate passes alone, pairs of those the
+   score test ranks highest are tried (two effects whose channels drift together can each
+   fail alone);
 6. adds the winner, then removes an earlier addition that no longer passes the same test
    against the model without it (or reduces a ratiometric effect with a reference to one
    channel), and repeats until nothing passes. Last, a step in time of the model given
@@ -45,8 +45,7 @@ the rows of a static table, `discover`:
 
 The result carries the extended model with its fitted values and a `Prior` (the fitted values,
 the model's default spreads) for the live estimator to start from. Why held-out blocks and this
-criterion: docs/design.md ("Effect discovery"); what it finds on measured data:
-docs/performance.md.
+criterion: docs/design.md ("Effect discovery"); what it finds: docs/performance.md.
 """
 
 from __future__ import annotations
@@ -135,8 +134,7 @@ class DiscoveryConfig:
             deviation is below this fraction of its prior one (as the live estimator).
         kinds: candidate kinds to try (any of `candidates.KIND_ORDER`: offset, gain,
             ratiometric, cross_axis, nonlinearity); `time` whether to try effects in time.
-        max_windows: the selection runs on at most this many windows, every k-th in time
-            (`discovery_data.thinned`, `discovery_data.MAX_WINDOWS`).
+        max_windows: the selection runs on at most this many windows (`thinned`).
     """
 
     blocks: int = 10
@@ -372,8 +370,7 @@ class _Search:
     base: SensorModel
     current: Scored
     scored: np.ndarray
-    #: the given model's own starts (per fold, from those blocks alone; on all windows)
-    starts: tuple[tuple[np.ndarray, ...], np.ndarray]
+    starts: tuple[tuple[np.ndarray, ...], np.ndarray]  # the given model's, fold by fold; all
     noise_mg: float = 0.0
 
     @property
@@ -397,9 +394,8 @@ class _Search:
 
     def rescore(self, model: SensorModel) -> Scored:
         """`model` scored from the given model's own starts (a fold's from its training blocks
-        alone), its other effects at nominal, as the given model is: never from another
-        model's fit, which as a start is also the prior's mean (a smaller model's fold gone
-        astray held every larger one there). A score is the model's, not the route's."""
+        alone), other effects at nominal: never from another model's fit, also the prior's
+        mean (a smaller model's fold gone astray held every larger one there)."""
         fresh, fresh_all = self.starts
         return score_heldout(model, self.data, self.blocks,
                              [carry_params(self.base, s, model) for s in fresh],
@@ -539,8 +535,7 @@ def discover(data: DiscoveryData, model: SensorModel | None = None,
 
     model: the current model (default: Lötters' diagonal one at the data's s0); p: its
     current values (default: an ellipsoid / sphere fit, or nominal for too few poses).
-    More than cfg.max_windows windows: the selection runs on that many (`thinned`; at least
-    three a block).
+    The selection runs on at most cfg.max_windows windows, every k-th (`thinned`).
     """
     data = thinned(data, max(cfg.max_windows, 3 * cfg.blocks))
     n_blocks = min(cfg.blocks, len(data))
