@@ -54,13 +54,18 @@ class BlockTimes:
         """The true times (ns) of samples lo..hi-1."""
         if hi <= lo:
             return np.zeros(0, np.int64)
-        # the blocks of lo..hi-1 are consecutive: each repeated over its samples in the range
-        # (no search per sample)
+        # the blocks of lo..hi-1 are consecutive: each block's values repeated over its
+        # samples in the range (no search per sample, no gather), worked in place
         b0, b1 = np.searchsorted(self.start, [lo, hi - 1], side="right") - 1
         edges = np.clip(np.append(self.start[b0 + 1:b1 + 1], hi), lo, hi)
-        b = np.repeat(np.arange(b0, b1 + 1), np.diff(np.append(lo, edges)))
-        k = (np.arange(lo, hi, dtype=np.int64) - self.start[b]).astype(np.float64)
-        return self.anchor_ns[b] + np.rint(k * self.period_ns[b]).astype(np.int64)
+        reps = np.diff(np.append(lo, edges))
+        k = np.arange(lo, hi, dtype=np.int64)
+        k -= np.repeat(self.start[b0:b1 + 1], reps)
+        dt = k.astype(np.float64)
+        dt *= np.repeat(self.period_ns[b0:b1 + 1], reps)
+        t = np.rint(dt, out=dt).astype(np.int64)
+        t += np.repeat(self.anchor_ns[b0:b1 + 1], reps)
+        return t
 
 
 def block_starts(file_t_ns: np.ndarray, nominal_period_ns: float,
