@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from recal.commands.discover import misfit_dict, misfit_words, step_in_time_dict
 from recal.core import detector as det
@@ -80,10 +81,13 @@ def fit_recording(src: Source, model: SensorModel | None = None,
         return _counted(src.batches(), count)
 
     found: DiscoveryResult | str | None = None
-    if model is None:
-        fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg)
-    else:
-        fit = hindsight.calibrate(batches, model, cfg)
+    # one BLAS thread: the fits solve hundreds of small least-squares problems, for which
+    # OpenBLAS's threads cost more CPU (and here wall) time than they save
+    with threadpool_limits(1, user_api="blas"):
+        if model is None:
+            fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg)
+        else:
+            fit = hindsight.calibrate(batches, model, cfg)
     return Fitted(fit, found, cfg, rate_hz, time.perf_counter() - t0, read[0])
 
 
