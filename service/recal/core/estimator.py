@@ -408,7 +408,8 @@ def _start(model: SensorModel, prior: Prior, start: Estimate, windows: Windows,
 
 def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Windows,
            cov: Covariates, now_us: int, cfg: EstimatorConfig,
-           free: np.ndarray | None = None) -> tuple[Estimate, UpdateReport]:
+           free: np.ndarray | None = None, posture_misfit: bool = True
+           ) -> tuple[Estimate, UpdateReport]:
     """One gated in-use update: the buffer's windows, from the previous estimate.
 
     Args:
@@ -417,6 +418,9 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
         windows: every window the buffer holds; cov: their covariates.
         free: parameters allowed to move at all; the data (see `_informed`) and the mode narrow
             it further.
+        posture_misfit: the jump test allows for what the model misses at a posture
+            (`_posture_misfit_g2`); False: it does not (the self-watch asks, after a first jump,
+            whether the sensor jumps again: a swapped one's misfit is no allowance).
     Returns the estimate to use next (the previous one if the update was rejected) and a report.
     """
     n = int(windows.merged.sum())
@@ -427,7 +431,7 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
         return estimate, UpdateReport(False, "too few windows", n)
     start, reason_ok = estimate, "ok"
     offsets, pb, x, xi, B = _start(model, prior, start, windows, cov, now_us, cfg)
-    misfit_g2 = _posture_misfit_g2(model, estimate, pb, xi, cfg)
+    misfit_g2 = _posture_misfit_g2(model, estimate, pb, xi, cfg) if posture_misfit else 0.0
     newest = _z2_newest(model, estimate, pb.windows, xi, B, cfg, misfit_g2)  # never dropped
     t_jump = _jump(model, estimate, windows, cov, now_us, cfg, newest, misfit_g2)
     if t_jump is not None:  # the older windows saw offsets a step away; an older step: dropped
