@@ -20,8 +20,8 @@ After the first hour of device time (from the file's first sample) it reports:
 * the summary's "misses" figure (`misfit_mg`) beside discover's held-out error of the model the
   replay ended with (the same effects; offsets and gains alone: discover's base);
 * the adopted effects (discovery events) and when;
-* why samples are not calibrated: each such sample counted under the latest status event before
-  it (a suspect's reason, a change to held, the bootstrap).
+* why samples are not calibrated: each such sample counted by its status and the latest status
+  event before it (a suspect's reason, a change of status, the bootstrap, an adoption).
 """
 
 from __future__ import annotations
@@ -51,9 +51,11 @@ def _recal(*args: str) -> None:
                    stdout=subprocess.DEVNULL)
 
 
-def _reasons(events: list[tuple[int, dict]], t_us: np.ndarray, not_cal: np.ndarray
-             ) -> dict[str, int]:
-    """Samples not calibrated, counted under the latest status event before each."""
+def _reasons(events: list[tuple[int, dict]], t_us: np.ndarray, status: np.ndarray,
+             not_cal: np.ndarray) -> dict[str, int]:
+    """Samples not calibrated, counted by their status and the latest status event before
+    each (held without an event of its own: an offset or scale unobserved or converging, or
+    the probation after an adoption)."""
     marks, why = [(0, "before any status event")], "?"
     for t, ev in events:
         kind, detail = ev.get("kind"), ev.get("detail") or {}
@@ -68,7 +70,9 @@ def _reasons(events: list[tuple[int, dict]], t_us: np.ndarray, not_cal: np.ndarr
             marks.append((t, kind))
     times = np.array([m[0] for m in marks], np.int64)
     which = np.searchsorted(times, t_us[not_cal], side="right") - 1
-    return dict(Counter(marks[i][1] for i in which.tolist()).most_common())
+    labels = [Status(x).label for x in status[not_cal].tolist()]
+    return dict(Counter(f"{lab}, after: {marks[i][1]}"
+                        for lab, i in zip(labels, which.tolist(), strict=True)).most_common())
 
 
 def _discover_error(report: dict, effects: list[str]) -> float | None:
@@ -135,7 +139,7 @@ def run_file(path: Path, work: Path) -> dict:
         "discover_base_mg": (report.get("heldout_error_mg") or {}).get("base"),
         "discover_selected": [e["label"] for e in report.get("effects_selected") or []],
         "adopted": adopted,
-        "not_calibrated_by_reason": _reasons(events, recording.t_us, not_cal),
+        "not_calibrated_by_reason": _reasons(events, recording.t_us, status, not_cal),
     }
 
 
@@ -151,7 +155,7 @@ def _lines(r: dict) -> list[str]:
            f"{_f(r['discover_heldout_mg'])} mg (offsets+gains {_f(r['discover_base_mg'])} mg; "
            f"discover selects {r['discover_selected']})",
            f"  adopted: {r['adopted'] or 'nothing'}",
-           "  not calibrated, by the latest status event before:"]
+           "  not calibrated: status, after the latest status event before:"]
     out += [f"    {v:8d}  {k}" for k, v in r["not_calibrated_by_reason"].items()]
     return out
 

@@ -80,6 +80,9 @@ JUMP_LOOKBACK_S = 60.0
 CONSISTENT_ALPHA = 1e-3
 #: Slots of at least this many windows measure how much window means disagree (`_window_variance`).
 FLOOR_MIN_MERGED = 4
+#: The median of a chi-square variable of one degree of freedom: a median of squared residuals
+#: over it estimates their variance (`_posture_misfit_g2`).
+CHI2_1_MEDIAN = 0.4549
 #: The offsets' stage and key, asked at every residual (an `Offset()` made each time cost more)
 _OFFSET_STAGE = Offset.stage
 _OFFSET_KEY = ("offset", None)
@@ -321,15 +324,16 @@ def _take(windows: Windows, cov: Covariates, m: np.ndarray) -> tuple[Windows, Co
 
 
 def _posture_misfit_g2(model: SensorModel, estimate: Estimate, pb: _Problem,
-                       xi: np.ndarray, cfg: EstimatorConfig) -> float:
+                       xi: np.ndarray, cfg: EstimatorConfig, robust: bool = False) -> float:
     """What the model misses at a posture (g^2): the mean square of the norm residuals xi at
     the estimate beyond their noise (C_mu's averaged sensor noise and floor; not its ageing,
     which is the parameters' wander and would hide it), over the windows older than the jump
-    test's look-back
-    (in-sample: scaled by N / (N - P) for the P parameters fitted to them); 0 while they are
-    too few to say (N <= 2 P). A still posture's window means share its misfit (a cross-axis
-    term or a gain the model lacks moves them all alike), so merging them (`core.buffer`)
-    lowers their noise, not that: a model that misses 3 mg does so at each new posture."""
+    test's look-back (in-sample: scaled by N / (N - P) for the P parameters fitted to them); 0
+    while they are too few to say (N <= 2 P). A still posture's window means share its misfit
+    (a cross-axis term or a gain the model lacks moves them all alike), so merging them
+    (`core.buffer`) lowers their noise, not that: a model that misses 3 mg does so at each new
+    posture. robust: the median excess over CHI2_1_MEDIAN instead of the mean (a few windows
+    far off, another sensor's, do not move it)."""
     if estimate.t_us is None:
         return 0.0
     old = pb.windows.t_us <= estimate.t_us - round(JUMP_LOOKBACK_S * 1e6)
@@ -339,7 +343,8 @@ def _posture_misfit_g2(model: SensorModel, estimate: Estimate, pb: _Problem,
     w = pb.windows
     noise = (w.var[old] / np.maximum(w.n[old], 1) / model.s0**2
              + cfg.sigma_floor_g**2 / w.merged[old])
-    excess = float(np.mean(xi[old] ** 2)) * n / (n - k) - float(np.mean(noise))
+    excess_i = (xi[old] ** 2) * n / (n - k) - noise
+    excess = _median(excess_i) / CHI2_1_MEDIAN if robust else float(np.mean(excess_i))
     return max(excess, 0.0)
 
 
@@ -408,7 +413,7 @@ def _start(model: SensorModel, prior: Prior, start: Estimate, windows: Windows,
 
 def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Windows,
            cov: Covariates, now_us: int, cfg: EstimatorConfig,
-           free: np.ndarray | None = None, posture_misfit: bool = True
+           free: np.ndarray | None = None, robust_misfit: bool = False
            ) -> tuple[Estimate, UpdateReport]:
     """One gated in-use update: the buffer's windows, from the previous estimate.
 
@@ -418,9 +423,9 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
         windows: every window the buffer holds; cov: their covariates.
         free: parameters allowed to move at all; the data (see `_informed`) and the mode narrow
             it further.
-        posture_misfit: the jump test allows for what the model misses at a posture
-            (`_posture_misfit_g2`); False: it does not (the self-watch asks, after a first jump,
-            whether the sensor jumps again: a swapped one's misfit is no allowance).
+        robust_misfit: the jump test's allowance for what the model misses at a posture is
+            the median's, not the mean's (`_posture_misfit_g2`): the self-watch asks whether a
+            first jump repeats, and a swapped sensor's windows must not widen it.
     Returns the estimate to use next (the previous one if the update was rejected) and a report.
     """
     n = int(windows.merged.sum())
@@ -431,7 +436,7 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
         return estimate, UpdateReport(False, "too few windows", n)
     start, reason_ok = estimate, "ok"
     offsets, pb, x, xi, B = _start(model, prior, start, windows, cov, now_us, cfg)
-    misfit_g2 = _posture_misfit_g2(model, estimate, pb, xi, cfg) if posture_misfit else 0.0
+    misfit_g2 = _posture_misfit_g2(model, estimate, pb, xi, cfg, robust_misfit)
     newest = _z2_newest(model, estimate, pb.windows, xi, B, cfg, misfit_g2)  # never dropped
     t_jump = _jump(model, estimate, windows, cov, now_us, cfg, newest, misfit_g2)
     if t_jump is not None:  # the older windows saw offsets a step away; an older step: dropped

@@ -62,12 +62,12 @@ def update_at(pipe: PipelineParts, idx: int, now_us: int,
     learnt = (pipe.refit.coverage_at_update == pipe.buffer.cells_opened and pipe.informed
               and not pipe.unobserved)
     # after a first jump, a second within JUMP_REPEAT_S tells another sensor (`_watch_jump`):
-    # that test is as sharp as the windows' noise, without the allowance for what the model
-    # misses at a posture (a swapped sensor's compromise fit misses at every posture)
+    # the allowance for what the model misses at a posture is then the median's, which the
+    # windows of a swapped sensor under a compromise fit do not move as they move the mean
     first_jump_us = pipe.watch.jump_us
     asking = first_jump_us is not None and now_us - first_jump_us <= JUMP_REPEAT_S * 1e6
     pipe.estimate, rep = update(pipe.model, pipe.prior, pipe.estimate, w, cov, now_us,
-                                pipe.cfg.estimator, posture_misfit=not asking)
+                                pipe.cfg.estimator, robust_misfit=asking)
     pipe.refit = after_update(before, pipe.estimate, rep.accepted, pipe.buffer.cells_opened)
     if rep.accepted:
         _watch_jump(pipe, before, idx, now_us)
