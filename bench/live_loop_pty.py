@@ -221,6 +221,7 @@ def main(a: argparse.Namespace, cases: Sequence[Any], wearer: dict,
         print(f"| {case.name} | {m['cal_pct']:.1f} | {m['err_rms_mg'] / f['err_rms_mg']:.2f} | "
               f"{100 * m['beyond_3']:.2f} / {100 * m['beyond_10']:.2f} | "
               f"{m['med_sig']:.2f} / {m['med_err']:.2f} | {said} | {same} | "
-              f"{out['cpu_us']:.0f} | {out['rss'].get('VmHWM', float('nan')):.0f} | "
+              f"{out['cpu_us']:.0f} | {out['rss'].get('VmHWM', float('nan')):.0f} / "
+              f"{out['rss'].get('VmRSS', float('nan')):.0f} | "
               f"{w.get('VmHWM', float('nan')):.0f}, {out['worker_cpu_s']:.1f} |", flush=True)
     return 0
