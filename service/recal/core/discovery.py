@@ -350,10 +350,7 @@ def n_se_for(cfg: DiscoveryConfig, n_blocks: int) -> float:
     """How many standard errors R must exceed (cfg.n_se, or Student's t, see above)."""
     if cfg.n_se is not None:
         return cfg.n_se
-    # imported here, not at the top: a daemon imports this module to unpickle a run's result
-    # from its worker process, and scipy.stats would add ~60 MB to its RSS for one quantile
-    from scipy import stats
-
+    from scipy import stats  # here: a daemon unpickling a run's result saves ~60 MB RSS
     return float(stats.t.ppf(0.975, max(n_blocks - 1, 1)))
 
 
