@@ -10,7 +10,9 @@ pseudo-terminals (``bench/pty_fleet.py``, same simulated bytes, same write times
   ``bench/daemon_scale.py``'s rung: CPU of all its threads over the run after the warm-up,
   latency from the device write to the calibrated sample at a Zenoh subscriber, nothing lost.
 
-and reports medians over the rounds: CPU per sample (us) of each, their ratio, latency p50/p99.
+and reports medians over the rounds: CPU per sample (us) of each, their ratio, latency p50/p99,
+the daemon's RSS at the end of the run (its discovery worker is spawned at the first run, 10
+min of device time in: `bench/live_loop.py --live` measures it).
 
 ``--old-src DIR`` also runs the daemon from another source tree (``DIR/service`` first on
 ``PYTHONPATH``, e.g. ``git archive <commit> service | tar -x -C DIR``), interleaved with the
@@ -190,14 +192,15 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"100 Hz sensors, one sample per write; medians; {os.cpu_count()} cores; load "
           f"{os.getloadavg()[0]:.2f}")
     print("| daemon | sensors | floor us/sample | daemon us/sample | ratio | latency p50 ms "
-          "| p99 ms | lost | load avg |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| p99 ms | lost | RSS MB | load avg |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for (name, n), rows in results.items():
         fl = _median(floors[n], "floor_us_per_sample")
         us = _median(rows, "cpu_us_per_sample")
         print(f"| {name} | {n} | {fl:.0f} | {us:.0f} | {us / fl:.1f} | "
               f"{_median(rows, 'lat_p50_ms'):.2f} | {_median(rows, 'lat_p99_ms'):.2f} | "
-              f"{sum(r['lost'] for r in rows)} | {_median(rows, 'load1'):.1f} |")
+              f"{sum(r['lost'] for r in rows)} | {_median(rows, 'rss_mb'):.0f} | "
+              f"{_median(rows, 'load1'):.1f} |")
     print("\n| floor | sensors | work us/read | us/sample | latency p50 ms | p99 ms |")
     print("|---|---|---|---|---|---|")
     for n, rows in sorted(floors.items()):

@@ -3,6 +3,7 @@
     python bench/live_loop.py                 # 2 h at 50 Hz per case (several minutes)
     python bench/live_loop.py --hours 1.5 --rate 25 --only temp
     python bench/live_loop.py --cost          # a run's CPU, a window's, latency beside a run
+    python bench/live_loop.py --live --only "supply, analog"   # through a pty into `recal run`
 
 Each case is a simulated wearer (temperature excursions every 0.5 h on average, the supply
 sagging: both move within the first hour) whose sensor has effects the diagonal model lacks,
@@ -24,6 +25,16 @@ After the first hour of device time:
   the first hour, nothing on the clean sensor, nothing the sensor lacks);
 * runs, cpu s: discovery runs and their CPU seconds in all (time.process_time in the run's
   thread is not separable: the node's CPU with discovery minus the floor's is shown too).
+
+``--live``: each case instead goes through a real pseudo-terminal (ASCII lines, `PtyDevice`)
+into the real daemon, ``recal run`` with its defaults (discovery in its spawned worker
+process, MCAP log, Zenoh on 127.0.0.1), written ``--speed`` times faster than real time (the
+node keeps device time from the stream, so discovery's schedule is the recording's; the
+daemon waits for a run it is due to take on). The same figures come from the daemon's log,
+with where it adopted beside where the in-process stream above adopts (same sample: "same"),
+the daemon's CPU per sample, and the peak RSS (VmHWM) of the daemon and of its discovery
+worker. ``--old-src DIR`` runs the daemon from another tree (``DIR/service`` first on
+PYTHONPATH) for the footprint beside it.
 """
 
 from __future__ import annotations
@@ -238,10 +249,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--only", default="")
     ap.add_argument("--cost", action="store_true")
+    ap.add_argument("--live", action="store_true", help="through a pty into `recal run`")
+    ap.add_argument("--speed", type=float, default=20.0,
+                    help="--live: times faster than real time")
+    ap.add_argument("--old-src", help="--live: run the daemon from this source tree")
     a = ap.parse_args(argv)
     if a.cost:
         cost()
         return 0
+    if a.live:
+        import live_loop_pty
+        return live_loop_pty.main(a, CASES, WEARER, _run, _true_model, _after)
     print("| case | cal % | err/floor | >3 / >10 % | med sig / med err mg | adopted (min) "
           "| runs, cpu s |\n|---|---|---|---|---|---|---|")
     for case in CASES:

@@ -53,7 +53,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import special  # not scipy.stats: ~0.5 CPU s to import, for t.ppf alone
 
 from recal.core.buffer import Windows
 from recal.core.candidates import KIND_ORDER, smaller_models
@@ -351,6 +350,7 @@ def n_se_for(cfg: DiscoveryConfig, n_blocks: int) -> float:
     """How many standard errors R must exceed (cfg.n_se, or Student's t, see above)."""
     if cfg.n_se is not None:
         return cfg.n_se
+    from scipy import special  # here, as stats.t.ppf: scipy.stats costs ~0.5 s and ~60 MB
     return float(special.stdtrit(max(n_blocks - 1, 1), 0.975))
 
 

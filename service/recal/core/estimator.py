@@ -80,6 +80,9 @@ JUMP_LOOKBACK_S = 60.0
 CONSISTENT_ALPHA = 1e-3
 #: Slots of at least this many windows measure how much window means disagree (`_window_variance`).
 FLOOR_MIN_MERGED = 4
+#: The median of a chi-square variable of one degree of freedom: a median of squared residuals
+#: over it estimates their variance (`_posture_misfit_g2`).
+CHI2_1_MEDIAN = 0.4549
 #: The offsets' stage and key, asked at every residual (an `Offset()` made each time cost more)
 _OFFSET_STAGE = Offset.stage
 _OFFSET_KEY = ("offset", None)
@@ -320,8 +323,33 @@ def _take(windows: Windows, cov: Covariates, m: np.ndarray) -> tuple[Windows, Co
             Covariates(cov.t_h[m], cov.aux[m], cov.aux_names))
 
 
+def _posture_misfit_g2(model: SensorModel, estimate: Estimate, pb: _Problem,
+                       xi: np.ndarray, cfg: EstimatorConfig, robust: bool = False) -> float:
+    """What the model misses at a posture (g^2): the mean square of the norm residuals xi at
+    the estimate beyond their noise (C_mu's averaged sensor noise and floor; not its ageing,
+    which is the parameters' wander and would hide it), over the windows older than the jump
+    test's look-back (in-sample: scaled by N / (N - P) for the P parameters fitted to them); 0
+    while they are too few to say (N <= 2 P). A still posture's window means share its misfit
+    (a cross-axis term or a gain the model lacks moves them all alike), so merging them
+    (`core.buffer`) lowers their noise, not that: a model that misses 3 mg does so at each new
+    posture. robust: the median excess over CHI2_1_MEDIAN instead of the mean (a few windows
+    far off, another sensor's, do not move it)."""
+    if estimate.t_us is None:
+        return 0.0
+    old = pb.windows.t_us <= estimate.t_us - round(JUMP_LOOKBACK_S * 1e6)
+    n, k = int(old.sum()), model.size
+    if n <= 2 * k:
+        return 0.0
+    w = pb.windows
+    noise = (w.var[old] / np.maximum(w.n[old], 1) / model.s0**2
+             + cfg.sigma_floor_g**2 / w.merged[old])
+    excess_i = (xi[old] ** 2) * n / (n - k) - noise
+    excess = _median(excess_i) / CHI2_1_MEDIAN if robust else float(np.mean(excess_i))
+    return max(excess, 0.0)
+
+
 def _z2_newest(model: SensorModel, estimate: Estimate, w: Windows, xi: np.ndarray,
-               B: np.ndarray, cfg: EstimatorConfig) -> float:
+               B: np.ndarray, cfg: EstimatorConfig, misfit_g2: float = 0.0) -> float:
     """An upper bound of the normalized innovation squared `_jump` finds for the newest of the
     windows w, from their xi and B (with the nuisances) at the estimate: its C_mu without the
     raised floor and the ageing terms of `_window_variance`, which only add to it. A relative
@@ -330,15 +358,19 @@ def _z2_newest(model: SensorModel, estimate: Estimate, w: Windows, xi: np.ndarra
         return 0.0
     i = int(np.argsort(w.t_us, kind="stable")[-1])
     Bi = B[i, :model.size]
-    c_min = w.var[i] / max(w.n[i], 1) / model.s0**2 + cfg.sigma_floor_g**2 / w.merged[i]
+    c_min = (w.var[i] / max(w.n[i], 1) / model.s0**2 + cfg.sigma_floor_g**2 / w.merged[i]
+             + misfit_g2)
     return float(xi[i] ** 2 / (c_min + Bi @ estimate.cov @ Bi)) * (1.0 + 1e-9)
 
 
 def _jump(model: SensorModel, estimate: Estimate, windows: Windows, cov: Covariates,
-          now_us: int, cfg: EstimatorConfig, newest_z2: float) -> int | None:
+          now_us: int, cfg: EstimatorConfig, newest_z2: float,
+          misfit_g2: float = 0.0) -> int | None:
     """The time of an offset jump (a knock), if the latest windows contradict the estimate:
     the newest ones (at least JUMP_MIN_WINDOWS, some since the last update) each with a
-    normalized innovation xi^2 / (C_mu + B C_e B^T) above JUMP_NIS, all of the same sign. The
+    normalized innovation xi^2 / (C_mu + B C_e B^T + m) above JUMP_NIS, all of the same sign
+    (m: what the model misses at a posture, `_posture_misfit_g2`: a posture the buffer has
+    not shown, where the model misses, is no jump). The
     jump is dated at the first of that run of windows, looking back up to JUMP_LOOKBACK_S
     before the last update (a jump in the middle of the previous update's windows). None: no
     jump, or too little fresh data to say. newest_z2: `_z2_newest` (the newest window must be
@@ -354,7 +386,8 @@ def _jump(model: SensorModel, estimate: Estimate, windows: Windows, cov: Covaria
     pb, _, xi, B = _problem(model, Prior(estimate.p, np.eye(model.size)), estimate.p, w, c,
                             now_us, cfg, offsets)
     B = B[:, :model.size]
-    z = (xi / np.sqrt(pb.c_mu + np.einsum("np,pq,nq->n", B, estimate.cov, B)))[order]
+    z = (xi / np.sqrt(pb.c_mu + np.einsum("np,pq,nq->n", B, estimate.cov, B)
+                      + misfit_g2))[order]
     # far off window after window: a shift of the offsets does that, shaking that passed the
     # detector (window means scattered around the truth, some close to it) does not
     off = z**2 > JUMP_NIS
@@ -380,7 +413,8 @@ def _start(model: SensorModel, prior: Prior, start: Estimate, windows: Windows,
 
 def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Windows,
            cov: Covariates, now_us: int, cfg: EstimatorConfig,
-           free: np.ndarray | None = None) -> tuple[Estimate, UpdateReport]:
+           free: np.ndarray | None = None, robust_misfit: bool = False
+           ) -> tuple[Estimate, UpdateReport]:
     """One gated in-use update: the buffer's windows, from the previous estimate.
 
     Args:
@@ -389,6 +423,9 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
         windows: every window the buffer holds; cov: their covariates.
         free: parameters allowed to move at all; the data (see `_informed`) and the mode narrow
             it further.
+        robust_misfit: the jump test's allowance for what the model misses at a posture is
+            the median's, not the mean's (`_posture_misfit_g2`): the self-watch asks whether a
+            first jump repeats, and a swapped sensor's windows must not widen it.
     Returns the estimate to use next (the previous one if the update was rejected) and a report.
     """
     n = int(windows.merged.sum())
@@ -399,8 +436,9 @@ def update(model: SensorModel, prior: Prior, estimate: Estimate, windows: Window
         return estimate, UpdateReport(False, "too few windows", n)
     start, reason_ok = estimate, "ok"
     offsets, pb, x, xi, B = _start(model, prior, start, windows, cov, now_us, cfg)
-    newest = _z2_newest(model, estimate, pb.windows, xi, B, cfg)  # the newest is never dropped
-    t_jump = _jump(model, estimate, windows, cov, now_us, cfg, newest)
+    misfit_g2 = _posture_misfit_g2(model, estimate, pb, xi, cfg, robust_misfit)
+    newest = _z2_newest(model, estimate, pb.windows, xi, B, cfg, misfit_g2)  # never dropped
+    t_jump = _jump(model, estimate, windows, cov, now_us, cfg, newest, misfit_g2)
     if t_jump is not None:  # the older windows saw offsets a step away; an older step: dropped
         first = estimate.drop_us if estimate.drop_us is not None else estimate.step_us
         start = replace(estimate, step=np.zeros(3), step_us=t_jump, drop_us=first)

@@ -27,7 +27,7 @@ from itertools import pairwise
 import numpy as np
 
 from recal.core import detector as det
-from recal.core.buffer import Coverage, Window, WindowBuffer
+from recal.core.buffer import Coverage, Window, WindowBuffer, Windows
 from recal.core.channels import check_channels, usable
 from recal.core.correction import Segment, calibrate
 from recal.core.effects import Covariates, Offset, Scale
@@ -36,7 +36,7 @@ from recal.core.model import SensorModel
 from recal.core.outputs import JoinedStep, Marks, StepOutput
 from recal.core.pending import PendingCandidate
 from recal.core.pipeline_config import PipelineConfig
-from recal.core.pipeline_fit import redirect
+from recal.core.pipeline_fit import redirect, refill_buffer
 from recal.core.pipeline_state import Work, load_state, restore, snapshot
 from recal.core.pipeline_state import state_dict as state_dict
 from recal.core.pipeline_watch import heal_if_not_finite
@@ -56,6 +56,27 @@ from recal.errors import InputError, ModelError
 from recal.samples import CalibratedBatch, RawBatch
 
 __all__ = ["Lifecycle", "Pipeline", "from_state_dict", "gain_reference", "state_dict"]
+
+
+def learnt_prior(model: SensorModel, prior: Prior, cov: np.ndarray) -> Prior:
+    """The pre-calibration an adopted model continues with: ``prior`` (default spreads about
+    the discovery fit's values), each term beyond the offsets and scales (a temperature
+    coefficient, a supply ratio, cross-axis) narrowed to its marginal sd in the discovery
+    fit's covariance ``cov`` where that is tighter. Those terms are the sensor's physics and
+    the evidence saw them over the covariates' whole range; the buffer's newest windows per
+    orientation often do not (an hour at one temperature), and re-fitted under the default
+    spread they left the offsets 5-30 mg uncertain for 20 min after adoption. Marginal sd,
+    no correlations: the prior says no more of the offsets and scales than it did, and the
+    buffer's windows, which the evidence also holds, count twice only in those terms."""
+    sd = prior.sd.copy()
+    base = np.zeros(model.size, bool)
+    for key in (("offset", None), ("scale", None)):
+        if model.has(key[0]):
+            base[model.slice(key)] = True
+    fit_sd = np.sqrt(np.clip(np.diag(np.asarray(cov, np.float64)), 0.0, None))
+    narrow = ~base & np.isfinite(fit_sd) & (fit_sd > 0) & (fit_sd < sd)
+    sd[narrow] = fit_sd[narrow]
+    return Prior.from_sd(prior.mean, sd)
 
 
 class Lifecycle(Enum):
@@ -342,17 +363,29 @@ class Pipeline:
     def coverage(self) -> Coverage:
         return self.buffer.coverage()
 
-    def adopt(self, model: SensorModel, prior: Prior, cov: np.ndarray | None = None) -> None:
+    def adopt(self, model: SensorModel, prior: Prior, cov: np.ndarray | None = None,
+              evidence: Windows | None = None) -> None:
         """Continue with another model (one effect discovery extended): its prior becomes the
         pre-calibration and the estimate, with ``cov`` as the estimate's covariance if given
         (the fit's that found the model: what its windows tell, not only the prior's
-        spreads); detector, buffer and windows carry on; the self-watch starts afresh (it
-        judged the model replaced), a waiting candidate is no longer."""
+        spreads); detector and windows carry on; the self-watch starts afresh (it judged the
+        model replaced), a waiting candidate is no longer. ``evidence``: the windows that
+        fit found the model on (`core.evidence`, oldest first): the buffer is refilled from
+        them (those within the norm gate under the new model), so the next update re-fits
+        what showed the model, not only the postures of a buffer the old model's misfit
+        kept resetting (docs/design.md, effect discovery: live); None: the buffer carries on."""
         check_channels(model, self.aux_names)
         self.model = model
-        self.prior = prior
+        self.prior = prior if cov is None else learnt_prior(model, prior, cov)
         self.estimate = (Estimate.from_prior(prior) if cov is None
                          else Estimate(prior.mean.copy(), np.array(cov, np.float64)))
+        if evidence is not None and len(evidence):
+            self.buffer = WindowBuffer(self.cfg.buffer, len(self.aux_names))
+            w = evidence
+            refill_buffer(self, [Window(w.v[i], w.aux[i], int(w.t_us[i]), int(w.n[i]),
+                                        float(w.var[i])) for i in range(len(w))])
+            self.fresh = []
+            self.refit = RefitState()  # the next try re-fits the new buffer
         # the self-watch judged the model this one replaces (its contradictions, its misfit):
         # it starts afresh, the first still window must agree before output is calibrated;
         # the wait for a candidate is over, whichever model was adopted

@@ -23,6 +23,7 @@ from recal.core.outputs import UpdateEvent, WatchEvent
 from recal.core.quantization import rounding_g2
 from recal.core.refit import after_update
 from recal.core.status import (
+    JUMP_REPEAT_S,
     MISFIT_MOVE_SDS,
     UNPINNED_MG,
     RunningMisfit,
@@ -60,8 +61,13 @@ def update_at(pipe: PipelineParts, idx: int, now_us: int,
     # move is no lesson of new postures
     learnt = (pipe.refit.coverage_at_update == pipe.buffer.cells_opened and pipe.informed
               and not pipe.unobserved)
+    # after a first jump, a second within JUMP_REPEAT_S tells another sensor (`_watch_jump`):
+    # the allowance for what the model misses at a posture is then the median's, which the
+    # windows of a swapped sensor under a compromise fit do not move as they move the mean
+    first_jump_us = pipe.watch.jump_us
+    asking = first_jump_us is not None and now_us - first_jump_us <= JUMP_REPEAT_S * 1e6
     pipe.estimate, rep = update(pipe.model, pipe.prior, pipe.estimate, w, cov, now_us,
-                                pipe.cfg.estimator)
+                                pipe.cfg.estimator, robust_misfit=asking)
     pipe.refit = after_update(before, pipe.estimate, rep.accepted, pipe.buffer.cells_opened)
     if rep.accepted:
         _watch_jump(pipe, before, idx, now_us)

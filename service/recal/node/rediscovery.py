@@ -382,7 +382,7 @@ class NodeDiscovery:
                 self.schedule.confirm_soon(t_us)
             return False
         self.pending = None
-        pipe.adopt(res.model, res.prior, res.cov)
+        pipe.adopt(res.model, res.prior, res.cov, self.evidence.windows())
         what = ", ".join([f"added {lb}" for lb in added] + [f"dropped {lb}" for lb in dropped])
         self.events.note(f"discovery: {what} (held-out error {res.heldout_base_mg:.2f} -> "
                          f"{res.heldout_final_mg:.2f} mg on {len(res.data)} windows)")
