@@ -84,25 +84,6 @@ def test_daemon_and_its_detector_do_not_load_scipy_signal() -> None:
     assert out.strip() == "[]", out
 
 
-def test_a_long_batch_takes_scipys_kernel_without_the_rest_of_scipy_signal() -> None:
-    """The kernel loaded alone gives scipy.signal.sosfilt's bits, and a later scipy.signal
-    import (a test, another tool in the process) shares the one module."""
-    code = ("import sys, numpy as np\n"
-            "from recal.core.sos_filter import butter_sos, sos_zi, sosfilt\n"
-            "sos = butter_sos(4, 0.5, 100.0, True)\n"
-            "x = np.random.default_rng(3).normal(1.0, 0.2, 5000)\n"
-            "y, z = sosfilt(sos, x, sos_zi(sos))\n"
-            "loaded = sorted(m for m in sys.modules if m.startswith('scipy.signal'))\n"
-            "kernel = sys.modules['scipy.signal._sosfilt']\n"
-            "from scipy import signal\n"
-            "y_ref, z_ref = signal.sosfilt(sos, x, zi=sos_zi(sos))\n"
-            "print(loaded, np.array_equal(y, y_ref) and np.array_equal(z, z_ref),\n"
-            "      sys.modules['scipy.signal._sosfilt'] is kernel)\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=120, check=True).stdout
-    assert out.strip() == "['scipy.signal._sosfilt'] True True", out
-
-
 def test_bad_designs_are_refused() -> None:
     for args in ((0, 0.5, 100.0), (2, 0.0, 100.0), (2, 50.0, 100.0)):
         with pytest.raises(ValueError, match="Butterworth"):

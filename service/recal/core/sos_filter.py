@@ -15,10 +15,9 @@ They are written here instead (docs/design.md, "The detector's filters"):
   like ``scipy.signal.sosfilt``'s ``zi``. A short batch (a live sensor's one sample per arrival)
   runs a scalar loop on Python floats, whose cost is a few hundred nanoseconds per sample and
   section, where an array call costs tens of microseconds; a long one (replay, a backlog) runs
-  ``scipy.signal.sosfilt``'s compiled kernel (`_kernel`, loaded without the rest of
-  ``scipy.signal``). Both do the same operations in the same order, so on a machine whose
-  compiled kernel does not fuse multiply-adds the two give the same bits
-  (tests/test_sos_filter.py checks it on the machine it runs on).
+  ``scipy.signal.sosfilt``, imported on first use. Both do the same operations in the same
+  order, so on a machine whose compiled kernel does not fuse multiply-adds the two give the
+  same bits (tests/test_sos_filter.py checks it on the machine it runs on).
 
 Rows of a ``sos`` array are ``[b0, b1, b2, a0, a1, a2]`` with ``a0 = 1``, as in scipy.
 """
@@ -26,13 +25,7 @@ Rows of a ``sos`` array are ``[b0, b1, b2, a0, a1, a2]`` with ``a0 = 1``, as in 
 from __future__ import annotations
 
 import cmath
-import functools
-import importlib.machinery
-import importlib.util
 import math
-import sys
-from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 
@@ -94,37 +87,10 @@ def sosfilt(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray,
     """Filter 1-D ``x`` through the sections from state ``zi``; returns (y, final state)."""
     x = np.asarray(x, np.float64).reshape(-1)
     if len(x) > SCALAR_MAX_N:
-        y = x.reshape(1, -1).copy()  # the kernel filters in place, as scipy.signal.sosfilt
-        z = np.array(zi, np.float64).reshape(1, -1, 2)
-        _kernel()(np.ascontiguousarray(sos, np.float64), y, z)
-        return y[0], z[0]
+        from scipy.signal import sosfilt as compiled  # a long batch: worth scipy's import
+
+        return compiled(sos, x, zi=np.asarray(zi, np.float64))
     return _scalar(sos, x, zi)
-
-
-@functools.cache
-def _kernel() -> Callable[[np.ndarray, np.ndarray, np.ndarray], None]:
-    """scipy.signal.sosfilt's compiled kernel, ``_sosfilt(sos, x (1, N), zi (1, S, 2))`` in
-    place, loaded from its file as ``scipy.signal._sosfilt`` without ``scipy.signal`` itself,
-    whose import (scipy.stats, scipy.interpolate...) costs about 0.7 CPU s and tens of MB for
-    one function (docs/design.md, "The detector's filters"); registered, so a later
-    ``scipy.signal`` import uses the same module. Where scipy lays its files out otherwise:
-    ``scipy.signal``'s own import."""
-    name = "scipy.signal._sosfilt"
-    module = sys.modules.get(name)
-    if module is None:
-        import scipy
-
-        where = Path(scipy.__file__).parent / "signal"
-        found = [where / f"_sosfilt{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES]
-        found = [f for f in found if f.is_file()]
-        spec = importlib.util.spec_from_file_location(name, found[0]) if found else None
-        if spec is None or spec.loader is None:
-            from scipy.signal import _sosfilt as module
-        else:
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-            sys.modules[name] = module
-    return module._sosfilt
 
 
 def _scalar(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
