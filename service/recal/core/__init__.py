@@ -20,7 +20,7 @@ and, in data-flow order (docs/design.md, "The core, module by module", has the w
 - `pipeline_config`: the settings of all of it;
 - the pipeline's parts: `pipeline_windows` (windows committed, re-fits due), `pipeline_watch`
   (the self-watch at work), `pipeline_fit` (updates, bootstrap), `pipeline_state` (its
-  checkpoint, the snapshot a step rolls back to).
+  checkpoint, a step's scratch).
 
 Beside it:
 

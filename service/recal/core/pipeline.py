@@ -11,7 +11,7 @@ estimate when the still windows keep contradicting it. This module only orchestr
 the step, one sample or a batch, and what is in force; the pipeline's own parts are functions
 of it in `core.pipeline_windows` (windows committed, re-fits due), `core.pipeline_watch` (the
 self-watch at work), `core.pipeline_fit` (updates, bootstrap) and `core.pipeline_state` (the
-checkpoint, the snapshot a step rolls back to, a step's scratch and caches).
+checkpoint, a step's scratch and caches).
 
 Everything is driven by the sample sequence alone (never by batch boundaries or clocks), so
 feeding a recording in batches of 1, 10 or 1000 samples gives the same output.
@@ -37,7 +37,7 @@ from recal.core.outputs import JoinedStep, Marks, StepOutput
 from recal.core.pending import PendingCandidate
 from recal.core.pipeline_config import PipelineConfig
 from recal.core.pipeline_fit import redirect, refill_buffer
-from recal.core.pipeline_state import Work, load_state, restore, snapshot
+from recal.core.pipeline_state import Work, load_state
 from recal.core.pipeline_state import state_dict as state_dict
 from recal.core.pipeline_watch import heal_if_not_finite
 from recal.core.pipeline_windows import windows
@@ -293,30 +293,23 @@ class Pipeline:
             return JoinedStep(CalibratedBatch.empty(), (), [], (), {})
         if self.t0_us is None:
             self.t0_us = int(batch.t_us[0])
-        life = self.lifecycle
-        if life is _AWAITING_SCALE:  # the first sample's norm is 1 g
+        if self.lifecycle is _AWAITING_SCALE:  # the first sample's norm is 1 g
             norms = np.linalg.norm(batch.v, axis=1)
             good = norms[np.isfinite(norms) & (norms > 0)]  # a NaN s0 would stick for good
             s0 = float(good[0]) if len(good) else 1.0
             self.model = SensorModel(self.model.effects, s0, self.model.spreads)
             self._start_detector(s0)
-            life = self.lifecycle  # bootstrapping now
-        # until an estimate exists, zero-g and scale may be found wrong at a window inside
-        # the batch (`pipeline_fit._relocate`): the detector then restarts after that sample,
-        # as it would have had the batch come in two, so the state before the batch is kept
-        # to redo it (`pipeline_state.snapshot`)
-        snap = snapshot(self) if life is _BOOTSTRAPPING and n > 1 else None
-        out = self._step(batch, marks)
+        # until an estimate exists (from the start, or from a reset of the self-watch inside
+        # the batch), zero-g and scale may be found wrong at a window (`pipeline_fit._relocate`):
+        # the detector then restarts after that sample, as it would have had the batch ended
+        # there; the step ended there (`_step`), the rest is stepped anew
+        head = self._step(batch, marks)
         at, self._work.restart_at = self._work.restart_at, None
         if at is None:
-            return out
-        if snap is None or at + 1 >= n:
-            self._start_detector(self.model.s0, _zero_of(self.model, self.params))
-            return out
-        restore(self, snap)
-        head = self._step(batch[:at + 1], [m for m in marks if m <= at + 1])
-        self._work.restart_at = None
+            return head
         self._start_detector(self.model.s0, _zero_of(self.model, self.params))
+        if at + 1 >= n:
+            return head
         tail = self._stepped(batch[at + 1:], [m - at - 1 for m in marks if m > at + 1])
         return head.joined(tail, at + 1)
 
@@ -327,13 +320,19 @@ class Pipeline:
         heal_if_not_finite(self, int(batch.t_us[0]))
         dr = self.detector
         dr.state, d = det.detect(dr.cfg, dr.state, batch.v)
-        gate = usable(d.gate, batch, self.model)
+        gate, det_g = usable(d.gate, batch, self.model), d.detector_g
         self._work.segs = [self._segment(0)]
         if marks:
             self._work.marks = Marks(list(marks), gate, self.counts["samples"],
                                      self.counts["quasi_static"])
         try:
             events, commits, committed = windows(self, batch, gate)
+            at = self._work.restart_at
+            if at is not None and at + 1 < n:
+                # the detector restarts after sample `at`: this step ends there, the windows
+                # after it uncommitted (`pipeline_windows.windows`), `_stepped_whole` steps
+                # the rest
+                n, batch, gate, det_g = at + 1, batch[:at + 1], gate[:at + 1], det_g[:at + 1]
             self._reach(n)  # the marks no later change came before
         finally:
             done, self._work.marks = self._work.marks, None
@@ -342,10 +341,10 @@ class Pipeline:
         self.counts["samples"] += n
         if n == 1:  # one sample per arrival: the arrays are made here, as the batch keeps them
             self.counts["quasi_static"] += int(gate[0])
-            out = CalibratedBatch.of_checked(batch.t_us, cal, gate, d.detector_g, status, sigma)
+            out = CalibratedBatch.of_checked(batch.t_us, cal, gate, det_g, status, sigma)
         else:
             self.counts["quasi_static"] += int(gate.sum())
-            out = CalibratedBatch(batch.t_us, cal, gate, d.detector_g, status, sigma)
+            out = CalibratedBatch(batch.t_us, cal, gate, det_g, status, sigma)
         return JoinedStep(out, tuple(events), commits, tuple(self._work.watch_events),
                           done.at if done is not None else {}, committed)
 

@@ -1,13 +1,12 @@
 """The pipeline's state (`core.pipeline`) as its parts hold it: the checkpoint document
 (`state_dict`, `load_state`), each part writing and reading its own (detector, windower, buffer,
-refit, self-watch); the snapshot a step rolls back to (`snapshot`, `restore`); and what the
-pipeline keeps only while a step runs or not to work it out again (`Work`), which is neither.
+refit, self-watch); and what the pipeline keeps only while a step runs or not to work it out
+again (`Work`), which is neither.
 """
 
 from __future__ import annotations
 
-import copy
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -26,16 +25,15 @@ if TYPE_CHECKING:
     from recal.core.pipeline_config import PipelineConfig
     from recal.core.status import Status
 
-__all__ = ["PipelineParts", "Snapshot", "Work", "load_state", "restore", "snapshot",
-           "state_dict"]
+__all__ = ["PipelineParts", "Work", "load_state", "state_dict"]
 
 
 class Work:
     """What the pipeline keeps during one step (the marks, the segments in force, the self-watch's
     events, a detector restart or a reset due) and what it keeps not to work it out again (the
     last segment, the sigma form, whether the estimate is finite, what converges). Not state:
-    never in a checkpoint, and a snapshot leaves it as it is (each cache is keyed by the
-    objects it was made of, so it holds whatever the pipeline rolls back to)."""
+    never in a checkpoint (each cache is keyed by the objects it was made of, so it holds
+    whatever the pipeline is loaded with)."""
 
     __slots__ = ("converging", "finite_estimate", "form", "last_segment", "marks", "reset_due",
                  "restart_at", "segs", "watch_events")
@@ -94,55 +92,6 @@ class PipelineParts(Protocol):
     def _segment_cache(self) -> tuple: ...
 
     def _reach(self, idx: int) -> None: ...
-
-
-class Snapshot(NamedTuple):
-    """The pipeline's parts as they were (`snapshot`): those changed in place are copies,
-    the others (replaced when they change: model, prior, estimate, the detector's settings and
-    state, the windower, the refit) are the objects themselves."""
-
-    model: SensorModel
-    prior: Prior | None
-    estimate: Estimate | None
-    bootstrapped: bool
-    from_prior: bool
-    centre0: np.ndarray
-    t0_us: int | None
-    buffer: WindowBuffer
-    fresh: list[Window]
-    detector: tuple[det.DetectorConfig, det.DetectorState] | None
-    windower: WindowerState
-    counts: dict[str, int]
-    last_report: UpdateReport | None
-    refit: RefitState
-    informed: bool
-    watch: Watch
-    unobserved: tuple[str, ...]
-    reset_due: str | None
-
-
-def snapshot(pipe: PipelineParts) -> Snapshot:
-    """The state to go back to (`restore`) when a step must be redone in two (a detector
-    restart inside a batch, `Pipeline._stepped_whole`)."""
-    d = pipe.detector
-    return Snapshot(pipe.model, pipe.prior, pipe.estimate, pipe.bootstrapped, pipe.from_prior,
-                    pipe.centre0, pipe.t0_us, copy.deepcopy(pipe.buffer),
-                    copy.deepcopy(pipe.fresh), None if d is None else (d.cfg, d.state),
-                    pipe.windower, dict(pipe.counts), pipe.last_report, pipe.refit,
-                    pipe.informed, copy.deepcopy(pipe.watch), pipe.unobserved,
-                    pipe._work.reset_due)
-
-
-def restore(pipe: PipelineParts, s: Snapshot) -> None:
-    """The pipeline as it was at `snapshot` (which it may not be restored from twice)."""
-    pipe.model, pipe.prior, pipe.estimate = s.model, s.prior, s.estimate
-    pipe.bootstrapped, pipe.from_prior, pipe.centre0, pipe.t0_us = (
-        s.bootstrapped, s.from_prior, s.centre0, s.t0_us)
-    pipe.buffer, pipe.fresh, pipe.windower, pipe.counts = s.buffer, s.fresh, s.windower, s.counts
-    pipe.detector = None if s.detector is None else det.Detector(*s.detector)
-    pipe.last_report, pipe.refit, pipe.informed = s.last_report, s.refit, s.informed
-    pipe.watch, pipe.unobserved = s.watch, s.unobserved
-    pipe._work.reset_due, pipe._work.restart_at = s.reset_due, None
 
 
 def state_dict(pipe: PipelineParts) -> dict:

@@ -6,6 +6,7 @@ they change; the one-sample path returns at once when no window finished.
 
 from __future__ import annotations
 
+import bisect
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,10 +37,25 @@ def windows(pipe: PipelineParts, b: RawBatch, gate: np.ndarray
     Which windows finish and when they commit depends on the gates and times alone, so it
     is worked out first for the whole batch; committing them then depends on the
     parameters, which change only at updates (`_commit_all`)."""
-    c, pipe.windower = cut(pipe.cfg.windows, pipe.windower, b.t_us, b.v, b.aux, gate)
+    before = pipe.windower
+    c, pipe.windower = cut(pipe.cfg.windows, before, b.t_us, b.v, b.aux, gate)
     means = c.sums.means() if c.sums is not None else None
     events, at = _commit_all(pipe, b, c.due, means)
-    return events, at, means[0] if means is not None else None
+    restart = pipe._work.restart_at
+    if restart is not None and restart + 1 < len(b):
+        # the detector restarts after sample `restart` (`pipeline_fit._relocate`): the step
+        # ends there (`Pipeline._step`), the windows still open then as the samples up to
+        # it leave them; the rest of the batch is cut anew under the new detector
+        h = restart + 1
+        _, pipe.windower = cut(pipe.cfg.windows, before, b.t_us[:h], b.v[:h], b.aux[:h],
+                               gate[:h])
+    if means is None:
+        return events, at, None
+    w = means[0]
+    if len(at) < len(w):  # the windows committed before the step ended
+        k = len(at)
+        w = Windows(w.v[:k], w.aux[:k], w.t_us[:k], w.n[:k], w.var[:k])
+    return events, at, w
 
 
 def _commit_all(pipe: PipelineParts, b: RawBatch, due: list[tuple[int, bool]],
@@ -59,6 +75,12 @@ def _commit_all(pipe: PipelineParts, b: RawBatch, due: list[tuple[int, bool]],
         w, runs = means
         c, size, chunk = 0, 0, None
         while c < len(w):
+            restart = pipe._work.restart_at
+            if restart is not None and at[c] > restart:
+                # the detector restarts after that sample: what comes after is stepped anew
+                # (`Pipeline._step`), as it would be had the batch ended there
+                at = at[:c]
+                break
             if chunk is None or c >= chunk.lo + len(chunk):
                 size = min(len(w) - c, max(64, 2 * size))
                 chunk = WindowChunk.of(
@@ -87,7 +109,9 @@ def _commit_all(pipe: PipelineParts, b: RawBatch, due: list[tuple[int, bool]],
                 if pipe._work.marks is not None:
                     pipe._work.marks.dirty = True
                 chunk, size = None, 0  # the parameters changed: a new first chunk
-    _reject_short(pipe, due, done, len(due))
+    restart = pipe._work.restart_at  # due entries after it: the step's tail (`Pipeline._step`)
+    end = len(due) if restart is None else bisect.bisect_right([i for i, _ in due], restart)
+    _reject_short(pipe, due, done, end)
     return events, at
 
 
