@@ -39,10 +39,14 @@ def test_a_node_restored_from_a_bad_checkpoint_marks_no_second_calibrated_while_
     """The first half's node checkpointed into a state folder, its offset x moved by 0.39 g
     (inside the bounds: the load checks pass it) or another sensor's data after it; the node
     `make_node` restores from it (as the gateway does) doubts: no calibrated second more than
-    20 mg off, suspect at the first still window that contradicts (15-21 s here); and the
-    node's row is the core pipeline's, which restores and doubts by hand."""
+    20 mg off; either suspect at the first still window that contradicts (15-21 s here), or
+    the estimate re-fitted right before any second is marked calibrated (the jump test allows
+    for what a model misses at a posture: where the restored estimate is wrong at every
+    posture of its buffer, the re-fit rather than a jump corrects it); and the node's row is
+    the core pipeline's, which restores and doubts by hand."""
     live = _live_as_core(name)
-    assert live["cal_over_20mg"] == 0 and live["to_suspect_s"] <= 30.0, live
+    assert live["cal_over_20mg"] == 0, live
+    assert live["to_suspect_s"] <= 30.0 or (live["cal_pct"] > 0 and live["err_mg"] < 2.0), live
 
 
 def test_the_restored_node_is_the_checkpoints() -> None:
