@@ -1,6 +1,6 @@
 """The pipeline's state in its parts (`core.pipeline_state`): each part writes and reads its own
 (the detector's `DetectorState`, the windows as `buffer.Window`), a checkpoint's document keeps
-its keys and order, and the snapshot a step rolls back to is independent of what follows."""
+its keys and order, and a document read back steps as the pipeline it came from."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.pipeline_config import DETECTOR_KEYS, KEYS, PipelineConfig
-from recal.core.pipeline_state import restore, snapshot
 from recal.sim.wearer import SensorSpec, simulate
 
 RATE_HZ = 50.0
@@ -100,20 +99,3 @@ def test_checkpoint_keeps_its_keys_in_order_and_resumes_exactly() -> None:
     b, c = ref.step(raw[20_000:]).calibrated, back.step(raw[20_000:]).calibrated
     assert len(a) and np.array_equal(b.a_g, c.a_g) and np.array_equal(b.status, c.status)
     assert json.dumps(back.state_dict()) == json.dumps(ref.state_dict())
-
-
-def test_a_restored_snapshot_steps_as_the_pipeline_did_when_it_was_taken() -> None:
-    """The snapshot keeps copies of what a step changes in place (the buffer, the windows
-    since the last update, the counts, the self-watch): stepping after it leaves it as it was."""
-    raw = _raw()
-    pipe = Pipeline(PipelineConfig(rate_hz=RATE_HZ), SensorModel.diagonal(), None, raw.aux_names)
-    pipe.step(raw[:3000])  # bootstrapping: the detector runs, windows collect
-    before = json.dumps(pipe.state_dict())
-    snap = snapshot(pipe)
-    first = pipe.step(raw[3000:9000]).calibrated
-    assert json.dumps(pipe.state_dict()) != before
-    restore(pipe, snap)
-    assert json.dumps(pipe.state_dict()) == before
-    again = pipe.step(raw[3000:9000]).calibrated
-    assert np.array_equal(first.a_g, again.a_g, equal_nan=True)
-    assert np.array_equal(first.status, again.status)
