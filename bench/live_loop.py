@@ -48,6 +48,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -149,6 +150,13 @@ def _true_model(case: Case, s0: float, raw: RawBatch) -> SensorModel:
     if ("offset", "time") in case.terms:
         model = model.with_effect(make_effect("offset", "time", 0.0), 1.0)
     return model
+
+
+def simulated(case: Case, a: argparse.Namespace) -> tuple[Any, Any]:
+    """The case's sensor and its recording (`sim.simulate`'s result) at the bench's settings."""
+    spec = case.sensor(np.random.default_rng(a.seed))
+    return spec, sim.simulate(a.hours, a.rate, a.seed, spec, sim.WearerSpec(
+        **WEARER, **dict(case.wearer)))
 
 
 def _run(raw: RawBatch, model: SensorModel, zero: float, discovery: bool, rate: float
@@ -259,16 +267,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.live:
         import live_loop_pty
-        return live_loop_pty.main(a, CASES, WEARER, _run, _true_model, _after)
+        return live_loop_pty.main(a, CASES, simulated, _run, _true_model, _after)
     print("| case | cal % | err/floor | >3 / >10 % | med sig / med err mg | adopted (min) "
           "| runs, cpu s |\n|---|---|---|---|---|---|---|")
     for case in CASES:
         if a.only and a.only not in case.name:
             continue
-        rng = np.random.default_rng(a.seed)
-        spec = case.sensor(rng)
-        res = sim.simulate(a.hours, a.rate, a.seed, spec, sim.WearerSpec(
-            **WEARER, **dict(case.wearer)))
+        spec, res = simulated(case, a)
         raw, truth = res.raw, res.truth.a_true_g
         s0 = float(spec.counts_per_g or 1.0)
         start = int(np.searchsorted(raw.t_us, raw.t_us[0] + 3.6e9))

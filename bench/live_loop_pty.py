@@ -29,7 +29,6 @@ from recal.io.bus import Bus, key
 from recal.io.bus_config import zenoh_config
 from recal.io.messages import decode_json
 from recal.samples import RawBatch
-from recal.sim import wearer as sim
 from recal.sim.pty_device import PtyDevice
 
 __all__ = ["main"]
@@ -184,7 +183,7 @@ def _adopted(events: Sequence[dict], t0: int) -> list[tuple[str, float, int]]:
             for e in events if e["detail"]["adopted"]]
 
 
-def main(a: argparse.Namespace, cases: Sequence[Any], wearer: dict,
+def main(a: argparse.Namespace, cases: Sequence[Any], simulated: Callable[..., Any],
          run: Callable[..., Any], true_model: Callable[..., SensorModel],
          after: Callable[..., dict]) -> int:
     print(f"# --live: through a pty into `recal run` at {a.speed:g}x real time"
@@ -195,10 +194,7 @@ def main(a: argparse.Namespace, cases: Sequence[Any], wearer: dict,
     for case in cases:
         if a.only and a.only not in case.name:
             continue
-        rng = np.random.default_rng(a.seed)
-        spec = case.sensor(rng)
-        res = sim.simulate(a.hours, a.rate, a.seed, spec, sim.WearerSpec(
-            **wearer, **dict(case.wearer)))
+        spec, res = simulated(case, a)
         raw, truth = res.raw, res.truth.a_true_g
         s0, zero = float(spec.counts_per_g or 1.0), float(spec.zero_g_counts)
         out = live_case(raw, s0, zero, a.rate, a.speed, a.old_src)
