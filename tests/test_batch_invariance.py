@@ -11,11 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recal.config import PipelineSection
+from recal.config import PipelineSection, RediscoveryConfig
+from recal.core.effects import Scale
 from recal.core.estimator import Prior
 from recal.core.model import SensorModel
 from recal.core.pipeline import Pipeline
 from recal.core.status import Status
+from recal.node.node import CalibrationNode, NodeSettings
 from recal.samples import CalibratedBatch, RawBatch
 from recal.sim import wearer as sim
 from recal.sim.sensor import sensor_type
@@ -69,3 +71,73 @@ def test_reset_into_bootstrap_is_batch_size_invariant():
     assert small[1] == joined[1]
     assert small[2] == joined[2]
     assert small[3] == joined[3]
+
+
+class _Keep:
+    """A node's sink keeping the calibrated batches and the events."""
+
+    def __init__(self) -> None:
+        self.cal: list[CalibratedBatch] = []
+        self.events: list[dict] = []
+
+    def raw(self, *a: object, **k: object) -> None:
+        pass
+
+    def calibrated(self, sid: str, cal: CalibratedBatch, log_ns: int,
+                   topic: str = "calibrated") -> None:
+        if topic == "calibrated":
+            self.cal.append(cal)
+
+    def plot(self, *a: object, **k: object) -> None:
+        pass
+
+    def json(self, sid: str, suffix: str, obj: dict, log_ns: int) -> None:
+        if suffix == "events":
+            self.events.append(obj)
+
+
+def _node_fed(raw: RawBatch, model: SensorModel, prior: Prior, batch: int
+              ) -> tuple[CalibratedBatch, list[dict]]:
+    """Through a node as bench/live_loop.py runs it (discovery off), in batches of ``batch``."""
+    sink = _Keep()
+    node = CalibrationNode(NodeSettings("s", PipelineSection(), model, prior, RATE_HZ,
+                                        rediscovery=RediscoveryConfig(enabled=False)), sink)
+    for i in range(0, len(raw), batch):  # bounded: one pass
+        node.process(raw[i:i + batch], 0)
+    return CalibratedBatch.concat(sink.cal), sink.events
+
+
+@pytest.mark.slow
+@pytest.mark.float_sensitive
+def test_a_node_through_the_reset_into_a_bootstrap_is_batch_size_invariant():
+    """A node vets every state its pipeline takes on once per call; a state it refuses (and
+    rolls back from) at one batching but not at another makes the output depend on the
+    batch sizes, and `recal replay` of a live log would not reproduce it. The sphere fit
+    of mostly one pose at the reset's bootstrap must not relocate zero-g and scale to a
+    sphere a few counts across (`pipeline_fit._plausible_scale`)."""
+    raw, model, prior = _supply_case()
+    a, ev_a = _node_fed(raw, model, prior, 50)
+    b, ev_b = _node_fed(raw, model, prior, 8192)
+    assert np.array_equal(a.t_us, b.t_us)
+    assert np.array_equal(a.status, b.status)
+    assert np.array_equal(a.a_g, b.a_g, equal_nan=True)
+    assert np.array_equal(a.sigma_mg, b.sigma_mg, equal_nan=True)
+    assert not [e for e in ev_a + ev_b if e["kind"] == "estimate_refused"]
+
+
+@pytest.mark.slow
+@pytest.mark.float_sensitive
+def test_the_reset_into_a_bootstrap_keeps_a_scale_within_the_models_bounds():
+    """Whatever zero-g and scale the pipeline relocates to at a bootstrap after a reset, its
+    scale stays within the configured model's bounds (a prior gave it): a sphere of mostly
+    one pose's windows, a few counts across, is no relocation."""
+    raw, model, prior = _supply_case()
+    lo, hi = model.bounds()
+    sl = model.slice(Scale())
+    pipe = Pipeline(PipelineSection().pipeline_config(RATE_HZ), model, prior, raw.aux_names)
+    bootstrapping = False
+    for i in range(0, len(raw), 8192):  # bounded: one pass
+        out = pipe.step(raw[i:i + 8192])
+        bootstrapping |= bool((out.calibrated.status == Status.BOOTSTRAPPING).any())
+        assert np.all(lo[sl] <= pipe.model.s0) and np.all(pipe.model.s0 <= hi[sl]), i
+    assert bootstrapping  # the case does reach a bootstrap after its reset

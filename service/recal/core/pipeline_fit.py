@@ -37,6 +37,10 @@ if TYPE_CHECKING:
 
 __all__ = ["learned_step", "redirect", "refill_buffer", "try_bootstrap", "update_at"]
 
+#: Without a prior, a located scale within this factor of s0 (the first sample's norm) may be
+#: the sensor's (`_plausible_scale`)
+RELOCATE_MAX_RATIO = 100.0
+
 #: Up to this many windows in the buffer before a bootstrap, its sphere fits run at every
 #: window, not every update_every (`_sphere_due`).
 FEW_WINDOWS = 20
@@ -195,7 +199,8 @@ def _relocate(pipe: PipelineParts, idx: int) -> None:
     loc = locate(w.v, pipe.cfg.buffer.grid)
     if (loc is None or len(loc.inliers) != len(w)
             or not loc.covers(cells=max(4, pipe.cfg.bootstrap_min_cells // 2))
-            or not off_by(loc.centre, loc.scale, pipe.centre0, pipe.model.s0)):
+            or not off_by(loc.centre, loc.scale, pipe.centre0, pipe.model.s0)
+            or not _plausible_scale(pipe, loc.scale)):
         return
     pipe.centre0 = np.asarray(loc.centre, np.float64).copy()
     pipe.model = SensorModel(pipe.model.effects, loc.scale, pipe.model.spreads)
@@ -207,6 +212,24 @@ def _relocate(pipe: PipelineParts, idx: int) -> None:
     refill_buffer(pipe, [Window(w.v[i], w.aux[i], int(w.t_us[i]), int(w.n[i]),
                                 float(w.var[i])) for i in keep.tolist()], gate=False)
     pipe._work.restart_at = idx
+
+
+def _plausible_scale(pipe: PipelineParts, scale: float) -> bool:
+    """Whether a located sphere's radius (raw units per g) can be this sensor's scale. A
+    sphere fit through windows that are mostly one pose finds a tiny sphere in that pose's
+    noise (an analog 12-bit part after a reset into a bootstrap: 1.2 counts per g for 372),
+    and taking it would restart the detector and rebin the windows at a scale no later
+    state can keep (the node's vetting refuses it and rolls back). With a prior (configured,
+    or a fit's that a reset went back to) the scale is known: the located one must lie within
+    the model's scale bounds (`SensorModel.bounds`). Without one, s0 is the first sample's
+    norm, which on an unsigned ADC is ~10x the scale (zero-g ~2048 counts of 12 bits, ~370
+    counts per g; ~50x for a +-16 g part): within RELOCATE_MAX_RATIO of it."""
+    s0 = pipe.model.s0
+    if pipe.prior is not None and pipe.model.has("scale"):
+        lo, hi = pipe.model.bounds()
+        sl = pipe.model.slice(Scale())
+        return bool(np.all(lo[sl] <= scale) and np.all(scale <= hi[sl]))
+    return bool(s0 / RELOCATE_MAX_RATIO <= scale <= s0 * RELOCATE_MAX_RATIO)
 
 
 def redirect(pipe: PipelineParts, a_windows: np.ndarray | None = None) -> None:
