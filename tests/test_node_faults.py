@@ -148,8 +148,9 @@ def test_a_crafted_stream_cannot_move_time_or_adopt_an_estimate_the_node_could_n
     """A configured sensor calibrates, then a fake stream arrives on its id: a clock 17 years
     ahead and readings whose zero-g and scale no sensor of this configuration has. The jump is
     an event and a line, not a new time base (output time stays within seconds of the real
-    stream's); an estimate out of the model's bounds is refused (event ``estimate_refused``)
-    and the node goes on from its last good one; every save succeeds and the file loads."""
+    stream's); no estimate out of the model's bounds is kept (the core does not relocate there;
+    one the node's vetting refuses is an event ``estimate_refused``) and the node goes on from
+    its last good one; every save succeeds and the file loads."""
     for scale in (1.0, 100.0, 1024.0):
         folder = tmp_path / f"s{scale:g}"
         raw = sim.simulate(10 / 60, RATE_HZ, 3, sim.SensorSpec()).raw
@@ -170,13 +171,16 @@ def test_a_crafted_stream_cannot_move_time_or_adopt_an_estimate_the_node_could_n
         assert any("device time jumped +6205 days" in n for n in notes), notes
         # 30 000 samples at 50 Hz later: 600 s of output time, not 17 years
         assert node.last_t_us - end_us < 700 * 10**6
-        # refused, not adopted: whatever estimate the node holds is this sensor's (it may be
-        # re-fitting, with none, while the fake windows contradict it)
-        assert node.estimates_refused >= 1 and "estimate_refused" in kinds, (scale, kinds)
+        # never adopted: whatever estimate the node holds is this sensor's (it may be
+        # re-fitting, with none, while the fake windows contradict it); the core does not
+        # relocate to a scale outside the model's bounds, and an estimate the node's vetting
+        # refuses is said so
         est = node.pipeline.estimate
         assert est is None or np.all(np.abs(est.p[:3] - good[:3]) < 0.2 * 1024), (scale, est)
         assert abs(node.pipeline.model.s0 - 1024.0) < 0.5 * 1024, node.pipeline.model.s0
-        assert any(n.startswith("calibration refused") for n in notes), notes
+        assert (node.estimates_refused >= 1) == ("estimate_refused" in kinds), (scale, kinds)
+        assert (node.estimates_refused >= 1) == any(
+            n.startswith("calibration refused") for n in notes), notes
         restored = make_node(_configured(), MemorySink(), _store(folder))
         assert restored.start == "checkpoint", scale
 
@@ -231,3 +235,30 @@ def test_raw_and_calibrated_exports_join_on_the_device_time_across_a_reboot(
     np.testing.assert_array_equal(raw_rows[joined, 1:4], res.raw.v)
     after = cal_rows[half:, 0].astype(np.int64)
     assert np.all(np.abs(after - dev[half:] * 1000) > 60 * 10**6)  # t_us could not join
+
+
+def test_the_node_refuses_a_state_out_of_the_models_bounds_and_goes_back() -> None:
+    """The node's last line of defence (`node.vetting.EstimateVet`), whatever the core takes
+    on: an estimate whose zero-g no sensor of this configuration has is refused, the node goes
+    back to the last state that passed, and says so once (event ``estimate_refused``, a note)."""
+    from recal.core.estimate import Estimate
+    from recal.core.pipeline import Pipeline
+    from recal.node.events import NodeEvents
+    from recal.node.vetting import EstimateVet
+
+    st = _configured()
+    sink, notes = MemorySink(), []
+    events = NodeEvents(SID, sink)
+    events.on_note = notes.append
+    vet = EstimateVet((st.model, st.prior), events)
+    pipe = Pipeline(st.pipeline.pipeline_config(RATE_HZ), st.model, st.prior, ())
+    pipe.estimate = Estimate.from_prior(st.prior)
+    assert vet.check(pipe, 0, 0) is None and vet.refused == 0
+    bad = Estimate.from_prior(st.prior)
+    bad.p[:3] += 50 * 1024.0  # zero-g 50 g away: outside any bound around the configured one
+    pipe.estimate = bad
+    back = vet.check(pipe, 1_000_000, 1)
+    assert back is not None and vet.refused == 1
+    assert np.array_equal(back.estimate.p, Estimate.from_prior(st.prior).p)
+    assert sink.kinds() == ["estimate_refused"], sink.kinds()
+    assert any(n.startswith("calibration refused") for n in notes), notes
