@@ -11,7 +11,6 @@ next run (the cause may have been the machine), once per run.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import os
@@ -19,10 +18,11 @@ import stat
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from recal.commands.study.job import Job, Options, result_path
-from recal.errors import InputError, UsageError
+from recal.daemon.state_files import SensorLock, lock_sensor
+from recal.errors import InputError, SensorLockedError, UsageError
 
 __all__ = ["LOCK_NAME", "Plan", "StudyLock", "file_key", "find_files", "make_plan",
            "options_for", "sha256"]
@@ -160,36 +160,28 @@ def _current_row(result: Path, key: dict[str, Any], path: Path,
 
 
 class StudyLock:
-    """An exclusive lock on OUTDIR (``flock`` on OUTDIR/.recal-study.lock) for one run; the
-    system releases it when the process ends, however it ends (no stale lock to clear)."""
+    """An exclusive lock on OUTDIR for one run: the state folder's lock (`lock_sensor`, an
+    flock on OUTDIR/.recal-study.lock holding the PID); the system releases it when the
+    process ends, however it ends (no stale lock to clear)."""
 
     def __init__(self, out_dir: Path) -> None:
-        self.path = out_dir / LOCK_NAME
-        self._file: IO[str] | None = None
+        self.out_dir = out_dir
+        self._lock: SensorLock | None = None
 
     def __enter__(self) -> StudyLock:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        f = open(self.path, "a+")  # held open (and locked) for the run
+        self.out_dir.mkdir(parents=True, exist_ok=True)  # the user's folder: its usual mode
         try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            f.seek(0)
-            holder = f.read().strip() or "another process"
-            f.close()
-            raise UsageError(f"{self.path.parent} is in use by another recal hindsight run "
+            self._lock = lock_sensor(self.out_dir, LOCK_NAME.removesuffix(".lock"))
+        except SensorLockedError as e:
+            holder = f"process {e.pid}" if e.pid else "another process"
+            raise UsageError(f"{self.out_dir} is in use by another recal hindsight run "
                              f"({holder}); wait for it to end or choose another --out") from None
-        f.seek(0)
-        f.truncate()
-        f.write(f"process {os.getpid()}\n")
-        f.flush()
-        self._file = f
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self._file is not None:
-            fcntl.flock(self._file, fcntl.LOCK_UN)
-            self._file.close()
-            self._file = None
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
 
 def clear_temporaries(out_dir: Path) -> int:
