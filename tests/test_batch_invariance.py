@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from memory_sink import MemorySink
 from recal.config import PipelineSection, RediscoveryConfig
 from recal.core.effects import Scale
 from recal.core.estimator import Prior
@@ -73,33 +74,10 @@ def test_reset_into_bootstrap_is_batch_size_invariant():
     assert small[3] == joined[3]
 
 
-class _Keep:
-    """A node's sink keeping the calibrated batches and the events."""
-
-    def __init__(self) -> None:
-        self.cal: list[CalibratedBatch] = []
-        self.events: list[dict] = []
-
-    def raw(self, *a: object, **k: object) -> None:
-        pass
-
-    def calibrated(self, sid: str, cal: CalibratedBatch, log_ns: int,
-                   topic: str = "calibrated") -> None:
-        if topic == "calibrated":
-            self.cal.append(cal)
-
-    def plot(self, *a: object, **k: object) -> None:
-        pass
-
-    def json(self, sid: str, suffix: str, obj: dict, log_ns: int) -> None:
-        if suffix == "events":
-            self.events.append(obj)
-
-
 def _node_fed(raw: RawBatch, model: SensorModel, prior: Prior, batch: int
               ) -> tuple[CalibratedBatch, list[dict]]:
     """Through a node as bench/live_loop.py runs it (discovery off), in batches of ``batch``."""
-    sink = _Keep()
+    sink = MemorySink()
     node = CalibrationNode(NodeSettings("s", PipelineSection(), model, prior, RATE_HZ,
                                         rediscovery=RediscoveryConfig(enabled=False)), sink)
     for i in range(0, len(raw), batch):  # bounded: one pass
