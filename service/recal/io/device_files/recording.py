@@ -22,7 +22,7 @@ import numpy as np
 from recal.errors import DeviceFileError
 from recal.io.device_files import block_times as bt
 from recal.io.device_files import guard, registry
-from recal.io.device_files.parsed import LowRate, Parsed
+from recal.io.device_files.parsed import Parsed
 from recal.samples import REBATCH_SAMPLES, RawBatch
 
 __all__ = ["DeviceRecording", "is_device_file", "open_device"]
@@ -54,7 +54,8 @@ class DeviceRecording:
             raise DeviceFileError(f"{path}: {kind.name} with times outside 1970-2200: "
                                   "refused (a damaged or crafted file)")
         self.rate_hz = 1e9 / self._blocks.measured_period_ns
-        self._stamps = {id(lr.t_ns): lr.t_ns.astype(np.float64) for lr in parsed.low_rate}
+        # each low-rate channel's stamps in float64 once per file, not a week's per batch
+        self._low_rate = [(lr.t_ns.astype(np.float64), lr.values) for lr in parsed.low_rate]
         self.aux_names = tuple([lr.name for lr in parsed.low_rate] + list(parsed.per_sample))
         self.skipped = {**parsed.skipped, "gaps": self._blocks.gaps,
                         "clock_changes": self._blocks.clock_changes}
@@ -79,19 +80,11 @@ class DeviceRecording:
     def _batch(self, lo: int, hi: int) -> RawBatch:
         p = self._p
         t_us = (self._blocks.times_ns(lo, hi) - self._shift_ns) // 1000
-        cols = _interp_low_rate(p.file_t_ns[lo:hi], p.low_rate, self._stamps)
+        x = p.file_t_ns[lo:hi].astype(np.float64)
+        cols = [np.interp(x, t, values) for t, values in self._low_rate]
         cols += [a[lo:hi] for a in p.per_sample.values()]
         aux = np.column_stack(cols) if cols else np.zeros((hi - lo, 0))
         return RawBatch(t_us, p.v_g[lo:hi].astype(np.float64), aux, self.aux_names)
-
-
-def _interp_low_rate(t_ns: np.ndarray, low: list[LowRate],
-                     stamps: dict[int, np.ndarray]) -> list[np.ndarray]:
-    """Each low-rate channel at the samples' stamps t_ns, by np.interp; ``stamps``: each
-    table's stamps in float64 by id, converted once per file (not a week's stamps per batch
-    and channel)."""
-    x = t_ns.astype(np.float64)
-    return [np.interp(x, stamps[id(lr.t_ns)], lr.values) for lr in low]
 
 
 def _sensor_id(text: str) -> str:
