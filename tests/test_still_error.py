@@ -61,3 +61,13 @@ def test_no_still_window_is_none() -> None:
     got = se.result([se.batch_sums(t_us, v, v, 0, v[0])], v[0], RATE_HZ)
     assert (got.still, got.before_mg, got.after_mg) == (0, None, None)
     assert got.windows == 6
+
+
+def test_a_clock_that_jumps_ahead_costs_only_the_windows_it_touches() -> None:
+    """A damaged file's stamp 20 years ahead: two windows kept, not the 63 million between."""
+    t_us = np.array([0, 20 * 365 * 86_400 * 10**6], np.int64)
+    v = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    part = se.batch_sums(t_us, v, v, 0, v[0])
+    assert len(part.n) == 2 and part.index.tolist() == [0, t_us[1] // se.WINDOW_US]
+    got = se.result([part, se.batch_sums(t_us[1:] + 1, v[1:], v[1:], 0, v[0])], v[0], RATE_HZ)
+    assert (got.windows, got.still) == (2, 0)

@@ -26,11 +26,13 @@ MIN_FILL = 0.9  # a window counts with at least 90 % of its samples
 
 @dataclass(frozen=True)
 class StillSums:
-    """One batch's share of the windows it touches (``first`` onwards): samples, sums of the
-    readings before (g) and of their squares (about ``ref_g``, the recording's first reading:
-    no cancellation in the SD), sums of the calibrated readings (g)."""
+    """One batch's share of the windows it touches (``index``: their numbers on the grid,
+    ascending; only those, so a clock that jumps ahead costs nothing for the windows it
+    skips): samples, sums of the readings before (g) and of their squares (about ``ref_g``,
+    the recording's first reading: no cancellation in the SD), sums of the calibrated
+    readings (g)."""
 
-    first: int
+    index: np.ndarray  # (w,) int64
     n: np.ndarray  # (w,)
     raw_sum: np.ndarray  # (w, 3)
     raw_sq: np.ndarray  # (w, 3)
@@ -56,16 +58,13 @@ def batch_sums(t_us: np.ndarray, raw_g: np.ndarray, cal_g: np.ndarray, t0_us: in
     index = (np.asarray(t_us, np.int64) - t0_us) // WINDOW_US
     ok = np.all(np.isfinite(raw_g), axis=1) & np.all(np.isfinite(cal_g), axis=1) & (index >= 0)
     index, raw_g, cal_g = index[ok], raw_g[ok] - ref_g, cal_g[ok]
-    if not len(index):
-        return StillSums(0, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
-    first = int(index.min())
-    local = index - first
-    m = int(local.max()) + 1
+    windows, local = np.unique(index, return_inverse=True)
+    m = len(windows)
 
     def per_axis(v: np.ndarray) -> np.ndarray:
         return np.stack([np.bincount(local, v[:, k], minlength=m) for k in range(3)], 1)
 
-    return StillSums(first, np.bincount(local, minlength=m).astype(np.float64),
+    return StillSums(windows, np.bincount(local, minlength=m).astype(np.float64),
                      per_axis(raw_g), per_axis(raw_g**2), per_axis(cal_g))
 
 
@@ -75,15 +74,17 @@ def result(parts: list[StillSums], ref_g: np.ndarray, rate_hz: float) -> StillEr
     parts = [p for p in parts if len(p.n)]
     if not parts:
         return StillError(0, 0, None, None)
-    size = max(p.first + len(p.n) for p in parts)
+    # the windows any batch touched, each batch's at their places (unique within a batch)
+    _, at = np.unique(np.concatenate([p.index for p in parts]), return_inverse=True)
+    size = int(at.max()) + 1
     n, raw_sum = np.zeros(size), np.zeros((size, 3))
     raw_sq, cal_sum = np.zeros((size, 3)), np.zeros((size, 3))
-    for p in parts:  # one add per batch (a batch spans a few windows), not per sample
-        sl = slice(p.first, p.first + len(p.n))
-        n[sl] += p.n
-        raw_sum[sl] += p.raw_sum
-        raw_sq[sl] += p.raw_sq
-        cal_sum[sl] += p.cal_sum
+    for p, i in zip(parts, np.split(at, np.cumsum([len(p.n) for p in parts])[:-1]), strict=True):
+        # one add per batch (a batch spans a few windows), not per sample
+        n[i] += p.n
+        raw_sum[i] += p.raw_sum
+        raw_sq[i] += p.raw_sq
+        cal_sum[i] += p.cal_sum
     windows = int(np.count_nonzero(n))
     mean_shifted = raw_sum / np.maximum(n, 1)[:, None]
     var = (raw_sq - n[:, None] * mean_shifted**2) / np.maximum(n - 1, 1)[:, None]
