@@ -62,11 +62,11 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from compare_tools import VENV_SPECS, ensure_venv  # noqa: E402
 
+# GGIR's (and actipy's) still 10 s windows, as `recal hindsight DIR` reports them
+from recal.core.still_error import MIN_FILL, STILL_SD_G, WINDOW_US  # noqa: E402
+
 RUNNER = HERE / "device_tools_runner.py"
-WINDOW_US = 10_000_000  # GGIR's and actipy's 10 s windows
 BLOCK_US = 1_800_000_000  # held-out blocks: 30 min
-STILL_SD_G = 0.013  # GGIR's sdCriter: every axis's SD under 13 mg
-MIN_FILL = 0.9  # a window counts with at least 90 % of its samples
 TOOLS = ("actipy", "actipy-nocube", "recal-diagonal", "recal-hindsight", "recal-discover")
 LABELS = {"raw": "raw (file's scaling)", "actipy": "actipy calibrate_gravity",
           "actipy-nocube": "actipy, sphere criterion off",
