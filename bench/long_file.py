@@ -17,11 +17,14 @@ Each measured in a process of its own, one after the other, under ``nice -n 10``
   its own environment (bench/.venvs/actipy, built by bench/compare_tools.py, or
   ``--actipy-python``);
 * recal: ``recal hindsight FILE --json fit.json --quiet``, the calibration alone (no samples
-  written): the whole command's wall time (interpreter, imports, reading, windows, discovery,
-  the fit) and its peak memory (the child's maximum resident set, as ``/usr/bin/time -v``).
+  written), with its default threads (the cores). Timed as the others are, without the
+  interpreter's start and the imports: ``recal.cli.main`` called in a process that has
+  imported what the command imports (reading, windows, discovery, the fit; the JSON
+  written). And, in a process of its own, the whole command (``python -m recal``): its wall
+  time and its peak memory (the child's maximum resident set, as ``/usr/bin/time -v``).
 
-Wall seconds, and CPU seconds (user + system: the timed part of actfast and actipy, recal's
-whole command), which a machine shared with other work inflates less.
+Wall seconds, and CPU seconds (user + system of the timed part), which a machine shared with
+other work inflates less, but which threads do not shorten.
 
 The goal (a study's folder in bounded memory): recal's time at most actfast's read plus
 actipy's calibrate_gravity, its peak at most twice actfast's read alone.
@@ -79,6 +82,17 @@ print(json.dumps({"samples": len(data), "read_s": t1 - t0, "calibrate_s": t2 - t
                   "calibrate_cpu_s": c2 - c1,
                   "peak_mib": hwm / 1024, "calibrated": bool(info.get("CalibOK", 0)),
                   "version": actipy.__version__}))
+"""
+
+RECAL = """
+import json, sys, time
+import actfast, scipy.signal, tqdm  # what the command imports, here before the clock starts
+import recal.commands.hindsight, recal.io.sources
+from recal.cli import main
+t0, c0 = time.perf_counter(), time.process_time()
+code = main(["hindsight", sys.argv[1], "--json", sys.argv[2], "--quiet"])
+print(json.dumps({"code": code, "seconds": time.perf_counter() - t0,
+                  "cpu_s": time.process_time() - c0}))
 """
 
 
@@ -152,6 +166,8 @@ def main() -> None:
     ap.add_argument("--actipy-python", help="python of an environment with actipy")
     ap.add_argument("--skip", nargs="*", default=(), choices=("actfast", "actipy", "recal"),
                     help="tools not measured")
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each tool, in turn; the "
+                    "median of each figure is reported (default: 3)")
     ap.add_argument("--make", type=Path, help=argparse.SUPPRESS)  # the child that writes it
     a = ap.parse_args()
     if a.make:
@@ -166,23 +182,46 @@ def main() -> None:
                            timeout=TIMEOUT_S)
             print(f"made {path} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         print(f"{path} ({path.stat().st_size / 1e6:.0f} MB)")
-        rows: dict[str, dict] = {}
-        if "actfast" not in a.skip:
-            out, *_ = _child([sys.executable, "-c", ACTFAST, str(path)])
-            rows["actfast"] = json.loads(out)
-        if "actipy" not in a.skip:
-            out, *_ = _child([str(actipy_python(a.actipy_python)), "-c", ACTIPY, str(path)])
-            rows["actipy"] = json.loads(out)
-        if "recal" not in a.skip:
-            fit = Path(tmp) / "fit.json"
-            _, wall, cpu, peak = _child([sys.executable, "-m", "recal", "hindsight", str(path),
-                                    "--json", str(fit), "--quiet"])
-            s = json.loads(fit.read_text())
-            rows["recal"] = {"samples": s["samples"], "seconds": wall, "cpu_s": cpu,
-                             "inside_s": s["seconds"],
-                             "peak_mib": peak, "windows": s["windows"],
-                             "discovery_windows": (s.get("discovery") or {}).get("windows")}
+        runs: list[dict[str, dict]] = []
+        for r in range(a.repeat):  # the tools in turn, so a load that comes and goes hits all
+            runs.append(measure(path, Path(tmp), a))
+            print(f"  run {r + 1} of {a.repeat}: " + ", ".join(
+                f"{k} {v.get('seconds', v.get('calibrate_s', 0)):.2f} s"
+                for k, v in runs[-1].items()), file=sys.stderr)
+        rows = median_rows(runs)
     report(rows)
+
+
+def measure(path: Path, tmp: Path, a: argparse.Namespace) -> dict[str, dict]:
+    """One run of each tool not skipped, each in a process of its own."""
+    rows: dict[str, dict] = {}
+    if "actfast" not in a.skip:
+        out, *_ = _child([sys.executable, "-c", ACTFAST, str(path)])
+        rows["actfast"] = json.loads(out)
+    if "actipy" not in a.skip:
+        out, *_ = _child([str(actipy_python(a.actipy_python)), "-c", ACTIPY, str(path)])
+        rows["actipy"] = json.loads(out)
+    if "recal" not in a.skip:
+        fit = tmp / "fit.json"
+        out, *_ = _child([sys.executable, "-c", RECAL, str(path), str(fit)])
+        timed = json.loads(out.strip().splitlines()[-1])
+        _, wall, cpu, peak = _child([sys.executable, "-m", "recal", "hindsight", str(path),
+                                     "--json", str(fit), "--quiet"])
+        s = json.loads(fit.read_text())
+        rows["recal"] = {"samples": s["samples"], "seconds": timed["seconds"],
+                         "cpu_s": timed["cpu_s"], "command_s": wall, "command_cpu_s": cpu,
+                         "inside_s": s["seconds"], "peak_mib": peak, "windows": s["windows"],
+                         "discovery_windows": (s.get("discovery") or {}).get("windows")}
+    return rows
+
+
+def median_rows(runs: list[dict[str, dict]]) -> dict[str, dict]:
+    """Each tool's figures, the median over the runs (of each number apart)."""
+    out: dict[str, dict] = {}
+    for tool, first in runs[0].items():
+        out[tool] = {k: (float(np.median([r[tool][k] for r in runs]))
+                         if isinstance(v, float) else v) for k, v in first.items()}
+    return out
 
 
 def report(rows: dict[str, dict]) -> None:
@@ -199,10 +238,12 @@ def report(rows: dict[str, dict]) -> None:
         print(f"{'actipy calibrate_gravity':44} {'':>11} {ap_['calibrate_s']:8.2f} "
               f"{ap_['calibrate_cpu_s']:8.2f} {'':>9}")
     if rc:
-        print(f"{'recal hindsight --json (whole command)':44} {rc['samples']:>11} "
-              f"{rc['seconds']:8.2f} {rc['cpu_s']:8.2f} {rc['peak_mib']:9.0f}")
-        print(f"  (inside: {rc['inside_s']:.2f} s; fit on {rc['windows']} windows, discovery "
-              f"on {rc['discovery_windows']})")
+        print(f"{'recal hindsight --json':44} {rc['samples']:>11} "
+              f"{rc['seconds']:8.2f} {rc['cpu_s']:8.2f} {'':>9}")
+        print(f"{'  the whole command (interpreter, imports)':44} {'':>11} "
+              f"{rc['command_s']:8.2f} {rc['command_cpu_s']:8.2f} {rc['peak_mib']:9.0f}")
+        print(f"  (after the reading: {rc['inside_s']:.2f} s; fit on {rc['windows']} windows, "
+              f"discovery on {rc['discovery_windows']})")
     if af and ap_ and rc:
         budget = af["seconds"] + ap_["calibrate_s"]
         print(f"time: recal {rc['seconds']:.2f} s vs actfast read + actipy calibrate_gravity "

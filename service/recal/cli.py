@@ -200,6 +200,7 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from recal.commands import hindsight as hf
+    from recal.commands.span_windows import default_threads
     from recal.config import load_model_file
     from recal.io.sources import open_recording
 
@@ -209,6 +210,8 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
                    if getattr(a, k) not in (None, False)]
     if folder_only:
         raise UsageError(f"{', '.join(folder_only)}: for a folder input only")
+    if a.threads is not None and a.threads < 1:
+        raise UsageError(f"--threads must be at least 1, not {a.threads}")
     if a.out is None and a.json is None:
         raise UsageError("hindsight writes --out (every sample calibrated), --json (the "
                          "calibration alone) or both: give at least one")
@@ -223,7 +226,8 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
     total = passes * len(src.device) if src.device is not None else None
     with tqdm(unit="sample", unit_scale=True, desc=f"hindsight ({passes} passes)", leave=False,
               disable=a.quiet or None, total=total) as bar:
-        summary = hf.calibrate_file(src, a.out, model, a.overwrite, bar.update)
+        summary = hf.calibrate_file(src, a.out, model, a.overwrite, bar.update,
+                                    threads=a.threads or default_threads())
     if a.json:
         Path(a.json).write_text(json.dumps(summary, indent=2, default=str))
     print("\n".join(hf.summary_lines(summary)))
@@ -236,7 +240,8 @@ def _hindsight_folder(a: argparse.Namespace) -> int:
     from recal.commands.study import run_study
     from recal.commands.study.plan import options_for
 
-    file_only = [f"--{k}" for k in ("json", "overwrite") if getattr(a, k) not in (None, False)]
+    file_only = [f"--{k}" for k in ("json", "overwrite", "threads")
+                 if getattr(a, k) not in (None, False)]
     if file_only:
         raise UsageError(f"{', '.join(file_only)}: for a file input only (a folder's results "
                          "are OUTDIR/summary.csv and .json; done files are kept)")

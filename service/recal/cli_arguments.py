@@ -337,6 +337,8 @@ def build_parser(commands: Mapping[str, Command]) -> argparse.ArgumentParser:
     s.add_argument("--units", choices=("counts", "g", "ms2"), help="unit of a CSV's x, y, z")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    s.add_argument("--threads", type=int, metavar="N", help="a device file: find its windows "
+                   "on N threads (the same windows; default: the cores, at most 8)")
     s.add_argument("--samples", choices=("mcap", "csv"), help="folder: also write each file's "
                    "calibrated samples (default: the calibrations alone)")
     s.add_argument("--workers", type=int, metavar="N", help="folder: local worker processes "

@@ -29,6 +29,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from recal.commands.discover import misfit_dict, misfit_words, step_in_time_dict
+from recal.commands.span_windows import span_windows
 from recal.core import detector as det
 from recal.core import hindsight
 from recal.core.channels import usable
@@ -60,11 +61,12 @@ class Fitted:
 
 
 def fit_recording(src: Source, model: SensorModel | None = None,
-                  progress: Callable[[int], None] | None = None) -> Fitted:
+                  progress: Callable[[int], None] | None = None, threads: int = 1) -> Fitted:
     """Passes 1 and 2: the rate and scale, the quasi-static windows and one fit of ``model``
     on them; without a model, the one `recal discover`'s selection finds on the same windows
     (from offsets and gains in the input's units). Writes nothing.
-    progress(n): called with the samples of each batch of each pass."""
+    progress(n): called with the samples of each batch of each pass. threads: a device
+    file's windows on that many threads (`span_windows`: the same windows)."""
     t0 = time.perf_counter()
     rate_hz, median_norm = _rate_and_scale(src, progress)
     cfg = PipelineConfig(rate_hz=rate_hz)
@@ -80,27 +82,36 @@ def fit_recording(src: Source, model: SensorModel | None = None,
         read[0] = 0
         return _counted(src.batches(), count)
 
+    windows_of = None
+    if src.device is not None and threads > 1:
+        spans = span_windows(src.device, threads, count)
+
+        def windows_of(*args: Any) -> Any:
+            read[0] = 0
+            return spans(*args)
+
     found: DiscoveryResult | str | None = None
     # one BLAS thread: the fits solve hundreds of small least-squares problems, for which
     # OpenBLAS's threads cost more CPU (and here wall) time than they save
     with threadpool_limits(1, user_api="blas"):
         if model is None:
-            fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg)
+            fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg,
+                                                          windows_of=windows_of)
         else:
-            fit = hindsight.calibrate(batches, model, cfg)
+            fit = hindsight.calibrate(batches, model, cfg, windows_of=windows_of)
     return Fitted(fit, found, cfg, rate_hz, time.perf_counter() - t0, read[0])
 
 
 def calibrate_file(src: Source, out: str | Path | None, model: SensorModel | None = None,
                    overwrite: bool = False, progress: Callable[[int], None] | None = None,
-                   fitted: Fitted | None = None) -> dict[str, Any]:
+                   fitted: Fitted | None = None, threads: int = 1) -> dict[str, Any]:
     """Fit ``model`` to the source with hindsight (`fit_recording`; or take ``fitted``, its
     result on this source) and write every sample corrected into ``out`` (None: the
-    calibration alone, no third pass). Returns the summary
-    (`summary_lines`)."""
+    calibration alone, no third pass). Returns the summary (`summary_lines`). threads: as
+    `fit_recording`'s."""
     t0 = time.perf_counter()
     if fitted is None:
-        fitted = fit_recording(src, model, progress)
+        fitted = fit_recording(src, model, progress, threads)
     corrected = Corrected(fitted.fit, fitted.cfg)
     if out is None:
         samples = fitted.samples

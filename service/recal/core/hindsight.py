@@ -39,11 +39,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recal.core.batch_windows import Windowing
+from recal.core.batch_windows import WindowsFn, in_order
 from recal.core.bootstrap import off_by
 from recal.core.buffer import Windows
 from recal.core.discovery import DiscoveryConfig, DiscoveryResult, discover
-from recal.core.discovery_data import data_from_windows
+from recal.core.discovery_data import DiscoveryData, data_from_windows
 from recal.core.effects import Covariates
 from recal.core.model import AffineCorrection, SensorModel
 from recal.core.model_fit import FitConfig, fit_model, free_params, nominal, start_params
@@ -51,7 +51,7 @@ from recal.core.pipeline_config import PipelineConfig
 from recal.core.quantization import rounding_g2
 from recal.core.residuals import MisfitProfile, misfit
 from recal.errors import InputError
-from recal.samples import RawBatch, rebatch
+from recal.samples import RawBatch
 
 __all__ = ["SUSPECT_EXCESS_G", "HindsightFit", "calibrate", "discover_and_calibrate", "fit"]
 
@@ -142,11 +142,14 @@ class HindsightFit:
 
 
 def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorModel,
-        norm_tol_g: float = 0.1, step_raw: np.ndarray | None = None) -> HindsightFit:
+        norm_tol_g: float = 0.1, step_raw: np.ndarray | None = None,
+        data: DiscoveryData | None = None) -> HindsightFit:
     """The model fitted to a recording's window means (module doc, step 2); step_raw: the
     sensor's step per axis (raw units; None or inf: unknown), whose rounding the means keep
-    where the noise does not dither it (`quantization.mean_floor_g2`)."""
-    data = data_from_windows(windows, aux_names, t0_us)
+    where the noise does not dither it (`quantization.mean_floor_g2`). data: the windows'
+    `data_from_windows`, when the caller has it."""
+    if data is None:
+        data = data_from_windows(windows, aux_names, t0_us)
     dropped = data.dropped
     if off_by(data.zero, data.s0, np.zeros(3), model.s0):  # s0 a first guess (`calibrate`)
         model = SensorModel(model.effects, data.s0, model.spreads)
@@ -180,22 +183,26 @@ def fit(windows: Windows, aux_names: tuple[str, ...], t0_us: int, model: SensorM
 
 
 def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
-              cfg: PipelineConfig) -> HindsightFit:
-    """Fit a recording read batch by batch (``batches()``: one pass over it, or two) with
-    hindsight. The detector runs in units of model.s0 raw per g; when the windows show zero-g
-    far from 0 or the scale far from s0 (`bootstrap.zero_and_scale`: an analog part on an
-    unsigned ADC, s0 a first sample's norm), once more centred at the zero-g found and in its
-    units, and the model's s0 becomes that scale."""
-    windows, aux_names, t0_us, step = _windows(batches, cfg, model, model.s0, None)
+              cfg: PipelineConfig, *, windows_of: WindowsFn | None = None) -> HindsightFit:
+    """Fit a recording read batch by batch (``batches()``: one pass over it, or two; or its
+    windows as ``windows_of`` finds them, `batch_windows.WindowsFn`) with hindsight. The
+    detector runs in units of model.s0 raw per g; when the windows show zero-g far from 0 or
+    the scale far from s0 (`bootstrap.zero_and_scale`: an analog part on an unsigned ADC, s0
+    a first sample's norm), once more centred at the zero-g found and in its units, and the
+    model's s0 becomes that scale."""
+    find = windows_of or in_order(batches)
+    windows, aux_names, t0_us, step = _windows(find, cfg, model, model.s0, None)
     data = data_from_windows(windows, aux_names, t0_us)
     if off_by(data.zero, data.s0, np.zeros(3), model.s0):
         model = SensorModel(model.effects, data.s0, model.spreads)
-        windows, aux_names, t0_us, step = _windows(batches, cfg, model, data.s0, data.zero)
-    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g, step)
+        windows, aux_names, t0_us, step = _windows(find, cfg, model, data.s0, data.zero)
+        data = data_from_windows(windows, aux_names, t0_us)
+    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g, step, data)
 
 
 def discover_and_calibrate(batches: Callable[[], Iterable[RawBatch]], s0: float,
-                           cfg: PipelineConfig, dcfg: DiscoveryConfig | None = None
+                           cfg: PipelineConfig, dcfg: DiscoveryConfig | None = None, *,
+                           windows_of: WindowsFn | None = None
                            ) -> tuple[HindsightFit, DiscoveryResult | str]:
     """`calibrate` of the model `discovery.discover` selects on the recording's windows (from
     offsets and gains at s0 raw units per g, as `recal discover`): the windows once (twice for
@@ -203,30 +210,27 @@ def discover_and_calibrate(batches: Callable[[], Iterable[RawBatch]], s0: float,
     discovery cannot score (too few windows, no pose two blocks share), the fit of offsets and
     gains, and why in place of the discovery."""
     base = SensorModel.diagonal(s0)
-    windows, aux_names, t0_us, step = _windows(batches, cfg, base, s0, None)
+    find = windows_of or in_order(batches)
+    windows, aux_names, t0_us, step = _windows(find, cfg, base, s0, None)
     data = data_from_windows(windows, aux_names, t0_us)
     if off_by(data.zero, data.s0, np.zeros(3), s0):
-        windows, aux_names, t0_us, step = _windows(batches, cfg, base, data.s0, data.zero)
+        windows, aux_names, t0_us, step = _windows(find, cfg, base, data.s0, data.zero)
         data = data_from_windows(windows, aux_names, t0_us)
     try:
         found: DiscoveryResult | str = discover(data, cfg=dcfg or DiscoveryConfig())
     except InputError as exc:
         found = str(exc)
     model = found.model if isinstance(found, DiscoveryResult) else base
-    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g, step), found
+    return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g, step, data), found
 
 
-def _windows(batches: Callable[[], Iterable[RawBatch]], cfg: PipelineConfig,
-             model: SensorModel, s0: float, zero: np.ndarray | None
-             ) -> tuple[Windows, tuple[str, ...], int, np.ndarray]:
+def _windows(find: WindowsFn, cfg: PipelineConfig, model: SensorModel, s0: float,
+             zero: np.ndarray | None) -> tuple[Windows, tuple[str, ...], int, np.ndarray]:
     """The recording's kept windows by the detector in units of s0, zero-g `zero` off, and
     the sensor's step as the detector learned it."""
-    w = Windowing(cfg, model, s0, zero)
-    for b in rebatch(batches()):  # a recording's small messages, joined: fewer numpy calls
-        w.add(b)
-    if w.aux_names is None or w.t0_us is None:
+    sums, aux_names, t0_us, step = find(cfg, model, s0, zero)
+    if aux_names is None or t0_us is None:
         raise InputError("a recording needs samples to calibrate")
-    sums = w.kept()
     if not len(sums):
         raise InputError("no quasi-static window in the recording: nothing to calibrate on")
-    return sums.means()[0], w.aux_names, w.t0_us, w.step_raw
+    return sums.means()[0], aux_names, t0_us, step

@@ -68,7 +68,7 @@ class DeviceRecording:
     def batches(self, samples: int = REBATCH_SAMPLES) -> Iterator[RawBatch]:
         """The samples in batches of ``samples`` (the last may hold fewer)."""
         for lo in range(0, len(self), samples):
-            yield self._batch(lo, min(len(self), lo + samples))
+            yield self.batch(lo, min(len(self), lo + samples))
 
     def file_times(self, samples: int = REBATCH_SAMPLES) -> Iterator[np.ndarray]:
         """The file's own stamp of each sample (µs, the device's local wall-clock as the
@@ -77,14 +77,20 @@ class DeviceRecording:
         for lo in range(0, len(self), samples):
             yield t[lo:lo + samples] // 1000
 
-    def _batch(self, lo: int, hi: int) -> RawBatch:
+    def readings(self, lo: int, hi: int) -> np.ndarray:
+        """The readings of samples lo..hi-1 (N,3) as `batch` gives them, without their
+        times and channels (what the detector needs)."""
+        return self._p.v_g[lo:hi].astype(np.float64)
+
+    def batch(self, lo: int, hi: int) -> RawBatch:
+        """Samples lo..hi-1 (any range: the file is in memory)."""
         p = self._p
         t_us = (self._blocks.times_ns(lo, hi) - self._shift_ns) // 1000
         x = p.file_t_ns[lo:hi].astype(np.float64)
         cols = [np.interp(x, t, values) for t, values in self._low_rate]
         cols += [a[lo:hi] for a in p.per_sample.values()]
         aux = np.column_stack(cols) if cols else np.zeros((hi - lo, 0))
-        return RawBatch(t_us, p.v_g[lo:hi].astype(np.float64), aux, self.aux_names)
+        return RawBatch(t_us, self.readings(lo, hi), aux, self.aux_names)
 
 
 def _sensor_id(text: str) -> str:

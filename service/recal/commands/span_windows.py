@@ -1,0 +1,100 @@
+"""A device file's still windows on several threads, the same bit for bit as one reading from
+its start (`core.batch_windows`, "in spans"): the detector on segments of the file, each
+started early, then checked and joined in order; the windower on spans that start where the
+detector gates nothing. numpy and scipy's filter release the interpreter's lock while they
+work on a batch, so the threads share the cores (docs/design.md, "A long file on threads").
+
+The file is in memory (`DeviceRecording`: any range of samples at will); a stream (an MCAP
+or CSV recording) is read from its start instead (`batch_windows.in_order`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from recal.core import detector as det
+from recal.core import windower
+from recal.core.batch_windows import (
+    Segment,
+    WindowsFn,
+    detect_segment,
+    settle,
+    span_starts,
+    warm_samples,
+    window_span,
+)
+from recal.core.model import SensorModel
+from recal.core.pipeline_config import PipelineConfig
+from recal.io.device_files import DeviceRecording
+from recal.samples import REBATCH_SAMPLES
+
+__all__ = ["SEGMENT_BATCHES", "default_threads", "span_windows"]
+
+#: Batches per segment of the detector and per span of the windower: 4 Mi samples, 11.6 h at
+#: 100 Hz, so a week is 15 pieces of work for the threads, and a warm-up (15 min) costs 2 %.
+SEGMENT_BATCHES = 64
+#: Threads at most, whatever the cores: beyond, the memory's bandwidth is what they share.
+MAX_THREADS = 8
+
+
+def default_threads() -> int:
+    """The cores this process may run on (its CPU affinity), at most MAX_THREADS."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_THREADS))
+
+
+def span_windows(rec: DeviceRecording, threads: int,
+                 progress: Callable[[int], None] | None = None, batch: int = REBATCH_SAMPLES,
+                 segment_batches: int | None = None) -> WindowsFn:
+    """The windows of ``rec`` (`batch_windows.WindowsFn`) on ``threads`` threads, the same as
+    `rec.batches(batch)` read in order gives; progress(n) is called in the caller's thread as
+    samples are done (half of each sample in each of the two steps)."""
+
+    def windows(cfg: PipelineConfig, model: SensorModel, s0: float, zero: np.ndarray | None
+                ) -> tuple[windower.WindowSums, tuple[str, ...] | None, int | None, np.ndarray]:
+        dcfg = cfg.detector(s0, zero)
+        n, every = len(rec), (segment_batches or SEGMENT_BATCHES) * batch
+        warm = warm_samples(cfg.rate_hz, batch)
+
+        def detect(lo: int, state: det.DetectorState | None = None) -> Segment:
+            return detect_segment(dcfg, rec.readings, lo, min(n, lo + every), batch, warm, state)
+
+        def window(span: tuple[int, int]) -> windower.WindowSums:
+            w = window_span(cfg, model, s0, zero, rec.batch, gate, *span, batch)
+            return w.kept()
+
+        told = 0
+
+        def tell(samples: int) -> None:
+            nonlocal told
+            if progress is not None and samples:
+                progress(samples)
+            told += samples
+
+        with ThreadPoolExecutor(threads, thread_name_prefix="recal-windows") as pool:
+            segments = []
+            for s in pool.map(detect, range(0, n, every)):
+                segments.append(s)
+                tell(len(s.gate) // 2)
+            segments, state = settle(dcfg, segments, lambda s, st: detect(s.lo, st))
+            gate = np.concatenate([s.gate for s in segments])
+            del segments
+            starts = span_starts(gate, every)
+            spans = list(zip(starts, [*starts[1:], n], strict=True))
+            tables = []
+            for (lo, hi), t in zip(spans, pool.map(window, spans), strict=True):
+                tables.append(t)
+                tell((hi - lo) // 2)
+        tell(n - told)
+        first = rec.batch(0, 1)
+        return (windower.WindowSums.concat(tables), first.aux_names, int(first.t_us[0]),
+                state.step_raw)
+
+    return windows

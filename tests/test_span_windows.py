@@ -1,0 +1,142 @@
+"""A device file's windows on threads (`commands.span_windows`, `core.batch_windows` in spans):
+the same windows, bit for bit, as one reading from the start on the same batches, for every
+format's quantization, gaps and idle sleep; also where a segment's warm-up falls short and
+it must be run again; and `recal hindsight --threads` gives the same calibration."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from device_writers import DeviceRun, device_signal, write_cwa, write_geneactiv_bin, write_gt3x
+from recal.cli import main
+from recal.commands.span_windows import span_windows
+from recal.core import batch_windows as bw
+from recal.core import detector as det
+from recal.core.model import SensorModel
+from recal.core.pipeline_config import PipelineConfig
+from recal.core.quantization import LATTICE_CHANGES
+from recal.io.device_files import DeviceRecording, open_device
+
+BATCH = 1024  # small batches and segments: a short file is many of each
+SEGMENT_BATCHES = 6
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """50 min at 50 Hz with a gap and a stretch on a table, as each device writes it (the
+    ActiGraph with idle sleep on the table)."""
+    run = DeviceRun(hours=50 / 60, nominal_hz=50, real_hz=50.15, gap_s=(300.0, 40.0),
+                    table_s=(1500.0, 150.0))
+    sig = device_signal(run)
+    tmp = tmp_path_factory.mktemp("devices")
+    return {"cwa": write_cwa(tmp / "w.cwa", sig).path,
+            "bin": write_geneactiv_bin(tmp / "w.bin", sig).path,
+            # an ActiGraph samples on its real-time clock: exactly the nominal rate
+            "gt3x": write_gt3x(tmp / "w.gt3x", device_signal(replace(run, real_hz=50.0))).path}
+
+
+def _in_order(rec: DeviceRecording, cfg: PipelineConfig, model: SensorModel, s0: float,
+              zero: np.ndarray | None) -> bw.Windowing:
+    """The reference: every batch of the grid in turn through one `Windowing`."""
+    w = bw.Windowing(cfg, model, s0, zero)
+    for b in rec.batches(BATCH):
+        w.add(b)
+    return w
+
+
+def _assert_same(got: tuple, want: bw.Windowing) -> None:
+    sums, aux_names, t0_us, step = got
+    kept = want.kept()
+    assert len(kept) > 20
+    for f in fields(kept):  # every window's every sum, bit for bit
+        np.testing.assert_array_equal(getattr(sums, f.name), getattr(kept, f.name), f.name)
+    assert aux_names == want.aux_names and t0_us == want.t0_us
+    np.testing.assert_array_equal(step, want.step_raw)
+
+
+@pytest.mark.parametrize("kind", ["cwa", "bin", "gt3x"])
+def test_windows_on_threads_are_those_of_one_reading(files: dict[str, Path], kind: str) -> None:
+    rec = open_device(files[kind])
+    cfg = PipelineConfig(rate_hz=rec.rate_hz)
+    model = SensorModel.diagonal(1.0)
+    told: list[int] = []
+    find = span_windows(rec, 2, told.append, batch=BATCH, segment_batches=SEGMENT_BATCHES)
+    _assert_same(find(cfg, model, 1.0, None), _in_order(rec, cfg, model, 1.0, None))
+    assert sum(told) == len(rec)  # the progress: every sample once
+    # centred elsewhere (an analog part's second pass) and a model with a channel (its
+    # samples must have it finite to count)
+    zero = np.array([0.01, -0.02, 0.005])
+    temp = SensorModel.from_dict({"s0": 1.0, "effects": [
+        {"kind": "offset"}, {"kind": "scale"},
+        {"kind": "offset", "covariate": rec.aux_names[0], "ref": 0.0}]})
+    _assert_same(find(cfg, temp, 1.02, zero), _in_order(rec, cfg, temp, 1.02, zero))
+
+
+def test_a_warm_up_that_falls_short_is_run_again(files: dict[str, Path],
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    rec = open_device(files["cwa"])
+    cfg = PipelineConfig(rate_hz=rec.rate_hz)
+    model = SensorModel.diagonal(1.0)
+    again: list[int] = []
+    settle = bw.settle
+
+    def counted(cfg_, segments, run_again):
+        def counting(s, state):
+            again.append(s.lo)
+            return run_again(s, state)
+        return settle(cfg_, segments, counting)
+
+    monkeypatch.setattr("recal.commands.span_windows.settle", counted)
+    monkeypatch.setattr(bw, "WARM_S", 0.5)  # a second: the filters cannot have forgotten
+    find = span_windows(rec, 2, batch=BATCH, segment_batches=SEGMENT_BATCHES)
+    _assert_same(find(cfg, model, 1.0, None), _in_order(rec, cfg, model, 1.0, None))
+    segments = -(-len(rec) // (BATCH * SEGMENT_BATCHES))
+    assert len(again) == segments - 1  # each segment after the first, from the right state
+
+
+def test_same_future_compares_what_the_detector_uses() -> None:
+    cfg = PipelineConfig(rate_hz=50.0).detector(1.0, None)
+    a = replace(det.init_state(cfg), started=True, zi_hp=np.ones((1, 2)),
+                last_v=np.array([0.0, 0.0, 1.0]), step_raw=np.full(3, 1 / 256),
+                changes=LATTICE_CHANGES)
+    assert bw.same_future(cfg, a, replace(a, step_raw=np.full(3, 1 / 255)))  # both coarse
+    assert not bw.same_future(cfg, a, replace(a, step_raw=np.full(3, 1e-6)))  # one fine
+    assert not bw.same_future(cfg, a, replace(a, changes=10))  # one still learning
+    assert not bw.same_future(cfg, a, replace(a, same_run=3))
+    assert not bw.same_future(cfg, a, replace(a, zi_hp=np.nextafter(a.zi_hp, 2.0)))
+    young = replace(a, changes=10)
+    assert bw.same_future(cfg, young, replace(young, zi_lp=young.zi_lp.copy()))
+    assert not bw.same_future(cfg, young, replace(young, step_raw=np.full(3, 1 / 255)))
+
+
+def test_spans_start_where_the_detector_gates_nothing() -> None:
+    gate = np.ones(100, bool)
+    gate[[5, 23, 24, 61]] = False
+    assert bw.span_starts(gate, 20) == [0, 23, 61]  # none in 40..59: no span there
+    assert bw.span_starts(np.ones(50, bool), 10) == [0]
+
+
+def test_hindsight_threads_give_the_same_calibration(files: dict[str, Path], tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setattr("recal.commands.span_windows.SEGMENT_BATCHES", 1)  # 64 Ki samples
+    out = {}
+    for threads in (1, 2):
+        path = tmp_path / f"t{threads}.json"
+        assert main(["hindsight", str(files["cwa"]), "--json", str(path), "--quiet",
+                     "--threads", str(threads)]) == 0
+        out[threads] = json.loads(path.read_text())
+    for key in ("params", "sd", "windows", "discovery", "residual_rms_mg", "misfit"):
+        assert out[1][key] == out[2][key], key
+    capsys.readouterr()
+    assert main(["hindsight", str(files["cwa"]), "--json", str(tmp_path / "x.json"),
+                 "--threads", "0"]) == 2
+    assert "--threads" in capsys.readouterr().err
+    assert main(["hindsight", str(tmp_path), "--out", str(tmp_path / "o"),
+                 "--threads", "2"]) == 2
+    assert "--threads" in capsys.readouterr().err
