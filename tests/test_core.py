@@ -125,6 +125,23 @@ def test_flat_runs_count_the_repeats_before_each_sample_across_batches():
         assert det._flat_runs(v, last, run0).tolist() == expect
 
 
+def test_flat_marks_the_runs_at_or_past_the_threshold_and_carries_the_last():
+    """`_flat` (the detector's: the repeats alone) against the count of every sample, with
+    one threshold or one per sample (the step still being learned), 0 and 1 included."""
+    rng = np.random.default_rng(13)
+    for _ in range(300):
+        n = int(rng.integers(1, 60))
+        v = rng.integers(0, 2, (n, 1)).repeat(3, axis=1).astype(float)
+        v[rng.random(n) < 0.1, 1] = 7.0
+        last = v[0].copy() if rng.random() < 0.5 else np.full(3, np.nan)
+        run0 = int(rng.integers(0, 5))
+        runs = det._flat_runs(v, last, run0)
+        for flat_n in (int(rng.integers(0, 8)), rng.integers(0, 8, n)):
+            flat, run = det._flat(v, last, run0, flat_n)
+            assert flat.tolist() == (runs >= np.asarray(flat_n) - 1).tolist()
+            assert run == runs[-1]
+
+
 def test_flat_runs_one_sample_at_a_time_equal_the_whole_batch():
     rng = np.random.default_rng(12)
     v = rng.integers(0, 2, (300, 1)).repeat(3, axis=1).astype(float)  # long runs of repeats

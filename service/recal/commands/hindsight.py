@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -83,7 +84,7 @@ def fit_recording(src: Source, model: SensorModel | None = None,
         return _counted(src.batches(), count)
 
     windows_of = None
-    if src.device is not None and threads > 1:
+    if src.device is not None:  # in memory: in spans (on threads, or one: the same windows)
         spans = span_windows(src.device, threads, count)
 
         def windows_of(*args: Any) -> Any:
@@ -93,10 +94,12 @@ def fit_recording(src: Source, model: SensorModel | None = None,
     found: DiscoveryResult | str | None = None
     # one BLAS thread: the fits solve hundreds of small least-squares problems, for which
     # OpenBLAS's threads cost more CPU (and here wall) time than they save
-    with threadpool_limits(1, user_api="blas"):
+    with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1) as pool:
         if model is None:
-            fit, found = hindsight.discover_and_calibrate(batches, median_norm, cfg,
-                                                          windows_of=windows_of)
+            # with threads, offsets and gains are fitted while discovery selects
+            beside = ((lambda work: pool.submit(work).result) if threads > 1 else None)
+            fit, found = hindsight.discover_and_calibrate(
+                batches, median_norm, cfg, windows_of=windows_of, beside=beside)
         else:
             fit = hindsight.calibrate(batches, model, cfg, windows_of=windows_of)
     return Fitted(fit, found, cfg, rate_hz, time.perf_counter() - t0, read[0])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 
@@ -64,11 +65,22 @@ def span_windows(rec: DeviceRecording, threads: int,
         warm = warm_samples(cfg.rate_hz, batch)
 
         def detect(lo: int, state: det.DetectorState | None = None) -> Segment:
-            return detect_segment(dcfg, rec.readings, lo, min(n, lo + every), batch, warm, state)
+            return detect_segment(dcfg, rec.readings_by_axis, lo, min(n, lo + every), batch,
+                                  warm, state)
+
+        def closed_form() -> bool:
+            """The low-rate channels' sums apart, in closed form, where they have one and no
+            channel the model uses can mask a sample (all finite); else as `batch` gives
+            them."""
+            return (rec.low_rate_closed is not None
+                    and rec.finite_everywhere(model.covariates))
 
         def window(span: tuple[int, int]) -> windower.WindowSums:
-            w = window_span(cfg, model, s0, zero, rec.batch, gate, *span, batch)
-            return w.kept()
+            if not closed.result():
+                return window_span(cfg, model, s0, zero, rec.batch, gate, *span, batch).kept()
+            w = window_span(cfg, SensorModel.diagonal(s0), s0, zero, rec.window_batch, gate,
+                            *span, batch)
+            return _with_low_rate(rec, w.kept(), *span)
 
         told = 0
 
@@ -79,6 +91,7 @@ def span_windows(rec: DeviceRecording, threads: int,
             told += samples
 
         with ThreadPoolExecutor(threads, thread_name_prefix="recal-windows") as pool:
+            closed = pool.submit(closed_form)  # beside the detector's segments
             segments = []
             for s in pool.map(detect, range(0, n, every)):
                 segments.append(s)
@@ -98,3 +111,15 @@ def span_windows(rec: DeviceRecording, threads: int,
                 state.step_raw)
 
     return windows
+
+
+def _with_low_rate(rec: DeviceRecording, sums: windower.WindowSums, lo: int, hi: int
+                   ) -> windower.WindowSums:
+    """Windows cut from `DeviceRecording.window_batch`es with their channels as `batch`
+    gives them: the low-rate channels' sums for each window's samples (its first from the
+    sum of SAMPLE_INDEX: n first + n (n - 1) / 2, exact in float64 below 2^53), then the
+    per-sample ones."""
+    n = sums.n
+    first = np.rint((sums.sum_aux[:, -1] - n * (n - 1) / 2) / np.maximum(n, 1)).astype(np.int64)
+    low = rec.low_rate_sums(lo, hi, first, n)
+    return replace(sums, sum_aux=np.hstack([low, sums.sum_aux[:, :-1]]))

@@ -181,6 +181,22 @@ def _start(cfg: DetectorConfig, state: DetectorState, x0_g: float) -> DetectorSt
                    zi_lp=sos_zi(lp) * (2.0 * cfg.threshold_g), started=True)
 
 
+def _repeats(v: np.ndarray, last_v: np.ndarray, run0: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where a sample repeats its predecessor bit for bit (indices), and for each how many
+    samples before it were the same in a row (carried from run0)."""
+    same = np.empty(len(v), bool)
+    same[0] = bool(np.all(v[0] == last_v))
+    same[1:] = all3(v[1:] == v[:-1])
+    pos = np.flatnonzero(same)
+    if not len(pos):
+        return pos, pos
+    new = np.ones(len(pos), bool)  # first repeat of each run of repeats
+    new[1:] = pos[1:] - pos[:-1] != 1
+    starts = np.flatnonzero(new)
+    first = np.repeat(pos[starts], np.diff(np.append(starts, len(pos))))
+    return pos, pos - first + 1 + np.where(first == 0, run0, 0)
+
+
 def _flat_runs(v: np.ndarray, last_v: np.ndarray, run0: int) -> np.ndarray:
     """For each sample, how many samples before it were bit-identical in a row (carried).
 
@@ -189,17 +205,25 @@ def _flat_runs(v: np.ndarray, last_v: np.ndarray, run0: int) -> np.ndarray:
     if len(v) == 1:  # one sample per arrival: the same count without the run bookkeeping
         same0 = bool(v[0, 0] == last_v[0] and v[0, 1] == last_v[1] and v[0, 2] == last_v[2])
         return np.array([run0 + 1 if same0 else 0], np.int64)
-    same = np.empty(len(v), bool)
-    same[0] = bool(np.all(v[0] == last_v))
-    same[1:] = all3(v[1:] == v[:-1])
     runs = np.zeros(len(v), np.int64)
-    pos = np.flatnonzero(same)
-    if len(pos):
-        new = np.ones(len(pos), bool)  # first repeat of each run of repeats
-        new[1:] = pos[1:] - pos[:-1] != 1
-        first = pos[new][np.cumsum(new) - 1]
-        runs[pos] = pos - first + 1 + np.where(first == 0, run0, 0)
+    pos, reps = _repeats(v, last_v, run0)
+    runs[pos] = reps
     return runs
+
+
+def _flat(v: np.ndarray, last_v: np.ndarray, run0: int,
+          flat_n: int | np.ndarray) -> tuple[np.ndarray, int]:
+    """``_flat_runs(...) >= flat_n - 1`` (flat_n: one or one per sample) and the last
+    sample's run, worked out at the repeats alone (no count for every sample)."""
+    pos, reps = _repeats(v, last_v, run0)
+    thr = np.asarray(flat_n) - 1
+    if thr.ndim:
+        flat = thr <= 0
+        flat[pos] = reps >= thr[pos]
+    else:
+        flat = np.full(len(v), bool(thr <= 0))
+        flat[pos] = reps >= thr
+    return flat, int(reps[-1]) if len(pos) and pos[-1] == len(v) - 1 else 0
 
 
 def detect(cfg: DetectorConfig, state: DetectorState,
@@ -214,26 +238,31 @@ def detect(cfg: DetectorConfig, state: DetectorState,
         empty = np.zeros(0, bool)
         return state, DetectorOutput(np.zeros(0), empty, empty, empty)
     vc = v - np.asarray(cfg.zero_raw) if any(cfg.zero_raw) else v
-    v_in = norm3(vc) / cfg.s0  # eq. 1
-    finite = np.isfinite(v_in)
-    if not finite.all():  # NaN/inf skip the filters: one would poison their state for good
-        return _detect_finite(cfg, state, v, finite)
+    v_in = norm3(vc)  # eq. 1
+    if cfg.s0 != 1.0:  # (a division by 1 changes no bit)
+        v_in /= cfg.s0
+    if not np.isfinite(v_in.max()):  # NaN/inf (the max of norms keeps either) skip the
+        # filters: one would poison their state for good
+        return _detect_finite(cfg, state, v, np.isfinite(v_in))
     if not state.started:
         state = _start(cfg, state, float(v_in[0]))
     hp, lp = cfg.sos()
     y_hp, zi_hp = sosfilt(hp, v_in, state.zi_hp)
     v_out, zi_lp = sosfilt(lp, np.abs(y_hp), state.zi_lp)  # eq. 2
-    runs = _flat_runs(v, state.last_v, state.same_run)
-    clipped = (any3(np.abs(vc) >= cfg.clip_raw) if cfg.clip_raw is not None
-               else np.zeros(len(v), bool))
     step, changes = state.step_raw, state.changes
     if changes < quant.LATTICE_CHANGES:  # still learning the step: sample by sample
         step, changes, steps = quant.observe(step, changes, v, state.last_v)
         flat_n = np.where(quant.coarse(steps, cfg.s0), cfg.flat_coarse_n, cfg.flat_n)
     else:
         flat_n = cfg.flat_coarse_n if quant.coarse(step, cfg.s0) else cfg.flat_n
-    out = DetectorOutput(v_out, v_out < cfg.threshold_g, clipped, runs >= flat_n - 1)
-    return DetectorState(zi_hp, zi_lp, v[-1].copy(), int(runs[-1]), True, step, changes), out
+    flat, run = _flat(v, state.last_v, state.same_run, flat_n)
+    below = v_out < cfg.threshold_g
+    if cfg.clip_raw is not None:
+        clipped = any3(np.abs(vc) >= cfg.clip_raw)
+        out = DetectorOutput(v_out, below, clipped, flat)
+    else:  # nothing clips: the gate without it
+        out = DetectorOutput(v_out, below, np.zeros(len(v), bool), flat, below & ~flat)
+    return DetectorState(zi_hp, zi_lp, v[-1].copy(), run, True, step, changes), out
 
 
 def _detect_one(cfg: DetectorConfig, state: DetectorState, v: np.ndarray

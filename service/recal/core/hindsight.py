@@ -202,13 +202,17 @@ def calibrate(batches: Callable[[], Iterable[RawBatch]], model: SensorModel,
 
 def discover_and_calibrate(batches: Callable[[], Iterable[RawBatch]], s0: float,
                            cfg: PipelineConfig, dcfg: DiscoveryConfig | None = None, *,
-                           windows_of: WindowsFn | None = None
+                           windows_of: WindowsFn | None = None,
+                           beside: Beside | None = None
                            ) -> tuple[HindsightFit, DiscoveryResult | str]:
     """`calibrate` of the model `discovery.discover` selects on the recording's windows (from
     offsets and gains at s0 raw units per g, as `recal discover`): the windows once (twice for
     an analog part, as `calibrate`), discovery on them, one fit of the model it found. Where
     discovery cannot score (too few windows, no pose two blocks share), the fit of offsets and
-    gains, and why in place of the discovery."""
+    gains, and why in place of the discovery.
+
+    beside: how the fit of offsets and gains alone (discovery's start, and its answer on most
+    recordings) is made while discovery runs (`Beside`; None: only if discovery keeps it)."""
     base = SensorModel.diagonal(s0)
     find = windows_of or in_order(batches)
     windows, aux_names, t0_us, step = _windows(find, cfg, base, s0, None)
@@ -216,12 +220,26 @@ def discover_and_calibrate(batches: Callable[[], Iterable[RawBatch]], s0: float,
     if off_by(data.zero, data.s0, np.zeros(3), s0):
         windows, aux_names, t0_us, step = _windows(find, cfg, base, data.s0, data.zero)
         data = data_from_windows(windows, aux_names, t0_us)
+    plain = SensorModel.diagonal(data.s0)  # what discovery starts from (`discover`)
+    plain_fit = (beside or _when_asked)(
+        lambda: fit(windows, aux_names, t0_us, plain, cfg.norm_tol_g, step, data))
     try:
         found: DiscoveryResult | str = discover(data, cfg=dcfg or DiscoveryConfig())
     except InputError as exc:
         found = str(exc)
     model = found.model if isinstance(found, DiscoveryResult) else base
+    if model.to_dict() == plain.to_dict():
+        return plain_fit(), found
     return fit(windows, aux_names, t0_us, model, cfg.norm_tol_g, step, data), found
+
+
+#: Starts work and gives what returns its result when called: the work done then
+#: (`_when_asked`), or meanwhile on another thread (the shell's choice: `recal hindsight`).
+Beside = Callable[[Callable[[], "HindsightFit"]], Callable[[], "HindsightFit"]]
+
+
+def _when_asked(work: Callable[[], HindsightFit]) -> Callable[[], HindsightFit]:
+    return work
 
 
 def _windows(find: WindowsFn, cfg: PipelineConfig, model: SensorModel, s0: float,

@@ -337,8 +337,9 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
     if continues:
         rs_run[0] = (carried_open.run_start_us if carried_open is not None
                      else carried_pending[0].run_start_us)  # type: ignore[index]
-    local = np.cumsum(start)  # each gated sample's run, plus one
-    rs = np.concatenate(([0], rs_run))[local]
+    # each sample's run start (0 before the first run): repeated over the stretch from each
+    # run's start to the next (several times cheaper than a cumulative count and a gather)
+    rs = np.repeat(np.concatenate(([0], rs_run)), np.diff(np.concatenate(([0], s_idx, [n]))))
     dt = t - rs
     k = dt // W
     # pieces: a run's windows within the batch; reduceat bounds also after each run's end
@@ -349,7 +350,7 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
     bidx = np.flatnonzero(bounds)
     real = gate[bidx]
     p0, p1 = bidx[real], np.append(bidx[1:], n)[real]
-    prun, pk, pn = local[p0] - 1, k[p0], p1 - p0
+    prun, pk, pn = np.searchsorted(s_idx, p0, side="right") - 1, k[p0], p1 - p0
     sv = np.add.reduceat(v, bidx, axis=0)[real]
     vv = v * v
     sv2 = np.add.reduceat(vv, bidx, axis=0)[real]
@@ -398,8 +399,8 @@ def _cut_all(cfg: WindowConfig, state: WindowerState, t: np.ndarray, v: np.ndarr
 
     def due() -> tuple[np.ndarray, np.ndarray]:
         """The short windows' ends and the commits' samples, for `Cut.due`."""
-        at = np.maximum(_first_at_or_past(t, gate, s_idx, ends, local - 1, lr[found],
-                                          lc[found], rising), lf[found])
+        at = np.maximum(_first_at_or_past(t, gate, s_idx, ends, np.cumsum(start) - 1,
+                                          lr[found], lc[found], rising), lf[found])
         short = fin[~long]
         return (np.concatenate([short, at]),
                 np.concatenate([np.zeros(len(short), bool), np.ones(len(at), bool)]))

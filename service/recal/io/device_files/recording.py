@@ -11,26 +11,31 @@ say which.
 
 from __future__ import annotations
 
+import functools
 import re
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from recal.core import low_rate
 from recal.errors import DeviceFileError
 from recal.io.device_files import block_times as bt
 from recal.io.device_files import guard, registry
 from recal.io.device_files.parsed import Parsed
 from recal.samples import REBATCH_SAMPLES, RawBatch
 
-__all__ = ["DeviceRecording", "is_device_file", "open_device"]
+__all__ = ["SAMPLE_INDEX", "DeviceRecording", "is_device_file", "open_device"]
 
 #: device times outside these years are no clock a device keeps (a damaged or crafted file)
 _MIN_NS, _MAX_NS = 0, (2200 - 1970) * 365 * 86400 * 10**9
 #: no worn accelerometer samples faster (AX3: 3200 Hz); a faster header is damaged
 MAX_RATE_HZ = 10_000.0
+#: `window_batch`'s last channel: each sample's index in the file (a window's sum of it
+#: gives the window's first sample: `first_samples`)
+SAMPLE_INDEX = "sample_index"
 
 
 class DeviceRecording:
@@ -81,6 +86,61 @@ class DeviceRecording:
         """The readings of samples lo..hi-1 (N,3) as `batch` gives them, without their
         times and channels (what the detector needs)."""
         return self._p.v_g[lo:hi].astype(np.float64)
+
+    def readings_by_axis(self, lo: int, hi: int) -> np.ndarray:
+        """`readings` laid out axis by axis (Fortran order: the same values, each axis
+        contiguous, which the detector's per-axis operations read faster)."""
+        return np.asfortranarray(self._p.v_g[lo:hi], dtype=np.float64)
+
+    @functools.cached_property
+    def low_rate_closed(self) -> list[low_rate.Stretches] | None:
+        """The low-rate channels as stretches between their stamps (channels sharing stamps
+        together, in their order), where their window sums have a closed form
+        (`core.low_rate.applies`); None where they do not (a stamp out of order, a value not
+        finite): then only `batch` gives them."""
+        x, groups = self._p.file_t_ns, []
+        for lr in self._p.low_rate:
+            if groups and np.array_equal(groups[-1][0], lr.t_ns):
+                groups[-1][1].append(lr.values)
+            else:
+                groups.append((lr.t_ns, [lr.values]))
+        out = []
+        for t, values in groups:
+            vals = np.column_stack(values).astype(np.float64)
+            if not low_rate.applies(t, vals):
+                return None
+            out.append(low_rate.Stretches.of(x, t, vals))
+        return out
+
+    def finite_everywhere(self, names: Iterable[str]) -> bool:
+        """Whether the per-sample channels among ``names`` are finite at every sample (the
+        low-rate ones are, where `low_rate_closed` is not None)."""
+        ps = self._p.per_sample
+        return all(bool(np.all(np.isfinite(ps[c]))) for c in names if c in ps)
+
+    def window_batch(self, lo: int, hi: int) -> RawBatch:
+        """Samples lo..hi-1 as `batch` gives them but for the low-rate channels, in their
+        place each sample's index (SAMPLE_INDEX, after the per-sample channels): what a
+        windower needs when the low-rate channels' sums are made apart (`low_rate_sums`)."""
+        p = self._p
+        t_us = (self._blocks.times_ns(lo, hi) - self._shift_ns) // 1000
+        aux = np.empty((hi - lo, len(p.per_sample) + 1))
+        for i, a in enumerate(p.per_sample.values()):
+            aux[:, i] = a[lo:hi]
+        aux[:, -1] = np.arange(lo, hi, dtype=np.float64)
+        return RawBatch.of_checked(t_us, self.readings(lo, hi), aux,
+                                   (*p.per_sample, SAMPLE_INDEX))
+
+    def low_rate_sums(self, lo: int, hi: int, first: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """The low-rate channels' sums (W, channels) over samples first..first+n-1 of each
+        window (all within lo..hi), as sums of `batch`'s values to rounding
+        (`core.low_rate.window_sums`); only where `low_rate_closed` is not None."""
+        groups = self.low_rate_closed
+        if groups is None:
+            raise ValueError("the low-rate channels have no closed form here: use batch()")
+        x = self._p.file_t_ns[lo:hi]
+        parts = [low_rate.window_sums(g, x, lo, first, n) for g in groups]
+        return np.hstack(parts) if parts else np.zeros((len(first), 0))
 
     def batch(self, lo: int, hi: int) -> RawBatch:
         """Samples lo..hi-1 (any range: the file is in memory)."""
