@@ -89,15 +89,15 @@ def test_a_warm_up_that_falls_short_is_run_again(files: dict[str, Path],
     cfg = PipelineConfig(rate_hz=rec.rate_hz)
     model = SensorModel.diagonal(1.0)
     again: list[int] = []
-    settle = bw.settle
+    add = bw.Settler.add
 
-    def counted(cfg_, segments, run_again):
+    def counted(self, segment, run_again):
         def counting(s, state):
             again.append(s.lo)
             return run_again(s, state)
-        return settle(cfg_, segments, counting)
+        return add(self, segment, counting)
 
-    monkeypatch.setattr("recal.commands.span_windows.settle", counted)
+    monkeypatch.setattr(bw.Settler, "add", counted)
     monkeypatch.setattr(bw, "WARM_S", 0.5)  # a second: the filters cannot have forgotten
     find = span_windows(rec, 2, batch=BATCH, segment_batches=SEGMENT_BATCHES)
     _assert_same(find(cfg, model, 1.0, None), _in_order(rec, cfg, model, 1.0, None))

@@ -11,9 +11,11 @@ or CSV recording) is read from its start instead (`batch_windows.in_order`).
 from __future__ import annotations
 
 import os
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -21,10 +23,10 @@ from recal.core import detector as det
 from recal.core import windower
 from recal.core.batch_windows import (
     Segment,
+    Settler,
     WindowsFn,
     detect_segment,
-    settle,
-    span_starts,
+    first_ungated,
     warm_samples,
     window_span,
 )
@@ -91,24 +93,52 @@ def span_windows(rec: DeviceRecording, threads: int,
             told += samples
 
         with ThreadPoolExecutor(threads, thread_name_prefix="recal-windows") as pool:
-            closed = pool.submit(closed_form)  # beside the detector's segments
-            segments = []
-            for s in pool.map(detect, range(0, n, every)):
-                segments.append(s)
-                tell(len(s.gate) // 2)
-            segments, state = settle(dcfg, segments, lambda s, st: detect(s.lo, st))
-            gate = np.concatenate([s.gate for s in segments])
-            del segments
-            starts = span_starts(gate, every)
-            spans = list(zip(starts, [*starts[1:], n], strict=True))
-            tables = []
-            for (lo, hi), t in zip(spans, pool.map(window, spans), strict=True):
-                tables.append(t)
-                tell((hi - lo) // 2)
+            closed = pool.submit(closed_form)  # beside the detector's first segments
+            gate = np.empty(n, bool)
+            segments = list(range(0, n, every))
+            todo, detected, spans, tables = deque(segments), {}, deque(), {}
+            settler, settled, span_lo = Settler(dcfg), 0, 0
+            running: dict[Future, tuple[str, Any]] = {}
+            while True:
+                # a free thread takes a span ready to window, else the next segment: the
+                # windower's work (memory-bound) runs beside the detector's (its filters'
+                # recursion), and neither waits for all of the other
+                while len(running) < threads and (spans or todo):
+                    if spans:
+                        span = spans.popleft()
+                        running[pool.submit(window, span)] = ("span", span)
+                    else:
+                        lo = todo.popleft()
+                        running[pool.submit(detect, lo)] = ("segment", lo)
+                if not running:
+                    break
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in done:
+                    kind, key = running.pop(f)
+                    if kind == "segment":
+                        detected[key] = f.result()
+                        tell(len(detected[key].gate) // 2)
+                    else:
+                        tables[key] = f.result()
+                        tell((key[1] - key[0]) // 2)
+                # segments checked in order; each that starts a span ends the one before
+                while settled < len(segments) and segments[settled] in detected:
+                    s = settler.add(detected.pop(segments[settled]),
+                                    lambda s, st: detect(s.lo, st))
+                    gate[s.lo:s.hi] = s.gate
+                    first = first_ungated(s.gate) if settled else None
+                    if first is not None:
+                        spans.append((span_lo, s.lo + first))
+                        span_lo = s.lo + first
+                    settled += 1
+                    if settled == len(segments):
+                        spans.append((span_lo, n))
+            state = settler.state
+            assert state is not None  # a device file has samples
         tell(n - told)
         first = rec.batch(0, 1)
-        return (windower.WindowSums.concat(tables), first.aux_names, int(first.t_us[0]),
-                state.step_raw)
+        return (windower.WindowSums.concat([tables[k] for k in sorted(tables)]),
+                first.aux_names, int(first.t_us[0]), state.step_raw)
 
     return windows
 

@@ -42,8 +42,9 @@ from recal.core.windower import WindowerState, WindowSums, cut
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
-__all__ = ["Segment", "Windowing", "WindowsFn", "detect_segment", "in_order", "same_future",
-           "settle", "span_starts", "warm_samples", "window_means", "window_span"]
+__all__ = ["Segment", "Settler", "Windowing", "WindowsFn", "detect_segment", "first_ungated",
+           "in_order", "same_future", "settle", "span_starts", "warm_samples", "window_means",
+           "window_span"]
 
 #: Batches' window tables held apart before they are put in one (`Windowing.add`).
 TABLES_KEPT = 64
@@ -209,26 +210,45 @@ def same_future(cfg: det.DetectorConfig, a: det.DetectorState, b: det.DetectorSt
     return a.changes == b.changes and eq(a.step_raw, b.step_raw)
 
 
+@dataclass(eq=False)
+class Settler:
+    """Segments checked in order (`settle`), one at a time as they come: each against the
+    state the one before left at its first sample (`same_future`), run ``again`` from that
+    state where it differs. ``state``: the state at the last one's end, as one reading from
+    the start leaves it (the learned step is the one learned first, kept for good)."""
+
+    cfg: det.DetectorConfig
+    state: det.DetectorState | None = None
+
+    def add(self, s: Segment, again: Callable[[Segment, det.DetectorState], Segment]
+            ) -> Segment:
+        if self.state is not None and not same_future(self.cfg, s.state_in, self.state):
+            s = again(s, self.state)
+        end = s.state_out
+        if self.state is not None and self.state.changes >= LATTICE_CHANGES:
+            end = replace(end, step_raw=self.state.step_raw, changes=self.state.changes)
+        self.state = end
+        return s
+
+
 def settle(cfg: det.DetectorConfig, segments: list[Segment],
            again: Callable[[Segment, det.DetectorState], Segment]
            ) -> tuple[list[Segment], det.DetectorState]:
-    """The segments in order, each checked against the state the one before left at its
-    first sample (`same_future`) and run ``again`` from that state where it differs; and the
-    state at the end: what one reading from the start gives (the learned step is the one
-    learned first, kept for good)."""
-    out: list[Segment] = []
-    state: det.DetectorState | None = None
-    for s in segments:
-        if state is not None and not same_future(cfg, s.state_in, state):
-            s = again(s, state)
-        end = s.state_out
-        if state is not None and state.changes >= LATTICE_CHANGES:
-            end = replace(end, step_raw=state.step_raw, changes=state.changes)
-        out.append(s)
-        state = end
-    if state is None:
+    """The segments in order, each checked and run again where it must be (`Settler`), and
+    the state at the end."""
+    settler = Settler(cfg)
+    out = [settler.add(s, again) for s in segments]
+    if settler.state is None:
         raise InputError("a recording needs samples to find windows in")
-    return out, state
+    return out, settler.state
+
+
+def first_ungated(gate: np.ndarray) -> int | None:
+    """The first sample the detector does not gate (None: it gates them all)."""
+    if not len(gate):
+        return None
+    first = int(np.argmin(gate))  # the first False, if there is one
+    return None if gate[first] else first
 
 
 def span_starts(gate: np.ndarray, every: int) -> list[int]:
@@ -237,9 +257,8 @@ def span_starts(gate: np.ndarray, every: int) -> list[int]:
     before the next multiple: no span there). No window runs across such a sample."""
     starts = [0]
     for p in range(every, len(gate), every):
-        part = gate[p:p + every]
-        first = int(np.argmin(part))  # the first False, if there is one
-        if not part[first]:
+        first = first_ungated(gate[p:p + every])
+        if first is not None:
             starts.append(p + first)
     return starts
 
