@@ -180,6 +180,12 @@ def test_low_rate_sums_are_the_interpolated_values_summed() -> None:
     # a span of the recording: indices stay the recording's
     got = low_rate.window_sums(s, x[1000:4000], 1000, p0[[0, 3, 4]], n[[0, 3, 4]])
     np.testing.assert_allclose(got, want[[0, 3, 4]], rtol=1e-13)
+    # by blocks within which the times rise (where they step back, and elsewhere too): the same
+    rises = np.unique(np.concatenate(([0], np.flatnonzero(np.diff(x) <= 0) + 1,
+                                      rng.choice(5000, 30, replace=False))))
+    by_blocks = low_rate.Stretches.of(x, t, f, rises=rises)
+    np.testing.assert_array_equal(by_blocks.first, s.first)
+    np.testing.assert_array_equal(by_blocks.behind, s.behind)
     assert len(s.behind) > 20  # the stepping back was exercised, across stamps too
     assert np.any(np.searchsorted(s.first, s.behind, side="right")
                   != np.searchsorted(t, x[s.behind], side="right"))

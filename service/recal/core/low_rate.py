@@ -48,10 +48,16 @@ class Stretches:
 
     @classmethod
     def of(cls, x_ns: np.ndarray, t_ns: np.ndarray, values: np.ndarray,
-           chunk: int = 1 << 20) -> Stretches:
-        """The stretches of stamps t_ns (rising) over samples at file times x_ns, in chunks
-        of the samples (no week-long temporary)."""
+           rises: np.ndarray | None = None, chunk: int = 1 << 20) -> Stretches:
+        """The stretches of stamps t_ns (rising) over samples at file times x_ns. rises: the
+        first sample of each block within which the times rise (a device file's blocks:
+        `block_times.block_starts` cuts them wherever a step is not the nominal period),
+        which makes it a pass over the blocks; None: a pass over the samples, in chunks (no
+        week-long temporary)."""
         t = np.asarray(t_ns, np.int64)
+        vals = np.asarray(values, np.float64).reshape(len(t), -1)
+        if rises is not None:
+            return cls(t, vals, *_by_blocks(x_ns, t, np.asarray(rises, np.int64)))
         first = np.full(len(t), len(x_ns), np.int64)
         behind, done, top = [], 0, np.iinfo(np.int64).min
         for lo in range(0, len(x_ns), chunk):
@@ -63,8 +69,7 @@ class Stretches:
             if reached > done:
                 first[done:reached] = np.searchsorted(run, t[done:reached], side="left") + lo
                 done = reached
-        return cls(t, np.asarray(values, np.float64).reshape(len(t), -1), first,
-                   np.concatenate(behind) if behind else np.zeros(0, np.int64))
+        return cls(t, vals, first, np.concatenate(behind) if behind else np.zeros(0, np.int64))
 
     def at(self, j: np.ndarray, x_ns: np.ndarray) -> np.ndarray:
         """The values (len(j), k) at times x_ns of stretch j (-1 and m - 1: the ends)."""
@@ -78,6 +83,43 @@ class Stretches:
     def _slope(self, j: np.ndarray) -> np.ndarray:
         return (self.values[j + 1] - self.values[j]) / (
             self.t_ns[j + 1] - self.t_ns[j]).astype(np.float64)[:, None]
+
+
+def _by_blocks(x_ns: np.ndarray, t: np.ndarray, start: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """`Stretches.of`'s first and behind where the times rise within each block (from
+    ``start``): the running maximum at a block's end is the largest of the block ends so far;
+    in block b it is max(the one before b, x_i); so the samples behind are a prefix of a block
+    that starts below the maximum before it, and stamp j's first sample is the first at or
+    past t_j in the first block whose end reaches it (binary searches within blocks)."""
+    n = len(x_ns)
+    end = np.append(start[1:], n)
+    top = np.maximum.accumulate(x_ns[end - 1])  # the running maximum at each block's end
+    before = np.concatenate(([np.iinfo(np.int64).min], top[:-1]))
+    low = np.flatnonzero(x_ns[start] < before)  # blocks that start behind
+    upto = _first_at_or_past(x_ns, start[low], end[low], before[low])
+    behind = (np.concatenate([np.arange(a, b) for a, b in zip(start[low], upto, strict=True)])
+              if len(low) else np.zeros(0, np.int64))
+    b = np.searchsorted(top, t, side="left")  # the first block whose end reaches t_j
+    inside = b < len(start)
+    first = np.full(len(t), n, np.int64)
+    first[inside] = _first_at_or_past(x_ns, start[b[inside]], end[b[inside]], t[inside])
+    return first, behind.astype(np.int64)
+
+
+def _first_at_or_past(x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                      target: np.ndarray) -> np.ndarray:
+    """For each (lo, hi, target): the first i in lo..hi-1 with x[i] >= target (x rising
+    there), hi if none: binary searches side by side."""
+    lo, hi = lo.astype(np.int64), hi.astype(np.int64)
+    while True:
+        open_ = lo < hi
+        if not open_.any():
+            return lo
+        mid = (lo + hi) // 2
+        below = open_ & (x[np.minimum(mid, len(x) - 1)] < target)
+        lo = np.where(below, mid + 1, lo)
+        hi = np.where(open_ & ~below, mid, hi)
 
 
 def applies(t_ns: np.ndarray, values: np.ndarray) -> bool:

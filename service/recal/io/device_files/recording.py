@@ -109,7 +109,9 @@ class DeviceRecording:
             vals = np.column_stack(values).astype(np.float64)
             if not low_rate.applies(t, vals):
                 return None
-            out.append(low_rate.Stretches.of(x, t, vals))
+            # the file's times rise within each block (a step other than the nominal period
+            # starts one): a pass over the blocks, not the samples
+            out.append(low_rate.Stretches.of(x, t, vals, rises=self._blocks.start))
         return out
 
     def finite_everywhere(self, names: Iterable[str]) -> bool:
