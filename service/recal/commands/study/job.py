@@ -129,12 +129,8 @@ def _calibrate(job: Job, row: dict[str, Any]) -> dict[str, Any]:
         os.replace(tmp, out)
         calibration["out"] = str(out.relative_to(job.out_dir))
         row["samples_file"] = calibration["out"]
-    else:
-        calibration = {"sensor_id": src.sensor_id, "rate_hz": fitted.rate_hz,
-                       **hf.fit_summary(fitted.fit),
-                       "discovery": hf.discovery_summary(fitted.found),
-                       **({"device": src.metadata, "device_notes": src.notes}
-                          if src.device else {})}
+    else:  # the calibration alone, as `recal hindsight FILE --json` writes it
+        calibration = hf.calibrate_file(src, None, model, fitted=fitted)
     _judge(src, fitted, row)
     _discovered(calibration.get("discovery"), row)
     row["fit_windows"] = fitted.fit.windows
