@@ -32,6 +32,7 @@ from recal.core.batch_windows import (
 )
 from recal.core.model import SensorModel
 from recal.core.pipeline_config import PipelineConfig
+from recal.errors import InputError
 from recal.io.device_files import DeviceRecording
 from recal.samples import REBATCH_SAMPLES
 
@@ -95,52 +96,76 @@ def span_windows(rec: DeviceRecording, threads: int,
         with ThreadPoolExecutor(threads, thread_name_prefix="recal-windows") as pool:
             closed = pool.submit(closed_form)  # beside the detector's first segments
             gate = np.empty(n, bool)
-            segments = list(range(0, n, every))
-            todo, detected, spans, tables = deque(segments), {}, deque(), {}
-            settler, settled, span_lo = Settler(dcfg), 0, 0
-            running: dict[Future, tuple[str, Any]] = {}
-            while True:
-                # a free thread takes a span ready to window, else the next segment: the
-                # windower's work (memory-bound) runs beside the detector's (its filters'
-                # recursion), and neither waits for all of the other
-                while len(running) < threads and (spans or todo):
-                    if spans:
-                        span = spans.popleft()
-                        running[pool.submit(window, span)] = ("span", span)
-                    else:
-                        lo = todo.popleft()
-                        running[pool.submit(detect, lo)] = ("segment", lo)
-                if not running:
-                    break
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
-                for f in done:
-                    kind, key = running.pop(f)
-                    if kind == "segment":
-                        detected[key] = f.result()
-                        tell(len(detected[key].gate) // 2)
-                    else:
-                        tables[key] = f.result()
-                        tell((key[1] - key[0]) // 2)
-                # segments checked in order; each that starts a span ends the one before
-                while settled < len(segments) and segments[settled] in detected:
-                    s = settler.add(detected.pop(segments[settled]),
-                                    lambda s, st: detect(s.lo, st))
-                    gate[s.lo:s.hi] = s.gate
-                    first = first_ungated(s.gate) if settled else None
-                    if first is not None:
-                        spans.append((span_lo, s.lo + first))
-                        span_lo = s.lo + first
-                    settled += 1
-                    if settled == len(segments):
-                        spans.append((span_lo, n))
-            state = settler.state
-            assert state is not None  # a device file has samples
+            run = _Pass(pool, threads, range(0, n, every), n, Settler(dcfg), gate)
+            tables = run.go(detect, window, tell)
+        state = run.settler.state
+        if state is None:
+            raise InputError("a recording needs samples to find windows in")
         tell(n - told)
         first = rec.batch(0, 1)
-        return (windower.WindowSums.concat([tables[k] for k in sorted(tables)]),
-                first.aux_names, int(first.t_us[0]), state.step_raw)
+        return (windower.WindowSums.concat(tables), first.aux_names, int(first.t_us[0]),
+                state.step_raw)
 
     return windows
+
+
+class _Pass:
+    """One windows' pass on the pool: the segments detected, then checked in order (each that
+    starts a span ends the one before), the spans windowed as they become ready. A free
+    thread takes a span before the next segment: the windower's work (memory-bound) runs
+    beside the detector's (its filters' recursion), and neither waits for all of the other."""
+
+    def __init__(self, pool: ThreadPoolExecutor, threads: int, segments: range, n: int,
+                 settler: Settler, gate: np.ndarray) -> None:
+        self.pool, self.threads, self.n, self.settler, self.gate = pool, threads, n, settler, gate
+        self.segments = list(segments)
+        self.todo: deque[int] = deque(self.segments)
+        self.spans: deque[tuple[int, int]] = deque()
+        self.detected: dict[int, Segment] = {}
+        self.tables: dict[tuple[int, int], windower.WindowSums] = {}
+        self.running: dict[Future, tuple[str, Any]] = {}
+        self.settled, self.span_lo = 0, 0
+
+    def go(self, detect: Callable[..., Segment],
+           window: Callable[[tuple[int, int]], windower.WindowSums],
+           tell: Callable[[int], None]) -> list[windower.WindowSums]:
+        """Every span's windows, in order. detect(lo[, state]): a segment; window(span)."""
+        while True:
+            while len(self.running) < self.threads and (self.spans or self.todo):
+                if self.spans:
+                    span = self.spans.popleft()
+                    self.running[self.pool.submit(window, span)] = ("span", span)
+                else:
+                    lo = self.todo.popleft()
+                    self.running[self.pool.submit(detect, lo)] = ("segment", lo)
+            if not self.running:
+                return [self.tables[k] for k in sorted(self.tables)]
+            done, _ = wait(self.running, return_when=FIRST_COMPLETED)
+            for f in done:
+                kind, key = self.running.pop(f)
+                if kind == "segment":
+                    self.detected[key] = f.result()
+                    tell(len(self.detected[key].gate) // 2)
+                else:
+                    self.tables[key] = f.result()
+                    tell((key[1] - key[0]) // 2)
+            self._settle(detect)
+
+    def _settle(self, detect: Callable[..., Segment]) -> None:
+        """The segments detected so far, checked in order (`Settler`: run again from the
+        state before where the warm-up fell short); their gates in place; the spans they
+        end queued."""
+        while self.settled < len(self.segments) and self.segments[self.settled] in self.detected:
+            s = self.settler.add(self.detected.pop(self.segments[self.settled]),
+                                 lambda s, st: detect(s.lo, st))
+            self.gate[s.lo:s.hi] = s.gate
+            first = first_ungated(s.gate) if self.settled else None
+            if first is not None:
+                self.spans.append((self.span_lo, s.lo + first))
+                self.span_lo = s.lo + first
+            self.settled += 1
+            if self.settled == len(self.segments):
+                self.spans.append((self.span_lo, self.n))
 
 
 def _with_low_rate(rec: DeviceRecording, sums: windower.WindowSums, lo: int, hi: int
