@@ -50,21 +50,21 @@ class BlockTimes:
     clock_changes: int
     clock_change_s: float
 
-    def times_ns(self, lo: int, hi: int) -> np.ndarray:
-        """The true times (ns) of samples lo..hi-1."""
+    def times_ns(self, lo: int, hi: int, shift_ns: int = 0) -> np.ndarray:
+        """The true times (ns) of samples lo..hi-1, less shift_ns."""
         if hi <= lo:
             return np.zeros(0, np.int64)
         # the blocks of lo..hi-1 are consecutive: each block's values repeated over its
-        # samples in the range (no search per sample, no gather), worked in place
+        # samples in the range (no search per sample, no gather), worked in place; a
+        # sample's index in its block as a float at once (exact: integers below 2^53)
         b0, b1 = np.searchsorted(self.start, [lo, hi - 1], side="right") - 1
         edges = np.clip(np.append(self.start[b0 + 1:b1 + 1], hi), lo, hi)
         reps = np.diff(np.append(lo, edges))
-        k = np.arange(lo, hi, dtype=np.int64)
-        k -= np.repeat(self.start[b0:b1 + 1], reps)
-        dt = k.astype(np.float64)
+        dt = np.arange(lo, hi, dtype=np.float64)
+        dt -= np.repeat(self.start[b0:b1 + 1].astype(np.float64), reps)
         dt *= np.repeat(self.period_ns[b0:b1 + 1], reps)
         t = np.rint(dt, out=dt).astype(np.int64)
-        t += np.repeat(self.anchor_ns[b0:b1 + 1], reps)
+        t += np.repeat(self.anchor_ns[b0:b1 + 1] - shift_ns, reps)
         return t
 
 

@@ -125,7 +125,7 @@ class DeviceRecording:
         place each sample's index (SAMPLE_INDEX, after the per-sample channels): what a
         windower needs when the low-rate channels' sums are made apart (`low_rate_sums`)."""
         p = self._p
-        t_us = (self._blocks.times_ns(lo, hi) - self._shift_ns) // 1000
+        t_us = self._blocks.times_ns(lo, hi, self._shift_ns) // 1000
         aux = np.empty((hi - lo, len(p.per_sample) + 1))
         for i, a in enumerate(p.per_sample.values()):
             aux[:, i] = a[lo:hi]
@@ -147,7 +147,7 @@ class DeviceRecording:
     def batch(self, lo: int, hi: int) -> RawBatch:
         """Samples lo..hi-1 (any range: the file is in memory)."""
         p = self._p
-        t_us = (self._blocks.times_ns(lo, hi) - self._shift_ns) // 1000
+        t_us = self._blocks.times_ns(lo, hi, self._shift_ns) // 1000
         x = p.file_t_ns[lo:hi].astype(np.float64)
         cols = [np.interp(x, t, values) for t, values in self._low_rate]
         cols += [a[lo:hi] for a in p.per_sample.values()]
