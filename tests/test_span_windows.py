@@ -123,8 +123,18 @@ def test_same_future_compares_what_the_detector_uses() -> None:
 def test_spans_start_where_the_detector_gates_nothing() -> None:
     gate = np.ones(100, bool)
     gate[[5, 23, 24, 61]] = False
-    assert bw.span_starts(gate, 20) == [0, 23, 61]  # none in 40..59: no span there
-    assert bw.span_starts(np.ones(50, bool), 10) == [0]
+    state = det.init_state(PipelineConfig(rate_hz=50.0).detector(1.0, None))
+
+    def span_starts(gate: np.ndarray, every: int) -> list[int]:
+        """Where `span_windows` starts its spans: after the first segment, each one's first
+        sample the detector does not gate."""
+        segments = [bw.Segment(lo, state, gate[lo:lo + every], state)
+                    for lo in range(0, len(gate), every)]
+        return [0] + [s.first_ungated for s in segments[1:] if s.first_ungated is not None]
+
+    assert span_starts(gate, 20) == [0, 23, 61]  # none in 40..59: no span there
+    assert span_starts(np.ones(50, bool), 10) == [0]
+    assert bw.Segment(7, state, np.zeros(0, bool), state).first_ungated is None
 
 
 def test_hindsight_threads_give_the_same_calibration(files: dict[str, Path], tmp_path: Path,

@@ -14,7 +14,6 @@ import os
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -26,7 +25,6 @@ from recal.core.batch_windows import (
     Settler,
     WindowsFn,
     detect_segment,
-    first_ungated,
     warm_samples,
     window_span,
 )
@@ -83,7 +81,7 @@ def span_windows(rec: DeviceRecording, threads: int,
                 return window_span(cfg, model, s0, zero, rec.batch, gate, *span, batch).kept()
             w = window_span(cfg, SensorModel.diagonal(s0), s0, zero, rec.window_batch, gate,
                             *span, batch)
-            return _with_low_rate(rec, w.kept(), *span)
+            return rec.with_low_rate(w.kept(), *span)
 
         told = 0
 
@@ -159,22 +157,11 @@ class _Pass:
             s = self.settler.add(self.detected.pop(self.segments[self.settled]),
                                  lambda s, st: detect(s.lo, st))
             self.gate[s.lo:s.hi] = s.gate
-            first = first_ungated(s.gate) if self.settled else None
+            first = s.first_ungated if self.settled else None
             if first is not None:
-                self.spans.append((self.span_lo, s.lo + first))
-                self.span_lo = s.lo + first
+                self.spans.append((self.span_lo, first))
+                self.span_lo = first
             self.settled += 1
             if self.settled == len(self.segments):
                 self.spans.append((self.span_lo, self.n))
 
-
-def _with_low_rate(rec: DeviceRecording, sums: windower.WindowSums, lo: int, hi: int
-                   ) -> windower.WindowSums:
-    """Windows cut from `DeviceRecording.window_batch`es with their channels as `batch`
-    gives them: the low-rate channels' sums for each window's samples (its first from the
-    sum of SAMPLE_INDEX: n first + n (n - 1) / 2, exact in float64 below 2^53), then the
-    per-sample ones."""
-    n = sums.n
-    first = np.rint((sums.sum_aux[:, -1] - n * (n - 1) / 2) / np.maximum(n, 1)).astype(np.int64)
-    low = rec.low_rate_sums(lo, hi, first, n)
-    return replace(sums, sum_aux=np.hstack([low, sums.sum_aux[:, :-1]]))

@@ -17,8 +17,9 @@ from the others (on threads: `commands.span_windows`), with the same windows bit
    state (`detect_segment`); a segment counts only if the state its warm-up reached at its
    first sample behaves as the one the segment before left there (`same_future`: the
    filters' state, the last reading and its run, bit for bit), else it is run again from
-   that state (`settle`);
-2. the windower on spans that start at a sample the detector does not gate (`span_starts`):
+   that state (`Settler`);
+2. the windower on spans that start at a sample the detector does not gate
+   (`Segment.first_ungated`):
    nothing runs across such a sample, so the windower's state there is known (empty), and
    each span is cut apart (`Windowing.add_gated`) on the same batch boundaries as a reading
    from the start, so with the same sums.
@@ -42,9 +43,8 @@ from recal.core.windower import WindowerState, WindowSums, cut
 from recal.errors import InputError
 from recal.samples import RawBatch, rebatch
 
-__all__ = ["Segment", "Settler", "Windowing", "WindowsFn", "detect_segment", "first_ungated",
-           "in_order", "same_future", "settle", "span_starts", "warm_samples", "window_means",
-           "window_span"]
+__all__ = ["Segment", "Settler", "Windowing", "WindowsFn", "detect_segment", "in_order",
+           "same_future", "warm_samples", "window_means", "window_span"]
 
 #: Batches' window tables held apart before they are put in one (`Windowing.add`).
 TABLES_KEPT = 64
@@ -171,6 +171,15 @@ class Segment:
     def hi(self) -> int:
         return self.lo + len(self.gate)
 
+    @property
+    def first_ungated(self) -> int | None:
+        """The first sample (in the recording) the detector does not gate, where a span of
+        the windower can start: no window runs across it (None: it gates them all)."""
+        if not len(self.gate):
+            return None
+        first = int(np.argmin(self.gate))  # the first False, if there is one
+        return None if self.gate[first] else self.lo + first
+
 
 def warm_samples(rate_hz: float, batch: int) -> int:
     """WARM_S of samples, in whole batches."""
@@ -212,7 +221,7 @@ def same_future(cfg: det.DetectorConfig, a: det.DetectorState, b: det.DetectorSt
 
 @dataclass(eq=False)
 class Settler:
-    """Segments checked in order (`settle`), one at a time as they come: each against the
+    """Segments checked in order, one at a time as they come: each against the
     state the one before left at its first sample (`same_future`), run ``again`` from that
     state where it differs. ``state``: the state at the last one's end, as one reading from
     the start leaves it (the learned step is the one learned first, kept for good)."""
@@ -231,43 +240,11 @@ class Settler:
         return s
 
 
-def settle(cfg: det.DetectorConfig, segments: list[Segment],
-           again: Callable[[Segment, det.DetectorState], Segment]
-           ) -> tuple[list[Segment], det.DetectorState]:
-    """The segments in order, each checked and run again where it must be (`Settler`), and
-    the state at the end."""
-    settler = Settler(cfg)
-    out = [settler.add(s, again) for s in segments]
-    if settler.state is None:
-        raise InputError("a recording needs samples to find windows in")
-    return out, settler.state
-
-
-def first_ungated(gate: np.ndarray) -> int | None:
-    """The first sample the detector does not gate (None: it gates them all)."""
-    if not len(gate):
-        return None
-    first = int(np.argmin(gate))  # the first False, if there is one
-    return None if gate[first] else first
-
-
-def span_starts(gate: np.ndarray, every: int) -> list[int]:
-    """Where the windower can start afresh, one span about every ``every`` samples: 0, and
-    from each multiple of ``every`` on the first sample the detector does not gate (none
-    before the next multiple: no span there). No window runs across such a sample."""
-    starts = [0]
-    for p in range(every, len(gate), every):
-        first = first_ungated(gate[p:p + every])
-        if first is not None:
-            starts.append(p + first)
-    return starts
-
-
 def window_span(cfg: PipelineConfig, model: SensorModel, s0: float, zero: np.ndarray | None,
                 batch_of: Callable[[int, int], RawBatch], gate: np.ndarray, lo: int, hi: int,
                 batch: int) -> Windowing:
     """The windows of samples lo..hi (gates ``gate``: the whole recording's), lo a sample the
-    detector does not gate (`span_starts`) or 0, in batches on the recording's grid of
+    detector does not gate (`Segment.first_ungated`) or 0, in batches on the recording's grid of
     ``batch`` samples (the first from lo)."""
     w = Windowing(cfg, model, s0, zero)
     a = lo

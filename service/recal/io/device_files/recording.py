@@ -15,12 +15,14 @@ import functools
 import re
 import tempfile
 from collections.abc import Iterable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from recal.core import low_rate
+from recal.core.windower import WindowSums
 from recal.errors import DeviceFileError
 from recal.io.device_files import block_times as bt
 from recal.io.device_files import guard, registry
@@ -34,7 +36,7 @@ _MIN_NS, _MAX_NS = 0, (2200 - 1970) * 365 * 86400 * 10**9
 #: no worn accelerometer samples faster (AX3: 3200 Hz); a faster header is damaged
 MAX_RATE_HZ = 10_000.0
 #: `window_batch`'s last channel: each sample's index in the file (a window's sum of it
-#: gives the window's first sample: `first_samples`)
+#: gives the window's first sample: `with_low_rate`)
 SAMPLE_INDEX = "sample_index"
 
 
@@ -123,7 +125,7 @@ class DeviceRecording:
     def window_batch(self, lo: int, hi: int) -> RawBatch:
         """Samples lo..hi-1 as `batch` gives them but for the low-rate channels, in their
         place each sample's index (SAMPLE_INDEX, after the per-sample channels): what a
-        windower needs when the low-rate channels' sums are made apart (`low_rate_sums`)."""
+        windower needs when the low-rate channels' sums are made apart (`with_low_rate`)."""
         p = self._p
         t_us = self._blocks.times_ns(lo, hi, self._shift_ns) // 1000
         aux = np.empty((hi - lo, len(p.per_sample) + 1))
@@ -133,16 +135,21 @@ class DeviceRecording:
         return RawBatch.of_checked(t_us, self.readings(lo, hi), aux,
                                    (*p.per_sample, SAMPLE_INDEX))
 
-    def low_rate_sums(self, lo: int, hi: int, first: np.ndarray, n: np.ndarray) -> np.ndarray:
-        """The low-rate channels' sums (W, channels) over samples first..first+n-1 of each
-        window (all within lo..hi), as sums of `batch`'s values to rounding
-        (`core.low_rate.window_sums`); only where `low_rate_closed` is not None."""
+    def with_low_rate(self, sums: WindowSums, lo: int, hi: int) -> WindowSums:
+        """Windows of samples within lo..hi cut from `window_batch`es, with their channels
+        as `batch` gives them: the low-rate channels' sums over each window's samples
+        (`core.low_rate.window_sums`, to rounding; the first sample from the sum of
+        SAMPLE_INDEX, n first + n (n - 1) / 2, exact in float64 below 2^53), then the
+        per-sample ones. Only where `low_rate_closed` is not None."""
         groups = self.low_rate_closed
         if groups is None:
             raise ValueError("the low-rate channels have no closed form here: use batch()")
+        n = sums.n
+        first = np.rint((sums.sum_aux[:, -1] - n * (n - 1) / 2)
+                        / np.maximum(n, 1)).astype(np.int64)
         x = self._p.file_t_ns[lo:hi]
-        parts = [low_rate.window_sums(g, x, lo, first, n) for g in groups]
-        return np.hstack(parts) if parts else np.zeros((len(first), 0))
+        low = [low_rate.window_sums(g, x, lo, first, n) for g in groups]
+        return replace(sums, sum_aux=np.hstack([*low, sums.sum_aux[:, :-1]]))
 
     def batch(self, lo: int, hi: int) -> RawBatch:
         """Samples lo..hi-1 (any range: the file is in memory)."""
