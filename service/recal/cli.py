@@ -219,7 +219,8 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
         _new_output(a.out, a.overwrite, a.input)
     _report_paths(a.json, a.out)
     model = load_model_file(a.model)[0] if a.model else None
-    src = open_recording(a.input, a.sensor_id, a.rate, a.units)
+    threads = a.threads or default_threads()
+    src = open_recording(a.input, a.sensor_id, a.rate, a.units, threads=threads)
     # passes over the input (module doc of recal.commands.hindsight; a device file's reader
     # gives the rate, so no first pass): samples read, in all
     passes = (3 if a.out is not None else 2) - (src.device is not None)
@@ -227,7 +228,7 @@ def _cmd_hindsight(a: argparse.Namespace) -> int:
     with tqdm(unit="sample", unit_scale=True, desc=f"hindsight ({passes} passes)", leave=False,
               disable=a.quiet or None, total=total) as bar:
         summary = hf.calibrate_file(src, a.out, model, a.overwrite, bar.update,
-                                    threads=a.threads or default_threads())
+                                    threads=threads)
     if a.json:
         Path(a.json).write_text(json.dumps(summary, indent=2, default=str))
     print("\n".join(hf.summary_lines(summary)))

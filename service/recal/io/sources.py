@@ -87,16 +87,18 @@ def _is_text(head: bytes) -> bool:
 
 
 def open_recording(path: str | Path, sensor_id: str | None = None, rate_hz: float | None = None,
-                   units: str | None = None, *, lenient: bool = True) -> Source:
+                   units: str | None = None, *, lenient: bool = True, threads: int = 1
+                   ) -> Source:
     """An MCAP recording (one sensor: the only one, or ``sensor_id``), a device file (read
-    once, kept in memory as its reader gives it) or a CSV time series, by content."""
+    once, kept in memory as its reader gives it; a .cwa decoded on ``threads``) or a CSV time
+    series, by content."""
     path = Path(path)
     kind = recording_kind(path)
     if kind == "unknown":
         raise InputError(f"{path} is neither an MCAP recording, a device file recal reads "
                          "(Axivity .cwa, GENEActiv .bin, ActiGraph .gt3x) nor a CSV")
     if kind == "device":
-        rec = device_files.open_device(path, lenient=lenient)
+        rec = device_files.open_device(path, lenient=lenient, threads=threads)
         return Source(str(path), sensor_id or rec.sensor_id, rec.batches, kind="device",
                       metadata=rec.metadata, notes=rec.notes, device=rec)
     if kind == "csv":

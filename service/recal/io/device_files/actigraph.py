@@ -46,7 +46,7 @@ def sniff_nhanes(p: Probe) -> bool:
     return "activity.bin" in p.zip_names and "log.bin" not in p.zip_names
 
 
-def read(path: Path, shown: Path, lenient: bool) -> Parsed:
+def read(path: Path, shown: Path, lenient: bool, threads: int = 1) -> Parsed:
     guard.check_zip(path, ("log.bin", "info.txt"))
     r = actfast_read(path, shown, lenient, "ActiGraph .gt3x")
     ts = r.get("timeseries", {})

@@ -22,7 +22,7 @@ __all__ = ["read"]
 _CHANNELS = {"lux": ("light", 1.0), "battery_v": ("battery_voltage", 1000.0)}
 
 
-def read(path: Path, shown: Path, lenient: bool) -> Parsed:
+def read(path: Path, shown: Path, lenient: bool, threads: int = 1) -> Parsed:
     d = read_gt3x(path, lenient=lenient)
     m = d.metadata
     nhanes = m["layout"] == "nhanes"

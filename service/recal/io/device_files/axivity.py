@@ -1,8 +1,9 @@
-"""Axivity AX3 / AX6 .cwa (also gzip-compressed, .cwa.gz), read by actfast.
+"""Axivity AX3 / AX6 .cwa (also gzip-compressed, .cwa.gz), decoded by `cwa_sectors` as actfast
+reads it (the same values and stamps, on threads).
 
 A .cwa starts with a 1024-byte header packet "MD" (length 0x03FC), then 512-byte data sectors
 "AX", each with its own time and one row of light, temperature and battery (openmovement's
-Docs/ax3/cwa.h). actfast gives the samples (``high_frequency``) and one row per sector
+Docs/ax3/cwa.h). The reader gives the samples (``high_frequency``) and one row per sector
 (``low_frequency``): the sector times mark the blocks.
 """
 
@@ -12,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
+from recal.errors import DeviceFileError
 from recal.io.device_files import guard
+from recal.io.device_files.cwa_sectors import read_cwa
 from recal.io.device_files.parsed import (
     LowRate,
     Parsed,
-    actfast_read,
     number,
     table,
     warning_notes,
@@ -43,8 +45,16 @@ def _cwa_battery(t: LowRate) -> LowRate:
     return LowRate(t.name, t.t_ns, (byte + 512.0) * 6.0 / 1024.0)
 
 
-def read(path: Path, shown: Path, lenient: bool) -> Parsed:
-    r = actfast_read(path, shown, lenient, "Axivity .cwa")
+def _decoded(path: Path, shown: Path, lenient: bool, threads: int) -> dict:
+    """`read_cwa`, its failures as one line that says what the file is."""
+    try:
+        return read_cwa(path, lenient, threads)
+    except (DeviceFileError, OSError, ValueError) as e:
+        raise DeviceFileError(f"{shown}: Axivity .cwa that cannot be read ({e})") from None
+
+
+def read(path: Path, shown: Path, lenient: bool, threads: int = 1) -> Parsed:
+    r = _decoded(path, shown, lenient, threads)
     ts = r.get("timeseries", {})
     hf, lf = ts.get("high_frequency", {}), ts.get("low_frequency", {})
     meta_in = r.get("metadata", {})

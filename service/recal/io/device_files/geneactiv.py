@@ -35,7 +35,7 @@ def sniff_genea(p: Probe) -> bool:
     return p.head.startswith(b"GENE")
 
 
-def read(path: Path, shown: Path, lenient: bool) -> Parsed:
+def read(path: Path, shown: Path, lenient: bool, threads: int = 1) -> Parsed:
     claimed = guard.check_geneactiv_pages(path, guard.read_head(path, 8192))
     r = actfast_read(path, shown, lenient, "GENEActiv .bin")
     ts = r.get("timeseries", {})

@@ -202,11 +202,11 @@ def _metadata(kind: registry.DeviceKind, p: Parsed, rec: DeviceRecording) -> dic
     return out
 
 
-def open_device(path: str | Path, *, lenient: bool = True) -> DeviceRecording:
+def open_device(path: str | Path, *, lenient: bool = True, threads: int = 1) -> DeviceRecording:
     """Read a device file recognised by its content (registry.KINDS). A kind recognised but
     not readable, anything else, or a damaged or crafted file: DeviceFileError, one line.
     ``lenient``: read up to what is whole (a cut-short file, corrupt blocks), counting what
-    was skipped in ``notes``."""
+    was skipped in ``notes``. ``threads``: a .cwa is decoded on that many (`cwa_sectors`)."""
     path = Path(path)
     kind = registry.kind_of(path)
     if kind is None:
@@ -217,9 +217,9 @@ def open_device(path: str | Path, *, lenient: bool = True) -> DeviceRecording:
                               f"({kind.why_not})")
     if guard.is_gzip(path):
         with tempfile.TemporaryDirectory(prefix="recal-device-") as tmp:
-            parsed = kind.read(guard.gunzip_to(path, tmp), path, lenient)
+            parsed = kind.read(guard.gunzip_to(path, tmp), path, lenient, threads)
     else:
-        parsed = kind.read(path, path, lenient)
+        parsed = kind.read(path, path, lenient, threads)
     if not len(parsed.file_t_ns):
         raise DeviceFileError(f"{path}: {kind.name} that holds no samples")
     return DeviceRecording(path, kind, parsed)

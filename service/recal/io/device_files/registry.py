@@ -22,7 +22,9 @@ class DeviceKind:
     family: str
     name: str
     test: Callable[[Probe], bool]
-    read: Callable[[Path, Path, bool], Parsed] | None
+    #: (path read, path shown, lenient, threads) -> Parsed; threads: the .cwa decoder's (the
+    #: other kinds are read by actfast, on one)
+    read: Callable[[Path, Path, bool, int], Parsed] | None
     why_not: str = ""
 
 
